@@ -1,0 +1,392 @@
+"""Cut one direction of a Progwhiz byte stream into items, losing nothing.
+
+The framer is sans-IO: callers feed it chunks with the time they arrived and get
+back the items those chunks completed.  Every byte of the stream ends up in
+exactly one item, and the items do not depend on how the stream was chunked,
+which is what lets a recording be re-framed later with identical results.
+"""
+
+from __future__ import annotations
+
+import re
+from enum import StrEnum
+from typing import NamedTuple
+
+DEFAULT_MAX_ITEM = 64 * 1024
+
+
+class ItemKind(StrEnum):
+    COMMAND = "command"  # rr1-D1--D2--D3-ss1
+    RESPONSE = "response"  # cr1-D1--D2--D3-ss1
+    CONFIG = "config"  # sr1-[count] digits -ss1
+    SET_CONFIG = "set_config"  # sr1-25-- triples [chk] --0-ss1
+    HANDSHAKE = "handshake"  # sendchkpass / readytogo / Failed Validation
+    PASSWORD = "password"  # the client's answer to sendchkpass
+    IMAGE = "image"  # a JPEG or PNG byte stream
+    EOL = "eol"  # a run of CR/LF bytes between items
+    UNFRAMED = "unframed"  # anything else, with a reason
+
+
+class Unframed(StrEnum):
+    """Why bytes were emitted as an ``unframed`` item."""
+
+    GARBAGE = "garbage"  # bytes that start no known item
+    TRUNCATED = "truncated"  # a header whose item never completed
+    OVERSIZE = "oversize"  # an item grew past the framer's size limit
+
+
+class Item(NamedTuple):
+    """One framed piece of a stream.
+
+    A NamedTuple rather than a dataclass: the framer makes one per frame on the
+    hot path, and tuples are several times cheaper to build while still immutable.
+    """
+
+    kind: ItemKind
+    raw: bytes
+    t_start_ns: int  # arrival time of the chunk holding the first byte
+    t_end_ns: int  # arrival time of the chunk holding the last byte
+    reason: Unframed | None = None
+
+
+HANDSHAKE_WORDS = (b"sendchkpass", b"readytogo", b"Failed Validation")
+TRAILER = b"-ss1"
+SET_CONFIG_PREFIX = b"sr1-25--"
+SET_CONFIG_TRAILER = b"--0-ss1"
+LAYOUT_DATA1 = 25  # Set Configuration's Data1 as one raw byte (the Layout line's reading)
+JPEG_SOI = b"\xff\xd8\xff"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+TEXT_FRAME_MAX = 48  # longest rr1/cr1 frame considered before giving up on a trailer
+
+# Fast path: a well-formed text frame.  Anything else goes through the slow path,
+# which still frames it (with spaces, letters, wide fields) as long as a trailer
+# comes before the next header.
+_TEXT_FRAME = re.compile(rb"([rc])r1-\d{1,5}--\d{1,5}--\d{1,5}-ss1")
+_SYNC = re.compile(
+    rb"rr1-|cr1-|sr1-|sendchkpass|readytogo|Failed Validation|\xff\xd8\xff|\x89PNG\r\n\x1a\n|[\r\n]"
+)
+_HEADER = re.compile(rb"rr1-|cr1-|sr1-")
+_SYNC_TOKENS = (
+    b"rr1-", b"cr1-", b"sr1-", *HANDSHAKE_WORDS, JPEG_SOI, PNG_SIGNATURE,
+)
+_SYNC_LONGEST = max(len(t) for t in _SYNC_TOKENS)
+_NEED_MORE = -1  # returned by item scanners: the item may still complete
+
+
+class Framer:
+    """Frames one direction of a connection.
+
+    ``feed()`` returns completed items; ``end()`` flushes what is left when the
+    stream closes.  A client-side framer can be told that the server asked for a
+    password (``expect_password()``); it then takes the leading text as the
+    password until a line break, a frame header, or ``close_password()``.
+    """
+
+    def __init__(self, max_item: int = DEFAULT_MAX_ITEM) -> None:
+        if max_item < _SYNC_LONGEST + TEXT_FRAME_MAX:
+            raise ValueError(f"max_item must be at least {_SYNC_LONGEST + TEXT_FRAME_MAX} bytes")
+        self.max_item = max_item
+        self._buf = bytearray()
+        # (offset in _buf, arrival time) for each chunk still partly in _buf
+        self._marks: list[tuple[int, int]] = []
+        self._password_mode = False
+        self._ended = False
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held for an item not yet complete."""
+        return len(self._buf)
+
+    def expect_password(self) -> None:
+        self._password_mode = True
+
+    def close_password(self, t_ns: int) -> list[Item]:
+        """The server has judged the password: whatever is pending is the password."""
+        if not self._password_mode:
+            return []
+        items = self._scan(t_ns, first_new=len(self._buf), final=False)
+        if self._password_mode and self._buf:
+            items.append(Item(ItemKind.PASSWORD, bytes(self._buf), self._start_time(0, t_ns), t_ns))
+            self._drop(len(self._buf))
+        self._password_mode = False
+        return items
+
+    def feed(self, data: bytes, t_ns: int) -> list[Item]:
+        if self._ended:
+            raise RuntimeError("feed() after end()")
+        if not data:
+            return []
+        first_new = len(self._buf)
+        self._marks.append((first_new, t_ns))
+        self._buf += data
+        return self._scan(t_ns, first_new, final=False)
+
+    def end(self, t_ns: int) -> list[Item]:
+        """The stream closed: flush everything, incomplete items as ``unframed``."""
+        self._ended = True
+        return self._scan(t_ns, first_new=len(self._buf), final=True)
+
+    # -- internals -------------------------------------------------------------
+
+    def _start_time(self, pos: int, t_ns: int) -> int:
+        start = t_ns
+        for offset, t in self._marks:
+            if offset > pos:
+                break
+            start = t
+        return start
+
+    def _scan(self, t_ns: int, first_new: int, final: bool) -> list[Item]:
+        items: list[Item] = []
+        buf = self._buf
+        pos = 0
+        n = len(buf)
+        match = _TEXT_FRAME.match
+        append = items.append
+        command, response = ItemKind.COMMAND, ItemKind.RESPONSE
+        while pos < n:
+            if not self._password_mode:
+                # fast path: a well-formed text frame
+                m = match(buf, pos)
+                if m is not None:
+                    end = m.end()
+                    t_start = t_ns if pos >= first_new else self._start_time(pos, t_ns)
+                    append(Item(command if buf[pos] == 0x72 else response, bytes(buf[pos:end]), t_start, t_ns))
+                    pos = end
+                    continue
+            step = self._scan_slow(pos, final)
+            if step is None:
+                break
+            length, kind, reason = step
+            if length > self.max_item:
+                # cut exactly where a partial stream would have been cut
+                length, kind, reason = self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+            t_start = t_ns if pos >= first_new else self._start_time(pos, t_ns)
+            append(Item(kind, bytes(buf[pos:pos + length]), t_start, t_ns, reason))
+            pos += length
+        if pos:
+            self._drop(pos)
+        return items
+
+    def _drop(self, n: int) -> None:
+        """Forget the first n bytes, keeping the arrival time of the byte now first."""
+        del self._buf[:n]
+        kept: list[tuple[int, int]] = []
+        for offset, t in self._marks:
+            if offset <= n:
+                kept = [(0, t)]
+            else:
+                kept.append((offset - n, t))
+        self._marks = kept if self._buf else []
+
+    def _scan_slow(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
+        """Identify the item at pos: (length, kind, reason), or None to wait for data."""
+        buf = self._buf
+        if self._password_mode:
+            return self._scan_password(pos, final)
+        for scanner in (self._scan_text, self._scan_sr1, self._scan_handshake,
+                        self._scan_eol, self._scan_jpeg, self._scan_png):
+            result = scanner(pos, final)
+            if result is None:
+                continue  # not this kind of item
+            if result == _NEED_MORE:
+                return self._wait_or_cut(pos, final)
+            return result
+        return self._scan_garbage(pos, final, Unframed.GARBAGE)
+
+    def _wait_or_cut(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
+        """An item has begun but is incomplete: wait, unless the stream ended or it is too big."""
+        pending = len(self._buf) - pos
+        if final:
+            return pending, ItemKind.UNFRAMED, Unframed.TRUNCATED
+        if pending >= self.max_item:
+            return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+        return None
+
+    def _scan_garbage(self, pos: int, final: bool, reason: Unframed):
+        """Bytes from pos up to the next sync point become one ``unframed`` item.
+
+        pos itself is never a usable sync point here (either nothing matched there,
+        or the item starting there failed), so the search starts one byte later.
+        """
+        buf = self._buf
+        limit = pos + self.max_item
+        m = _SYNC.search(buf, pos + 1)
+        if m is not None and m.start() < limit:
+            return m.start() - pos, ItemKind.UNFRAMED, reason
+        # No sync point within the size limit, or none yet: a token starting before
+        # the limit would be complete once _SYNC_LONGEST - 1 more bytes are in.
+        if m is not None or len(buf) >= limit + _SYNC_LONGEST - 1 or (final and len(buf) > limit):
+            return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+        if final:
+            return len(buf) - pos, ItemKind.UNFRAMED, reason
+        return None
+
+    def _scan_password(self, pos: int, final: bool):
+        buf = self._buf
+        cut = len(buf)
+        for token in (b"\r", b"\n"):
+            i = buf.find(token, pos)
+            if i != -1:
+                cut = min(cut, i)
+        h = _HEADER.search(buf, pos)
+        if h is not None:
+            cut = min(cut, h.start())
+        if cut == pos:
+            # nothing before the break or header: the password (if any) is over
+            self._password_mode = False
+            return self._scan_slow(pos, final)
+        if cut < len(buf) or final:
+            self._password_mode = False
+            return cut - pos, ItemKind.PASSWORD, None
+        if len(buf) - pos >= self.max_item:
+            self._password_mode = False
+            return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+        return None
+
+    # Each scanner returns None (not this kind), _NEED_MORE, or (length, kind, reason).
+
+    def _scan_text(self, pos: int, final: bool):
+        buf = self._buf
+        head = bytes(buf[pos:pos + 4])
+        if head not in (b"rr1-", b"cr1-"):
+            return _NEED_MORE if len(head) < 4 and (b"rr1-".startswith(head) or b"cr1-".startswith(head)) else None
+        kind = ItemKind.COMMAND if head[0] == 0x72 else ItemKind.RESPONSE
+        window_end = pos + 4 + TEXT_FRAME_MAX
+        t = buf.find(TRAILER, pos + 4, window_end)
+        h = _HEADER.search(buf, pos + 4, window_end)
+        if t != -1 and (h is None or h.start() > t):
+            return t + 4 - pos, kind, None
+        if h is not None:
+            return h.start() - pos, ItemKind.UNFRAMED, Unframed.TRUNCATED
+        if len(buf) < window_end + 3:  # a trailer or header could still arrive
+            return _NEED_MORE
+        return self._scan_garbage(pos, final, Unframed.TRUNCATED)
+
+    def _scan_sr1(self, pos: int, final: bool):
+        buf = self._buf
+        head = bytes(buf[pos:pos + 8])
+        if not head.startswith(b"sr1-"):
+            return _NEED_MORE if len(head) < 4 and b"sr1-".startswith(head) else None
+        if len(head) < 8 and SET_CONFIG_PREFIX.startswith(head):
+            return _NEED_MORE  # Set Configuration, or a count byte that happens to be '2'
+        if head == SET_CONFIG_PREFIX:
+            return self._scan_set_config(pos, pos + 8, 1, SET_CONFIG_TRAILER)
+        count = buf[pos + 4]
+        total = 4 + 1 + 3 * count + 4
+        body = bytes(buf[pos + 5:pos + total - 4])
+        # Configuration Settings: the count byte fixes the length.  Its digits are
+        # checked by the decoder, except with a count of 25, where they must be
+        # digits to tell it apart from Set Configuration in its Layout-line form.
+        digits_ok = count != LAYOUT_DATA1 or body.isdigit() or not body
+        if digits_ok:
+            if len(buf) - pos < total:
+                return _NEED_MORE
+            if buf[pos + total - 4:pos + total] == TRAILER:
+                return total, ItemKind.CONFIG, None
+        if count == LAYOUT_DATA1:
+            return self._scan_set_config(pos, pos + 5, 2, TRAILER)
+        return self._scan_garbage(pos, final, Unframed.TRUNCATED)
+
+    def _scan_set_config(self, pos: int, body: int, pad: int, trailer: bytes):
+        """Find the trailer at a triple boundary: raw payload bytes never fool it."""
+        buf = self._buf
+        q = body + pad  # trailer offset with zero triples: after checksum (and pad) byte
+        header = _HEADER.search(buf, body)
+        stop = header.start() if header is not None else len(buf)
+        while q + len(trailer) <= len(buf) and q < stop:
+            if buf[q:q + len(trailer)] == trailer:
+                return q + len(trailer) - pos, ItemKind.SET_CONFIG, None
+            q += 3
+        if header is not None:
+            return header.start() - pos, ItemKind.UNFRAMED, Unframed.TRUNCATED
+        return _NEED_MORE
+
+    def _scan_handshake(self, pos: int, final: bool):
+        buf = self._buf
+        for word in HANDSHAKE_WORDS:
+            if buf.startswith(word, pos):
+                return len(word), ItemKind.HANDSHAKE, None
+        tail = bytes(buf[pos:pos + _SYNC_LONGEST])
+        if any(len(tail) < len(w) and w.startswith(tail) for w in HANDSHAKE_WORDS):
+            return _NEED_MORE
+        return None
+
+    def _scan_eol(self, pos: int, final: bool):
+        """A line break: CR LF, LF, or CR alone.  A CR at the end of the data waits
+        for the next byte, which may be its LF."""
+        buf = self._buf
+        first = buf[pos]
+        if first == 0x0A:
+            return 1, ItemKind.EOL, None
+        if first != 0x0D:
+            return None
+        if pos + 1 == len(buf):
+            return (1, ItemKind.EOL, None) if final else _NEED_MORE
+        return (2 if buf[pos + 1] == 0x0A else 1), ItemKind.EOL, None
+
+    def _scan_jpeg(self, pos: int, final: bool):
+        buf = self._buf
+        head = bytes(buf[pos:pos + 3])
+        if not head or not JPEG_SOI.startswith(head):
+            return None
+        if len(head) < 3:
+            return _NEED_MORE
+        i = pos + 2
+        n = len(buf)
+        # Marker segments up to Start Of Scan carry their own lengths.
+        while True:
+            if i + 4 > n:
+                return _NEED_MORE
+            if buf[i] != 0xFF:
+                return self._scan_garbage(pos, final, Unframed.GARBAGE)
+            marker = buf[i + 1]
+            if marker == 0xFF:
+                i += 1
+                continue
+            if marker == 0xD9:
+                return i + 2 - pos, ItemKind.IMAGE, None
+            if 0xD0 <= marker <= 0xD7 or marker == 0x01:
+                i += 2
+                continue
+            seg_len = (buf[i + 2] << 8) | buf[i + 3]
+            if seg_len < 2:
+                return self._scan_garbage(pos, final, Unframed.GARBAGE)
+            i += 2 + seg_len
+            if marker == 0xDA:
+                break
+        # Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts.
+        while True:
+            j = buf.find(b"\xff", i)
+            if j == -1 or j + 1 >= n:
+                return _NEED_MORE
+            nxt = buf[j + 1]
+            if nxt == 0xD9:
+                return j + 2 - pos, ItemKind.IMAGE, None
+            i = j + 1 if nxt == 0xFF else j + 2 if nxt == 0x00 or 0xD0 <= nxt <= 0xD7 else j
+            if i == j:
+                # another marker segment (e.g. a second scan): walk it
+                if j + 4 > n:
+                    return _NEED_MORE
+                i = j + 2 + ((buf[j + 2] << 8) | buf[j + 3])
+
+    def _scan_png(self, pos: int, final: bool):
+        buf = self._buf
+        head = bytes(buf[pos:pos + 8])
+        if not head or not PNG_SIGNATURE.startswith(head):
+            return None
+        if len(head) < 8:
+            return _NEED_MORE
+        i = pos + 8
+        while True:
+            if i + 8 > len(buf):
+                return _NEED_MORE
+            length = int.from_bytes(buf[i:i + 4], "big")
+            ctype = bytes(buf[i + 4:i + 8])
+            if not ctype.isalpha():
+                return self._scan_garbage(pos, final, Unframed.GARBAGE)
+            i += 12 + length
+            if ctype == b"IEND":
+                if i > len(buf):
+                    return _NEED_MORE
+                return i - pos, ItemKind.IMAGE, None
