@@ -315,7 +315,7 @@ class Session:
         if isinstance(message, SetConfiguration):
             self._apply_set_config(message, violations)
         if self._commands == 1 and self.state is _S.READY and not isinstance(message, FetchConfiguration):
-            what = message.title if message else "an undecodable frame"
+            what = message.title if message else "an ambiguous frame" if candidates else "an undecodable frame"
             rule = "PW-VPN-CONFIG-FIRST" if self.mode is Mode.VPN else "PW-WINSOCK-CONFIG-FIRST"
             violations.append(Violation(rule, f"first command was {what}"))
         return message

@@ -1,0 +1,1 @@
+"""whiztap's socket side: the simulator, client, recording proxy and capture."""

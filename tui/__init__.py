@@ -1,0 +1,1 @@
+"""whiztap's terminal user interface."""

@@ -1,0 +1,28 @@
+"""Bytes as text a person can read and type back, losslessly."""
+
+from __future__ import annotations
+
+import re
+
+_SPECIAL = {0x5C: "\\\\", 0x0D: "\\r", 0x0A: "\\n", 0x09: "\\t"}
+_ESCAPES = [_SPECIAL.get(b) or (chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}") for b in range(256)]
+_TOKEN = re.compile(r"\\(x[0-9a-fA-F]{2}|[\\rnt])")
+_UNESCAPE = {"\\": 0x5C, "r": 0x0D, "n": 0x0A, "t": 0x09}
+
+
+def escape(data: bytes) -> str:
+    """Printable ASCII as itself, everything else as a backslash escape."""
+    return "".join([_ESCAPES[b] for b in data])
+
+
+def unescape(text: str) -> bytes:
+    """The inverse of ``escape``; also accepts unescaped non-ASCII as UTF-8."""
+    out = bytearray()
+    pos = 0
+    for m in _TOKEN.finditer(text):
+        out += text[pos:m.start()].encode()
+        token = m.group(1)
+        out.append(int(token[1:], 16) if token[0] == "x" else _UNESCAPE[token])
+        pos = m.end()
+    out += text[pos:].encode()
+    return bytes(out)
