@@ -13,6 +13,7 @@ from enum import StrEnum
 from typing import NamedTuple
 
 DEFAULT_MAX_ITEM = 64 * 1024
+MIN_MAX_ITEM = 1024  # above the longest Configuration Settings frame (255 channels)
 
 
 class ItemKind(StrEnum):
@@ -83,14 +84,16 @@ class Framer:
     """
 
     def __init__(self, max_item: int = DEFAULT_MAX_ITEM) -> None:
-        if max_item < _SYNC_LONGEST + TEXT_FRAME_MAX:
-            raise ValueError(f"max_item must be at least {_SYNC_LONGEST + TEXT_FRAME_MAX} bytes")
+        if max_item < MIN_MAX_ITEM:
+            raise ValueError(f"max_item must be at least {MIN_MAX_ITEM} bytes")
         self.max_item = max_item
         self._buf = bytearray()
         # (offset in _buf, arrival time) for each chunk still partly in _buf
         self._marks: list[tuple[int, int]] = []
         self._password_mode = False
         self._ended = False
+        self._window = 0  # end of the bytes the current scan may look at
+        self._final = False  # the current scan is end()'s: nothing more will come
 
     @property
     def buffered(self) -> int:
@@ -180,92 +183,96 @@ class Framer:
         self._marks = kept if self._buf else []
 
     def _scan_slow(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
-        """Identify the item at pos: (length, kind, reason), or None to wait for data."""
-        buf = self._buf
+        """Identify the item at pos: (length, kind, reason), or None to wait for data.
+
+        Scanners look only at the window of ``max_item`` bytes from pos.  That keeps
+        every decision independent of how much data happens to be buffered: an item
+        that cannot be decided within the window is cut as ``oversize`` whether the
+        rest of it has arrived yet or not.
+        """
+        self._window = min(len(self._buf), pos + self.max_item)
+        self._final = final
         if self._password_mode:
-            return self._scan_password(pos, final)
-        for scanner in (self._scan_text, self._scan_sr1, self._scan_handshake,
-                        self._scan_eol, self._scan_jpeg, self._scan_png):
-            result = scanner(pos, final)
-            if result is None:
-                continue  # not this kind of item
-            if result == _NEED_MORE:
-                return self._wait_or_cut(pos, final)
-            return result
-        return self._scan_garbage(pos, final, Unframed.GARBAGE)
+            result = self._scan_password(pos, final)
+        else:
+            for scanner in _SCANNERS:
+                result = scanner(self, pos)
+                if result is not None:
+                    break
+            else:
+                result = self._scan_garbage(pos, Unframed.GARBAGE)
+        if result == _NEED_MORE:
+            return self._wait_or_cut(pos, final)
+        return result
 
     def _wait_or_cut(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
         """An item has begun but is incomplete: wait, unless the stream ended or it is too big."""
         pending = len(self._buf) - pos
-        if final:
-            return pending, ItemKind.UNFRAMED, Unframed.TRUNCATED
         if pending >= self.max_item:
             return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+        if final:
+            return pending, ItemKind.UNFRAMED, Unframed.TRUNCATED
         return None
 
-    def _scan_garbage(self, pos: int, final: bool, reason: Unframed):
+    def _scan_garbage(self, pos: int, reason: Unframed):
         """Bytes from pos up to the next sync point become one ``unframed`` item.
 
-        pos itself is never a usable sync point here (either nothing matched there,
-        or the item starting there failed), so the search starts one byte later.
+        pos itself is never a usable sync point here (nothing matched there, or the
+        item starting there failed), so the search starts one byte later.  With no
+        sync point in a full window, the cut falls where no token could straddle it.
         """
-        buf = self._buf
-        limit = pos + self.max_item
-        m = _SYNC.search(buf, pos + 1)
-        if m is not None and m.start() < limit:
+        window = self._window
+        m = _SYNC.search(self._buf, pos + 1, window)
+        if m is not None:
             return m.start() - pos, ItemKind.UNFRAMED, reason
-        # No sync point within the size limit, or none yet: a token starting before
-        # the limit would be complete once _SYNC_LONGEST - 1 more bytes are in.
-        if m is not None or len(buf) >= limit + _SYNC_LONGEST - 1 or (final and len(buf) > limit):
-            return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
-        if final:
-            return len(buf) - pos, ItemKind.UNFRAMED, reason
+        if window - pos >= self.max_item:
+            return self.max_item - _SYNC_LONGEST + 1, ItemKind.UNFRAMED, Unframed.OVERSIZE
+        if self._final:
+            return window - pos, ItemKind.UNFRAMED, reason
         return None
 
     def _scan_password(self, pos: int, final: bool):
-        buf = self._buf
-        cut = len(buf)
+        buf, window = self._buf, self._window
+        cut = window
         for token in (b"\r", b"\n"):
-            i = buf.find(token, pos)
+            i = buf.find(token, pos, window)
             if i != -1:
                 cut = min(cut, i)
-        h = _HEADER.search(buf, pos)
+        h = _HEADER.search(buf, pos, window)
         if h is not None:
             cut = min(cut, h.start())
         if cut == pos:
             # nothing before the break or header: the password (if any) is over
             self._password_mode = False
             return self._scan_slow(pos, final)
-        if cut < len(buf) or final:
+        if cut < window or final:
             self._password_mode = False
             return cut - pos, ItemKind.PASSWORD, None
-        if len(buf) - pos >= self.max_item:
-            self._password_mode = False
-            return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
-        return None
+        return _NEED_MORE
 
-    # Each scanner returns None (not this kind), _NEED_MORE, or (length, kind, reason).
+    # Each scanner returns None (not its kind of item), _NEED_MORE, or
+    # (length, kind, reason).  They read only self._buf[pos:self._window].
 
-    def _scan_text(self, pos: int, final: bool):
-        buf = self._buf
+    def _scan_text(self, pos: int):
+        buf, window = self._buf, self._window
         head = bytes(buf[pos:pos + 4])
         if head not in (b"rr1-", b"cr1-"):
             return _NEED_MORE if len(head) < 4 and (b"rr1-".startswith(head) or b"cr1-".startswith(head)) else None
         kind = ItemKind.COMMAND if head[0] == 0x72 else ItemKind.RESPONSE
-        window_end = pos + 4 + TEXT_FRAME_MAX
-        t = buf.find(TRAILER, pos + 4, window_end)
-        h = _HEADER.search(buf, pos + 4, window_end)
+        body_end = pos + 4 + TEXT_FRAME_MAX  # the trailer must start before this
+        t = buf.find(TRAILER, pos + 4, min(window, body_end + 3))
+        h = _HEADER.search(buf, pos + 4, min(window, body_end + 3))
         if t != -1 and (h is None or h.start() > t):
             return t + 4 - pos, kind, None
         if h is not None:
             return h.start() - pos, ItemKind.UNFRAMED, Unframed.TRUNCATED
-        if len(buf) < window_end + 3:  # a trailer or header could still arrive
+        if window < body_end + 3:
             return _NEED_MORE
-        return self._scan_garbage(pos, final, Unframed.TRUNCATED)
+        return self._scan_garbage(pos, Unframed.TRUNCATED)
 
-    def _scan_sr1(self, pos: int, final: bool):
-        buf = self._buf
-        head = bytes(buf[pos:pos + 8])
+    def _scan_sr1(self, pos: int):
+        buf, window = self._buf, self._window
+        head = bytes(buf[pos:min(window, pos + 8)])
         if not head.startswith(b"sr1-"):
             return _NEED_MORE if len(head) < 4 and b"sr1-".startswith(head) else None
         if len(head) < 8 and SET_CONFIG_PREFIX.startswith(head):
@@ -274,119 +281,128 @@ class Framer:
             return self._scan_set_config(pos, pos + 8, 1, SET_CONFIG_TRAILER)
         count = buf[pos + 4]
         total = 4 + 1 + 3 * count + 4
-        body = bytes(buf[pos + 5:pos + total - 4])
+        body = bytes(buf[pos + 5:min(window, pos + total - 4)])
         # Configuration Settings: the count byte fixes the length.  Its digits are
         # checked by the decoder, except with a count of 25, where they must be
         # digits to tell it apart from Set Configuration in its Layout-line form.
-        digits_ok = count != LAYOUT_DATA1 or body.isdigit() or not body
-        if digits_ok:
-            if len(buf) - pos < total:
+        if count != LAYOUT_DATA1 or body.isdigit() or not body:
+            if window - pos < total:
                 return _NEED_MORE
             if buf[pos + total - 4:pos + total] == TRAILER:
                 return total, ItemKind.CONFIG, None
         if count == LAYOUT_DATA1:
             return self._scan_set_config(pos, pos + 5, 2, TRAILER)
-        return self._scan_garbage(pos, final, Unframed.TRUNCATED)
+        return self._scan_garbage(pos, Unframed.TRUNCATED)
 
     def _scan_set_config(self, pos: int, body: int, pad: int, trailer: bytes):
-        """Find the trailer at a triple boundary: raw payload bytes never fool it."""
-        buf = self._buf
-        q = body + pad  # trailer offset with zero triples: after checksum (and pad) byte
-        header = _HEADER.search(buf, body)
-        stop = header.start() if header is not None else len(buf)
-        while q + len(trailer) <= len(buf) and q < stop:
-            if buf[q:q + len(trailer)] == trailer:
-                return q + len(trailer) - pos, ItemKind.SET_CONFIG, None
+        """Find the trailer at a triple boundary: raw payload bytes never fool it.
+
+        Valid Port# and unit type bytes are below 24, so neither a trailer nor a
+        frame header can appear inside valid triples at any alignment.
+        """
+        buf, window = self._buf, self._window
+        header = _HEADER.search(buf, body, window)
+        stop = header.start() if header is not None else window
+        q = body + pad  # where the trailer starts with zero triples
+        size = len(trailer)
+        while q + size <= window and q < stop:
+            if buf[q:q + size] == trailer:
+                return q + size - pos, ItemKind.SET_CONFIG, None
             q += 3
         if header is not None:
             return header.start() - pos, ItemKind.UNFRAMED, Unframed.TRUNCATED
         return _NEED_MORE
 
-    def _scan_handshake(self, pos: int, final: bool):
-        buf = self._buf
+    def _scan_handshake(self, pos: int):
+        buf, window = self._buf, self._window
         for word in HANDSHAKE_WORDS:
-            if buf.startswith(word, pos):
+            if buf.startswith(word, pos, window):
                 return len(word), ItemKind.HANDSHAKE, None
-        tail = bytes(buf[pos:pos + _SYNC_LONGEST])
+        tail = bytes(buf[pos:window])
         if any(len(tail) < len(w) and w.startswith(tail) for w in HANDSHAKE_WORDS):
             return _NEED_MORE
         return None
 
-    def _scan_eol(self, pos: int, final: bool):
+    def _scan_eol(self, pos: int):
         """A line break: CR LF, LF, or CR alone.  A CR at the end of the data waits
-        for the next byte, which may be its LF."""
+        for the next byte, which may be its LF (``end()`` settles it)."""
         buf = self._buf
         first = buf[pos]
         if first == 0x0A:
             return 1, ItemKind.EOL, None
         if first != 0x0D:
             return None
-        if pos + 1 == len(buf):
-            return (1, ItemKind.EOL, None) if final else _NEED_MORE
+        if pos + 1 == self._window:
+            return (1, ItemKind.EOL, None) if self._final else _NEED_MORE
         return (2 if buf[pos + 1] == 0x0A else 1), ItemKind.EOL, None
 
-    def _scan_jpeg(self, pos: int, final: bool):
-        buf = self._buf
-        head = bytes(buf[pos:pos + 3])
+    def _scan_jpeg(self, pos: int):
+        buf, n = self._buf, self._window
+        head = bytes(buf[pos:min(n, pos + 3)])
         if not head or not JPEG_SOI.startswith(head):
             return None
         if len(head) < 3:
             return _NEED_MORE
         i = pos + 2
-        n = len(buf)
         # Marker segments up to Start Of Scan carry their own lengths.
         while True:
             if i + 4 > n:
                 return _NEED_MORE
             if buf[i] != 0xFF:
-                return self._scan_garbage(pos, final, Unframed.GARBAGE)
+                return self._scan_garbage(pos, Unframed.GARBAGE)
             marker = buf[i + 1]
             if marker == 0xFF:
                 i += 1
-                continue
-            if marker == 0xD9:
+            elif marker == 0xD9:
                 return i + 2 - pos, ItemKind.IMAGE, None
-            if 0xD0 <= marker <= 0xD7 or marker == 0x01:
+            elif 0xD0 <= marker <= 0xD7 or marker == 0x01:
                 i += 2
-                continue
-            seg_len = (buf[i + 2] << 8) | buf[i + 3]
-            if seg_len < 2:
-                return self._scan_garbage(pos, final, Unframed.GARBAGE)
-            i += 2 + seg_len
-            if marker == 0xDA:
-                break
-        # Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts.
+            else:
+                seg_len = (buf[i + 2] << 8) | buf[i + 3]
+                if seg_len < 2:
+                    return self._scan_garbage(pos, Unframed.GARBAGE)
+                i += 2 + seg_len
+                if marker == 0xDA:
+                    break
+        # Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts; any
+        # other marker (a further scan's tables) carries a length again.
         while True:
-            j = buf.find(b"\xff", i)
+            j = buf.find(b"\xff", i, n)
             if j == -1 or j + 1 >= n:
                 return _NEED_MORE
             nxt = buf[j + 1]
             if nxt == 0xD9:
                 return j + 2 - pos, ItemKind.IMAGE, None
-            i = j + 1 if nxt == 0xFF else j + 2 if nxt == 0x00 or 0xD0 <= nxt <= 0xD7 else j
-            if i == j:
-                # another marker segment (e.g. a second scan): walk it
+            if nxt == 0xFF:
+                i = j + 1
+            elif nxt == 0x00 or 0xD0 <= nxt <= 0xD7:
+                i = j + 2
+            else:
                 if j + 4 > n:
                     return _NEED_MORE
                 i = j + 2 + ((buf[j + 2] << 8) | buf[j + 3])
 
-    def _scan_png(self, pos: int, final: bool):
-        buf = self._buf
-        head = bytes(buf[pos:pos + 8])
+    def _scan_png(self, pos: int):
+        buf, n = self._buf, self._window
+        head = bytes(buf[pos:min(n, pos + 8)])
         if not head or not PNG_SIGNATURE.startswith(head):
             return None
         if len(head) < 8:
             return _NEED_MORE
         i = pos + 8
         while True:
-            if i + 8 > len(buf):
+            if i + 8 > n:
                 return _NEED_MORE
             length = int.from_bytes(buf[i:i + 4], "big")
             ctype = bytes(buf[i + 4:i + 8])
             if not ctype.isalpha():
-                return self._scan_garbage(pos, final, Unframed.GARBAGE)
+                return self._scan_garbage(pos, Unframed.GARBAGE)
             i += 12 + length
             if ctype == b"IEND":
-                if i > len(buf):
-                    return _NEED_MORE
-                return i - pos, ItemKind.IMAGE, None
+                return (i - pos, ItemKind.IMAGE, None) if i <= n else _NEED_MORE
+
+
+_SCANNERS = (
+    Framer._scan_text, Framer._scan_sr1, Framer._scan_handshake,
+    Framer._scan_eol, Framer._scan_jpeg, Framer._scan_png,
+)

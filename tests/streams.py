@@ -1,0 +1,50 @@
+"""Stream builders shared by the framing, codec and session tests."""
+
+from hypothesis import strategies as st
+
+from analyzer.framing import Framer, Item
+from tests.spec_vectors import ALL_FRAMES, HANDSHAKE_SERVER
+
+# Smallest byte streams the framer accepts as images: structure only.
+TINY_JPEG = (
+    b"\xff\xd8"  # SOI
+    + b"\xff\xe0\x00\x06JFIF"  # APP0, 4 payload bytes
+    + b"\xff\xda\x00\x04\x01\x02"  # SOS, 2 payload bytes
+    + b"\x12\xff\x00\x34\xff\xd3\x56"  # entropy data with a stuffed FF and a restart
+    + b"\xff\xd9"  # EOI
+)
+TINY_PNG = (
+    b"\x89PNG\r\n\x1a\n"
+    + b"\x00\x00\x00\x02IHDR" + b"ab" + b"\x00\x00\x00\x00"
+    + b"\x00\x00\x00\x00IEND" + b"\xaeB`\x82"
+)
+
+
+def frame_all(chunks: list[bytes], max_item: int | None = None) -> list[Item]:
+    framer = Framer(max_item) if max_item else Framer()
+    items: list[Item] = []
+    for t, chunk in enumerate(chunks):
+        items += framer.feed(chunk, t)
+    return items + framer.end(len(chunks))
+
+
+def chunked(data: bytes, cuts: list[int]) -> list[bytes]:
+    points = sorted({c % (len(data) + 1) for c in cuts} | {0, len(data)})
+    return [data[a:b] for a, b in zip(points, points[1:]) if b > a]
+
+
+def stream_pieces():
+    """Frames, handshake text, images, line breaks, and hostile fragments."""
+    piece = st.one_of(
+        st.sampled_from(ALL_FRAMES),
+        st.sampled_from(HANDSHAKE_SERVER),
+        st.sampled_from([TINY_JPEG, TINY_PNG, b"\r\n", b"\n", b"\r"]),
+        st.sampled_from([b"rr1-", b"sr1-", b"sr1-25--", b"-ss1", b"--0-ss1", b"\xff\xd8\xff", b"\x89PNG",
+                         b"readyto", b"sr1-\x19", b"cr1-9--"]),
+        st.binary(max_size=40),
+        st.builds(lambda n, body: b"sr1-" + bytes([n]) + body + b"-ss1",
+                  st.integers(0, 30), st.binary(max_size=100)),
+        st.builds(lambda body, chk: b"sr1-25--" + body + bytes([chk]) + b"--0-ss1",
+                  st.binary(max_size=30), st.integers(0, 255)),
+    )
+    return st.lists(piece, max_size=40)

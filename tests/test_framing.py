@@ -1,0 +1,221 @@
+"""The framer's invariants: lossless, chunking-independent, total, bounded."""
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from analyzer.framing import (
+    DEFAULT_MAX_ITEM,
+    MIN_MAX_ITEM,
+    Framer,
+    Item,
+    ItemKind,
+    Unframed,
+)
+from tests.spec_vectors import ALL_FRAMES, COMMANDS, HANDSHAKE_SERVER, RESPONSES, SET_CONFIG_EXAMPLE
+from tests.streams import TINY_JPEG, TINY_PNG, chunked, frame_all, stream_pieces
+
+
+def shape(items: list[Item]) -> list[tuple]:
+    return [(i.kind, i.raw, i.reason) for i in items]
+
+
+# -- golden vectors ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("raw", [raw for raw, _ in COMMANDS])
+def test_each_spec_command_is_one_item(raw):
+    kind = ItemKind.SET_CONFIG if raw.startswith(b"sr1-") else ItemKind.COMMAND
+    assert shape(frame_all([raw])) == [(kind, raw, None)]
+
+
+@pytest.mark.parametrize("raw", [raw for raw, _ in RESPONSES])
+def test_each_spec_response_is_one_item(raw):
+    kind = ItemKind.CONFIG if raw.startswith(b"sr1-") else ItemKind.RESPONSE
+    assert shape(frame_all([raw])) == [(kind, raw, None)]
+
+
+def test_spec_frames_back_to_back_split_at_every_offset():
+    stream = b"".join(ALL_FRAMES)
+    whole = shape(frame_all([stream]))
+    assert [raw for _, raw, _ in whole] == ALL_FRAMES
+    for cut in range(1, len(stream)):
+        assert shape(frame_all([stream[:cut], stream[cut:]])) == whole
+
+
+def test_one_byte_at_a_time():
+    stream = b"".join(ALL_FRAMES) + b"sendchkpass\r\nreadytogo" + TINY_JPEG + TINY_PNG
+    assert shape(frame_all([stream[i:i + 1] for i in range(len(stream))])) == shape(frame_all([stream]))
+
+
+@pytest.mark.parametrize("word", HANDSHAKE_SERVER)
+@pytest.mark.parametrize("eol", [b"", b"\r\n", b"\n", b"\r"])
+def test_handshake_words_with_optional_line_break(word, eol):
+    items = frame_all([word + eol + b"cr1-0--0--0-ss1"])
+    expected = [(ItemKind.HANDSHAKE, word, None)]
+    if eol:
+        expected.append((ItemKind.EOL, eol, None))
+    expected.append((ItemKind.RESPONSE, b"cr1-0--0--0-ss1", None))
+    assert shape(items) == expected
+
+
+def test_password_runs_until_the_verdict_closes_it():
+    framer = Framer()
+    framer.expect_password()
+    assert framer.feed(b"se", 1) == []
+    assert framer.feed(b"cret", 2) == []
+    [item] = framer.close_password(3)
+    assert item == Item(ItemKind.PASSWORD, b"secret", 1, 3)
+    assert shape(framer.feed(b"rr1-24--0--0-ss1", 4)) == [(ItemKind.COMMAND, b"rr1-24--0--0-ss1", None)]
+
+
+def test_password_ends_at_line_break_or_frame_header():
+    framer = Framer()
+    framer.expect_password()
+    items = framer.feed(b"pw\r\nrr1-24--0--0-ss1", 1)
+    assert shape(items) == [(ItemKind.PASSWORD, b"pw", None), (ItemKind.EOL, b"\r\n", None),
+                            (ItemKind.COMMAND, b"rr1-24--0--0-ss1", None)]
+    framer = Framer()
+    framer.expect_password()
+    assert shape(framer.feed(b"pwrr1-24--0--0-ss1", 1))[0] == (ItemKind.PASSWORD, b"pw", None)
+
+
+def test_images_are_recognised_whole():
+    items = frame_all([TINY_JPEG + TINY_PNG + b"rr1-24--0--0-ss1"])
+    assert shape(items) == [(ItemKind.IMAGE, TINY_JPEG, None), (ItemKind.IMAGE, TINY_PNG, None),
+                            (ItemKind.COMMAND, b"rr1-24--0--0-ss1", None)]
+
+
+def test_timestamps_of_first_and_last_chunk():
+    framer = Framer()
+    assert framer.feed(b"rr1-0--", 10) == []
+    assert framer.feed(b"60--0", 20) == []
+    first, second = framer.feed(b"-ss1rr1-1--1--0-ss1", 30)
+    assert (first.t_start_ns, first.t_end_ns) == (10, 30)
+    assert (second.t_start_ns, second.t_end_ns) == (30, 30)
+
+
+# -- adversarial input -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("payload_byte", [ord("-"), ord("s"), ord("1"), ord("0"), ord("r")])
+def test_set_config_payload_bytes_that_look_like_the_trailer(payload_byte):
+    # a Dev# byte and a checksum byte equal to trailer characters
+    raw = b"sr1-25--" + bytes([payload_byte, 3, 1, 12, 4, 0]) + bytes([payload_byte]) + b"--0-ss1"
+    assert shape(frame_all([raw, b"rr1-24--0--0-ss1"])) == [
+        (ItemKind.SET_CONFIG, raw, None), (ItemKind.COMMAND, b"rr1-24--0--0-ss1", None)]
+
+
+def test_set_config_checksum_dash_then_trailer():
+    raw = b"sr1-25--" + bytes([12, 0, 0]) + b"-" + b"--0-ss1"
+    assert shape(frame_all([raw])) == [(ItemKind.SET_CONFIG, raw, None)]
+
+
+def test_config_count_byte_equal_to_dash():
+    raw = b"sr1-" + bytes([0x2D]) + b"000" * 0x2D + b"-ss1"
+    assert shape(frame_all([raw, b"cr1-1--5--0-ss1"])) == [
+        (ItemKind.CONFIG, raw, None), (ItemKind.RESPONSE, b"cr1-1--5--0-ss1", None)]
+
+
+def test_config_count_byte_equal_to_two_is_not_set_config():
+    raw = b"sr1-" + bytes([ord("2")]) + b"200" * ord("2") + b"-ss1"
+    assert shape(frame_all([raw])) == [(ItemKind.CONFIG, raw, None)]
+
+
+def test_layout_form_set_config_is_framed_as_set_config():
+    raw = b"sr1-" + bytes([25]) + bytes([12, 0, 0, 12, 1, 0]) + bytes([24]) + b"0-ss1"
+    assert shape(frame_all([raw])) == [(ItemKind.SET_CONFIG, raw, None)]
+
+
+def test_garbage_between_frames_resynchronises():
+    items = frame_all([b"rr1-24--0--0-ss1" + b"\x00\xffjunk" + b"rr1-0--0--2-ss1"])
+    assert shape(items) == [
+        (ItemKind.COMMAND, b"rr1-24--0--0-ss1", None),
+        (ItemKind.UNFRAMED, b"\x00\xffjunk", Unframed.GARBAGE),
+        (ItemKind.COMMAND, b"rr1-0--0--2-ss1", None),
+    ]
+
+
+def test_frame_cut_short_by_the_next_header():
+    items = frame_all([b"rr1-0--6rr1-0--0--2-ss1"])
+    assert shape(items) == [(ItemKind.UNFRAMED, b"rr1-0--6", Unframed.TRUNCATED),
+                            (ItemKind.COMMAND, b"rr1-0--0--2-ss1", None)]
+
+
+def test_stream_ending_inside_a_frame():
+    assert shape(frame_all([b"rr1-24--0--0-ss1", b"cr1-3--1"])) == [
+        (ItemKind.COMMAND, b"rr1-24--0--0-ss1", None), (ItemKind.UNFRAMED, b"cr1-3--1", Unframed.TRUNCATED)]
+
+
+def test_frames_with_spaces_and_letters_are_still_framed_for_the_decoder():
+    assert shape(frame_all([b"rr1-0 --6x--0-ss1"])) == [(ItemKind.COMMAND, b"rr1-0 --6x--0-ss1", None)]
+
+
+def test_endless_stream_without_trailer_stays_bounded():
+    framer = Framer(max_item=MIN_MAX_ITEM)
+    emitted = 0
+    chunk = b"sr1-25--" + b"\x01\x02\x03" * 300
+    for t in range(200):
+        for item in framer.feed(chunk if t == 0 else b"\x05\x06\x07" * 100, t):
+            assert item.kind is ItemKind.UNFRAMED
+            emitted += len(item.raw)
+        assert framer.buffered < MIN_MAX_ITEM
+    assert emitted > 50_000
+
+
+def test_endless_garbage_stays_bounded():
+    framer = Framer()
+    for t in range(100):
+        framer.feed(b"\x00" * 10_000, t)
+        assert framer.buffered < DEFAULT_MAX_ITEM
+
+
+def test_max_item_has_a_floor():
+    with pytest.raises(ValueError):
+        Framer(max_item=MIN_MAX_ITEM - 1)
+
+
+# -- properties ------------------------------------------------------------------------
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.binary(max_size=600), cuts=st.lists(st.integers(0, 600), max_size=20))
+def test_lossless_and_chunking_independent_on_any_bytes(data, cuts):
+    one = frame_all([data])
+    many = frame_all(chunked(data, cuts))
+    assert b"".join(i.raw for i in many) == data
+    assert shape(many) == shape(one)
+    assert all(i.raw for i in many)
+
+
+@settings(max_examples=300, deadline=None)
+@given(pieces=stream_pieces(), cuts=st.lists(st.integers(0, 4000), max_size=30))
+def test_lossless_and_chunking_independent_on_protocol_like_streams(pieces, cuts):
+    data = b"".join(pieces)
+    one = frame_all([data])
+    many = frame_all(chunked(data, cuts))
+    assert b"".join(i.raw for i in many) == data
+    assert shape(many) == shape(one)
+
+
+@settings(max_examples=100, deadline=None)
+@given(pieces=stream_pieces(), cuts=st.lists(st.integers(0, 4000), max_size=30))
+def test_bounded_with_smallest_limit(pieces, cuts):
+    framer = Framer(max_item=MIN_MAX_ITEM)
+    data = b"".join(pieces) * 3
+    out = []
+    for t, chunk in enumerate(chunked(data, cuts)):
+        out += framer.feed(chunk, t)
+        assert framer.buffered < MIN_MAX_ITEM
+    out += framer.end(10**6)
+    assert b"".join(i.raw for i in out) == data
+    assert all(len(i.raw) <= MIN_MAX_ITEM for i in out)
+
+
+@settings(max_examples=200, deadline=None)
+@given(frames=st.lists(st.sampled_from(ALL_FRAMES), min_size=1, max_size=30),
+       cuts=st.lists(st.integers(0, 3000), max_size=30))
+def test_valid_frames_are_recovered_exactly(frames, cuts):
+    items = frame_all(chunked(b"".join(frames), cuts))
+    assert [i.raw for i in items] == frames
+    assert all(i.kind is not ItemKind.UNFRAMED for i in items)
