@@ -1,5 +1,5 @@
 # Everything runs from .venv, which the first target that needs it creates.
-PYTHON ?= python3.11
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -7,14 +7,17 @@ STAMP := $(VENV)/.installed
 .PHONY: demo test bench samples clean
 
 $(STAMP): pyproject.toml
-	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "make: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3'"; exit 2; }
+	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
+	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "make: $(PYTHON) is older than Python 3.11"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
+# Until the full demo (simulator + proxy + TUI) exists, the demo runs the
+# analyzer on a scripted session that uses every message of the spec.
 demo: $(STAMP)
-	$(BIN)/whiztap demo
+	$(BIN)/whiztap decode samples/spec-session.txt
 
 test: $(STAMP)
 	$(BIN)/pytest -q

@@ -98,10 +98,12 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
     SOURCE is a file of lines (or - for standard input), optionally prefixed
     with 'c2s ' or 's2c '.  The lines run through one session, so handshake
     order, pairing and the channel map are checked as on a live connection.
+    Exit status 1 when a rule of error severity was broken.
     """
     from analyzer.checksum import DEFAULT_CHECKSUM_RULE
     from analyzer.describe import meaning
-    from analyzer.session import Direction, LateViolation, Session
+    from analyzer.rules import Severity
+    from analyzer.session import Direction, Session
     from analyzer.text import escape, unescape
 
     lines = list(frames)
@@ -117,7 +119,7 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
         session = Session(checksum_rule or DEFAULT_CHECKSUM_RULE)
     except ValueError as e:
         fail(str(e))
-    bad = 0
+    worst = 0
     t = 0
     for line in lines:
         if not line.strip() or line.lstrip().startswith("#"):
@@ -133,22 +135,24 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
                 line.startswith("sr1-") and not line.startswith("sr1-25--")) else Direction.C2S
         t += 1_000_000
         for event in session.receive(dir_, unescape(line), t):
-            bad += _print_event(event, meaning, escape)
+            worst = max(worst, _print_event(event, meaning, escape))
     for event in session.close(t + 1):
-        bad += _print_event(event, meaning, escape)
-    click.echo(f"mode {session.mode}, handshake {session.handshake_outcome}, {bad} violation(s)")
-    if bad:
+        worst = max(worst, _print_event(event, meaning, escape))
+    total = sum(session.violation_counts.values())
+    click.echo(f"mode {session.mode}, handshake {session.handshake_outcome}, {total} violation(s)")
+    if worst >= Severity.ERROR:
         sys.exit(1)
 
 
-def _print_event(event, meaning, escape) -> int:  # noqa: ANN001 - local helpers
+def _print_event(event, meaning, escape) -> int:  # noqa: ANN001 - helpers imported lazily by the caller
+    """Print one event; return the highest severity among its violations (0 if none)."""
     from analyzer.session import LateViolation
 
     if isinstance(event, LateViolation):
-        v = event.violation
+        violations = (event.violation,)
+    else:
+        click.echo(f"{event.direction} {event.item.kind:10} {escape(event.item.raw)}  ->  {meaning(event)}")
+        violations = event.violations
+    for v in violations:
         click.echo(f"  ! {v.rule_id} ({v.severity}): {v.detail}")
-        return 1
-    click.echo(f"{event.direction} {event.item.kind:10} {escape(event.item.raw)}  ->  {meaning(event)}")
-    for v in event.violations:
-        click.echo(f"  ! {v.rule_id} ({v.severity}): {v.detail}")
-    return len(event.violations)
+    return max((v.severity for v in violations), default=0)

@@ -7,7 +7,7 @@ handshake, the pending request) is the session's job.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from analyzer.framing import (
     HANDSHAKE_WORDS,
@@ -81,12 +81,12 @@ _UNFRAMED_RULES = {
 }
 
 
-@dataclass(frozen=True, slots=True)
-class Decoded:
+class Decoded(NamedTuple):
     """What one item can mean.
 
     ``message`` is set when the bytes have exactly one meaning; ``candidates``
     lists every meaning (several for the frames the spec gives more than one).
+    A NamedTuple: one is made per distinct frame on the hot path.
     """
 
     message: Message | None
@@ -118,11 +118,18 @@ def _channel(value: int, out: list[Violation]) -> None:
 def _parse_fields(raw: bytes, out: list[Violation]) -> tuple[int, int, int] | None:
     """The three decimal fields of an rr1/cr1 frame, noting every syntax slip."""
     body = raw[4:-4]
+    fields = body.split(b"--")
+    if len(fields) == 3:
+        a, b, c = fields
+        # the common case, inline for speed: canonical digits within the Layout widths
+        if (a.isdigit() and b.isdigit() and c.isdigit() and len(a) <= 2 and len(b) <= 4 and len(c) <= 3
+                and (len(a) == 1 or a[0] != 0x30) and (len(b) == 1 or b[0] != 0x30)
+                and (len(c) == 1 or c[0] != 0x30)):
+            return int(a), int(b), int(c)
     if b" " in body:
         out.append(Violation("PW-SYNTAX-SPACE", f"space at offset {raw.index(b' ')} of the frame"))
-        body = body.replace(b" ", b"")
-    fields = body.split(b"--")
-    if len(fields) != 3 or not all(f.isdigit() and f.isascii() for f in fields):
+        fields = body.replace(b" ", b"").split(b"--")
+    if len(fields) != 3 or not all(f.isdigit() for f in fields):  # bytes.isdigit is ASCII-only
         out.append(Violation("PW-SYNTAX-FIELDS",
                              f"expected three decimal fields separated by '--', got {body!r}"))
         return None
@@ -183,7 +190,27 @@ def _decode_command(raw: bytes) -> Decoded:
     return _one(NormalSend(d1, d2), out)
 
 
+_new = tuple.__new__
+_new_object = object.__new__
+_set_response_channel = ChannelResponse.channel.__set__  # type: ignore[attr-defined]
+_set_response_data = ChannelResponse.data.__set__  # type: ignore[attr-defined]
+
+
 def _decode_response(raw: bytes) -> Decoded:
+    # Responses carry readings that rarely repeat, so this runs for most of them:
+    # a canonical one is built without the general parser, and its frozen message
+    # through the slot setters (the dataclass __init__ costs twice as much).
+    fields = raw[4:-4].split(b"--")
+    if len(fields) == 3:
+        a, b, c = fields
+        if (c == b"0" and a.isdigit() and b.isdigit() and len(a) <= 2 and len(b) <= 4
+                and (len(a) == 1 or a[0] != 0x30) and (len(b) == 1 or b[0] != 0x30)):
+            channel = int(a)
+            if channel <= MAX_CHANNEL:
+                message = _new_object(ChannelResponse)
+                _set_response_channel(message, channel)
+                _set_response_data(message, int(b))
+                return _new(Decoded, (message, (message,), ()))
     out: list[Violation] = []
     fields = _parse_fields(raw, out)
     if fields is None:
@@ -258,30 +285,41 @@ _DECODERS = {
     ItemKind.SET_CONFIG: _decode_set_config,
     ItemKind.IMAGE: _decode_image,
 }
-_CACHE: dict[tuple[ItemKind, bytes], Decoded] = {}
-_CACHE_LIMIT = 8192  # distinct frames remembered; real sessions repeat a few hundred
+# Decoded text frames by bytes: sessions repeat the same commands endlessly, and
+# responses take at most 24 x 8001 well-formed values.  Only these small frames
+# are cached; the limit bounds memory (a few tens of MB at worst) on hostile input.
+_CACHES: dict[ItemKind, dict[bytes, Decoded]] = {ItemKind.COMMAND: {}, ItemKind.RESPONSE: {}}
+_CACHE_LIMIT = 65536  # distinct frames remembered per kind
+
+
+def decode_cache(kind: ItemKind) -> dict[bytes, Decoded]:
+    """The cache ``decode`` fills for a kind of text frame, for hot loops that look
+    up known frames themselves before paying for a call."""
+    return _CACHES[kind]
 
 
 def decode(kind: ItemKind, raw: bytes, reason: Unframed | None = None) -> Decoded:
     """Everything the bytes of one item say on their own.  Never raises."""
+    cache = _CACHES.get(kind)
+    if cache is not None:
+        hit = cache.get(raw)
+        if hit is None:
+            hit = _DECODERS[kind](raw)
+            if len(cache) >= _CACHE_LIMIT:
+                cache.clear()
+            cache[raw] = hit
+        return hit
+    decoder = _DECODERS.get(kind)
+    if decoder is not None:
+        return decoder(raw)
     if kind is ItemKind.HANDSHAKE:
         return _one(_HANDSHAKE_MESSAGES[raw], [])
     if kind is ItemKind.PASSWORD:
         return _one(Password(raw), [])
     if kind is ItemKind.EOL:
         return _NOTHING
-    if kind is ItemKind.UNFRAMED:
-        rule = _UNFRAMED_RULES[reason or Unframed.GARBAGE]
-        return Decoded(None, (), (Violation(rule, f"{len(raw)} bytes that form no message"),))
-    key = (kind, raw)
-    hit = _CACHE.get(key)
-    if hit is not None:
-        return hit
-    result = _DECODERS[kind](raw)
-    if len(_CACHE) >= _CACHE_LIMIT:
-        _CACHE.clear()
-    _CACHE[key] = result
-    return result
+    rule = _UNFRAMED_RULES[reason or Unframed.GARBAGE]
+    return Decoded(None, (), (Violation(rule, f"{len(raw)} bytes that form no message"),))
 
 
 def resolve(candidates: tuple[Message, ...], unit: UnitType | None) -> Message | None:

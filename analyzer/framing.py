@@ -59,10 +59,11 @@ JPEG_SOI = b"\xff\xd8\xff"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 TEXT_FRAME_MAX = 48  # longest rr1/cr1 frame considered before giving up on a trailer
 
-# Fast path: a well-formed text frame.  Anything else goes through the slow path,
+# Fast path: well-formed text frames.  Anything else goes through the slow path,
 # which still frames it (with spaces, letters, wide fields) as long as a trailer
 # comes before the next header.
-_TEXT_FRAME = re.compile(rb"([rc])r1-\d{1,5}--\d{1,5}--\d{1,5}-ss1")
+_TEXT_RUN = re.compile(rb"(?:[rc]r1-[0-9]{1,5}--[0-9]{1,5}--[0-9]{1,5}-ss1)+")
+_new_item = tuple.__new__  # Item without its Python-level __new__: the hot path's biggest cost
 _SYNC = re.compile(
     rb"rr1-|cr1-|sr1-|sendchkpass|readytogo|Failed Validation|\xff\xd8\xff|\x89PNG\r\n\x1a\n|[\r\n]"
 )
@@ -141,20 +142,26 @@ class Framer:
 
     def _scan(self, t_ns: int, first_new: int, final: bool) -> list[Item]:
         items: list[Item] = []
-        buf = self._buf
+        data = bytes(self._buf)  # one copy per scan; slicing bytes then copies once
         pos = 0
-        n = len(buf)
-        match = _TEXT_FRAME.match
-        append = items.append
+        n = len(data)
+        run_match = _TEXT_RUN.match
         command, response = ItemKind.COMMAND, ItemKind.RESPONSE
         while pos < n:
             if not self._password_mode:
-                # fast path: a well-formed text frame
-                m = match(buf, pos)
+                # Fast path: a run of well-formed text frames.  Inside one, "-ss1"
+                # occurs only as a trailer, so a split finds every frame at C speed.
+                m = run_match(data, pos)
                 if m is not None:
                     end = m.end()
-                    t_start = t_ns if pos >= first_new else self._start_time(pos, t_ns)
-                    append(Item(command if buf[pos] == 0x72 else response, bytes(buf[pos:end]), t_start, t_ns))
+                    pieces = data[pos:end].split(TRAILER)
+                    pieces.pop()
+                    if pos < first_new:
+                        first = pieces.pop(0)
+                        items.append(_new_item(Item, (command if first[0] == 0x72 else response, first + TRAILER,
+                                                      self._start_time(pos, t_ns), t_ns, None)))
+                    items += [_new_item(Item, (command if p[0] == 0x72 else response, p + TRAILER, t_ns, t_ns, None))
+                              for p in pieces]
                     pos = end
                     continue
             step = self._scan_slow(pos, final)
@@ -165,7 +172,7 @@ class Framer:
                 # cut exactly where a partial stream would have been cut
                 length, kind, reason = self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
             t_start = t_ns if pos >= first_new else self._start_time(pos, t_ns)
-            append(Item(kind, bytes(buf[pos:pos + length]), t_start, t_ns, reason))
+            items.append(Item(kind, data[pos:pos + length], t_start, t_ns, reason))
             pos += length
         if pos:
             self._drop(pos)

@@ -7,12 +7,12 @@ it took.  Recorder, reports, replayer and TUI all read traffic through it.
 
 from __future__ import annotations
 
-from collections import Counter, deque
+from collections import Counter, defaultdict, deque
 from enum import StrEnum
 from typing import NamedTuple
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
-from analyzer.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, UNIT_OF_COMMAND, decode, resolve
+from analyzer.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, UNIT_OF_COMMAND, decode, decode_cache, resolve
 from analyzer.framing import DEFAULT_MAX_ITEM, Framer, Item, ItemKind
 from analyzer.messages import (
     ChannelConfig,
@@ -103,6 +103,17 @@ _ANSWER_KIND = {
 }
 
 
+def _answer_spec(message: Message | None,
+                 candidates: tuple[Message, ...]) -> tuple[ItemKind | None, int | None, bool]:
+    """What answer a command waits for: (item kind, channel, certain)."""
+    if message is not None:
+        return _ANSWER_KIND.get(type(message)), getattr(message, "channel", None), True
+    if any(isinstance(c, SensorRequest) for c in candidates):
+        # may be a Sensor Request: pair an answer if one comes, forgive it if none does
+        return ItemKind.RESPONSE, candidates[0].channel, False
+    return None, None, False
+
+
 class Observation(NamedTuple):
     """One item of the session with everything known about it when it arrived."""
 
@@ -132,6 +143,21 @@ class _Pending(NamedTuple):
     answer_kind: ItemKind
     channel: int | None
     certain: bool  # False for an ambiguous frame that may be a Sensor Request
+    t_ns: int
+
+
+class _Plan(NamedTuple):
+    """What a command's bytes mean in the current channel map, once worked out."""
+
+    message: Message | None
+    candidates: tuple[Message, ...]
+    violations: tuple[Violation, ...]
+    answer_kind: ItemKind | None
+    channel: int | None
+    certain: bool
+
+
+_new = tuple.__new__  # NamedTuples without their Python-level __new__, on the hot path
 
 
 class Session:
@@ -156,10 +182,11 @@ class Session:
         self.channel_map: dict[int, ChannelConfig] = {}
         self.counts: Counter[tuple[Direction, ItemKind]] = Counter()
         self.violation_counts: Counter[str] = Counter()
-        self.latencies_ns: dict[str, list[int]] = {}
+        self.latencies_ns: defaultdict[str, list[int]] = defaultdict(list)
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
         self._pending: deque[_Pending] = deque()
+        self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
         self._index = 0
         self._commands = 0
         self._last_kind = {Direction.C2S: None, Direction.S2C: None}
@@ -211,9 +238,104 @@ class Session:
     # -- internals ----------------------------------------------------------------------
 
     def _observe_all(self, direction: Direction, items: list[Item], t_ns: int) -> list[Event]:
+        """Observe items in order.
+
+        Established traffic takes a fast path that builds the same observations
+        with far less work: commands whose meaning in the current channel map was
+        already worked out (a plan), and responses that answer the oldest request.
+        Anything else, or anything with a violation, goes through ``_observe``.
+        The loops keep counters in locals and hand them back to ``self`` before
+        every slow step, which reads them.
+        """
+        if direction is Direction.C2S:
+            return self._observe_commands(items)
+        return self._observe_responses(items)
+
+    def _observe_commands(self, items: list[Item]) -> list[Event]:
         events: list[Event] = []
+        append = events.append
+        pending = self._pending
+        plans = self._plans
+        timeout = self.answer_timeout_ns
+        command = ItemKind.COMMAND
+        direction = Direction.C2S
+        ready = self.state is _S.READY
+        index = self._index
+        fast = 0
+        t = None
         for item in items:
+            kind, raw, _, t, _ = item
+            plan = plans.get(raw) if ready and kind is command else None
+            if plan is None:
+                self._index = index
+                self._commands += fast
+                self.counts[(direction, command)] += fast
+                fast = 0
+                self._observe(direction, item, events)
+                index = self._index
+                ready = self.state is _S.READY
+                continue
+            if pending and t - pending[0][4] > timeout:
+                self._expire(t, events)
+            message, candidates, violations, answer_kind, channel, certain = plan
+            obs = _new(Observation, (index, direction, item, message, candidates, violations, None, None))
+            index += 1
+            fast += 1
+            if violations:
+                for v in violations:
+                    self.violation_counts[v.rule_id] += 1
+            if answer_kind is not None:
+                pending.append(_new(_Pending, (obs, answer_kind, channel, certain, t)))
+            append(obs)
+        if fast:
+            self._index = index
+            self._commands += fast
+            self.counts[(direction, command)] += fast
+            self._last_kind[direction] = command
+            self.last_t_ns = t
+        return events
+
+    def _observe_responses(self, items: list[Item]) -> list[Event]:
+        events: list[Event] = []
+        append = events.append
+        pending = self._pending
+        timeout = self.answer_timeout_ns
+        response = ItemKind.RESPONSE
+        direction = Direction.S2C
+        latencies = self.latencies_ns
+        known = decode_cache(response)
+        ready = self.state is _S.READY
+        index = self._index
+        fast = 0
+        t = None
+        for item in items:
+            kind, raw, _, t, _ = item
+            if ready and kind is response and pending:
+                message, candidates, violations = known.get(raw) or decode(response, raw)
+                head = pending[0]
+                request, answer_kind, channel, certain, t_request = head
+                if (answer_kind is response and certain and not violations
+                        and channel == message.channel and t - t_request <= timeout):
+                    asked = request.message
+                    if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
+                        pending.popleft()
+                        latencies[asked.title].append(t - t_request)
+                        append(_new(Observation, (index, direction, item, message, candidates, (),
+                                                  request, t - t_request)))
+                        index += 1
+                        fast += 1
+                        continue
+            self._index = index
+            self.counts[(direction, response)] += fast
+            fast = 0
             self._observe(direction, item, events)
+            index = self._index
+            ready = self.state is _S.READY
+        if fast:
+            self._index = index
+            self.counts[(direction, response)] += fast
+            self._last_kind[direction] = response
+            self.last_t_ns = t
         return events
 
     def _observe(self, direction: Direction, item: Item, events: list[Event]) -> None:
@@ -222,12 +344,13 @@ class Session:
         if self.first_t_ns is None:
             self.first_t_ns = item.t_start_ns
         self.last_t_ns = t
-        if self._pending and t - self._pending[0].request.item.t_end_ns > self.answer_timeout_ns:
+        if self._pending and t - self._pending[0].t_ns > self.answer_timeout_ns:
             self._expire(t, events)
         decoded = decode(kind, item.raw, item.reason)
         message = decoded.message
         violations = list(decoded.violations)
         candidates = decoded.candidates
+        state_before = self.state
 
         if kind is ItemKind.HANDSHAKE and message is not None and direction is Direction.S2C:
             step = _HANDSHAKE_STEPS[type(message)]
@@ -268,7 +391,13 @@ class Session:
         for v in violations:
             self.violation_counts[v.rule_id] += 1
         if direction is Direction.C2S and kind is ItemKind.COMMAND:
-            self._expect_answer(observation)
+            answer_kind, channel, certain = _answer_spec(message, candidates)
+            if answer_kind is not None:
+                self._pending.append(_Pending(observation, answer_kind, channel, certain, t))
+            if state_before is _S.READY and self.state is _S.READY and self._commands > 1:
+                # from now on these bytes mean the same until the channel map changes
+                self._plans[item.raw] = _Plan(message, candidates, observation.violations,
+                                              answer_kind, channel, certain)
         events.append(observation)
 
     def _step(self, step: Step, violations: list[Violation]) -> None:
@@ -331,24 +460,21 @@ class Session:
             return  # a server would not apply a configuration it cannot read
         for entry in message.entries:
             self.channel_map[entry.port] = ChannelConfig(entry.unit_type)
-
-    def _expect_answer(self, request: Observation) -> None:
-        message = request.message
-        if message is not None:
-            answer_kind = _ANSWER_KIND.get(type(message))
-            if answer_kind is not None:
-                self._pending.append(_Pending(request, answer_kind, getattr(message, "channel", None), True))
-        elif any(isinstance(c, SensorRequest) for c in request.candidates):
-            self._pending.append(_Pending(request, ItemKind.RESPONSE, request.candidates[0].channel, False))
+        self._plans.clear()
 
     def _answer(self, kind: ItemKind, message: Message | None, t: int,
                 violations: list[Violation]) -> tuple[Observation | None, int | None]:
         channel = message.channel if isinstance(message, ChannelResponse) else None
-        found = None
+        # The oldest request this answers; a frame that only may be a Sensor
+        # Request (no channel map yet) yields to one that certainly asked.
+        found = maybe = None
         for pending in self._pending:
             if pending.answer_kind is kind and (channel is None or pending.channel == channel):
-                found = pending
-                break
+                if pending.certain:
+                    found = pending
+                    break
+                maybe = maybe or pending
+        found = found or maybe
         if found is None:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by a {kind}"))
             request = None
@@ -357,13 +483,14 @@ class Session:
             request = found.request
         if isinstance(message, ConfigurationSettings):
             self.channel_map = dict(enumerate(message.channels))
+            self._plans.clear()
         if isinstance(message, ChannelResponse):
             self._check_data(message, request, violations)
         if request is None:
             return None, None
-        latency = t - request.item.t_end_ns
+        latency = t - found.t_ns
         title = request.message.title if request.message is not None else "Sensor Request"
-        self.latencies_ns.setdefault(title, []).append(latency)
+        self.latencies_ns[title].append(latency)
         return request, latency
 
     def _check_data(self, message: ChannelResponse, request: Observation | None,
@@ -382,7 +509,7 @@ class Session:
             violations.append(Violation(rule, f"{what} must be 0-{limit}, got {message.data}"))
 
     def _expire(self, t: int, events: list[Event]) -> None:
-        while self._pending and t - self._pending[0].request.item.t_end_ns > self.answer_timeout_ns:
+        while self._pending and t - self._pending[0].t_ns > self.answer_timeout_ns:
             pending = self._pending.popleft()
             if pending.certain:
                 events.append(self._unanswered(pending, t, f"no answer within {self.answer_timeout_ns / 1e9:g} s"))

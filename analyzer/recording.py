@@ -1,0 +1,504 @@
+"""The whiztap recording format: what goes into an MCAP file, and reading it back.
+
+Everything a recorder writes and every reader of recordings agrees on lives
+here: topic names, JSON schemas, the format version, the metadata record, the
+functions that turn TCP reads and session observations into JSON messages, and
+a fast reader that rebuilds each connection's byte streams.  It does no I/O
+except reading files, so the proxy, the pcap importer and the analysis commands
+share one definition (docs/recording-format.md describes it for people).
+
+Every channel uses schema encoding ``jsonschema`` and message encoding ``json``
+so Foxglove shows all of them; numbers are JSON numbers so it can plot them.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import struct
+import zlib
+from collections.abc import Iterable, Iterator
+from typing import IO, Any, NamedTuple
+
+from analyzer import __version__
+from analyzer.describe import fields, meaning, response_meaning
+from analyzer.framing import ItemKind
+from analyzer.messages import (
+    ActivateSwitch,
+    CameraImage,
+    ChannelResponse,
+    DeactivateSwitch,
+    NormalSend,
+)
+from analyzer.rules import Violation
+from analyzer.session import Observation
+from analyzer.text import escape
+
+FORMAT_VERSION = "1"
+PROFILE = "whiztap"
+SPEC_REVISION = "1.8"
+METADATA_NAME = "whiztap"
+SCHEMA_ENCODING = "jsonschema"
+MESSAGE_ENCODING = "json"
+REDACTED = "<redacted>"
+MASK_BYTE = b"*"  # stands in for each byte of a redacted password
+
+TOPIC_READS = "/tcp/reads"
+TOPIC_EVENTS = "/tcp/events"
+TOPIC_FRAMES = "/frames"
+TOPIC_VIOLATIONS = "/violations"
+TOPIC_SENSORS = "/sensors"
+TOPIC_SERVOS = "/servos"
+TOPIC_SENDS = "/sends"
+TOPIC_SWITCHES = "/switches"
+TOPIC_CAMERA = "/camera"
+
+# Connection events (the "event" field of /tcp/events).
+EV_RECORDING_STARTED = "recording_started"
+EV_OPENED = "opened"
+EV_UPSTREAM_CONNECTED = "upstream_connected"
+EV_UPSTREAM_FAILED = "upstream_failed"
+EV_HALF_CLOSED = "half_closed"
+EV_CLOSED = "closed"
+EV_GAP = "gap"
+EV_CONTINUED = "continued"
+EV_RECORDING_STOPPED = "recording_stopped"
+EVENTS = (EV_RECORDING_STARTED, EV_OPENED, EV_UPSTREAM_CONNECTED, EV_UPSTREAM_FAILED,
+          EV_HALF_CLOSED, EV_CLOSED, EV_GAP, EV_CONTINUED, EV_RECORDING_STOPPED)
+
+# -- schemas ---------------------------------------------------------------------------
+
+_INT = {"type": "integer"}
+_NS = {"type": "integer", "description": "nanoseconds since the Unix epoch"}
+_INT_OR_NULL = {"type": ["integer", "null"]}
+_STR = {"type": "string"}
+_STR_OR_NULL = {"type": ["string", "null"]}
+_B64 = {"type": "string", "contentEncoding": "base64"}
+_CONN = {"type": "integer", "description": "connection id, unique within the recording"}
+_DIR = {"type": "string", "enum": ["c2s", "s2c"], "description": "c2s: client to server"}
+_SPANS = {"type": "array", "items": {"type": "array", "items": _INT, "minItems": 2, "maxItems": 2},
+          "description": "[start, length] ranges of data replaced by '*' (a redacted password)"}
+
+
+def _object(title: str, description: str, properties: dict[str, Any], required: Iterable[str]) -> dict:
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title,
+            "description": description, "type": "object", "properties": properties,
+            "required": list(required)}
+
+
+SCHEMAS: dict[str, dict] = {
+    "whiztap.TcpRead": _object(
+        "whiztap.TcpRead", "One read from a TCP socket, exactly as received.",
+        {"conn": _CONN, "dir": _DIR, "t_ns": _NS,
+         "offset": {"type": "integer", "description": "stream offset of the first byte"},
+         "size": _INT, "redacted": _SPANS, "data": _B64},
+        ("conn", "dir", "t_ns", "offset", "size", "data")),
+    "whiztap.ConnectionEvent": _object(
+        "whiztap.ConnectionEvent", "A connection's lifecycle, and the recording's own start and stop.",
+        {"conn": _CONN, "event": {"type": "string", "enum": list(EVENTS)}, "t_ns": _NS,
+         "by": {"type": ["string", "null"], "enum": ["client", "server", "recorder", None]},
+         "detail": _STR, "client": _STR, "upstream": _STR, "dir": _DIR,
+         "offset": _INT, "length": _INT, "c2s_bytes": _INT, "s2c_bytes": _INT,
+         "c2s_offset": _INT, "s2c_offset": _INT, "mode": _STR, "handshake": _STR},
+        ("conn", "event", "t_ns")),
+    "whiztap.Frame": _object(
+        "whiztap.Frame", "One framer item (frame, handshake text, password, image, line break, "
+                         "unframed bytes) with its raw bytes and decoded fields.",
+        {"conn": _CONN, "dir": _DIR, "index": {"type": "integer", "description": "position in the session"},
+         "kind": {"type": "string", "enum": [k.value for k in ItemKind]}, "reason": _STR_OR_NULL,
+         "t_start_ns": _NS, "t_end_ns": _NS, "offset": _INT, "size": _INT, "raw": _B64,
+         "text": _STR, "meaning": _STR, "message": _STR_OR_NULL,
+         "fields": {"type": "object", "description": "decoded fields; numbers are JSON numbers"},
+         "violations": {"type": "array", "items": _STR}, "answers": _INT_OR_NULL,
+         "latency_ns": _INT_OR_NULL, "redacted": {"type": "boolean"}},
+        ("conn", "dir", "index", "kind", "t_start_ns", "t_end_ns", "offset", "size", "raw")),
+    "whiztap.Violation": _object(
+        "whiztap.Violation", "A rule the live session model found broken.",
+        {"conn": _CONN, "t_ns": _NS, "rule_id": _STR,
+         "severity": {"type": "string", "enum": ["info", "warning", "error"]},
+         "level": {"type": "integer", "description": "1 info, 2 warning, 3 error"},
+         "section": _STR, "summary": _STR, "detail": _STR, "dir": _DIR,
+         "frame_index": _INT, "frame_text": _STR, "late": {"type": "boolean"}},
+        ("conn", "t_ns", "rule_id", "severity", "level", "detail")),
+    "whiztap.SensorValue": _object(
+        "whiztap.SensorValue", "A Sensor/Servo Response that answers a Sensor Request.",
+        {"conn": _CONN, "channel": _INT, "value": _INT, "latency_ns": _INT_OR_NULL},
+        ("conn", "channel", "value")),
+    "whiztap.ServoPosition": _object(
+        "whiztap.ServoPosition", "A Sensor/Servo Response that answers a Servo Position Request.",
+        {"conn": _CONN, "channel": _INT, "data": _INT,
+         "position": {"type": "number", "description": "data / 4"}, "latency_ns": _INT_OR_NULL},
+        ("conn", "channel", "data", "position")),
+    "whiztap.NormalSend": _object(
+        "whiztap.NormalSend", "A Normal Send to Channel/Port command (a servo set point).",
+        {"conn": _CONN, "channel": _INT, "value": _INT}, ("conn", "channel", "value")),
+    "whiztap.Switch": _object(
+        "whiztap.Switch", "An Activate (1) or De-Activate (0) Switch command.",
+        {"conn": _CONN, "channel": _INT, "state": _INT}, ("conn", "channel", "state")),
+    "foxglove.CompressedImage": {
+        "title": "foxglove.CompressedImage", "description": "A compressed image (Foxglove's schema)",
+        "type": "object",
+        "properties": {
+            "timestamp": {"type": "object", "properties": {"sec": _INT, "nsec": _INT}},
+            "frame_id": _STR, "data": _B64, "format": _STR},
+        "required": ["timestamp", "frame_id", "data", "format"]},
+}
+
+# topic -> schema name, in registration order (channel ids follow it).
+TOPICS: dict[str, str] = {
+    TOPIC_READS: "whiztap.TcpRead",
+    TOPIC_EVENTS: "whiztap.ConnectionEvent",
+    TOPIC_FRAMES: "whiztap.Frame",
+    TOPIC_VIOLATIONS: "whiztap.Violation",
+    TOPIC_SENSORS: "whiztap.SensorValue",
+    TOPIC_SERVOS: "whiztap.ServoPosition",
+    TOPIC_SENDS: "whiztap.NormalSend",
+    TOPIC_SWITCHES: "whiztap.Switch",
+    TOPIC_CAMERA: "foxglove.CompressedImage",
+}
+
+
+def schema_bytes(name: str) -> bytes:
+    return json.dumps(SCHEMAS[name], separators=(",", ":")).encode()
+
+
+# -- messages ----------------------------------------------------------------------------
+
+_dumps = json.JSONEncoder(separators=(",", ":")).encode
+
+
+def encode(message: dict) -> bytes:
+    """A message dict as the bytes of an MCAP message (compact UTF-8 JSON)."""
+    return _dumps(message).encode()
+
+
+def _b64(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
+
+
+def mask(data: bytes, spans: Iterable[tuple[int, int]]) -> bytes:
+    """``data`` with each [start, length] span replaced by as many '*' bytes."""
+    out = bytearray(data)
+    for start, length in spans:
+        out[start:start + length] = MASK_BYTE * length
+    return bytes(out)
+
+
+def read_message(conn: int, direction: str, t_ns: int, offset: int, data: bytes,
+                 redacted: list[tuple[int, int]] | None = None) -> dict:
+    """A /tcp/reads message.  Key order is part of the format: the fast reader
+    below matches it (and falls back to a JSON parser when it does not)."""
+    message: dict[str, Any] = {"conn": conn, "dir": direction, "t_ns": t_ns, "offset": offset, "size": len(data)}
+    if redacted:
+        message["redacted"] = [list(s) for s in redacted]
+    message["data"] = _b64(data)
+    return message
+
+
+def event_message(conn: int, event: str, t_ns: int, **details: Any) -> dict:
+    """A /tcp/events message; ``details`` holds the fields that event has."""
+    return {"conn": conn, "event": event, "t_ns": t_ns, **details}
+
+
+def frame_message(conn: int, obs: Observation, offset: int, redact: bool) -> dict:
+    """A /frames message.  With ``redact`` a password's bytes become '*' and its
+    text ``<redacted>``; its length stays, so offsets and replays still line up."""
+    item = obs.item
+    raw = item.raw
+    hidden = redact and item.kind is ItemKind.PASSWORD
+    if hidden:
+        raw = MASK_BYTE * len(raw)
+    return {
+        "conn": conn, "dir": obs.direction.value, "index": obs.index, "kind": item.kind.value,
+        "reason": item.reason.value if item.reason is not None else None,
+        "t_start_ns": item.t_start_ns, "t_end_ns": item.t_end_ns, "offset": offset, "size": len(raw),
+        "raw": _b64(raw), "text": REDACTED if hidden else escape(raw), "meaning": meaning(obs),
+        "message": obs.message.title if obs.message is not None else None,
+        "fields": fields(obs), "violations": [v.rule_id for v in obs.violations],
+        "answers": obs.answers.index if obs.answers is not None else None,
+        "latency_ns": obs.latency_ns, "redacted": hidden,
+    }
+
+
+def violation_message(conn: int, violation: Violation, about: Observation | None, t_ns: int,
+                      late: bool, redact: bool) -> dict:
+    """A /violations message: the rule, its severity and what was seen."""
+    rule = violation.rule
+    message: dict[str, Any] = {
+        "conn": conn, "t_ns": t_ns, "rule_id": rule.id, "severity": str(rule.severity),
+        "level": int(rule.severity), "section": rule.section, "summary": rule.summary,
+        "detail": violation.detail, "late": late,
+    }
+    if about is not None:
+        hidden = redact and about.item.kind is ItemKind.PASSWORD
+        message["dir"] = about.direction.value
+        message["frame_index"] = about.index
+        message["frame_text"] = REDACTED if hidden else escape(about.item.raw[:200])
+    return message
+
+
+def plot_messages(conn: int, obs: Observation) -> list[tuple[str, dict]]:
+    """The plottable channels an observation feeds: (topic, message) pairs."""
+    message = obs.message
+    if message is None:
+        return []
+    if isinstance(message, ChannelResponse) and obs.answers is not None:
+        if response_meaning(obs) == "servo":
+            return [(TOPIC_SERVOS, {"conn": conn, "channel": message.channel, "data": message.data,
+                                    "position": message.data / 4, "latency_ns": obs.latency_ns})]
+        return [(TOPIC_SENSORS, {"conn": conn, "channel": message.channel, "value": message.data,
+                                 "latency_ns": obs.latency_ns})]
+    if isinstance(message, NormalSend):
+        return [(TOPIC_SENDS, {"conn": conn, "channel": message.channel, "value": message.value})]
+    if isinstance(message, (ActivateSwitch, DeactivateSwitch)):
+        state = 1 if isinstance(message, ActivateSwitch) else 0
+        return [(TOPIC_SWITCHES, {"conn": conn, "channel": message.channel, "state": state})]
+    if isinstance(message, CameraImage):
+        t = obs.item.t_end_ns
+        return [(TOPIC_CAMERA, {"timestamp": {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000},
+                                "frame_id": f"conn-{conn}", "data": _b64(message.data),
+                                "format": message.format})]
+    return []
+
+
+def metadata_record(**values: Any) -> dict[str, str]:
+    """The one "whiztap" metadata record: MCAP metadata values are strings."""
+    record = {"format_version": FORMAT_VERSION, "whiztap_version": __version__, "spec_revision": SPEC_REVISION}
+    record.update({k: "" if v is None else str(v) for k, v in values.items()})
+    return record
+
+
+# -- reading -------------------------------------------------------------------------------
+
+MAGIC = b"\x89MCAP0\r\n"
+_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x03, 0x04, 0x05, 0x06
+_OP_METADATA, _OP_DATA_END, _OP_FOOTER = 0x0C, 0x0F, 0x02
+_RECORD_HEAD = struct.Struct("<BQ")
+_RECORD_HEAD_CHANNEL = struct.Struct("<BQH")  # opcode, length, then a Message's channel id
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_CHUNK_HEAD = struct.Struct("<QQQI")
+_MESSAGE_DATA_AT = 9 + 2 + 4 + 8 + 8  # record head, channel id, sequence, log and publish time
+_READ_JSON = re.compile(
+    rb'\{"conn":(\d+),"dir":"(c2s|s2c)","t_ns":(\d+),"offset":(\d+),"size":\d+,'
+    rb'(?:"redacted":\[[\d,\[\]]*\],)?"data":"([A-Za-z0-9+/=]*)"\}')
+
+
+class RecordingError(Exception):
+    """The file is not a recording whiztap can read (message says why, in one line)."""
+
+
+class Read(NamedTuple):
+    conn: int
+    dir: str
+    t_ns: int
+    offset: int
+    data: bytes
+
+
+class Segment(NamedTuple):
+    offset: int  # stream offset of data[0]
+    data: bytes
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    if compression == "":
+        return data
+    if compression == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    raise RecordingError(f"unsupported chunk compression {compression!r}")
+
+
+def _string(buf: bytes, pos: int) -> tuple[str, int]:
+    n = _U32.unpack_from(buf, pos)[0]
+    return buf[pos + 4:pos + 4 + n].decode(), pos + 4 + n
+
+
+def _metadata(buf: bytes, pos: int) -> tuple[str, dict[str, str]]:
+    """A Metadata record's name and string map, from its content at pos."""
+    name, pos = _string(buf, pos)
+    limit = pos + 4 + _U32.unpack_from(buf, pos)[0]
+    pos += 4
+    values: dict[str, str] = {}
+    while pos < limit:
+        key, pos = _string(buf, pos)
+        values[key], pos = _string(buf, pos)
+    return name, values
+
+
+class RecordingScan:
+    """One pass over an MCAP file's data section that yields the /tcp/reads
+    messages fast, and notes what else a reader of streams needs.
+
+    Why not ``mcap.reader``: decoding every message as an object, then as JSON,
+    tops out near 150k messages/s here.  This walks records with ``struct``,
+    decompresses chunks itself (checking their CRC), skips other channels by
+    id without decoding them, and pulls the fields of each read from its JSON
+    with one compiled regex (falling back to ``json.loads`` for a message
+    another writer laid out differently).  It reads files in order, so it also
+    reads a ``.part`` left by a crash, up to its last complete chunk; then
+    ``truncated`` is true.
+    """
+
+    def __init__(self, stream: IO[bytes], topics: Iterable[str] = (TOPIC_READS,),
+                 validate_crcs: bool = True) -> None:
+        self._stream = stream
+        self._wanted = set(topics)
+        self.validate_crcs = validate_crcs
+        self.channels: dict[int, str] = {}  # channel id -> topic
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.truncated = False
+
+    # -- records ---------------------------------------------------------------------
+
+    def records(self) -> Iterator[tuple[int, str, bytes, int, int]]:
+        """(log_time, topic, data, start, end) of each wanted message, file order;
+        ``data[start:end]`` is the message (no copy is made)."""
+        f = self._stream
+        if f.read(8) != MAGIC:
+            raise RecordingError("not an MCAP file (bad magic)")
+        while True:
+            head = f.read(9)
+            if len(head) < 9:
+                self.truncated = True
+                return
+            op, length = _RECORD_HEAD.unpack(head)
+            if op in (_OP_DATA_END, _OP_FOOTER):
+                return
+            body = f.read(length)
+            if len(body) < length:
+                self.truncated = True
+                return
+            if op == _OP_CHUNK:
+                yield from self._chunk(body)
+            else:
+                yield from self._record(op, head + body, 0, 9 + length)
+
+    def _chunk(self, body: bytes) -> Iterator[tuple[int, str, bytes, int, int]]:
+        _start, _end, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
+        compression, pos = _string(body, _CHUNK_HEAD.size)
+        n = _U64.unpack_from(body, pos)[0]
+        records = _decompress(compression, body[pos + 8:pos + 8 + n], size)
+        if self.validate_crcs and crc and zlib.crc32(records) != crc:
+            raise RecordingError("chunk CRC mismatch: the file is damaged")
+        pos, end = 0, len(records)
+        wanted = self._wanted_ids()
+        unpack = _RECORD_HEAD_CHANNEL.unpack_from
+        log_time = _U64.unpack_from
+        while pos < end:
+            op, length, channel = unpack(records, pos)
+            stop = pos + 9 + length
+            if op == _OP_MESSAGE:
+                if channel in wanted:
+                    yield log_time(records, pos + 15)[0], wanted[channel], records, pos + _MESSAGE_DATA_AT, stop
+            else:
+                yield from self._record(op, records, pos, stop)
+                wanted = self._wanted_ids()
+            pos = stop
+
+    def _record(self, op: int, buf: bytes, pos: int, stop: int) -> Iterator[tuple[int, str, bytes, int, int]]:
+        if op == _OP_CHANNEL:
+            channel = _U16.unpack_from(buf, pos + 9)[0]
+            topic, _ = _string(buf, pos + 13)
+            self.channels[channel] = topic
+        elif op == _OP_MESSAGE:
+            channel = _U16.unpack_from(buf, pos + 9)[0]
+            topic = self.channels.get(channel)
+            if topic in self._wanted:
+                yield _U64.unpack_from(buf, pos + 15)[0], topic, buf, pos + _MESSAGE_DATA_AT, stop
+        elif op == _OP_METADATA:
+            name, values = _metadata(buf, pos + 9)
+            self.metadata[name] = values
+
+    def _wanted_ids(self) -> dict[int, str]:
+        return {cid: topic for cid, topic in self.channels.items() if topic in self._wanted}
+
+    # -- reads ------------------------------------------------------------------------
+
+    def reads(self) -> Iterator[Read]:
+        """Every /tcp/reads message as a Read, in file (= arrival) order."""
+        match = _READ_JSON.match
+        b64 = base64.b64decode
+        for _t, topic, buf, start, stop in self.records():
+            if topic != TOPIC_READS:
+                continue
+            m = match(buf, start, stop)
+            if m is not None and m.end() == stop:
+                conn, direction, t_ns, offset, data = m.groups()
+                yield Read(int(conn), "c2s" if direction == b"c2s" else "s2c", int(t_ns), int(offset), b64(data))
+            else:
+                d = json.loads(buf[start:stop])
+                yield Read(d["conn"], d["dir"], d["t_ns"], d["offset"], b64(d["data"]))
+
+    def messages(self) -> Iterator[tuple[str, int, dict]]:
+        """(topic, log_time, decoded JSON) of each wanted message, file order."""
+        for t, topic, buf, start, stop in self.records():
+            yield topic, t, json.loads(buf[start:stop])
+
+
+def rebuild_streams(path: str, topic: str = TOPIC_READS) -> dict[tuple[int, str], list[Segment]]:
+    """Each (connection, direction) byte stream, from /tcp/reads or from /frames.
+
+    A stream is a list of contiguous segments: one, unless the recording has a
+    gap (a capture that missed packets) or starts mid-stream (a rotated file).
+    Redacted password bytes come back as '*'.
+    """
+    parts: dict[tuple[int, str], list[tuple[int, bytes]]] = {}
+    with open(path, "rb") as f:
+        recording = RecordingScan(f, (topic,))
+        if topic == TOPIC_READS:
+            for r in recording.reads():
+                parts.setdefault((r.conn, r.dir), []).append((r.offset, r.data))
+        elif topic == TOPIC_FRAMES:
+            for _topic, _t, m in recording.messages():
+                parts.setdefault((m["conn"], m["dir"]), []).append((m["offset"], base64.b64decode(m["raw"])))
+        else:
+            raise ValueError(f"streams are rebuilt from {TOPIC_READS} or {TOPIC_FRAMES}, not {topic}")
+    streams: dict[tuple[int, str], list[Segment]] = {}
+    for key, pieces in parts.items():
+        joined: list[tuple[int, bytearray]] = []
+        for offset, data in pieces:
+            if joined and joined[-1][0] + len(joined[-1][1]) == offset:
+                joined[-1][1].extend(data)
+            elif data:
+                joined.append((offset, bytearray(data)))
+        streams[key] = [Segment(o, bytes(d)) for o, d in joined]
+    return streams
+
+
+def stream_bytes(segments: list[Segment]) -> bytes:
+    """The whole stream, when it has no gap and starts at offset 0."""
+    if not segments:
+        return b""
+    if len(segments) > 1 or segments[0].offset != 0:
+        where = ", ".join(f"{s.offset}+{len(s.data)}" for s in segments)
+        raise RecordingError(f"stream is not contiguous from offset 0 (segments at {where})")
+    return segments[0].data
+
+
+def read_metadata(path: str) -> dict[str, str]:
+    """The "whiztap" metadata record of a recording ({} if it has none).
+
+    Recorders write it before the first chunk, so this stops at the first
+    metadata record instead of reading the whole file.
+    """
+    with open(path, "rb") as f:
+        if f.read(8) != MAGIC:
+            raise RecordingError("not an MCAP file (bad magic)")
+        while len(head := f.read(9)) == 9:
+            op, length = _RECORD_HEAD.unpack(head)
+            if op in (_OP_DATA_END, _OP_FOOTER):
+                break
+            if op != _OP_METADATA:
+                f.seek(length, 1)
+                continue
+            name, values = _metadata(f.read(length), 0)
+            if name == METADATA_NAME:
+                return values
+    return {}

@@ -1,0 +1,61 @@
+"""The whiztap command line as a user runs it: a real subprocess."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from analyzer.rules import RULES
+
+WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+SAMPLES = Path(__file__).parent.parent / "samples"
+
+
+def run(*args, stdin=None):
+    return subprocess.run([WHIZTAP, *args], capture_output=True, text=True, input=stdin, timeout=60)
+
+
+def test_help_lists_the_commands():
+    result = run("--help")
+    assert result.returncode == 0
+    assert "decode" in result.stdout and "rules" in result.stdout
+
+
+def test_rules_json_lists_every_rule():
+    result = run("rules", "--format", "json")
+    assert result.returncode == 0
+    assert [r["id"] for r in json.loads(result.stdout)] == list(RULES)
+
+
+def test_decode_clean_sample_session():
+    result = run("decode", str(SAMPLES / "spec-session.txt"))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "Sensor value ch 8 = 512" in result.stdout
+    assert result.stdout.strip().endswith("mode winsock, handshake readytogo, 0 violation(s)")
+
+
+def test_decode_reports_violations_with_exit_1():
+    result = run("decode", "-", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\nrr1-0--2500--0-ss1\n")
+    assert result.returncode == 1
+    assert "PW-RANGE-SEND-VALUE (error): Normal Send value must be 0-2000, got 2500" in result.stdout
+
+
+@pytest.mark.parametrize("args", [
+    ("decode", "/nonexistent/frames.txt"),
+    ("decode",),
+    ("decode", "-f", "rr1-24--0--0-ss1", "--checksum-rule", "crc99"),
+])
+def test_bad_input_is_one_line_and_exit_2(args):
+    result = run(*args)
+    assert result.returncode == 2
+    assert result.stderr.startswith("whiztap: ")
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in result.stderr
+
+
+def test_unknown_command_exits_2():
+    result = run("frobnicate")
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr

@@ -1,0 +1,209 @@
+"""The session model: handshake, channel map, pairing, and every rule firing."""
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from analyzer import messages as m
+from analyzer.codec import encode
+from analyzer.rules import RULES
+from analyzer.session import Direction, HandshakeState, LateViolation, Mode, Observation, Session
+from tests.streams import TINY_JPEG, chunked
+
+C, S = Direction.C2S, Direction.S2C
+CONFIG = encode(m.ConfigurationSettings((
+    m.ChannelConfig(0), m.ChannelConfig(0), m.ChannelConfig(1, 0, 1), m.ChannelConfig(2),
+)))  # ch0-1 servos, ch2 switch, ch3 sensor
+WINSOCK_OPEN = [(S, b"sendchkpass\r\n"), (C, b"secret\r\n"), (S, b"readytogo\r\n"),
+                (C, b"rr1-24--0--0-ss1"), (S, CONFIG)]
+VPN_OPEN = [(C, b"rr1-24--0--0-ss1"), (S, CONFIG)]
+
+
+def run(script, session=None, close=True, step_ns=1_000_000):
+    session = session or Session()
+    events = []
+    for t, (direction, data) in enumerate(script, start=1):
+        events += session.receive(direction, data, t * step_ns)
+    if close:
+        events += session.close((len(script) + 1) * step_ns)
+    return session, events
+
+
+def observations(events):
+    return [e for e in events if isinstance(e, Observation)]
+
+
+def fired(events):
+    rules = []
+    for e in events:
+        rules += [e.violation.rule_id] if isinstance(e, LateViolation) else [v.rule_id for v in e.violations]
+    return rules
+
+
+def test_clean_winsock_session():
+    session, events = run(WINSOCK_OPEN + [(C, b"rr1-3--0--0-ss1"), (S, b"cr1-3--512--0-ss1")])
+    assert fired(events) == []
+    assert session.mode is Mode.WINSOCK and session.state is HandshakeState.READY
+    assert session.handshake_outcome == "readytogo"
+    obs = observations(events)
+    assert [o.item.kind for o in obs] == ["handshake", "eol", "password", "eol", "handshake", "eol",
+                                          "command", "config", "command", "response"]
+    assert obs[2].message == m.Password(b"secret")
+    assert obs[8].message == m.SensorRequest(3)
+    assert obs[9].answers is obs[8] and obs[9].latency_ns == 1_000_000
+    assert session.latencies_ns == {"Fetch Configuration Settings": [1_000_000], "Sensor Request": [1_000_000]}
+
+
+def test_clean_vpn_session():
+    session, events = run(VPN_OPEN + [(C, b"rr1-0--0--2-ss1"), (S, b"cr1-0--4000--0-ss1")])
+    assert fired(events) == []
+    assert session.mode is Mode.VPN
+    assert session.channel_map[2] == m.ChannelConfig(1, 0, 1)
+
+
+def test_password_split_over_writes_is_one_item():
+    _, events = run([(S, b"sendchkpass"), (C, b"se"), (C, b"cr"), (C, b"et"), (S, b"readytogo")])
+    [password] = [o for o in observations(events) if o.item.kind == "password"]
+    assert password.item.raw == b"secret"
+    kinds = [o.item.kind for o in observations(events)]
+    assert kinds == ["handshake", "password", "handshake"]
+
+
+def test_channel_map_resolves_ambiguous_frames():
+    _, events = run(VPN_OPEN + [(C, b"rr1-0--0--0-ss1rr1-2--0--0-ss1rr1-2--1--0-ss1rr1-3--0--0-ss1")],
+                    close=False)
+    assert [o.message for o in observations(events)[2:]] == [
+        m.NormalSend(0, 0), m.DeactivateSwitch(2), m.ActivateSwitch(2), m.SensorRequest(3)]
+
+
+def test_ambiguity_without_a_map_is_reported_not_guessed():
+    _, events = run([(C, b"rr1-24--0--0-ss1rr1-5--1--0-ss1")], close=False)
+    last = observations(events)[-1]
+    assert last.message is None
+    assert last.candidates == (m.ActivateSwitch(5), m.NormalSend(5, 1))
+    assert fired(events) == ["PW-AMBIGUOUS"]
+
+
+def test_response_to_an_ambiguous_request_pairs_with_it():
+    _, events = run([(C, b"rr1-24--0--0-ss1"), (C, b"rr1-5--0--0-ss1"), (S, b"cr1-5--77--0-ss1")])
+    response = observations(events)[-1]
+    assert response.answers is not None and response.answers.item.raw == b"rr1-5--0--0-ss1"
+    assert "PW-PAIR-UNSOLICITED" not in fired(events)
+
+
+def test_ambiguous_request_left_unanswered_is_not_a_violation():
+    _, events = run([(C, b"rr1-24--0--0-ss1"), (C, b"rr1-5--0--0-ss1")])
+    assert "PW-PAIR-UNANSWERED" in fired(events)  # the Fetch Configuration
+    assert fired(events).count("PW-PAIR-UNANSWERED") == 1
+
+
+def test_unanswered_after_timeout():
+    session = Session(answer_timeout_ns=5_000_000)
+    _, events = run(VPN_OPEN + [(C, b"rr1-3--0--0-ss1")] + [(C, b"rr1-0--100--0-ss1")] * 10,
+                    session=session, close=False)
+    late = [e for e in events if isinstance(e, LateViolation)]
+    assert len(late) == 1 and late[0].about.message == m.SensorRequest(3)
+
+
+def test_camera_image_answers_fetch_camera():
+    _, events = run(VPN_OPEN + [(C, b"rr1-29--0--0-ss1"), (S, TINY_JPEG)])
+    image = observations(events)[-1]
+    assert image.message == m.CameraImage("jpeg", TINY_JPEG)
+    assert image.answers.message == m.FetchCameraImage()
+    assert fired(events) == []
+
+
+def test_valid_set_configuration_updates_the_map_and_invalid_does_not():
+    good = encode(m.SetConfiguration((m.SetConfigEntry(12, 3, 0),), 12))
+    bad = encode(m.SetConfiguration((m.SetConfigEntry(12, 2, 2),), 99))
+    session, events = run(VPN_OPEN + [(C, good), (C, bad)])
+    assert session.unit_of(3) is m.UnitType.SERVO
+    assert session.unit_of(2) is m.UnitType.SWITCH
+    assert fired(events) == ["PW-SETCFG-CHECKSUM"]
+
+
+def test_checksum_rule_is_selectable():
+    frame = encode(m.SetConfiguration((m.SetConfigEntry(12, 3, 2),), 14))
+    assert fired(run(VPN_OPEN + [(C, frame)])[1]) == ["PW-SETCFG-CHECKSUM"]
+    assert fired(run(VPN_OPEN + [(C, frame)], session=Session("dev-unit-sum"))[1]) == []
+
+
+@settings(max_examples=100, deadline=None)
+@given(cuts_c=st.lists(st.integers(0, 400), max_size=15), cuts_s=st.lists(st.integers(0, 400), max_size=15))
+def test_session_does_not_depend_on_segmentation(cuts_c, cuts_s):
+    client = b"rr1-24--0--0-ss1rr1-3--0--0-ss1rr1-0--0--2-ss1rr1-2--1--0-ss1rr1-29--0--0-ss1"
+    server = CONFIG + b"cr1-3--5--0-ss1cr1-0--80--0-ss1" + TINY_JPEG
+
+    def shape(events):
+        return [(o.direction, o.item.raw, o.message, o.violations) for o in observations(events)] + [
+            e.violation for e in events if isinstance(e, LateViolation)]
+
+    def session_run(c_chunks, s_chunks):
+        # client first, then the server's answers, as on the wire
+        return run([(C, c) for c in c_chunks] + [(S, s) for s in s_chunks])[1]
+
+    assert shape(session_run(chunked(client, cuts_c), chunked(server, cuts_s))) == shape(
+        session_run([client], [server]))
+
+
+# -- every rule has a scenario that fires it --------------------------------------------
+
+SCENARIOS = {
+    "PW-FRAME-GARBAGE": VPN_OPEN + [(C, b"\x00\x01junk rr1-0--5--0-ss1")],
+    "PW-FRAME-TRUNCATED": VPN_OPEN + [(C, b"rr1-0--5")],
+    "PW-FRAME-OVERSIZE": VPN_OPEN + [(C, b"sr1-25--" + b"\x01\x02\x03" * 30_000)],
+    "PW-FRAME-EOL": VPN_OPEN + [(C, b"rr1-0--5--0-ss1\r\n")],
+    "PW-SYNTAX-SPACE": VPN_OPEN + [(C, b"rr1-0-- 5--0-ss1")],
+    "PW-SYNTAX-FIELDS": VPN_OPEN + [(C, b"rr1-0--5-ss1")],
+    "PW-SYNTAX-LEADING-ZERO": VPN_OPEN + [(C, b"rr1-0--05--0-ss1")],
+    "PW-SYNTAX-WIDTH": VPN_OPEN + [(C, b"rr1-0--12345--0-ss1")],
+    "PW-DIRECTION": VPN_OPEN + [(S, b"rr1-0--5--0-ss1")],
+    "PW-UNKNOWN-COMMAND": VPN_OPEN + [(C, b"rr1-0--0--7-ss1")],
+    "PW-RANGE-CHANNEL": VPN_OPEN + [(C, b"rr1-31--5--0-ss1")],
+    "PW-RANGE-SEND-VALUE": VPN_OPEN + [(C, b"rr1-0--2500--0-ss1")],
+    "PW-RANGE-SCRIPT": VPN_OPEN + [(C, b"rr1-0--0--300-ss1")],
+    "PW-FIXED-FIELD": VPN_OPEN + [(C, b"rr1-0--9--2-ss1")],
+    "PW-RANGE-SENSOR": VPN_OPEN + [(C, b"rr1-3--0--0-ss1"), (S, b"cr1-3--1500--0-ss1")],
+    "PW-RANGE-SERVO": VPN_OPEN + [(C, b"rr1-0--0--2-ss1"), (S, b"cr1-0--9000--0-ss1")],
+    "PW-CFG-COUNT": [(C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x1a" + b"000" * 26 + b"-ss1")],
+    "PW-CFG-DIGIT": [(C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x01a00-ss1")],
+    "PW-CFG-UNIT": [(C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x01500-ss1")],
+    "PW-CFG-UNUSED": [(C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x01010-ss1")],
+    "PW-CFG-SWITCH-TYPE": [(C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x01105-ss1")],
+    "PW-SETCFG-FORM": VPN_OPEN + [(C, b"sr1-\x19\x0c\x00\x00\x0c0-ss1")],
+    "PW-SETCFG-TRAILER": VPN_OPEN + [(C, b"sr1-\x19\x0c\x00\x00\x0cZ-ss1")],
+    "PW-SETCFG-DEV": VPN_OPEN + [(C, b"sr1-25--\xc8\x00\x00\xc8--0-ss1")],
+    "PW-SETCFG-PORT": VPN_OPEN + [(C, b"sr1-25--\x0c\x1e\x00\x0c--0-ss1")],
+    "PW-SETCFG-UNIT": VPN_OPEN + [(C, b"sr1-25--\x0c\x01\x07\x0c--0-ss1")],
+    "PW-SETCFG-CHECKSUM": VPN_OPEN + [(C, b"sr1-25--\x0c\x01\x00\x0d--0-ss1")],
+    "PW-SETCFG-EMPTY": VPN_OPEN + [(C, b"sr1-25--\x00--0-ss1")],
+    "PW-HS-ORDER": [(S, b"sendchkpass"), (S, b"readytogo")],
+    "PW-HS-COMMAND-BEFORE-READY": [(S, b"sendchkpass"), (C, b"rr1-24--0--0-ss1")],
+    "PW-HS-AFTER-FAILED": [(S, b"sendchkpass"), (C, b"wrong"), (S, b"Failed Validation"),
+                           (C, b"rr1-24--0--0-ss1")],
+    "PW-VPN-CONFIG-FIRST": [(C, b"rr1-0--0--2-ss1")],
+    "PW-WINSOCK-CONFIG-FIRST": [(S, b"sendchkpass"), (C, b"pw"), (S, b"readytogo"), (C, b"rr1-0--0--267-ss1")],
+    "PW-UNIT-MISMATCH": VPN_OPEN + [(C, b"rr1-3--500--0-ss1")],
+    "PW-CHANNEL-UNCONFIGURED": VPN_OPEN + [(C, b"rr1-9--0--2-ss1")],
+    "PW-AMBIGUOUS": [(C, b"rr1-24--0--0-ss1"), (C, b"rr1-9--1--0-ss1")],
+    "PW-PAIR-UNSOLICITED": VPN_OPEN + [(S, b"cr1-3--10--0-ss1")],
+    "PW-PAIR-UNANSWERED": VPN_OPEN + [(C, b"rr1-0--0--2-ss1")],
+}
+
+
+def test_every_rule_has_a_scenario():
+    assert set(SCENARIOS) == set(RULES)
+
+
+@pytest.mark.parametrize("rule_id", list(SCENARIOS))
+def test_scenario_fires_its_rule(rule_id):
+    _, events = run(SCENARIOS[rule_id])
+    assert rule_id in fired(events)
+    for e in events:
+        for v in ([e.violation] if isinstance(e, LateViolation) else e.violations):
+            assert v.detail  # every violation says what was expected and seen
+
+
+def test_clean_prefixes_fire_nothing():
+    assert fired(run(VPN_OPEN)[1]) == []
+    assert fired(run(WINSOCK_OPEN)[1]) == []
