@@ -423,10 +423,16 @@ class RecordingScan:
 
     def reads(self) -> Iterator[Read]:
         """Every /tcp/reads message as a Read, in file (= arrival) order."""
+        return (r for r in self.stream() if type(r) is Read)
+
+    def stream(self) -> Iterator[Read | dict]:
+        """/tcp/reads messages as ``Read``s and every other wanted topic's messages
+        as decoded JSON dicts, interleaved in file (= arrival) order."""
         match = _READ_JSON.match
         b64 = base64.b64decode
         for _t, topic, buf, start, stop in self.records():
             if topic != TOPIC_READS:
+                yield json.loads(buf[start:stop])
                 continue
             m = match(buf, start, stop)
             if m is not None and m.end() == stop:

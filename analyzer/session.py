@@ -30,6 +30,7 @@ from analyzer.messages import (
     UnitType,
 )
 from analyzer.rules import Violation
+from analyzer.stats import LatencyStats
 
 
 class Direction(StrEnum):
@@ -182,7 +183,7 @@ class Session:
         self.channel_map: dict[int, ChannelConfig] = {}
         self.counts: Counter[tuple[Direction, ItemKind]] = Counter()
         self.violation_counts: Counter[str] = Counter()
-        self.latencies_ns: defaultdict[str, list[int]] = defaultdict(list)
+        self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
         self._pending: deque[_Pending] = deque()
@@ -302,7 +303,7 @@ class Session:
         timeout = self.answer_timeout_ns
         response = ItemKind.RESPONSE
         direction = Direction.S2C
-        latencies = self.latencies_ns
+        latencies = self.latencies
         known = decode_cache(response)
         ready = self.state is _S.READY
         index = self._index
@@ -319,7 +320,7 @@ class Session:
                     asked = request.message
                     if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
                         pending.popleft()
-                        latencies[asked.title].append(t - t_request)
+                        latencies[asked.title].add(t - t_request)
                         append(_new(Observation, (index, direction, item, message, candidates, (),
                                                   request, t - t_request)))
                         index += 1
@@ -490,7 +491,7 @@ class Session:
             return None, None
         latency = t - found.t_ns
         title = request.message.title if request.message is not None else "Sensor Request"
-        self.latencies_ns[title].append(latency)
+        self.latencies[title].add(latency)
         return request, latency
 
     def _check_data(self, message: ChannelResponse, request: Observation | None,

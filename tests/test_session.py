@@ -51,7 +51,8 @@ def test_clean_winsock_session():
     assert obs[2].message == m.Password(b"secret")
     assert obs[8].message == m.SensorRequest(3)
     assert obs[9].answers is obs[8] and obs[9].latency_ns == 1_000_000
-    assert session.latencies_ns == {"Fetch Configuration Settings": [1_000_000], "Sensor Request": [1_000_000]}
+    assert {title: (s.count, s.max) for title, s in session.latencies.items()} == {
+        "Fetch Configuration Settings": (1, 1_000_000), "Sensor Request": (1, 1_000_000)}
 
 
 def test_clean_vpn_session():

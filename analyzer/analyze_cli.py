@@ -1,0 +1,418 @@
+"""``whiztap analyze``, ``cat`` and ``info``: what a recording says.
+
+All three read recordings with ``analyzer.recording.RecordingScan`` (a fast
+single pass over the file) and rebuild sessions from the raw TCP reads, never
+from decoded fields stored in the file.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import click
+
+from analyzer.cli import fail
+
+_SEVERITIES = ["info", "warning", "error"]
+
+
+# -- reading ----------------------------------------------------------------------------
+
+
+def recording_paths(inputs: tuple[str, ...]) -> list[Path]:
+    """Files named, and the recordings inside folders named."""
+    paths: list[Path] = []
+    for name in inputs:
+        path = Path(name)
+        if path.is_dir():
+            found = sorted(p for p in path.rglob("*") if p.suffix == ".mcap" and p.is_file())
+            if not found:
+                fail(f"{name}: no .mcap recordings in this folder")
+            paths += found
+        elif not path.exists():
+            fail(f"{name}: no such file")
+        else:
+            paths.append(path)
+    return paths
+
+
+def _unreadable(path: Path, why: str) -> str:
+    if path.name.endswith(".part") or "truncated" in why:
+        return (f"{path}: {why}; it looks like a recording that was cut short. "
+                f"Run 'whiztap recover {path}' to turn it into a complete file")
+    return f"{path}: {why}"
+
+
+def scan_recording(path: Path, stream: IO[bytes]) -> Iterator[Any]:
+    """Reads (``Read``) and connection events (``dict``) in recorded order.
+
+    Raises ``click`` errors with one-line messages for files that are not
+    readable recordings, or end before their footer.
+    """
+    from analyzer.recording import TOPIC_EVENTS, TOPIC_READS, RecordingError, RecordingScan
+
+    scan = RecordingScan(stream, (TOPIC_READS, TOPIC_EVENTS))
+    try:
+        yield from scan.stream()
+    except RecordingError as e:
+        fail(_unreadable(path, str(e)))
+    if scan.truncated:
+        fail(_unreadable(path, "the file is truncated (no footer)"))
+
+
+class _Progress:
+    """A progress bar over a file's bytes, on a terminal, for files that take a moment."""
+
+    THRESHOLD = 16 * 1024 * 1024
+
+    def __init__(self, paths: list[Path], enabled: bool) -> None:
+        total = sum(p.stat().st_size for p in paths)
+        self.bar = None
+        if enabled and total >= self.THRESHOLD and sys.stderr.isatty():
+            from rich.progress import BarColumn, DownloadColumn, Progress, TimeRemainingColumn
+
+            self.bar = Progress("[progress.description]{task.description}", BarColumn(), DownloadColumn(),
+                                TimeRemainingColumn(), transient=True, console=_stderr_console())
+            self.task = self.bar.add_task("analysing", total=total)
+
+    def __enter__(self) -> _Progress:
+        if self.bar:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar:
+            self.bar.stop()
+
+    def open(self, path: Path) -> IO[bytes]:
+        f = open(path, "rb")  # noqa: SIM115 - closed by the caller
+        if self.bar is None:
+            return f
+        bar, task = self.bar, self.task
+
+        class Counting:
+            def read(self, n: int = -1) -> bytes:
+                data = f.read(n)
+                bar.advance(task, len(data))
+                return data
+
+            def close(self) -> None:
+                f.close()
+
+        return Counting()  # type: ignore[return-value]
+
+
+def _stderr_console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+def analyse_file(path: Path, checksum_rule: str, progress: _Progress | None = None):
+    """One recording analysed (in this process)."""
+    from analyzer.analysis import Analyzer
+    from analyzer.recording import Read
+
+    analyzer = Analyzer(str(path), checksum_rule)
+    try:
+        stream = progress.open(path) if progress else open(path, "rb")
+    except OSError as e:
+        fail(f"{path}: cannot read ({e.strerror})")
+    try:
+        read, event = analyzer.read, analyzer.event
+        for record in scan_recording(path, stream):
+            if type(record) is Read:
+                read(record.conn, record.dir, record.t_ns, record.data)
+            else:
+                event(record)
+    finally:
+        stream.close()
+    return analyzer.finish()
+
+
+def _analyse_in_worker(args: tuple[Path, str]):
+    """Entry point of a worker process: errors travel back as text, not tracebacks."""
+    from analyzer.throughput import tune_gc
+
+    tune_gc()
+    try:
+        return analyse_file(*args)
+    except click.ClickException as e:
+        return e.format_message()
+
+
+# -- analyze ---------------------------------------------------------------------------
+
+
+@click.command("analyze")
+@click.argument("inputs", nargs=-1, required=False, metavar="FILE_OR_FOLDER...")
+@click.option("--format", "fmt", type=click.Choice(["text", "json", "junit", "markdown", "html"]), default="text",
+              show_default=True, help="Report format; text is coloured on a terminal.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, writable=True), default=None,
+              help="Write the report to this file instead of standard output.")
+@click.option("--rules", "list_rules", is_flag=True, help="List every rule (id, severity, spec section) and exit.")
+@click.option("--ignore", multiple=True, metavar="RULE", help="Leave this rule out of the report; repeatable.")
+@click.option("--severity-threshold", type=click.Choice(_SEVERITIES), default="error", show_default=True,
+              help="Exit 1 when a violation at or above this severity remains.")
+@click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see docs/protocol.md).")
+@click.option("-j", "--jobs", type=click.IntRange(1, 64), default=None,
+              help="Processes for several files [default: one per core when there are many].")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_rules: bool,
+                    ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str | None,
+                    jobs: int | None, quiet: bool) -> None:
+    """Check recordings against the spec and report how the sessions behaved.
+
+    Exit status: 0 when no violation at or above the threshold, 1 when there
+    is one, 2 when an input could not be read.
+    """
+    from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
+    from analyzer.rules import RULES, Severity
+    from analyzer.throughput import tune_gc
+
+    if list_rules:
+        for r in RULES.values():
+            click.echo(f"{r.id:28} {str(r.severity):8} {r.section}")
+        return
+    if not inputs:
+        fail("no recording given: name one or more .mcap files or folders (see --help)")
+    unknown = [r for r in ignore if r not in RULES]
+    if unknown:
+        fail(f"unknown rule {unknown[0]!r} in --ignore; 'whiztap analyze --rules' lists them")
+    rule_name = checksum_rule or DEFAULT_CHECKSUM_RULE
+    try:
+        get_rule(rule_name)
+    except ValueError as e:
+        fail(str(e))
+    paths = recording_paths(inputs)
+    tune_gc()
+    with _Progress(paths, enabled=not quiet) as progress:
+        analysis = _analyse_all(paths, rule_name, jobs, progress)
+    from analyzer.report import build
+
+    report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore))
+    report_text = render(report, analysis, fmt, to_terminal=output is None and sys.stdout.isatty())
+    if output:
+        try:
+            Path(output).write_text(report_text, encoding="utf-8")
+        except OSError as e:
+            fail(f"cannot write {output}: {e.strerror}")
+    elif report_text:
+        click.echo(report_text, nl=not report_text.endswith("\n"))
+    sys.exit(0 if report["passed"] else 1)
+
+
+def _analyse_all(paths: list[Path], rule_name: str, jobs: int | None, progress: _Progress):
+    workers = jobs if jobs is not None else (min(len(paths), os.cpu_count() or 1) if len(paths) >= 4 else 1)
+    if workers <= 1 or len(paths) == 1:
+        results = [analyse_file(p, rule_name, progress) for p in paths]
+    else:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers) as pool:
+            results = list(pool.map(_analyse_in_worker, [(p, rule_name) for p in paths]))
+        for r in results:
+            if isinstance(r, str):
+                fail(r)
+    merged = results[0]
+    for other in results[1:]:
+        merged.merge(other)
+    return merged
+
+
+def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str:
+    """The report in a format, as text ('' when printed straight to the terminal)."""
+    if fmt == "json":
+        import json
+
+        return json.dumps(report, indent=2) + "\n"
+    if fmt == "junit":
+        from analyzer.report.junit import render_junit
+
+        return render_junit(report)
+    if fmt == "markdown":
+        from analyzer.report.text import render_markdown
+
+        return render_markdown(report)
+    if fmt == "html":
+        from analyzer.report.html import MissingPlotLibrary, render_html
+
+        try:
+            return render_html(report, analysis)
+        except MissingPlotLibrary as e:
+            fail(str(e))
+    from rich.console import Console
+
+    from analyzer.report.text import render_text
+
+    if to_terminal:
+        render_text(report, Console())
+        return ""
+    import io
+
+    console = Console(record=True, width=80, force_terminal=False, file=io.StringIO())
+    render_text(report, console)
+    return console.export_text()
+
+
+# -- cat --------------------------------------------------------------------------------
+
+
+@click.command("cat")
+@click.argument("path", type=click.Path(dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["text", "jsonl"]), default="text", show_default=True)
+@click.option("--conn", "conns", type=int, multiple=True, help="Only this connection; repeatable.")
+@click.option("--dir", "direction", type=click.Choice(["c2s", "s2c"]), default=None, help="Only one direction.")
+@click.option("--kind", "kinds", multiple=True, metavar="KIND",
+              help="Only items of this kind (command, response, config, set_config, handshake, password, "
+                   "image, eol, unframed); repeatable.")
+@click.option("--channel", "channels", type=int, multiple=True, help="Only frames about this channel; repeatable.")
+@click.option("--since", type=float, default=None, help="Seconds from the start of the recording.")
+@click.option("--until", type=float, default=None, help="Seconds from the start of the recording (exclusive).")
+@click.option("--violations-only", is_flag=True, help="Only items that break a rule.")
+@click.option("--checksum-rule", default=None, help="Set Configuration checksum rule.")
+def cat_command(path: str, fmt: str, conns: tuple[int, ...], direction: str | None, kinds: tuple[str, ...],
+                channels: tuple[int, ...], since: float | None, until: float | None, violations_only: bool,
+                checksum_rule: str | None) -> None:
+    """Print every item of a recording in time order, decoded and checked.
+
+    Streams: the first lines appear at once, and memory stays flat however
+    long the recording is.
+    """
+    from analyzer.analysis import Analyzer
+    from analyzer.checksum import DEFAULT_CHECKSUM_RULE
+    from analyzer.framing import ItemKind
+    from analyzer.item_filter import ItemFilter
+    from analyzer.recording import Read
+
+    try:
+        wanted_kinds = frozenset(ItemKind(k) for k in kinds)
+    except ValueError as e:
+        fail(f"{e}; kinds are {', '.join(k.value for k in ItemKind)}")
+    path_ = recording_paths((path,))[0]
+    item_filter = ItemFilter(conns=frozenset(conns), direction=direction, kinds=wanted_kinds,
+                             channels=frozenset(channels), since_s=since, until_s=until,
+                             violations_only=violations_only)
+    try:
+        analyzer = Analyzer(str(path_), checksum_rule or DEFAULT_CHECKSUM_RULE)
+    except ValueError as e:
+        fail(str(e))
+    printer = _CatPrinter(fmt, item_filter)
+    try:
+        stream = open(path_, "rb")
+    except OSError as e:
+        fail(f"{path_}: cannot read ({e.strerror})")
+    with stream:
+        for record in scan_recording(path_, stream):
+            if type(record) is Read:
+                printer.show(record.conn, analyzer.read(record.conn, record.dir, record.t_ns, record.data))
+            else:
+                printer.show(record["conn"], analyzer.event(record))
+    for conn, events in analyzer.close_all():
+        printer.show(conn, events)
+
+
+class _CatPrinter:
+    def __init__(self, fmt: str, item_filter) -> None:  # noqa: ANN001
+        from analyzer.describe import fields, meaning
+        from analyzer.text import escape
+
+        self.fmt = fmt
+        self.filter = item_filter
+        self.start: int | None = None
+        self._meaning, self._fields, self._escape = meaning, fields, escape
+        self._out = sys.stdout
+        self._colour = sys.stdout.isatty()
+
+    def show(self, conn: int, events: list) -> None:  # noqa: ANN001
+        from analyzer.session import LateViolation
+
+        for e in events:
+            if type(e) is LateViolation:
+                if self.filter.accepts(conn, e.about, self._start(e.t_ns), late=True):
+                    self._late(conn, e)
+                continue
+            if self.filter.accepts(conn, e, self._start(e.item.t_end_ns)):
+                self._item(conn, e)
+
+    def _start(self, t_ns: int) -> int:
+        if self.start is None:
+            self.start = t_ns
+        return self.start
+
+    def _item(self, conn: int, e) -> None:  # noqa: ANN001
+        item = e.item
+        rules = [v.rule_id for v in e.violations]
+        if self.fmt == "jsonl":
+            import base64
+            import json
+
+            self._out.write(json.dumps({
+                "t_ns": item.t_end_ns, "t_start_ns": item.t_start_ns, "conn": conn, "dir": str(e.direction),
+                "kind": str(item.kind), "reason": str(item.reason) if item.reason else None,
+                "raw_b64": base64.b64encode(item.raw).decode(), "text": self._escape(item.raw),
+                "meaning": self._meaning(e), "fields": self._fields(e), "violations": rules,
+            }) + "\n")
+            return
+        rel = (item.t_end_ns - (self.start or 0)) / 1e9
+        mark = f"  ! {' '.join(rules)}" if rules else ""
+        line = (f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {self._escape(item.raw)[:120]}"
+                f"  {self._meaning(e)}{mark}")
+        if self._colour and rules:
+            line = click.style(line, fg="red" if max(v.severity for v in e.violations) >= 3 else "yellow")
+        self._out.write(line + "\n")
+
+    def _late(self, conn: int, e) -> None:  # noqa: ANN001
+        v = e.violation
+        if self.fmt == "jsonl":
+            import json
+
+            self._out.write(json.dumps({
+                "t_ns": e.t_ns, "conn": conn, "dir": str(e.about.direction), "kind": "late_violation",
+                "raw_b64": None, "fields": {"about_index": e.about.index, "detail": v.detail},
+                "violations": [v.rule_id]}) + "\n")
+            return
+        rel = (e.t_ns - (self.start or 0)) / 1e9
+        self._out.write(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}\n")
+
+
+# -- info -------------------------------------------------------------------------------
+
+
+@click.command("info")
+@click.argument("path", type=click.Path(dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True)
+def info_command(path: str, fmt: str) -> None:
+    """File-level facts: format version, session metadata, time span,
+    connections, messages per topic, size, and whether the file is complete."""
+    from analyzer.recording_info import recording_info
+
+    path_ = recording_paths((path,))[0]
+    try:
+        info = recording_info(path_)
+    except OSError as e:
+        fail(f"{path_}: cannot read ({e.strerror})")
+    except ValueError as e:
+        fail(f"{path_}: {e}")
+    if fmt == "json":
+        import json
+
+        click.echo(json.dumps(info, indent=2))
+        return
+    click.echo(f"file            {info['path']}")
+    click.echo(f"size            {info['size_bytes']:,} bytes")
+    click.echo(f"complete        {'yes (indexed)' if info['complete'] else 'NO: ' + info['state']}")
+    click.echo(f"format version  {info['format_version'] or 'unknown (not written by whiztap?)'}")
+    for key, value in info["metadata"].items():
+        click.echo(f"  {key:14} {value}")
+    click.echo(f"time span       {info['start']} .. {info['end']} ({info['duration_s']:.3f} s)")
+    click.echo(f"connections     {info['connections']}")
+    click.echo("messages per topic")
+    for topic, n in info["topics"].items():
+        click.echo(f"  {topic:14} {n:,}")
+    if not info["complete"]:
+        click.echo(f"Run 'whiztap recover {path_}' to make a complete, indexed copy.")

@@ -1,0 +1,89 @@
+"""JSON Schema of the JSON report (version 1).  Tests validate output against it."""
+
+_INT = {"type": "integer"}
+_NS_OR_NULL = {"type": ["integer", "null"]}
+_STR = {"type": "string"}
+_SEVERITY = {"type": "string", "enum": ["error", "warning", "info"]}
+_COUNTS = {"type": "object", "additionalProperties": _INT}
+
+REPORT_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "whiztap.report/1",
+    "title": "whiztap conformance report",
+    "type": "object",
+    "required": ["schema", "version", "whiztap_version", "spec_revision", "files", "checksum_rule",
+                 "severity_threshold", "ignored_rules", "passed", "summary", "connections", "rule_counts",
+                 "violations", "violations_not_listed", "latency", "unanswered", "set_configurations",
+                 "per_file"],
+    "additionalProperties": False,
+    "properties": {
+        "schema": {"const": "whiztap.report"},
+        "version": {"const": 1},
+        "whiztap_version": _STR,
+        "spec_revision": _STR,
+        "files": {"type": "array", "items": _STR},
+        "checksum_rule": {"type": "object", "required": ["name", "description"],
+                          "properties": {"name": _STR, "description": _STR}},
+        "severity_threshold": _SEVERITY,
+        "ignored_rules": {"type": "array", "items": _STR},
+        "passed": {"type": "boolean"},
+        "summary": {
+            "type": "object",
+            "required": ["connections", "frames", "first_ns", "last_ns", "duration_s", "frames_by_kind",
+                         "violations_by_severity"],
+            "properties": {
+                "connections": _INT, "frames": _INT, "first_ns": _NS_OR_NULL, "last_ns": _NS_OR_NULL,
+                "duration_s": {"type": "number"},
+                "frames_by_kind": {"type": "object", "required": ["c2s", "s2c"],
+                                   "properties": {"c2s": _COUNTS, "s2c": _COUNTS}},
+                "violations_by_severity": {"type": "object", "required": ["error", "warning", "info"],
+                                           "properties": {"error": _INT, "warning": _INT, "info": _INT}},
+            },
+        },
+        "connections": {"type": "array", "items": {
+            "type": "object",
+            "required": ["file", "conn", "client", "upstream", "mode", "handshake", "first_ns", "last_ns",
+                         "frames", "violations", "channel_map", "closed_by", "notes"],
+            "properties": {
+                "file": _STR, "conn": _INT, "client": _STR, "upstream": _STR,
+                "mode": {"type": "string", "enum": ["unknown", "winsock", "vpn"]}, "handshake": _STR,
+                "first_ns": _NS_OR_NULL, "last_ns": _NS_OR_NULL, "frames": _INT, "violations": _COUNTS,
+                "channel_map": {"type": "object", "additionalProperties": {
+                    "type": "object", "required": ["unit_type", "unused", "switch_type"],
+                    "properties": {"unit_type": _INT, "unused": _INT, "switch_type": _INT}}},
+                "closed_by": _STR, "notes": {"type": "array", "items": _STR},
+            },
+        }},
+        "rule_counts": _COUNTS,
+        "violations": {"type": "array", "items": {
+            "type": "object",
+            "required": ["rule_id", "severity", "section", "file", "conn", "dir", "t_ns", "t_rel_s", "frame",
+                         "detail", "late"],
+            "properties": {
+                "rule_id": {"type": "string", "pattern": "^PW-[A-Z0-9-]+$"}, "severity": _SEVERITY,
+                "section": _STR, "file": _STR, "conn": _INT,
+                "dir": {"type": ["string", "null"], "enum": ["c2s", "s2c", None]},
+                "t_ns": _INT, "t_rel_s": {"type": "number"},
+                "frame": {"type": "string", "description": "the frame's bytes, escaped"},
+                "detail": _STR, "late": {"type": "boolean"},
+            },
+        }},
+        "violations_not_listed": _INT,
+        "latency": {"type": "array", "items": {
+            "type": "object",
+            "required": ["request", "count", "mean_ns", "p50_ns", "p95_ns", "p99_ns", "max_ns"],
+            "properties": {"request": _STR, "count": _INT, "mean_ns": _INT, "p50_ns": _INT, "p95_ns": _INT,
+                           "p99_ns": _INT, "max_ns": _INT},
+        }},
+        "unanswered": _COUNTS,
+        "set_configurations": {"type": "array", "items": {
+            "type": "object", "required": ["file", "conn", "t_ns", "checksum", "expected", "ok", "satisfies"],
+            "properties": {"file": _STR, "conn": _INT, "t_ns": _INT, "checksum": _INT, "expected": _INT,
+                           "ok": {"type": "boolean"}, "satisfies": {"type": "array", "items": _STR}},
+        }},
+        "per_file": {"type": "array", "items": {
+            "type": "object", "required": ["file", "connections", "frames", "violations"],
+            "properties": {"file": _STR, "connections": _INT, "frames": _INT, "violations": _INT},
+        }},
+    },
+}
