@@ -25,5 +25,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
+samples: $(STAMP)
+	$(BIN)/python samples/generate.py
+
 clean:
 	rm -rf $(VENV) .pytest_cache

@@ -1,0 +1,109 @@
+"""Make the sample recordings in this folder (run by `make samples`).
+
+Each sample is real traffic: the simulator (or, for the violations sample, a
+scripted peer) behind whiztap's recording proxy, driven by the client library.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+
+from analyzer import messages as m
+from analyzer.examples import SCENARIOS
+from sniffer.client import Client, HandshakeError
+from sniffer.dialogue import Dialogue
+from sniffer.record_run import Recording, RecordSettings
+from sniffer.simulator import Simulator
+
+HERE = Path(__file__).parent
+LOCAL = "127.0.0.1"
+PASSWORD = "progwhiz"
+
+
+async def recorded(upstream_port: int, path: Path, session) -> None:  # noqa: ANN001 - an async callable
+    """Run ``session(proxy_port)`` through a recording proxy into ``path``."""
+    path.unlink(missing_ok=True)
+    recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, upstream_port), str(path), quiet=True))
+    await recording.start()
+    try:
+        await session(recording.proxy.port)
+        await asyncio.sleep(0.2)  # let the last answers cross the proxy
+    finally:
+        await recording.stop()
+    print(f"wrote {path.relative_to(HERE.parent)}")
+
+
+async def every_command(client: Client) -> None:
+    """Every command of the spec, with pauses so the servo travel shows."""
+    await client.fetch_configuration()
+    for channel in (12, 13):
+        await client.sensor(channel)
+    await client.normal_send(0, 1500)
+    for _ in range(5):
+        await client.servo_position(0)
+        await asyncio.sleep(0.1)
+    await client.activate_switch(6)
+    await client.deactivate_switch(6)
+    await client.play_internal_script(120)
+    await client.stop_internal_script()
+    await client.play_external_script(272)
+    await client.stop_external_script()
+    await client.set_configuration(tuple(m.SetConfigEntry(12, port, 0) for port in range(6)))
+    await client.fetch_camera_image()
+    for _ in range(10):
+        await client.sensor(12)
+        await asyncio.sleep(0.05)
+
+
+async def clean_winsock() -> None:
+    async with Simulator(mode="winsock", password=PASSWORD, seed=1) as sim:
+        async def session(port: int) -> None:
+            async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
+                await every_command(client)
+        await recorded(sim.port, HERE / "clean-winsock.mcap", session)
+
+
+async def vpn() -> None:
+    async with Simulator(mode="vpn", seed=2) as sim:
+        async def session(port: int) -> None:
+            async with await Client.connect(LOCAL, port) as client:
+                await client.fetch_configuration()
+                await client.normal_send(2, 2000)
+                for i in range(20):
+                    await client.sensor(12 + i % 4)
+                    await client.servo_position(2)
+                    await asyncio.sleep(0.05)
+        await recorded(sim.port, HERE / "vpn.mcap", session)
+
+
+async def failed_password() -> None:
+    async with Simulator(mode="winsock", password=PASSWORD, seed=3) as sim:
+        async def session(port: int) -> None:
+            try:
+                await Client.connect(LOCAL, port, password="not-the-password")
+            except HandshakeError:
+                return
+            raise RuntimeError("the simulator accepted a wrong password")
+        await recorded(sim.port, HERE / "failed-password.mcap", session)
+
+
+async def violations() -> None:
+    async with Dialogue() as peer:
+        async def session(port: int) -> None:
+            for steps in SCENARIOS.values():
+                await peer.play(steps, (LOCAL, port))
+        await recorded(peer.port, HERE / "violations.mcap", session)
+
+
+async def main() -> None:
+    for make in (clean_winsock, vpn, failed_password, violations):
+        await make()
+
+
+if __name__ == "__main__":
+    try:
+        asyncio.run(main())
+    except KeyboardInterrupt:
+        sys.exit("generate: interrupted")

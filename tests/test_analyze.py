@@ -1,0 +1,232 @@
+"""whiztap analyze, cat and info on the sample recordings, as a user runs them."""
+
+import base64
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import jsonschema
+import pytest
+from junitparser import Failure, JUnitXml, Skipped
+
+from analyzer.recording import rebuild_streams, stream_bytes
+from analyzer.report.schema import REPORT_SCHEMA
+from analyzer.rules import RULES
+
+WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+SAMPLES = Path(__file__).parent.parent / "samples"
+CLEAN, VPN, FAILED, VIOLATIONS = (SAMPLES / f"{n}.mcap" for n in ("clean-winsock", "vpn", "failed-password",
+                                                                    "violations"))
+
+
+def run(*args):
+    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def report(*args):
+    result = run("analyze", "--format", "json", *args)
+    assert result.returncode in (0, 1), result.stderr
+    data = json.loads(result.stdout)
+    jsonschema.validate(data, REPORT_SCHEMA)
+    return result.returncode, data
+
+
+# -- reports on the samples ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sample", [CLEAN, VPN, FAILED])
+def test_clean_samples_pass_with_nothing_to_report(sample):
+    code, data = report(sample)
+    assert code == 0 and data["passed"]
+    assert data["rule_counts"] == {} and data["violations"] == []
+
+
+def test_clean_winsock_summary():
+    _, data = report(CLEAN)
+    [conn] = data["connections"]
+    assert (conn["mode"], conn["handshake"]) == ("winsock", "readytogo")
+    assert conn["channel_map"]["12"]["unit_type"] == 2
+    kinds = data["summary"]["frames_by_kind"]
+    assert kinds["c2s"]["command"] > 20 and kinds["s2c"]["image"] == 1 and kinds["c2s"]["set_config"] == 1
+    latency = {row["request"]: row for row in data["latency"]}
+    assert {"Sensor Request", "Servo Position Request", "Fetch Configuration Settings",
+            "Fetch Camera Image"} <= set(latency)
+    assert all(0 < r["p50_ns"] <= r["p99_ns"] <= r["max_ns"] for r in data["latency"])
+    [setcfg] = data["set_configurations"]
+    assert setcfg["ok"] and setcfg["checksum"] == 72 and "dev-sum" in setcfg["satisfies"]
+
+
+def test_failed_password_outcome():
+    _, data = report(FAILED)
+    assert [c["handshake"] for c in data["connections"]] == ["failed validation"]
+
+
+def test_every_rule_fires_on_the_violations_sample():
+    code, data = report(VIOLATIONS)
+    assert code == 1 and not data["passed"]
+    assert set(data["rule_counts"]) == set(RULES)
+    for v in data["violations"]:
+        assert v["detail"] and v["section"] == RULES[v["rule_id"]].section
+
+
+def test_ignore_and_threshold_change_the_verdict():
+    errors = [r for r, rule in RULES.items() if rule.severity == 3]
+    args = [VIOLATIONS] + [a for r in errors for a in ("--ignore", r)]
+    code, data = report(*args)
+    assert code == 0 and data["passed"] and data["summary"]["violations_by_severity"]["error"] == 0
+    code, _ = report(*args, "--severity-threshold", "warning")
+    assert code == 1
+
+
+def test_checksum_rule_is_named_and_applied():
+    _, data = report(CLEAN, "--checksum-rule", "dev-unit-sum")
+    assert data["checksum_rule"]["name"] == "dev-unit-sum"
+    assert data["set_configurations"][0]["satisfies"] == ["dev-sum", "dev-unit-sum", "dev-sum-7bit"]
+
+
+def test_several_files_and_a_folder(tmp_path):
+    for f in (CLEAN, VPN):
+        shutil.copy(f, tmp_path / f.name)
+    _, serial = report(tmp_path, "--jobs", "1")
+    _, parallel = report(tmp_path, "--jobs", "2")
+    assert [row["file"] for row in serial["per_file"]] == [str(tmp_path / "clean-winsock.mcap"),
+                                                            str(tmp_path / "vpn.mcap")]
+    assert serial["summary"] == parallel["summary"]
+    assert serial["summary"]["connections"] == 2
+
+
+def test_text_report_reads_at_80_columns():
+    result = run("analyze", VIOLATIONS)
+    assert result.returncode == 1
+    assert "FAIL" in result.stdout and "PW-SETCFG-CHECKSUM" in result.stdout
+    assert max(len(line) for line in result.stdout.splitlines()) <= 80
+
+
+def test_junit_has_one_case_per_rule(tmp_path):
+    out = tmp_path / "report.xml"
+    assert run("analyze", VIOLATIONS, "--format", "junit", "-o", out).returncode == 1
+    xml = JUnitXml.fromfile(str(out))
+    cases = [case for suite in xml for case in suite]
+    assert len(cases) == len(RULES)
+    failing = [c for c in cases if any(isinstance(r, Failure) for r in c.result)]
+    assert {c.name.split(":")[0] for c in failing} == {r for r, rule in RULES.items() if rule.severity == 3}
+    run("analyze", VIOLATIONS, "--format", "junit", "-o", out, "--ignore", "PW-DIRECTION")
+    skipped = [c for suite in JUnitXml.fromfile(str(out)) for c in suite
+               if any(isinstance(r, Skipped) for r in c.result)]
+    assert [c.name.split(":")[0] for c in skipped] == ["PW-DIRECTION"]
+
+
+def test_html_is_self_contained_with_plots(tmp_path):
+    out = tmp_path / "report.html"
+    assert run("analyze", CLEAN, "--format", "html", "-o", out).returncode == 0
+    page = out.read_text()
+    assert page.count("<svg") >= 4  # items over time, latency, sensor values, servo positions
+    for caption in ("Items over time", "Response latency", "Sensor values", "Servo positions"):
+        assert caption in page
+    assert "<script src" not in page and "<link" not in page
+
+
+def test_markdown(tmp_path):
+    out = tmp_path / "report.md"
+    run("analyze", VIOLATIONS, "--format", "markdown", "-o", out)
+    text = out.read_text()
+    assert text.startswith("# whiztap conformance report") and "| `PW-RANGE-CHANNEL` |" in text
+
+
+# -- unreadable input ---------------------------------------------------------------------
+
+
+def one_line_error(result):
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    return result.stderr
+
+
+def test_missing_file():
+    assert "no such file" in one_line_error(run("analyze", "/nonexistent/x.mcap"))
+
+
+def test_not_a_recording(tmp_path):
+    bogus = tmp_path / "notes.mcap"
+    bogus.write_text("hello")
+    assert "not an MCAP file" in one_line_error(run("analyze", bogus))
+
+
+@pytest.mark.parametrize("command", ["analyze", "cat"])
+def test_truncated_part_file_names_recover(tmp_path, command):
+    part = tmp_path / "session.mcap.part"
+    data = CLEAN.read_bytes()
+    part.write_bytes(data[: len(data) // 2])
+    assert f"whiztap recover {part}" in one_line_error(run(command, part))
+
+
+def test_unknown_rule_in_ignore():
+    assert "--rules" in one_line_error(run("analyze", CLEAN, "--ignore", "PW-NOPE"))
+
+
+def test_rules_listing():
+    result = run("analyze", "--rules")
+    assert result.returncode == 0 and len(result.stdout.splitlines()) == len(RULES)
+
+
+# -- cat -------------------------------------------------------------------------------------
+
+
+def cat_jsonl(*args):
+    result = run("cat", "--format", "jsonl", *args)
+    assert result.returncode == 0, result.stderr
+    return [json.loads(line) for line in result.stdout.splitlines()]
+
+
+def test_cat_is_lossless_and_in_time_order():
+    rows = [r for r in cat_jsonl(CLEAN) if r["kind"] != "late_violation"]
+    assert all(a["t_ns"] <= b["t_ns"] for a, b in zip(rows, rows[1:]))
+    rebuilt: dict = {}
+    for r in rows:
+        rebuilt.setdefault((r["conn"], r["dir"]), bytearray()).extend(base64.b64decode(r["raw_b64"]))
+    recorded = {key: stream_bytes(seg) for key, seg in rebuild_streams(str(CLEAN)).items()}
+    assert {k: bytes(v) for k, v in rebuilt.items()} == recorded
+
+
+def test_cat_fields():
+    rows = cat_jsonl(CLEAN, "--kind", "response", "--channel", "12")
+    assert rows and all(r["kind"] == "response" and r["fields"]["channel"] == 12 for r in rows)
+    assert all("sensor_value" in r["fields"] and r["violations"] == [] for r in rows)
+    assert {"t_ns", "conn", "dir", "kind", "raw_b64", "fields", "violations"} <= set(rows[0])
+
+
+def test_cat_filters():
+    assert all(r["violations"] for r in cat_jsonl(VIOLATIONS, "--violations-only"))
+    assert {r["dir"] for r in cat_jsonl(CLEAN, "--dir", "s2c")} == {"s2c"}
+    assert {r["conn"] for r in cat_jsonl(VIOLATIONS, "--conn", "3")} == {3}
+    everything = cat_jsonl(VPN)
+    start = everything[0]["t_ns"]
+    window = cat_jsonl(VPN, "--since", "0.2", "--until", "0.5")
+    assert window and all(0.2 <= (r["t_ns"] - start) / 1e9 < 0.5 for r in window)
+
+
+def test_cat_text_marks_violations():
+    result = run("cat", VIOLATIONS, "--violations-only")
+    assert result.returncode == 0 and "! PW-" in result.stdout
+
+
+# -- info ------------------------------------------------------------------------------------
+
+
+def test_info_on_a_complete_recording():
+    result = run("info", CLEAN, "--format", "json")
+    info = json.loads(result.stdout)
+    assert info["complete"] and info["format_version"] == "1" and info["connections"] == 1
+    assert info["topics"]["/tcp/reads"] > 0 and info["duration_s"] > 0
+
+
+def test_info_on_a_crash_leftover(tmp_path):
+    part = tmp_path / "x.mcap.part"
+    data = CLEAN.read_bytes()
+    part.write_bytes(data[: len(data) * 2 // 3])
+    result = run("info", part)
+    assert result.returncode == 0
+    assert "NO: truncated" in result.stdout and "whiztap recover" in result.stdout
