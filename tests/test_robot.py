@@ -432,6 +432,20 @@ def test_bad_set_configuration_is_ignored(frame, rule):
         assert rule in rule_ids(out)
 
 
+def test_set_configuration_may_extend_the_channel_map_without_gaps():
+    robot = make_robot("servo:0-4")
+    robot.connect(ServerMode.VPN).receive(set_config([(12, 5, 2), (12, 6, 1)]), SEC)
+    assert format_channels(robot.channels) == "servo:0-4,sensor:5,switch:6"
+
+
+def test_set_configuration_in_the_layout_lines_raw_byte_form_is_ignored():
+    robot = make_robot("servo:0-1")
+    frame = b"sr1-\x19" + bytes([12, 0, 2, 12]) + b"0-ss1"  # Data1 as the raw byte 25, one entry
+    out = robot.connect(ServerMode.VPN).receive(frame, SEC)
+    assert "PW-SETCFG-FORM" in rule_ids(out)
+    assert format_channels(robot.channels) == "servo:0-1"
+
+
 def test_checksum_rule_is_configurable():
     frame = set_config([(12, 0, 2), (12, 1, 2)], checksum=28)  # dev-unit-sum: 12+2 + 12+2
     default, other = make_robot("servo:0-1"), make_robot("servo:0-1", checksum_rule="dev-unit-sum")

@@ -32,6 +32,11 @@ async def until(condition, timeout: float = 10.0) -> None:
             await asyncio.sleep(0.001)
 
 
+async def read_to_eof(reader: asyncio.StreamReader) -> bytes:
+    async with asyncio.timeout(10):
+        return await reader.read()
+
+
 async def read_items(reader: asyncio.StreamReader, framer: Framer, done) -> list[Item]:
     """Read and frame until ``done(items)``."""
     items: list[Item] = []
@@ -104,7 +109,7 @@ async def test_wrong_password_gets_failed_validation_and_the_connection_closes()
         reader, writer = await asyncio.open_connection("127.0.0.1", sim.port)
         assert await reader.readexactly(11) == b"sendchkpass"
         writer.write(b"progwhix" + FETCH_CONFIG)
-        assert await reader.read() == b"Failed Validation"  # then EOF
+        assert await read_to_eof(reader) == b"Failed Validation"  # then EOF
         writer.close()
 
 
@@ -113,7 +118,7 @@ async def test_no_command_is_served_before_readytogo():
         reader, writer = await asyncio.open_connection("127.0.0.1", sim.port)
         assert await reader.readexactly(11) == b"sendchkpass"
         writer.write(FETCH_CONFIG)
-        assert await reader.read() == b"Failed Validation"
+        assert await read_to_eof(reader) == b"Failed Validation"
 
 
 async def test_vpn_mode_serves_at_once():
@@ -168,7 +173,7 @@ async def test_an_error_in_one_connection_leaves_the_others_running():
         async with await Client.connect("127.0.0.1", sim.port) as good:
             bad_reader, bad_writer = await asyncio.open_connection("127.0.0.1", sim.port)
             bad_writer.write(b"rr1-23--0--0-ss1")
-            assert await bad_reader.read() == b""  # that connection is closed
+            assert await read_to_eof(bad_reader) == b""  # that connection is closed
             assert sim.stats.errors == 1
             assert await good.servo_position(2) == 1000
         async with await Client.connect("127.0.0.1", sim.port) as late:
@@ -297,6 +302,16 @@ async def test_latency_delays_answers_and_jitter_keeps_their_order():
     framer = Framer()
     order = [i.raw.split(b"--")[0] for i in framer.feed(received, 0)]
     assert order == [b"cr1-%d" % ch for ch in range(24)]
+
+
+async def test_a_flood_under_latency_is_answered_whole_and_in_order():
+    requests = b"".join(b"rr1-%d--0--2-ss1" % (i % 6) for i in range(3000))
+    async with Simulator(mode="vpn", faults=FaultConfig(latency_ms=20)) as sim:
+        reader, writer = await asyncio.open_connection("127.0.0.1", sim.port)
+        writer.write(requests)
+        items = await read_items(reader, Framer(), lambda its: len(its) >= 3000)
+        assert [i.raw for i in items] == [b"cr1-%d--4000--0-ss1" % (i % 6) for i in range(3000)]
+        writer.close()
 
 
 # -- load ---------------------------------------------------------------------------------------------------

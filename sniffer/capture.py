@@ -1,0 +1,185 @@
+"""``whiztap capture``: recordings from pcap/pcapng files and live interfaces.
+
+Both paths stream: a file is read packet by packet with Scapy's raw readers
+(no dissection, never the whole file in memory), a live interface through a
+raw socket with a BPF filter.  Frames are decoded by ``sniffer.tcpreasm``,
+reassembled per connection and direction, and fed to the same Recorder as
+``whiztap record`` writes with, so a capture and a proxy recording of one
+session hold the same frames.
+"""
+
+from __future__ import annotations
+
+import select
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from sniffer.recorder import Recorder
+from sniffer.tcpreasm import DLT_EN10MB, DLT_RAW, Reassembler, parse_frame
+from sniffer.writer import RecordingFile, RecordingWriteError
+
+TICK_EVERY = 2048  # packets between flush/rotation checks when importing
+SNAP = 1 << 18  # larger than any frame on a 64 KiB-MTU loopback
+
+
+class CaptureError(Exception):
+    """A capture could not run; one line for the user."""
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    port: int
+    output: str
+    split_size: int | None = None
+    split_duration: float | None = None
+    keep_secrets: bool = False
+    checksum_rule: str = "dev-sum"
+
+
+def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: object) -> Recorder:
+    from sniffer.record_cli import base_metadata
+
+    metadata = base_metadata(source, settings.keep_secrets, settings.checksum_rule, start_ns,
+                             server_port=settings.port, split_size=settings.split_size,
+                             split_duration=settings.split_duration, **extra)
+    split_ns = int(settings.split_duration * 1e9) if settings.split_duration else None
+    file = RecordingFile(settings.output, metadata, split_size=settings.split_size, split_duration_ns=split_ns)
+    return Recorder(file, keep_secrets=settings.keep_secrets, checksum_rule=settings.checksum_rule)
+
+
+def _summary(recorder: Recorder, t_ns: int, detail: str) -> dict:
+    import os
+
+    summary = recorder.stop(t_ns, detail).as_dict()
+    summary["size"] = sum(os.path.getsize(p) for p in summary["files"])
+    return summary
+
+
+def _timestamp(meta, nano: bool) -> int:  # noqa: ANN001 - scapy's PacketMetadata or PacketMetadataNg
+    if hasattr(meta, "tshigh"):
+        return ((meta.tshigh << 32) | meta.tslow) * 1_000_000_000 // meta.tsresol
+    return meta.sec * 1_000_000_000 + meta.usec * (1 if nano else 1000)
+
+
+def import_pcap(path: str, settings: CaptureSettings) -> dict:
+    """Record the traffic to ``settings.port`` in a pcap or pcapng file; the summary."""
+    from scapy.error import Scapy_Exception
+    from scapy.utils import RawPcapReader
+
+    try:
+        reader = RawPcapReader(path)
+    except FileNotFoundError:
+        raise CaptureError(f"cannot read {path}: No such file or directory") from None
+    except OSError as e:
+        raise CaptureError(f"cannot read {path}: {e.strerror}") from None
+    except Scapy_Exception as e:
+        raise CaptureError(f"{path} is not a pcap or pcapng file ({e})") from None
+    nano = bool(getattr(reader, "nano", False))
+    recorder = None
+    t = 0
+    try:
+        with reader:
+            count = 0
+            while True:
+                try:
+                    frame, meta = reader._read_packet(SNAP)  # noqa: SLF001 - the public iterator cuts at 64 KiB
+                except EOFError:
+                    break
+                t = _timestamp(meta, nano)
+                if recorder is None:
+                    recorder = _recorder(settings, "pcap", t, pcap=path)
+                    recorder.start(t, detail=f"import of {path}")
+                    reassembler = Reassembler(settings.port, recorder)
+                linktype = getattr(meta, "linktype", None)
+                segment = parse_frame(reader.linktype if linktype is None else linktype, frame, t)
+                if segment is not None:
+                    reassembler.segment(segment)
+                count += 1
+                if count % TICK_EVERY == 0:
+                    recorder.tick(t)
+        if recorder is None:
+            recorder = _recorder(settings, "pcap", time.time_ns(), pcap=path)
+            recorder.start(time.time_ns(), detail=f"import of {path} (no packets)")
+        else:
+            reassembler.finish(t)
+        return _summary(recorder, t, "end of capture file")
+    except RecordingWriteError as e:
+        raise CaptureError(str(e)) from None
+
+
+def _live_linktype(frame: bytes) -> int:
+    """PF_PACKET frames carry an Ethernet header on Ethernet and loopback
+    interfaces and none on tunnels; Scapy cannot always say which (it calls lo's
+    frames Raw), so look: an IP ethertype at offset 12 means Ethernet."""
+    if len(frame) >= 14 and frame[12:14] in (b"\x08\x00", b"\x86\xdd", b"\x81\x00"):
+        return DLT_EN10MB
+    return DLT_RAW
+
+
+def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
+    import logging
+
+    import scapy.arch  # noqa: F401 - sets conf.L2listen for this platform
+    from scapy.config import conf
+    from scapy.error import Scapy_Exception
+
+    logging.getLogger("scapy.runtime").setLevel(logging.ERROR)  # no "unable to guess type" noise
+
+    try:
+        return conf.L2listen(iface=iface, filter=f"tcp port {port}")
+    except PermissionError:
+        raise CaptureError(
+            f"live capture on {iface} needs root or the CAP_NET_RAW capability "
+            "(run as root, or grant it: sudo setcap cap_net_raw+eip \"$(readlink -f $(which python3))\"); "
+            "or capture with tcpdump and import with --pcap") from None
+    except OSError as e:
+        raise CaptureError(f"cannot capture on {iface}: {e.strerror or e}") from None
+    except Scapy_Exception as e:
+        raise CaptureError(f"cannot capture on {iface}: {e}") from None
+
+
+def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = None,
+                 timeout: float | None = None, announce: Callable[[str], None] | None = None) -> dict:
+    """Record traffic to ``settings.port`` seen on ``iface`` until Ctrl-C, SIGTERM,
+    ``count`` packets or ``timeout`` seconds; the summary."""
+    sock = _open_live(iface, settings.port)
+    start = time.time_ns()
+    recorder = _recorder(settings, "live", start, iface=iface)
+    stop = False
+
+    def on_term(signum: int, frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        recorder.start(start, detail=f"live capture on {iface}, port {settings.port}")
+        reassembler = Reassembler(settings.port, recorder)
+        if announce is not None:
+            announce(f"capturing tcp port {settings.port} on {iface} into {settings.output} (Ctrl-C to stop)")
+        seen = 0
+        deadline = None if timeout is None else time.monotonic() + timeout
+        t = start
+        while not stop and (count is None or seen < count) and (deadline is None or time.monotonic() < deadline):
+            ready, _, _ = select.select([sock], [], [], 0.1)
+            if ready:
+                _cls, frame, ts = sock.recv_raw(SNAP)
+                if frame is not None:
+                    t = int(ts * 1e9) if ts else time.time_ns()
+                    segment = parse_frame(_live_linktype(frame), frame, t)
+                    if segment is not None:
+                        reassembler.segment(segment)
+                        seen += 1
+            recorder.tick(time.time_ns())
+    except KeyboardInterrupt:
+        pass  # Ctrl-C: finish the file below
+    except RecordingWriteError as e:
+        raise CaptureError(str(e)) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        sock.close()
+    t = max(t, time.time_ns())
+    reassembler.finish(t)
+    return _summary(recorder, t, "capture stopped")

@@ -1,0 +1,339 @@
+"""The recording pipe: the proxy hands connection events to a writer process.
+
+Why a process and not a thread: the session model, JSON and MCAP encoding cost
+tens of microseconds per frame in Python; in a thread of the proxy's process
+they would hold the GIL the event loop needs to forward the next read (up to the
+5 ms switch interval at a time), and round trips through the proxy would slow
+down whenever traffic is being written.  In a child process they run on the
+other core and the event loop does nothing per read but copy it into a batch.
+
+Parent side (``WriterProcess``): each event becomes one binary record appended
+to a batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
+through an asyncio write-pipe transport.  If the writer falls behind, the
+transport's buffer grows to ``HIGH_WATER`` and then ``on_pause`` tells the proxy
+to stop reading until it drains (so memory stays bounded, at the cost of
+slowing traffic only when the writer is overloaded for seconds).
+
+Child side (``python -m sniffer.feed CONFIG``): one thread reads the pipe,
+drives a ``Recorder`` and reports on its stdout as JSON lines (ready,
+violations for ``--analyze``, finished files, errors, the summary).  It ignores
+SIGINT (Ctrl-C reaches the whole process group; the parent decides when to
+stop) and finishes the file when the pipe closes, so even a parent killed with
+SIGKILL leaves a finished recording.
+
+Record layout: ``<BIBQI`` = type, connection id, direction (0 c2s, 1 s2c),
+t_ns, payload length; then the payload (the bytes read, or a JSON object).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fcntl
+import json
+import os
+import select
+import signal
+import struct
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from analyzer.session import Direction
+
+REC_DATA, REC_OPENED, REC_UPSTREAM_CONNECTED, REC_UPSTREAM_FAILED, REC_HALF_CLOSED, REC_CLOSED, REC_STOP = range(1, 8)
+_HEAD = struct.Struct("<BIBQI")
+_DIRS = (Direction.C2S, Direction.S2C)
+_DIR_CODE = {Direction.C2S: 0, Direction.S2C: 1}
+BATCH_S = 0.005
+BATCH_MAX = 256 << 10
+HIGH_WATER = 32 << 20
+LOW_WATER = 8 << 20
+_PIPE_SIZE = 1 << 20
+_F_SETPIPE_SZ = 1031
+TICK_S = 0.1
+EXIT_WRITE_ERROR = 3
+
+
+class WriterError(Exception):
+    """The writer could not start or stopped recording; one line for the user."""
+
+
+def _grow_pipe(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(fd, _F_SETPIPE_SZ, _PIPE_SIZE)
+
+
+# -- parent side ----------------------------------------------------------------------------
+
+
+class _Pipe(asyncio.Protocol):
+    def __init__(self, owner: WriterProcess) -> None:
+        self.owner = owner
+
+    def pause_writing(self) -> None:
+        self.owner._set_paused(True)
+
+    def resume_writing(self) -> None:
+        self.owner._set_paused(False)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.owner._pipe_lost(exc)
+
+
+class _Status(asyncio.Protocol):
+    def __init__(self, owner: WriterProcess) -> None:
+        self.owner = owner
+        self._buf = b""
+
+    def data_received(self, data: bytes) -> None:
+        lines = (self._buf + data).split(b"\n")
+        self._buf = lines.pop()
+        for line in lines:
+            if line:
+                self.owner._status(json.loads(line))
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.owner._status_closed()
+
+
+class WriterProcess:
+    """The proxy's handle on the writer process.  Methods named after events
+    never block and never raise: recording must not get in the way of traffic."""
+
+    def __init__(self, config: dict[str, Any]) -> None:
+        self.config = config
+        self.on_pause: Callable[[], None] | None = None
+        self.on_resume: Callable[[], None] | None = None
+        self.on_violation: Callable[[dict], None] | None = None
+        self.on_file: Callable[[str], None] | None = None
+        self.on_error: Callable[[str], None] | None = None
+        self.paused = False
+        self.error: str | None = None
+        self.summary: dict | None = None
+        self._batch = bytearray()
+        self._timer: asyncio.TimerHandle | None = None
+        self._pipe: asyncio.WriteTransport | None = None
+        self._proc: subprocess.Popen | None = None
+        self._ready: asyncio.Future[None] | None = None
+        self._done: asyncio.Future[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    async def start(self) -> None:
+        """Spawn the writer and wait until its file is open (raises WriterError)."""
+        loop = self._loop = asyncio.get_running_loop()
+        data_r, data_w = os.pipe()
+        status_r, status_w = os.pipe()
+        _grow_pipe(data_w)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "sniffer.feed", json.dumps(self.config)],
+            stdin=data_r, stdout=status_w, close_fds=True)
+        os.close(data_r)
+        os.close(status_w)
+        self._ready = loop.create_future()
+        self._done = loop.create_future()
+        await loop.connect_read_pipe(lambda: _Status(self), os.fdopen(status_r, "rb", buffering=0))
+        self._pipe, _ = await loop.connect_write_pipe(lambda: _Pipe(self), os.fdopen(data_w, "wb", buffering=0))
+        self._pipe.set_write_buffer_limits(high=HIGH_WATER, low=LOW_WATER)
+        await asyncio.wait([self._ready, self._done], return_when=asyncio.FIRST_COMPLETED)
+        if not self._ready.done():
+            await self._reap()
+            raise WriterError(self.error or "the writer process exited before it was ready")
+
+    # -- events from the proxy --------------------------------------------------------------
+
+    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
+        batch = self._batch
+        batch += _HEAD.pack(REC_DATA, conn, _DIR_CODE[direction], t_ns, len(data))
+        batch += data
+        self._queued()
+
+    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
+        self._event(REC_OPENED, conn, 0, t_ns, {"client": client, "upstream": upstream})
+
+    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None:
+        self._event(REC_UPSTREAM_CONNECTED, conn, 0, t_ns, {"detail": detail})
+
+    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
+        self._event(REC_UPSTREAM_FAILED, conn, 0, t_ns, {"detail": detail})
+
+    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
+        self._event(REC_HALF_CLOSED, conn, _DIR_CODE[direction], t_ns, None)
+
+    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None:
+        self._event(REC_CLOSED, conn, 0, t_ns, {"by": by, "detail": detail})
+
+    async def stop(self, t_ns: int, detail: str = "") -> dict | None:
+        """Finish the recording; returns the writer's summary (None if it failed)."""
+        if self._pipe is not None and not self._pipe.is_closing():
+            self._event(REC_STOP, 0, 0, t_ns, {"detail": detail})
+            self._send()
+            self._pipe.close()
+        await self._reap()
+        return self.summary
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _event(self, kind: int, conn: int, direction: int, t_ns: int, payload: dict | None) -> None:
+        body = json.dumps(payload).encode() if payload is not None else b""
+        self._batch += _HEAD.pack(kind, conn, direction, t_ns, len(body)) + body
+        self._queued()
+
+    def _queued(self) -> None:
+        if len(self._batch) >= BATCH_MAX:
+            self._send()
+        elif self._timer is None and self._loop is not None:
+            self._timer = self._loop.call_later(BATCH_S, self._send)
+
+    def _send(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if self._batch and self._pipe is not None and not self._pipe.is_closing():
+            self._pipe.write(bytes(self._batch))
+        self._batch.clear()
+
+    def _set_paused(self, paused: bool) -> None:
+        self.paused = paused
+        hook = self.on_pause if paused else self.on_resume
+        if hook is not None:
+            hook()
+
+    def _pipe_lost(self, exc: Exception | None) -> None:
+        if exc is not None and self.error is None:
+            self._fail("the writer process stopped reading")
+
+    def _status(self, message: dict) -> None:
+        kind = message.get("type")
+        if kind == "ready":
+            if self._ready is not None and not self._ready.done():
+                self._ready.set_result(None)
+        elif kind == "violation" and self.on_violation is not None:
+            self.on_violation(message)
+        elif kind == "file" and self.on_file is not None:
+            self.on_file(message["path"])
+        elif kind == "error":
+            self._fail(message["message"])
+        elif kind == "summary":
+            self.summary = message
+
+    def _fail(self, message: str) -> None:
+        if self.error is None:
+            self.error = message
+            if self.on_error is not None:
+                self.on_error(message)
+
+    def _status_closed(self) -> None:
+        if self.summary is None and self._ready is not None and self._ready.done():
+            self._fail("the writer process exited unexpectedly")
+        if self._done is not None and not self._done.done():
+            self._done.set_result(None)
+
+    async def _reap(self) -> None:
+        if self._done is not None:
+            await self._done
+        if self._proc is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self._proc.wait)
+
+
+# -- child side ---------------------------------------------------------------------------------
+
+
+def _say(message: dict) -> None:
+    os.write(1, json.dumps(message).encode() + b"\n")
+
+
+def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
+    from analyzer.recording import violation_message
+
+    message = violation_message(conn, violation, about, t_ns, late=late, redact=True)
+    _say({"type": "violation", **message})
+
+
+def _dispatch(recorder, kind: int, conn: int, direction: int, t: int, payload: bytes) -> str | None:  # noqa: ANN001
+    """Apply one record; for the stop record, its detail (else None)."""
+    if kind == REC_DATA:
+        recorder.data(conn, _DIRS[direction], t, payload)
+        return None
+    if kind == REC_HALF_CLOSED:
+        recorder.half_closed(conn, _DIRS[direction], t)
+        return None
+    args = json.loads(payload)
+    if kind == REC_OPENED:
+        recorder.opened(conn, t, args["client"], args["upstream"])
+    elif kind == REC_UPSTREAM_CONNECTED:
+        recorder.upstream_connected(conn, t, args["detail"])
+    elif kind == REC_UPSTREAM_FAILED:
+        recorder.upstream_failed(conn, t, args["detail"])
+    elif kind == REC_CLOSED:
+        recorder.closed(conn, t, args["by"], args["detail"])
+    elif kind == REC_STOP:
+        return args["detail"]
+    return None
+
+
+def _run(config: dict[str, Any]) -> int:
+    from sniffer.recorder import Recorder
+    from sniffer.writer import RecordingFile, RecordingWriteError
+
+    stop_requested = False
+
+    def on_term(signum: int, frame: object) -> None:
+        nonlocal stop_requested
+        stop_requested = True
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a file size limit is an error to report, not a death
+    file = RecordingFile(config["path"], config["metadata"], split_size=config.get("split_size"),
+                         split_duration_ns=config.get("split_duration_ns"))
+    recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
+                        checksum_rule=config["checksum_rule"],
+                        on_violation=_violation_report if config.get("analyze") else None)
+    reported = 0
+    try:
+        recorder.start(config["start_ns"], **config.get("started", {}))
+        _say({"type": "ready", "path": file.current_path})
+        buf = bytearray()
+        head = _HEAD.size
+        stop_detail: str | None = None
+        t = config["start_ns"]
+        while stop_detail is None and not stop_requested:
+            ready, _, _ = select.select([0], [], [], TICK_S)
+            if ready:
+                chunk = os.read(0, 4 << 20)
+                if not chunk:
+                    break
+                buf += chunk
+                pos = 0
+                n = len(buf)
+                while stop_detail is None and n - pos >= head:
+                    kind, conn, direction, t, length = _HEAD.unpack_from(buf, pos)
+                    end = pos + head + length
+                    if end > n:
+                        break
+                    stop_detail = _dispatch(recorder, kind, conn, direction, t, bytes(buf[pos + head:end]))
+                    pos = end
+                del buf[:pos]
+            recorder.tick(time.time_ns())
+            for path in file.finished[reported:]:
+                _say({"type": "file", "path": path})
+            reported = len(file.finished)
+        if stop_detail is None:  # no stop record: the proxy is gone, or SIGTERM came
+            t, stop_detail = time.time_ns(), "writer terminated" if stop_requested else "proxy gone"
+        summary = recorder.stop(t, stop_detail)
+    except RecordingWriteError as e:
+        _say({"type": "error", "message": str(e)})
+        return EXIT_WRITE_ERROR
+    _say({"type": "summary", **summary.as_dict(), "size": sum(os.path.getsize(p) for p in summary.files)})
+    return 0
+
+
+def main() -> None:
+    sys.exit(_run(json.loads(sys.argv[1])))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,220 @@
+"""``whiztap record``, ``whiztap recover`` and ``whiztap capture``.
+
+Heavy imports (asyncio machinery, uvloop, mcap, scapy) stay inside the command
+functions so that ``whiztap --help`` does not pay for them.
+"""
+
+from __future__ import annotations
+
+import datetime
+import re
+import socket
+import sys
+import uuid
+from collections.abc import Callable
+
+import click
+
+from analyzer.cli import fail
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
+_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+class ByteSize(click.ParamType):
+    """A byte count: 500000, 100k, 64M, 2G (powers of 1024)."""
+
+    name = "BYTES"
+
+    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
+        if isinstance(value, int):
+            return value
+        m = _SIZE.match(str(value))
+        if m is None or float(m.group(1)) <= 0:
+            self.fail(f"{value!r} is not a size such as 1000000, 500k or 64M", param, ctx)
+        return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+
+
+def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, int]:
+    """HOST:PORT, [V6]:PORT, or PORT alone when a default host is given."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = "", text
+    host = host.strip("[]")
+    if not host:
+        if default_host is None:
+            fail(f"{what} must be HOST:PORT, got {text!r}")
+        host = default_host
+    if not port.isdigit() or int(port) > 65535:
+        fail(f"{what} needs a port number 0-65535, got {text!r}")
+    return host, int(port)
+
+
+def human_bytes(n: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000  # type: ignore[assignment]
+    return f"{n} B"
+
+
+def clock_text(t_ns: int) -> str:
+    t = datetime.datetime.fromtimestamp(t_ns / 1e9)
+    return t.strftime("%H:%M:%S.%f")
+
+
+def summary_lines(summary: dict, what: str) -> list[str]:
+    """The lines printed when a recording ends."""
+    frames, nbytes, violations = summary["frames"], summary["bytes"], summary["violations"]
+    files = summary["files"]
+    where = files[0] if len(files) == 1 else f"{len(files)} files ({files[0]} ... {files[-1]})" if files else "no file"
+    per_dir = "; ".join(f"{d} {frames.get(d, 0)} frames {human_bytes(nbytes.get(d, 0))}" for d in ("c2s", "s2c"))
+    counts = ", ".join(f"{violations.get(s, 0)} {s}" for s in ("error", "warning", "info"))
+    return [f"{what} {summary['connections']} connection(s) into {where} ({human_bytes(summary['size'])}, "
+            f"{summary['messages']} messages)",
+            f"  {per_dir}",
+            f"  violations: {counts}"]
+
+
+def _run_loop(main: Callable) -> object:
+    """Run a coroutine function on uvloop when it is installed (it forwards
+    about twice as fast as the default loop), else on asyncio's own."""
+    import asyncio
+
+    try:
+        import uvloop
+    except ImportError:  # pragma: no cover - uvloop is a dependency; kept for odd platforms
+        return asyncio.run(main())
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        return runner.run(main())
+
+
+def base_metadata(source: str, keep_secrets: bool, checksum_rule: str, start_ns: int, **extra: object) -> dict:
+    from analyzer.recording import metadata_record
+
+    start = datetime.datetime.fromtimestamp(start_ns / 1e9, datetime.timezone.utc)
+    return metadata_record(source=source, start_time=start.isoformat(), start_time_ns=start_ns,
+                           checksum_rule=checksum_rule, host=socket.gethostname(),
+                           secrets="kept" if keep_secrets else "redacted",
+                           session_id=uuid.uuid4().hex, **extra)
+
+
+def check_checksum_rule(name: str | None) -> str:
+    from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
+
+    try:
+        return get_rule(name or DEFAULT_CHECKSUM_RULE).name
+    except ValueError as e:
+        fail(str(e))
+
+
+_split_options = [
+    click.option("--split-size", type=ByteSize(), default=None,
+                 help="Start a new numbered file when this one reaches BYTES (e.g. 100M)."),
+    click.option("--split-duration", type=click.FloatRange(min=0.001), default=None, metavar="SECONDS",
+                 help="Start a new numbered file every SECONDS."),
+    click.option("--keep-secrets", is_flag=True,
+                 help="Record the password as sent (default: '*' bytes and <redacted>)."),
+    click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules')."),
+    click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors."),
+]
+
+
+def _with_options(options: list) -> Callable:
+    def decorate(f: Callable) -> Callable:
+        for option in reversed(options):
+            f = option(f)
+        return f
+    return decorate
+
+
+@click.command("record")
+@click.option("--listen", default="127.0.0.1:6000", show_default=True, metavar="[HOST:]PORT",
+              help="Where clients connect (port 0 picks a free one).")
+@click.option("--upstream", required=True, metavar="HOST:PORT", help="The real server.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
+@_with_options(_split_options)
+@click.option("--analyze", is_flag=True, help="Print each violation as it happens.")
+@click.option("--connect-timeout", type=click.FloatRange(min=0.01), default=5.0, show_default=True,
+              metavar="SECONDS", help="How long to try the upstream for each client.")
+def record_command(listen: str, upstream: str, output: str, split_size: int | None, split_duration: float | None,
+                   keep_secrets: bool, checksum_rule: str | None, quiet: bool, analyze: bool,
+                   connect_timeout: float) -> None:
+    """Proxy clients to the server and record every byte into an MCAP file.
+
+    Point the client at --listen instead of the robot: every byte is forwarded
+    unchanged in both directions and recorded with its receive time.  Ctrl-C or
+    SIGTERM closes the connections and finishes the file.
+    """
+    listen_addr = parse_address(listen, "127.0.0.1", "--listen")
+    upstream_addr = parse_address(upstream, None, "--upstream")
+    rule = check_checksum_rule(checksum_rule)
+    from sniffer.record_run import RecordSettings, run_record
+
+    settings = RecordSettings(listen_addr, upstream_addr, output, split_size, split_duration, keep_secrets, rule,
+                              quiet, analyze, connect_timeout)
+    error = _run_loop(lambda: run_record(settings))
+    if error:
+        fail(str(error))
+
+
+@click.command("recover")
+@click.argument("path", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Where to write (default: PATH without .part, or NAME.recovered.mcap).")
+@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+def recover_command(path: str, output: str | None, force: bool) -> None:
+    """Turn a .mcap.part left by a crash into a valid, indexed MCAP file.
+
+    Everything the recorder had flushed (all but about the last second) is
+    copied into the new file; the original is left as it was.
+    """
+    from sniffer.recover import RecoverError, recover
+
+    try:
+        result = recover(path, output, force=force)
+    except RecoverError as e:
+        fail(str(e))
+    tail = "" if result.complete else " (the rest of the file was cut off mid-write)"
+    click.echo(f"recovered {result.messages} messages into {result.output}{tail}")
+
+
+@click.command("capture")
+@click.option("--pcap", "pcap", type=click.Path(dir_okay=False), default=None,
+              help="Read a capture file (pcap or pcapng) made by tcpdump or Wireshark.")
+@click.option("--iface", default=None, help="Capture live on this interface (needs root or CAP_NET_RAW).")
+@click.option("--port", type=click.IntRange(1, 65535), required=True, help="The server's TCP port.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
+@_with_options(_split_options)
+@click.option("--count", type=click.IntRange(min=1), default=None, help="Live: stop after this many packets.")
+@click.option("--timeout", type=click.FloatRange(min=0.01), default=None, metavar="SECONDS",
+              help="Live: stop after this long.")
+def capture_command(pcap: str | None, iface: str | None, port: int, output: str, split_size: int | None,
+                    split_duration: float | None, keep_secrets: bool, checksum_rule: str | None, quiet: bool,
+                    count: int | None, timeout: float | None) -> None:
+    """Record traffic to PORT from a capture file or a live interface.
+
+    Each TCP connection is reassembled in both directions by sequence number
+    (retransmissions and reordering handled; bytes missing from the capture are
+    recorded as gap events, never filled in) and written in the same layout as
+    'whiztap record'.
+    """
+    if (pcap is None) == (iface is None):
+        fail("give exactly one of --pcap FILE or --iface NAME")
+    rule = check_checksum_rule(checksum_rule)
+    from sniffer.capture import CaptureError, CaptureSettings, capture_live, import_pcap
+
+    settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule)
+    try:
+        if pcap is not None:
+            summary = import_pcap(pcap, settings)
+        else:
+            summary = capture_live(iface, settings, count=count, timeout=timeout,  # type: ignore[arg-type]
+                                   announce=None if quiet else click.echo)
+    except CaptureError as e:
+        fail(str(e))
+    except KeyboardInterrupt:  # pragma: no cover - capture_live handles it; here for a Ctrl-C at startup
+        sys.exit(2)
+    if not quiet:
+        for line in summary_lines(summary, "captured"):
+            click.echo(line)

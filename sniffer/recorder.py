@@ -1,0 +1,309 @@
+"""Connection events in, recording out: the sessions, redaction and channels.
+
+The proxy, the pcap importer and the live capture all describe traffic the same
+way (a connection opened, bytes arrived on one direction at a time, a side shut
+down, the connection closed) and the Recorder turns that into the recording
+layout of ``analyzer.recording``: every read, every framer item with what the
+live session model made of it, violations, plottable values and lifecycle
+events.  It runs on one thread (the writer's), so messages reach each channel
+in the order they happened and ``log_time`` never goes backwards.
+
+Passwords are redacted unless asked otherwise.  A password is only known to be
+one once the framer has seen its end, which may come in a later read or with the
+server's verdict, so the client's reads that may hold one are kept back (they
+and every read after them, to keep /tcp/reads in order) until it is known, then
+written with the password's bytes as '*'.  That wait is bounded: after
+``HOLD_LIMIT_S`` the bytes still undecided are masked anyway (a later item that
+turns out not to be the password keeps its own bytes in /frames).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from analyzer.checksum import DEFAULT_CHECKSUM_RULE
+from analyzer.framing import ItemKind
+from analyzer.recording import (
+    EV_CLOSED,
+    EV_CONTINUED,
+    EV_GAP,
+    EV_HALF_CLOSED,
+    EV_OPENED,
+    EV_RECORDING_STARTED,
+    EV_RECORDING_STOPPED,
+    EV_UPSTREAM_CONNECTED,
+    EV_UPSTREAM_FAILED,
+    MASK_BYTE,
+    TOPIC_EVENTS,
+    TOPIC_FRAMES,
+    TOPIC_READS,
+    TOPIC_VIOLATIONS,
+    event_message,
+    frame_message,
+    plot_messages,
+    read_message,
+    violation_message,
+)
+from analyzer.rules import Violation
+from analyzer.session import Direction, Event, HandshakeState, LateViolation, Observation, Session
+from sniffer.writer import RecordingFile
+
+HOLD_LIMIT_S = 0.5
+C2S, S2C = Direction.C2S, Direction.S2C
+_NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})
+
+ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
+
+
+class _Read:
+    """A read waiting for its turn on /tcp/reads (normally for no time at all)."""
+
+    __slots__ = ("conn", "dir", "t", "offset", "data", "spans", "held")
+
+    def __init__(self, conn: int, direction: Direction, t: int, offset: int, data: bytes) -> None:
+        self.conn, self.dir, self.t, self.offset, self.data = conn, direction, t, offset, data
+        self.spans: list[tuple[int, int]] = []
+        self.held = False
+
+    def mask(self, start: int, length: int) -> None:
+        """Mask stream bytes [start, start + length) where they fall in this read."""
+        lo = max(start, self.offset)
+        hi = min(start + length, self.offset + len(self.data))
+        if lo < hi:
+            data = bytearray(self.data)
+            data[lo - self.offset:hi - self.offset] = MASK_BYTE * (hi - lo)
+            self.data = bytes(data)
+            self.spans.append((lo - self.offset, hi - lo))
+
+
+@dataclass
+class _Conn:
+    session: Session
+    client: str
+    upstream: str
+    received: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
+    framed: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
+    held: list[_Read] = field(default_factory=list)
+    hold_since: float | None = None
+
+
+@dataclass
+class Summary:
+    """What a recording holds, for the line printed at exit."""
+
+    connections: int = 0
+    upstream_failures: int = 0
+    frames: Counter[str] = field(default_factory=Counter)  # by direction
+    bytes: Counter[str] = field(default_factory=Counter)  # by direction
+    violations: Counter[str] = field(default_factory=Counter)  # by severity
+    messages: int = 0
+    files: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"connections": self.connections, "upstream_failures": self.upstream_failures,
+                "frames": dict(self.frames), "bytes": dict(self.bytes),
+                "violations": dict(self.violations), "messages": self.messages, "files": self.files}
+
+
+class Recorder:
+    """Feeds each connection's bytes to its own Session and writes the recording."""
+
+    def __init__(self, file: RecordingFile, *, keep_secrets: bool = False,
+                 checksum_rule: str = DEFAULT_CHECKSUM_RULE, answer_timeout_ns: int = 5_000_000_000,
+                 on_violation: ViolationHook | None = None) -> None:
+        self.file = file
+        self.keep_secrets = keep_secrets
+        self.checksum_rule = checksum_rule
+        self.answer_timeout_ns = answer_timeout_ns
+        self.on_violation = on_violation
+        self.summary = Summary()
+        self._conns: dict[int, _Conn] = {}
+        self._reads: deque[_Read] = deque()
+        self._t = 0
+        file.on_new_part = self._continued
+
+    # -- input -----------------------------------------------------------------------
+
+    def start(self, t_ns: int, **details: object) -> None:
+        self._t = t_ns
+        self.file.open(t_ns)
+        self._event(0, EV_RECORDING_STARTED, t_ns, **details)
+        self.file.flush()  # schemas, channels and metadata on disk at once
+
+    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
+        t = self._clock(t_ns)
+        self._conns[conn] = _Conn(Session(self.checksum_rule, self.answer_timeout_ns), client, upstream)
+        self.summary.connections += 1
+        self._event(conn, EV_OPENED, t, client=client, upstream=upstream)
+
+    def upstream_connected(self, conn: int, t_ns: int, detail: str = "") -> None:
+        self._event(conn, EV_UPSTREAM_CONNECTED, self._clock(t_ns), detail=detail)
+
+    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
+        self.summary.upstream_failures += 1
+        self._event(conn, EV_UPSTREAM_FAILED, self._clock(t_ns), by="server", detail=detail)
+
+    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
+        t = self._clock(t_ns)
+        c = self._conns[conn]
+        read = _Read(conn, direction, t, c.received[direction], data)
+        c.received[direction] += len(data)
+        self.summary.bytes[direction.value] += len(data)
+        if self.keep_secrets:
+            self._write_read(read)
+            self._observe_all(conn, c, c.session.receive(direction, data, t))
+            return
+        self._reads.append(read)
+        if c.held and direction is C2S:
+            read.held = True
+            c.held.append(read)
+        self._observe_all(conn, c, c.session.receive(direction, data, t))
+        self._update_hold(c, read)
+        self._drain_reads()
+
+    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
+        """One side shut down its sending direction (TCP FIN)."""
+        t = self._clock(t_ns)
+        c = self._conns[conn]
+        self._event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
+        self._observe_all(conn, c, c.session.end(direction, t))
+        self._update_hold(c, None)
+        self._drain_reads()
+
+    def gap(self, conn: int, direction: Direction, t_ns: int, length: int) -> None:
+        """``length`` bytes of one direction were never seen (capture only)."""
+        t = self._clock(t_ns)
+        c = self._conns[conn]
+        offset = c.received[direction]
+        c.received[direction] += length
+        self._event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length,
+                    detail="bytes missing from the capture; the session model restarts after them")
+        # The framer cannot know what the missing bytes were: it finishes what it
+        # has and starts a fresh session model after the hole.
+        self._observe_all(conn, c, c.session.close(t))
+        self._update_hold(c, None, force=True)
+        self._drain_reads()
+        c.session = Session(self.checksum_rule, self.answer_timeout_ns)
+        c.framed = dict(c.received)
+
+    def closed(self, conn: int, t_ns: int, by: str, detail: str = "") -> None:
+        t = self._clock(t_ns)
+        c = self._conns.pop(conn)
+        self._observe_all(conn, c, c.session.close(t))
+        self._update_hold(c, None, force=True)
+        self._drain_reads()
+        self._event(conn, EV_CLOSED, t, by=by, detail=detail, c2s_bytes=c.received[C2S],
+                    s2c_bytes=c.received[S2C], mode=c.session.mode.value,
+                    handshake=c.session.handshake_outcome)
+
+    def tick(self, t_ns: int) -> None:
+        """Called often (at least every few hundred ms): bounded holds, flush, rotation."""
+        now = time.monotonic()
+        for c in self._conns.values():
+            if c.hold_since is not None and now - c.hold_since >= HOLD_LIMIT_S:
+                self._update_hold(c, None, force=True)
+        self._drain_reads()
+        self.file.tick(max(t_ns, self._t))
+
+    def stop(self, t_ns: int, detail: str = "") -> Summary:
+        """Close every connection still open, then finish the file(s)."""
+        t = self._clock(t_ns)
+        for conn in list(self._conns):
+            self.closed(conn, t, "recorder", detail or "recording stopped")
+        self._event(0, EV_RECORDING_STOPPED, t, by="recorder", detail=detail)
+        self.summary.messages = self.file.messages
+        self.summary.files = self.file.finish()
+        return self.summary
+
+    # -- internals ---------------------------------------------------------------------
+
+    def _clock(self, t_ns: int) -> int:
+        """Times never go backwards (a pcap's may): each input is at least the last."""
+        if t_ns > self._t:
+            self._t = t_ns
+        return self._t
+
+    def _event(self, conn: int, event: str, t: int, **details: object) -> None:
+        self.file.write(TOPIC_EVENTS, t, event_message(conn, event, t, **details))
+
+    def _write_read(self, r: _Read) -> None:
+        self.file.write(TOPIC_READS, r.t, read_message(r.conn, r.dir.value, r.t, r.offset, r.data, r.spans))
+
+    def _drain_reads(self) -> None:
+        reads = self._reads
+        while reads and not reads[0].held:
+            self._write_read(reads.popleft())
+
+    def _observe_all(self, conn: int, c: _Conn, events: list[Event]) -> None:
+        for event in events:
+            if isinstance(event, LateViolation):
+                self._violation(conn, event.violation, event.about, event.t_ns, late=True)
+            else:
+                self._observe(conn, c, event)
+
+    def _observe(self, conn: int, c: _Conn, obs: Observation) -> None:
+        item = obs.item
+        direction = obs.direction
+        offset = c.framed[direction]
+        c.framed[direction] = offset + len(item.raw)
+        if item.kind is ItemKind.PASSWORD and not self.keep_secrets:
+            # the client's reads not yet written (held ones, and the one being
+            # processed) are the only ones that can hold it
+            for read in self._reads:
+                if read.conn == conn and read.dir is C2S:
+                    read.mask(offset, len(item.raw))
+        t = item.t_end_ns
+        write = self.file.write
+        write(TOPIC_FRAMES, t, frame_message(conn, obs, offset, not self.keep_secrets))
+        for topic, message in plot_messages(conn, obs):
+            write(topic, t, message)
+        if item.kind not in _NOT_FRAMES:
+            self.summary.frames[direction.value] += 1
+        for v in obs.violations:
+            self._violation(conn, v, obs, t, late=False)
+
+    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool) -> None:
+        self.summary.violations[str(v.severity)] += 1
+        self.file.write(TOPIC_VIOLATIONS, t, violation_message(conn, v, about, t, late, not self.keep_secrets))
+        if self.on_violation is not None:
+            self.on_violation(conn, t, v, about, late)
+
+    def _update_hold(self, c: _Conn, read: _Read | None, force: bool = False) -> None:
+        """Hold the client's reads while they may end in an unfinished password."""
+        session = c.session
+        pending = (not force and session.state is HandshakeState.AWAIT_PASSWORD
+                   and session.framers[C2S].buffered > 0)
+        if pending:
+            if read is not None and read.dir is C2S and not read.held:
+                read.held = True
+                c.held.append(read)
+            if c.held and c.hold_since is None:
+                c.hold_since = time.monotonic()
+            return
+        if force and c.held and _password_mode(session):
+            # undecided bytes still in the framer: mask them rather than risk a leak
+            start = c.framed[C2S]
+            for r in c.held:
+                r.mask(start, c.received[C2S] - start)
+        for r in c.held:
+            r.held = False
+        c.held.clear()
+        c.hold_since = None
+
+    def _continued(self, part: int) -> None:
+        """A new file began: say which connections are open and where their streams are."""
+        for conn, c in self._conns.items():
+            self._event(conn, EV_CONTINUED, self._t, client=c.client, upstream=c.upstream,
+                        c2s_offset=c.received[C2S], s2c_offset=c.received[S2C],
+                        detail=f"connection open when part {part} began")
+        self.file.flush()
+
+
+def _password_mode(session: Session) -> bool:
+    """Whether the client framer still reads a password.  The framer keeps this
+    private; when it cannot be asked, assume yes (masking too much beats a leak)."""
+    return bool(getattr(session.framers[C2S], "_password_mode", True))
+

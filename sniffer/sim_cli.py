@@ -1,0 +1,198 @@
+"""``whiztap sim`` and ``whiztap client``: the simulator and the client by hand.
+
+Imports stay light at module level (``whiztap --help`` loads this module); the
+simulator, which brings in Pillow for the camera, is imported when it runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Coroutine
+from typing import Any, TypeVar
+
+import click
+
+from analyzer.checksum import CHECKSUM_RULES, DEFAULT_CHECKSUM_RULE
+from analyzer.cli import fail
+from sniffer.channels import DEFAULT_CHANNELS
+from sniffer.robot import DEFAULT_PASSWORD, DEFAULT_SERVO_SPEED
+
+DEFAULT_PORT = 5000
+T = TypeVar("T")
+_LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
+
+
+def _run(main: Coroutine[Any, Any, T]) -> T:
+    """asyncio.run, with Ctrl-C as the usual one-line error (click would add a blank line)."""
+    try:
+        return asyncio.run(main)
+    except KeyboardInterrupt:
+        fail("interrupted")
+
+
+def _show_address(host: str, port: int) -> str:
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+@click.command("sim")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
+@click.option("--port", type=click.IntRange(0, 65535), default=DEFAULT_PORT, show_default=True,
+              help="Port to listen on; 0 picks a free one (printed).")
+@click.option("--mode", type=click.Choice(["winsock", "vpn"]), default="winsock", show_default=True,
+              help="winsock: password handshake first; vpn: no handshake.")
+@click.option("--password", default=DEFAULT_PASSWORD, show_default=True, help="Password in winsock mode.")
+@click.option("--channels", default=DEFAULT_CHANNELS, show_default=True,
+              help="Unit per channel: servo, sensor, switch (type 0) or switch1 (type 1) with ranges.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seeds the sensor signals and the faults.")
+@click.option("--servo-speed", type=click.FloatRange(min=0, min_open=True), default=DEFAULT_SERVO_SPEED,
+              show_default=True, help="Servo travel in position units (0-2000) per second.")
+@click.option("--camera", type=click.Choice(["test", "none"]), default="test", show_default=True,
+              help="test: answer Fetch Camera Image with a JPEG test picture; none: no answer.")
+@click.option("--checksum-rule", type=click.Choice(sorted(CHECKSUM_RULES)), default=DEFAULT_CHECKSUM_RULE,
+              show_default=True, help="How Set Configuration checksums are verified.")
+@click.option("--latency", type=click.FloatRange(min=0), default=0.0, metavar="MS", help="Delay every reply.")
+@click.option("--jitter", type=click.FloatRange(min=0), default=0.0, metavar="MS",
+              help="Vary the delay by up to this much either way.")
+@click.option("--drop-rate", type=click.FloatRange(0, 1), default=0.0, metavar="P",
+              help="Probability that an answer is not sent.")
+@click.option("--split", is_flag=True, help="Write every reply in random small pieces.")
+@click.option("--garbage-rate", type=click.FloatRange(0, 1), default=0.0, metavar="P",
+              help="Probability of stray bytes before a reply.")
+@click.option("-v", "--verbose", count=True, help="-v logs every line break and more.")
+@click.option("-q", "--quiet", is_flag=True, help="Log only problems, not connections.")
+def sim_command(host: str, port: int, mode: str, password: str, channels: str, seed: int, servo_speed: float,
+                camera: str, checksum_rule: str, latency: float, jitter: float, drop_rate: float, split: bool,
+                garbage_rate: float, verbose: int, quiet: bool) -> None:
+    """Run a simulated Progwhiz Robotics Server (Rev 1.8) until interrupted."""
+    from sniffer.channels import ChannelSpecError
+    from sniffer.faults import FaultConfig
+    from sniffer.simulator import Simulator
+
+    if mode == "winsock" and not password:
+        fail("winsock mode needs a non-empty --password")
+    try:
+        faults = FaultConfig(latency, jitter, drop_rate, split, garbage_rate)
+        sim = Simulator(host, port, mode=mode, password=password, channels=channels, seed=seed,
+                        servo_speed=servo_speed, camera=camera == "test", checksum_rule=checksum_rule,
+                        faults=faults)
+    except (ChannelSpecError, ValueError) as e:
+        fail(f"--channels: {e}" if isinstance(e, ChannelSpecError) else str(e))
+    level = logging.WARNING if quiet else _LOG_LEVELS[min(1 + verbose, 2)]
+    logging.basicConfig(stream=sys.stderr, level=level, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    # Started in the background by a script, the process inherits an ignored
+    # SIGINT; restore it so that `kill -INT` stops the server like Ctrl-C does.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    _run(_run_sim(sim))
+
+
+async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
+    try:
+        await sim.start()
+    except OSError as e:
+        fail(f"cannot listen on {_show_address(sim.host, sim.requested_port)}: {e.strerror or e}")
+    stopped = asyncio.Event()
+    asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stopped.set)
+    try:
+        where = ", ".join(_show_address(host, port) for host, port in sim.addresses)
+        click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
+                   f"seed {sim.seed})")
+        await stopped.wait()
+    finally:
+        await sim.close()
+
+
+def _parse_address(address: str) -> tuple[str, int]:
+    host, sep, port_text = address.rpartition(":")
+    if not sep:
+        fail(f"expected HOST:PORT, got {address!r}")
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        port = int(port_text)
+    except ValueError:
+        fail(f"bad port in {address!r}")
+    if not 1 <= port <= 65535:
+        fail(f"port must be 1-65535, got {port}")
+    return host, port
+
+
+@click.command("client", context_settings={"ignore_unknown_options": True})
+@click.argument("address", metavar="HOST:PORT")
+@click.argument("words", nargs=-1, type=click.UNPROCESSED, metavar="[COMMAND]...")
+@click.option("--password", "-p", default=None, help="Do the winsock handshake with this password.")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True,
+              help="Seconds to wait for a connection, the handshake and each answer.")
+def client_command(address: str, words: tuple[str, ...], password: str | None, timeout: float) -> None:
+    """Send commands to a Progwhiz server (or a proxy in front of one).
+
+    One COMMAND on the command line (e.g. 'sensor 12', 'servo 3 1500',
+    'switch 7 on', 'script 120', 'config', 'camera -o pic.jpg', 'raw TEXT' or a
+    frame such as 'rr1-12--0--0-ss1'), or, without one, a command per line from
+    standard input ('help' lists them).
+    """
+    host, port = _parse_address(address)
+    sys.exit(_run(_run_client(host, port, password, timeout, list(words))))
+
+
+async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str]) -> int:
+    from sniffer.client import Client, ClientError
+    from sniffer.console import CommandError, run
+
+    try:
+        client = await Client.connect(host, port, password, timeout)
+    except ClientError as e:
+        fail(f"{_show_address(host, port)}: {e}")
+    except OSError as e:
+        reason = os.strerror(e.errno) if e.errno else str(e)
+        fail(f"cannot connect to {_show_address(host, port)}: {reason}")
+    async with client:
+        if words:
+            try:
+                click.echo(await run(client, words))
+            except (CommandError, ClientError) as e:
+                fail(str(e))
+            return 0
+        return await _repl(client)
+
+
+async def _repl(client) -> int:  # noqa: ANN001 - Client is imported lazily
+    from sniffer.client import ClientError, ConnectionClosed, HandshakeError
+    from sniffer.console import CommandError, item_line, run, split_line
+
+    lines: asyncio.Queue[str] = asyncio.Queue()
+    loop = asyncio.get_running_loop()
+
+    def read_stdin() -> None:  # a daemon thread: a blocked readline must not hold up exit
+        for line in sys.stdin:
+            loop.call_soon_threadsafe(lines.put_nowait, line)
+        loop.call_soon_threadsafe(lines.put_nowait, "")
+
+    threading.Thread(target=read_stdin, daemon=True).start()
+    interactive = sys.stdin.isatty()
+    failures = shown = 0
+    while True:
+        for item in client.stray[shown:]:
+            click.echo(f"{item_line(item)}  (unsolicited)")
+        shown = len(client.stray)
+        if interactive:
+            click.echo("> ", nl=False)
+        line = await lines.get()
+        if not line:
+            break
+        words = split_line(line)
+        if not words or words[0].startswith("#"):
+            continue
+        if words[0].lower() in ("quit", "exit"):
+            break
+        try:
+            click.echo(await run(client, words))
+        except (ConnectionClosed, HandshakeError) as e:
+            fail(str(e))
+        except (CommandError, ClientError) as e:
+            failures += 1
+            click.echo(f"error: {e}", err=True)
+    return 1 if failures else 0

@@ -1,0 +1,246 @@
+"""One recording on disk: an MCAP writer that never loses what it has flushed.
+
+The file is written as ``NAME.mcap.part`` and renamed to ``NAME.mcap`` only once
+``finish()`` has written the index, so a file with the final name is always a
+complete MCAP and a ``.part`` is always something ``whiztap recover`` can salvage.
+The open chunk is flushed to disk at least every ``FLUSH_INTERVAL_S`` (the mcap
+Writer keeps it in memory until then), so ``kill -9`` loses at most about a
+second.  Optional rotation starts numbered files by size or duration.
+
+When a write fails (disk full, file too large, I/O error) the file is cut back
+to the end of the last complete flush and closed with a DataEnd and Footer
+record, which needs only a few dozen bytes: what was written stays a valid
+(unindexed) MCAP that every reader opens, and ``whiztap recover`` re-indexes it.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+
+from mcap.data_stream import RecordBuilder
+from mcap.records import DataEnd, Footer
+from mcap.writer import CompressionType, Writer
+
+from analyzer.recording import (
+    MAGIC,
+    MESSAGE_ENCODING,
+    METADATA_NAME,
+    PROFILE,
+    SCHEMA_ENCODING,
+    TOPICS,
+    encode,
+    schema_bytes,
+)
+
+FLUSH_INTERVAL_S = 0.5  # < 1 s, so a kill -9 loses at most about a second
+DEFAULT_CHUNK_SIZE = 1 << 20
+MIN_CHUNK_SIZE = 16 << 10
+_STREAM_BUFFER = 1 << 20
+
+
+class RecordingWriteError(Exception):
+    """Writing the recording failed; the message says what was kept, in one line."""
+
+
+class _FileStream:
+    """The file object the mcap Writer writes to: a plain buffer over a file
+    descriptor, so that after a failed write we know exactly how many bytes
+    reached the file and no buffered object retries the write behind our back."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.written = 0
+        self._buf = bytearray()
+
+    def write(self, data: bytes) -> int:
+        self._buf += data
+        if len(self._buf) >= _STREAM_BUFFER:
+            self.flush()
+        return len(data)
+
+    def tell(self) -> int:
+        return self.written + len(self._buf)
+
+    def flush(self) -> None:
+        view = memoryview(self._buf)
+        done = 0
+        try:
+            while done < len(view):
+                done += os.write(self.fd, view[done:])
+        finally:
+            view.release()
+            del self._buf[:done]
+            self.written += done
+
+
+def _tail() -> bytes:
+    """DataEnd + Footer (no summary) + magic: the smallest valid end of an MCAP."""
+    builder = RecordBuilder()
+    DataEnd(0).write(builder)
+    Footer(0, 0, 0).write(builder)
+    return builder.end() + MAGIC
+
+
+def part_path(path: str, part: int | None) -> str:
+    """The final name of part ``part`` (None: an unsplit recording)."""
+    if part is None:
+        return path
+    stem, ext = os.path.splitext(path)
+    return f"{stem}-{part:04d}{ext or '.mcap'}"
+
+
+class RecordingFile:
+    """The MCAP file(s) of one recording, written from a single thread.
+
+    ``write()`` adds a message; ``tick()`` flushes when due and rotates when a
+    split limit is reached; ``finish()`` closes the last file.  ``on_new_part``
+    is called after each rotation so the recorder can write what a reader of
+    that file alone needs (the connections still open).
+    """
+
+    def __init__(self, path: str, metadata: dict[str, str], *, split_size: int | None = None,
+                 split_duration_ns: int | None = None, chunk_size: int = DEFAULT_CHUNK_SIZE,
+                 compression: CompressionType = CompressionType.ZSTD) -> None:
+        self.path = path
+        self.metadata = metadata
+        self.split_size = split_size
+        self.split_duration_ns = split_duration_ns
+        split = split_size is not None or split_duration_ns is not None
+        if split_size is not None:
+            chunk_size = max(MIN_CHUNK_SIZE, min(chunk_size, split_size // 8))
+        self.chunk_size = chunk_size
+        self.compression = compression
+        self.on_new_part: Callable[[int], None] | None = None
+        self.part: int | None = 1 if split else None
+        self.finished: list[str] = []  # final names of completed files
+        self.messages = 0  # over all parts
+        self._writer: Writer | None = None
+        self._stream: _FileStream | None = None
+        self._channels: dict[str, int] = {}
+        self._part_start_ns = 0
+        self._last_flush = 0.0
+        self._good = 0  # file offset just after the last complete flush
+        self._dirty = False
+
+    @property
+    def current_path(self) -> str:
+        return part_path(self.path, self.part)
+
+    @property
+    def size(self) -> int:
+        """Bytes of the current file so far (written or buffered)."""
+        return self._stream.tell() if self._stream is not None else 0
+
+    def open(self, t_ns: int) -> None:
+        """Create the first file; an unwritable path raises RecordingWriteError."""
+        self._open_part(t_ns)
+
+    def _open_part(self, t_ns: int) -> None:
+        target = self.current_path + ".part"
+        try:
+            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        except OSError as e:
+            raise RecordingWriteError(f"cannot write {target}: {e.strerror}") from None
+        self._stream = _FileStream(fd)
+        self._good = 0
+        writer = Writer(self._stream, chunk_size=self.chunk_size, compression=self.compression)
+        self._writer = writer
+        self._part_start_ns = t_ns
+        metadata = dict(self.metadata, part=str(self.part or 1))
+        try:
+            writer.start(PROFILE, f"whiztap {self.metadata.get('whiztap_version', '')}".strip())
+            writer.add_metadata(METADATA_NAME, metadata)
+            schema_ids: dict[str, int] = {}
+            for topic, schema in TOPICS.items():
+                if schema not in schema_ids:
+                    schema_ids[schema] = writer.register_schema(schema, SCHEMA_ENCODING, schema_bytes(schema))
+                self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, schema_ids[schema])
+            self._stream.flush()
+        except OSError as e:
+            os.close(fd)
+            os.unlink(target)
+            raise RecordingWriteError(f"cannot write {target}: {e.strerror or e}") from None
+        self._good = self._stream.written
+        self._last_flush = time.monotonic()
+
+    def write(self, topic: str, t_ns: int, message: dict) -> None:
+        try:
+            self._writer.add_message(self._channels[topic], t_ns, encode(message), t_ns)  # type: ignore[union-attr]
+        except OSError as e:
+            self._fail(e)
+        self.messages += 1
+        self._dirty = True
+
+    def flush(self) -> None:
+        if not self._dirty:
+            return
+        try:
+            self._writer.flush()  # type: ignore[union-attr]
+            self._stream.flush()  # type: ignore[union-attr]
+        except OSError as e:
+            self._fail(e)
+        self._good = self._stream.written  # type: ignore[union-attr]
+        self._dirty = False
+        self._last_flush = time.monotonic()
+
+    def tick(self, t_ns: int) -> bool:
+        """Flush if one is due; rotate if a split limit is reached.  True if rotated."""
+        if self._dirty and time.monotonic() - self._last_flush >= FLUSH_INTERVAL_S:
+            self.flush()
+        if self.part is None:
+            return False
+        if (self.split_size is not None and self.size >= self.split_size) or (
+                self.split_duration_ns is not None and t_ns - self._part_start_ns >= self.split_duration_ns):
+            self._finish_part()
+            self.part += 1
+            self._open_part(t_ns)
+            if self.on_new_part is not None:
+                self.on_new_part(self.part)
+            return True
+        return False
+
+    def finish(self) -> list[str]:
+        """Write the index, close, rename the .part; returns every file written."""
+        if self._writer is not None:
+            self._finish_part()
+        return self.finished
+
+    def _finish_part(self) -> None:
+        try:
+            self._writer.finish()  # type: ignore[union-attr]
+            self._stream.flush()  # type: ignore[union-attr]
+        except OSError as e:
+            self._fail(e)
+        self._close_and_rename()
+
+    def _close_and_rename(self) -> None:
+        os.close(self._stream.fd)  # type: ignore[union-attr]
+        os.replace(self.current_path + ".part", self.current_path)
+        self.finished.append(self.current_path)
+        self._writer = None
+        self._stream = None
+        self._channels = {}
+
+    def _fail(self, error: OSError) -> None:
+        """Keep what reached the disk readable, then report the failure."""
+        what = error.strerror or str(error)
+        part = self.current_path + ".part"
+        stream = self._stream
+        self._writer = None
+        try:
+            os.ftruncate(stream.fd, self._good)  # type: ignore[union-attr]
+            os.pwrite(stream.fd, _tail(), self._good)  # type: ignore[union-attr]
+            self._close_and_rename()
+        except OSError:
+            try:
+                os.close(stream.fd)  # type: ignore[union-attr]
+            except OSError:
+                pass
+            raise RecordingWriteError(
+                f"cannot write {part}: {what}; recording stopped, "
+                f"run 'whiztap recover {part}' to save what was written") from None
+        raise RecordingWriteError(
+            f"cannot write {part}: {what}; recording stopped, "
+            f"what was written before is in {self.finished[-1]}") from None

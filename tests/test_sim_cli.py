@@ -1,0 +1,224 @@
+"""`whiztap sim` and `whiztap client`: the real commands as subprocesses, and the
+client's command language in-process."""
+
+from __future__ import annotations
+
+import re
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from analyzer.framing import Framer, ItemKind
+from sniffer.client import Client, ResponseTimeout
+from sniffer.console import CommandError, run, split_line
+from sniffer.simulator import Simulator
+
+WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+LISTENING = re.compile(r"listening on 127\.0\.0\.1:(\d+)")
+
+
+def whiztap(*args: str, stdin: str | None = None, timeout: float = 30) -> subprocess.CompletedProcess:
+    return subprocess.run([WHIZTAP, *args], input=stdin, capture_output=True, text=True, timeout=timeout)
+
+
+def start_sim(*args: str) -> tuple[subprocess.Popen, int]:
+    proc = subprocess.Popen([WHIZTAP, "sim", "--port", "0", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    match = LISTENING.search(line)
+    if match is None:
+        proc.kill()
+        raise AssertionError(f"no port announced: {line!r} {proc.stderr.read()!r}")
+    return proc, int(match[1])
+
+
+def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM) -> tuple[int, str]:
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    return proc.returncode, err
+
+
+def free_port() -> int:
+    """A port nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def one_line_error(result: subprocess.CompletedProcess, text: str) -> None:
+    assert result.returncode == 2, result
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("whiztap: "), result.stderr
+    assert text in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.fixture(scope="module")
+def sim_port():
+    proc, port = start_sim("--password", "hunter2", "-q")
+    yield port
+    stop(proc)
+
+
+# -- whiztap sim ---------------------------------------------------------------------------------
+
+
+def test_sim_prints_its_port_and_serves_the_client(sim_port):
+    result = whiztap("client", f"127.0.0.1:{sim_port}", "--password", "hunter2", "config")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == ("Configuration Settings: 24 channels: "
+                             "servo:0-5,switch:6-8,switch1:9-11,sensor:12-23\n")
+
+
+def test_sim_options_shape_the_server():
+    proc, port = start_sim("--mode", "vpn", "--channels", "sensor:0-1,servo:2", "--camera", "none", "-q")
+    try:
+        config = whiztap("client", f"127.0.0.1:{port}", "config", "--timeout", "5")
+        camera = whiztap("client", f"127.0.0.1:{port}", "camera", "--timeout", "0.3")
+    finally:
+        stop(proc)
+    assert config.stdout == "Configuration Settings: 3 channels: sensor:0-1,servo:2\n"
+    one_line_error(camera, "no answer to Fetch Camera Image")
+
+
+def test_sigint_gives_one_line_and_status_2():
+    proc, port = start_sim("-q")
+    with socket.create_connection(("127.0.0.1", port)) as open_client:
+        assert open_client.makefile("rb").read(11) == b"sendchkpass"
+        status, err = stop(proc, signal.SIGINT)
+    assert (status, err) == (2, "whiztap: interrupted\n")
+
+
+def test_sigterm_stops_cleanly():
+    proc, _ = start_sim("-q")
+    assert stop(proc) == (0, "")
+
+
+def test_sim_port_in_use_is_one_line():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        one_line_error(whiztap("sim", "--port", str(port)), f"cannot listen on 127.0.0.1:{port}")
+
+
+@pytest.mark.parametrize("args, text", [
+    (["--channels", "servo:0-3,sensor:5"], "--channels: channel 4 has no unit"),
+    (["--password", ""], "needs a non-empty --password"),
+])
+def test_sim_bad_options_are_one_line(args, text):
+    one_line_error(whiztap("sim", "--port", "0", *args), text)
+
+
+# -- whiztap client ---------------------------------------------------------------------------------
+
+
+def test_client_to_an_unreachable_port_is_one_line():
+    port = free_port()
+    one_line_error(whiztap("client", f"127.0.0.1:{port}", "config"), f"cannot connect to 127.0.0.1:{port}")
+
+
+@pytest.mark.parametrize("address, text", [("nowhere", "expected HOST:PORT"), ("127.0.0.1:x", "bad port"),
+                                           (":70000", "port must be 1-65535")])
+def test_client_bad_address_is_one_line(address, text):
+    one_line_error(whiztap("client", address, "config"), text)
+
+
+def test_client_wrong_or_missing_password_is_one_line(sim_port):
+    one_line_error(whiztap("client", f"127.0.0.1:{sim_port}", "-p", "nope", "config"), "Failed Validation")
+    one_line_error(whiztap("client", f"127.0.0.1:{sim_port}", "config"), "asks for a password")
+
+
+def test_client_camera_writes_a_jpeg(sim_port, tmp_path):
+    target = tmp_path / "pic.jpg"
+    result = whiztap("client", f"127.0.0.1:{sim_port}", "camera", "-o", str(target), "-p", "hunter2")
+    assert result.returncode == 0, result.stderr
+    image = target.read_bytes()
+    assert re.fullmatch(rf"camera: {len(image)} bytes jpeg, saved to .*pic.jpg\n", result.stdout)
+    assert [i.kind for i in Framer().feed(image, 0)] == [ItemKind.IMAGE]
+
+
+def test_client_reads_commands_from_stdin(sim_port):
+    script = "servo 4 1800\nservo 4\n# a comment\n\nswitch 7 on\nbogus\nrr1-0--0--2-ss1\nquit\nsensor 12\n"
+    result = whiztap("client", f"127.0.0.1:{sim_port}", "-p", "hunter2", stdin=script)
+    assert result.returncode == 1  # one command failed
+    lines = result.stdout.splitlines()
+    assert lines[0] == "Normal Send: channel 4 -> 1800"
+    assert re.fullmatch(r"servo 4 position [\d.]+ \(data \d+\)", lines[1])
+    assert lines[2:] == ["switch 7 on", "sent 15 bytes", "< cr1-0--4000--0-ss1  Response ch 0 data 4000"]
+    assert result.stderr == "error: unknown command 'bogus'; try 'help'\n"
+
+
+def test_help_is_fast_to_load():
+    code = ("import sys, sniffer.sim_cli; "
+            "print(sorted(m for m in ('PIL', 'textual', 'scapy', 'sniffer.simulator') if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert result.stdout == "[]\n", result.stderr
+    listing = whiztap("--help").stdout
+    assert re.search(r"^\s+client\s", listing, re.M) and re.search(r"^\s+sim\s", listing, re.M)
+
+
+# -- the command language, in-process ----------------------------------------------------------------
+
+
+@pytest.fixture
+async def session():
+    async with Simulator(mode="vpn", clock=lambda: 0) as sim:
+        async with await Client.connect("127.0.0.1", sim.port, timeout=2) as client:
+            yield sim, client
+
+
+async def test_every_command(session, tmp_path):
+    sim, client = session
+    robot = sim.robot
+    said = {}
+    for line in ["config", "sensor 12", "servo 3", "servo 3 1500", "send 2 700", "switch 7 on", "switch 8 on",
+                 "switch 8 off", "script 120", "script 272", "setconfig servo:0-1", "sleep 0",
+                 f"camera -o {tmp_path / 'x.jpg'}", "camera", "raw rr1-0--0--2-ss1\\r\\n"]:
+        said[line] = await run(client, split_line(line))
+    assert said["sensor 12"] == f"sensor 12 = {robot.sensor_value(12, 0)}"
+    assert said["servo 3"] == "servo 3 position 1000 (data 4000)"
+    assert said["script 120"] == "play internal script 120"
+    assert said["script 272"] == "play external script 272"
+    assert said["setconfig servo:0-1"] == "Set Configuration: 2 entries sent"
+    assert said["raw rr1-0--0--2-ss1\\r\\n"].splitlines()[1] == "< cr1-0--4000--0-ss1  Response ch 0 data 4000"
+    assert said["camera"].startswith("camera: ") and (tmp_path / "x.jpg").read_bytes()[:2] == b"\xff\xd8"
+    assert robot.servo_target(3) == 1500 and robot.servo_target(2) == 700
+    assert [ch for ch, on in enumerate(robot.switches) if on] == [7]
+    assert (robot.internal_script, robot.external_script) == (120, 272)
+    await run(client, ["script", "stop", "internal"])
+    await run(client, ["script", "stop", "external"])
+    await run(client, ["config"])
+    assert (robot.internal_script, robot.external_script) == (None, None)
+    assert "sensor CH" in await run(client, ["help"])
+
+
+@pytest.mark.parametrize("line, text", [
+    ("", "no command"), ("bogus", "unknown command"), ("sensor x", "whole number"), ("sensor", "wrong arguments"),
+    ("sensor -1", "must not be negative"), ("switch 7 maybe", "on or off"), ("script stop all", "usage"),
+    ("camera -x", "usage"), ("setconfig motor:0", "bad channel group"), ("setconfig servo:0 300", "one byte"),
+    ("sleep soon", "seconds"), ("raw", "needs the bytes"),
+])
+async def test_bad_commands(session, line, text):
+    _, client = session
+    with pytest.raises(CommandError, match=text):
+        await run(client, split_line(line))
+
+
+async def test_unanswered_command_is_a_timeout(session):
+    _, client = session
+    client.timeout = 0.2
+    with pytest.raises(ResponseTimeout):
+        await run(client, ["sensor", "0"])  # channel 0 is a servo: the server ignores it
+
+
+def test_split_keeps_raw_frames_as_typed():
+    assert split_line("raw  rr1-1 --0--0-ss1\\x0c ") == ["raw", "rr1-1 --0--0-ss1\\x0c"]
+    assert split_line("rr1-1--0--0-ss1\n") == ["rr1-1--0--0-ss1"]
+    assert split_line("  switch 7   on ") == ["switch", "7", "on"]
