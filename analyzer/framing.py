@@ -353,7 +353,7 @@ class Framer:
         i = pos + 2
         # Marker segments up to Start Of Scan carry their own lengths.
         while True:
-            if i + 4 > n:
+            if i + 2 > n:
                 return _NEED_MORE
             if buf[i] != 0xFF:
                 return self._scan_garbage(pos, Unframed.GARBAGE)
@@ -365,6 +365,8 @@ class Framer:
             elif 0xD0 <= marker <= 0xD7 or marker == 0x01:
                 i += 2
             else:
+                if i + 4 > n:
+                    return _NEED_MORE
                 seg_len = (buf[i + 2] << 8) | buf[i + 3]
                 if seg_len < 2:
                     return self._scan_garbage(pos, Unframed.GARBAGE)

@@ -86,6 +86,12 @@ def test_images_are_recognised_whole():
                             (ItemKind.COMMAND, b"rr1-24--0--0-ss1", None)]
 
 
+def test_jpeg_of_headers_only_ends_at_its_end_marker():
+    headers_only = b"\xff\xd8\xff\xe0\x00\x04ab\xff\xd9"
+    framer = Framer()
+    assert shape(framer.feed(headers_only, 1)) == [(ItemKind.IMAGE, headers_only, None)]
+
+
 def test_timestamps_of_first_and_last_chunk():
     framer = Framer()
     assert framer.feed(b"rr1-0--", 10) == []
