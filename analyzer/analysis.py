@@ -14,9 +14,8 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
-from analyzer.describe import response_meaning
 from analyzer.framing import ItemKind
-from analyzer.messages import ChannelConfig, SetConfiguration
+from analyzer.messages import ChannelConfig, ServoPositionRequest, SetConfiguration
 from analyzer.rules import RULES, Severity
 from analyzer.session import Direction, Event, LateViolation, Observation, Session
 from analyzer.stats import LatencyStats
@@ -260,9 +259,13 @@ class Analyzer:
                 counted[key] = n
 
     def _collect(self, conn: int, events: list[Event]) -> None:
+        """What the report needs from each event.  Runs once per item of the
+        recording, so the common case (a clean frame) costs a few checks."""
         result = self.result
+        values = result.values
+        response, set_config = ItemKind.RESPONSE, ItemKind.SET_CONFIG
         for e in events:
-            if type(e) is LateViolation:
+            if e.__class__ is LateViolation:
                 self._violation(conn, e.violation.rule_id, e.violation.detail, e.about, e.t_ns, late=True)
                 if e.violation.rule_id == "PW-PAIR-UNANSWERED":
                     title = e.about.message.title if e.about.message is not None else "request"
@@ -271,14 +274,17 @@ class Analyzer:
             if e.violations:
                 for v in e.violations:
                     self._violation(conn, v.rule_id, v.detail, e, e.item.t_end_ns, late=False)
-            if e.answers is not None and e.item.kind is ItemKind.RESPONSE:
-                as_ = response_meaning(e)
-                key = (as_, e.message.channel)
-                series = result.values.get(key)
-                if series is None:
-                    series = result.values[key] = Series()
-                series.add(e.item.t_end_ns, e.message.data / 4 if as_ == "servo" else e.message.data)
-            elif e.item.kind is ItemKind.SET_CONFIG and isinstance(e.message, SetConfiguration):
+            kind = e.item.kind
+            if kind is response:
+                request = e.answers
+                if request is not None:
+                    servo = request.message.__class__ is ServoPositionRequest
+                    key = ("servo" if servo else "sensor", e.message.channel)
+                    series = values.get(key)
+                    if series is None:
+                        series = values[key] = Series()
+                    series.add(e.item.t_end_ns, e.message.data / 4 if servo else e.message.data)
+            elif kind is set_config and isinstance(e.message, SetConfiguration):
                 m = e.message
                 result.set_configs.append(SetConfigCheck(
                     self.file, conn, e.item.t_end_ns, m.checksum, self._rule.compute(m.entries),
