@@ -160,3 +160,54 @@ def test_scenario_fires_its_rule(rule_id):
 def test_clean_prefixes_fire_nothing():
     assert fired(run(VPN_OPEN)[1]) == []
     assert fired(run(WINSOCK_OPEN)[1]) == []
+
+
+# -- the fast path is only faster ----------------------------------------------------------
+
+
+class SlowSession(Session):
+    """Every item through the general path: the reference for the fast one."""
+
+    def _observe_all(self, direction, items, t_ns):
+        events = []
+        for item in items:
+            self._observe(direction, item, events)
+        return events
+
+
+def _shape(events):
+    out = []
+    for e in events:
+        if isinstance(e, LateViolation):
+            out.append(("late", e.violation, e.about.index, e.t_ns))
+        else:
+            out.append((e.index, e.direction, e.item, e.message, e.candidates, e.violations,
+                        e.answers.index if e.answers else None, e.latency_ns))
+    return out
+
+
+sensor_value = st.one_of(st.integers(0, 1024), st.integers(1025, 1100))
+servo_value = st.one_of(st.integers(0, 8000), st.integers(8001, 8100))
+exchange = st.one_of(
+    st.tuples(st.just(b"rr1-3--0--0-ss1"), sensor_value.map(lambda v: b"cr1-3--%d--0-ss1" % v)),
+    st.tuples(st.just(b"rr1-0--0--2-ss1"), servo_value.map(lambda v: b"cr1-0--%d--0-ss1" % v)),
+    st.tuples(st.sampled_from([b"rr1-0--700--0-ss1", b"rr1-2--1--0-ss1", b"rr1-2--0--0-ss1", b"rr1-9--1--0-ss1",
+                               b"rr1-13--0--0-ss1", b"rr1-0--0--120-ss1", b"rr1-3--5--0-ss1",
+                               b"rr1-0--2500--0-ss1"]), st.just(b"")),
+    st.tuples(st.just(b""), st.sampled_from([b"cr1-3--7--0-ss1", b"cr1-0--9--0-ss1", b"cr1-13--9--0-ss1"])),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(exchange, max_size=60), st.integers(1, 4), st.booleans())
+def test_fast_path_matches_the_general_path(exchanges, batch, winsock):
+    opening = WINSOCK_OPEN if winsock else VPN_OPEN
+    script = list(opening)
+    for i in range(0, len(exchanges), batch):
+        group = exchanges[i:i + batch]
+        script.append((C, b"".join(c for c, _ in group)))
+        script.append((S, b"".join(s for _, s in group)))
+    script = [(d, data) for d, data in script if data]
+    fast = run(script, session=Session(answer_timeout_ns=3_500_000))[1]
+    slow = run(script, session=SlowSession(answer_timeout_ns=3_500_000))[1]
+    assert _shape(fast) == _shape(slow)
