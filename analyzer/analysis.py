@@ -21,6 +21,7 @@ from analyzer.session import Direction, Event, LateViolation, Observation, Sessi
 from analyzer.stats import LatencyStats
 
 NS = 1_000_000_000
+_DIRECTIONS = {d.value: d for d in Direction}
 RAW_KEPT = 200  # bytes of a violating frame kept for the report
 
 
@@ -168,8 +169,10 @@ class Analyzer:
         """One TCP read; returns the session's events (for views like ``cat``)."""
         if t_ns >= self._next_second:
             self._new_bin(t_ns)
-        events = self._session(conn).receive(Direction(direction), data, t_ns)
-        self._collect(conn, events)
+        session = self.sessions.get(conn) or self._session(conn)
+        events = session.receive(_DIRECTIONS[direction], data, t_ns)
+        if events:
+            self._collect(conn, events)
         return events
 
     def event(self, message: dict) -> list[Event]:

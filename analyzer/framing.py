@@ -88,7 +88,7 @@ class Framer:
         if max_item < MIN_MAX_ITEM:
             raise ValueError(f"max_item must be at least {MIN_MAX_ITEM} bytes")
         self.max_item = max_item
-        self._buf = bytearray()
+        self._buf: bytearray | bytes = bytearray()  # bytes only while a feed scans a fresh chunk
         # (offset in _buf, arrival time) for each chunk still partly in _buf
         self._marks: list[tuple[int, int]] = []
         self._password_mode = False
@@ -122,8 +122,14 @@ class Framer:
             return []
         first_new = len(self._buf)
         self._marks.append((first_new, t_ns))
-        self._buf += data
-        return self._scan(t_ns, first_new, final=False)
+        if first_new:
+            self._buf += data
+        else:
+            self._buf = data  # nothing pending: scan the chunk itself, copy only what is left
+        items = self._scan(t_ns, first_new, final=False)
+        if type(self._buf) is bytes:
+            self._buf = bytearray(self._buf)
+        return items
 
     def end(self, t_ns: int) -> list[Item]:
         """The stream closed: flush everything, incomplete items as ``unframed``."""
@@ -180,7 +186,10 @@ class Framer:
 
     def _drop(self, n: int) -> None:
         """Forget the first n bytes, keeping the arrival time of the byte now first."""
-        del self._buf[:n]
+        if type(self._buf) is bytes:
+            self._buf = bytearray(memoryview(self._buf)[n:])
+        else:
+            del self._buf[:n]
         kept: list[tuple[int, int]] = []
         for offset, t in self._marks:
             if offset <= n:
