@@ -240,12 +240,23 @@ class Framer:
         window = self._window
         m = _SYNC.search(self._buf, pos + 1, window)
         if m is not None:
+            if self._in_partial_png(pos, m.start()):
+                return None  # the line break may be inside a PNG signature still arriving
             return m.start() - pos, ItemKind.UNFRAMED, reason
         if window - pos >= self.max_item:
             return self.max_item - _SYNC_LONGEST + 1, ItemKind.UNFRAMED, Unframed.OVERSIZE
         if self._final:
             return window - pos, ItemKind.UNFRAMED, reason
         return None
+
+    def _in_partial_png(self, pos: int, at: int) -> bool:
+        """Whether the sync point at ``at`` lies inside the start of a PNG signature
+        that the data so far ends in (the signature holds CR and LF itself)."""
+        buf, window = self._buf, self._window
+        if self._final or window - pos >= self.max_item or buf[at] not in (0x0D, 0x0A):
+            return False
+        start = buf.rfind(b"\x89", max(pos + 1, at - len(PNG_SIGNATURE) + 1), at)
+        return start != -1 and PNG_SIGNATURE.startswith(bytes(buf[start:window]))
 
     def _scan_password(self, pos: int, final: bool):
         buf, window = self._buf, self._window

@@ -1,0 +1,324 @@
+"""whiztap's pytest plugin: recorded sessions as regression tests.
+
+Registered through the ``pytest11`` entry point, so every project that installs
+whiztap has it.  docs/pytest-plugin.md has the full guide; in short:
+
+- ``@pytest.mark.whiztap("session.mcap", target=..., password=..., **replay_options)``
+  names a test's recording (relative to the test file; without a name,
+  ``recordings/<module>/<test>.mcap`` beside it).
+- ``whiztap_server``: an address to point the client under test at.  With
+  ``--whiztap-record=none`` (the default) it is a stub serving the recording,
+  and a request the recording has no answer for fails the test; with ``once``
+  a missing recording is first made by recording through whiztap's proxy to
+  the target; with ``all`` it is always re-recorded.
+- ``whiztap_replay``: replays the recording's client side against the target
+  and fails the test with the readable diff when an answer differs.
+- ``whiztap_target``: the live server for recording and replaying ("HOST:PORT"
+  from the marker or ``--whiztap-target``); override it in a conftest to start
+  one, e.g. the simulator in a ``BackgroundLoop``.
+
+Servers run on an event loop in a background thread, so they serve synchronous
+tests and asyncio tests alike.  Only pytest and the standard library are
+imported until a fixture is used: the plugin loads in every pytest run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import threading
+from collections.abc import Coroutine, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import pytest
+
+MODES = ("none", "once", "all")
+T = TypeVar("T")
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("whiztap", "whiztap recordings as regression tests")
+    group.addoption("--whiztap-record", choices=MODES, default="none",
+                    help="none (default): serve recordings, fail on anything new; once: record the "
+                         "missing ones through whiztap's proxy; all: re-record every one.")
+    group.addoption("--whiztap-target", default=None, metavar="HOST:PORT",
+                    help="The live server to record from and to replay against.")
+    group.addoption("--whiztap-password", default=None, metavar="PASSWORD",
+                    help="Winsock password for replays (default: the marker's, or $WHIZTAP_PASSWORD).")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", "whiztap(recording=None, *, target=None, password=None, **replay_options): the "
+                   "recording (and live server) the whiztap_server and whiztap_replay fixtures use.")
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
+    """Fail the test itself (not its teardown) when the stub met a request the
+    recording has no answer for; that is the cause even when the client's
+    error (a timeout waiting for the answer) came first."""
+    try:
+        return (yield)
+    finally:
+        server = getattr(item, "funcargs", {}).get("whiztap_server")
+        if isinstance(server, WhiztapServer):
+            server.check()
+
+
+# -- running servers beside the test ---------------------------------------------------------
+
+
+class BackgroundLoop:
+    """An asyncio event loop in a daemon thread: servers started on it keep
+    serving while a synchronous test (or another event loop) talks to them."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="whiztap-loop", daemon=True)
+        self._thread.start()
+
+    def run(self, coro: Coroutine[Any, Any, T], timeout: float | None = 60.0) -> T:
+        """Run a coroutine on the loop and wait for its result."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def close(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join()
+        self.loop.close()
+
+    def __enter__(self) -> BackgroundLoop:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# -- what a test names --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Settings:
+    recording: Path
+    password: str | None
+    options: dict[str, Any]  # the marker's replay options
+
+
+def _marker(request: pytest.FixtureRequest) -> tuple[tuple, dict[str, Any]]:
+    marker = request.node.get_closest_marker("whiztap")
+    return (marker.args, dict(marker.kwargs)) if marker is not None else ((), {})
+
+
+def _default_name(request: pytest.FixtureRequest) -> Path:
+    test = re.sub(r"[^A-Za-z0-9_.-]+", "_", request.node.name).strip("_")
+    return Path("recordings") / request.path.stem / f"{test}.mcap"
+
+
+def _settings(request: pytest.FixtureRequest) -> _Settings:
+    args, kwargs = _marker(request)
+    name = kwargs.pop("recording", args[0] if args else None)
+    path = Path(name) if name is not None else _default_name(request)
+    if not path.is_absolute():
+        path = request.path.parent / path
+    kwargs.pop("target", None)
+    password = (kwargs.pop("password", None) or request.config.getoption("--whiztap-password")
+                or os.environ.get("WHIZTAP_PASSWORD"))
+    return _Settings(path, password, kwargs)
+
+
+def _address(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not port.isdigit():
+        pytest.fail(f"whiztap: target must be HOST:PORT, got {text!r}", pytrace=False)
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+@pytest.fixture
+def whiztap_target(request: pytest.FixtureRequest) -> str | None:
+    """The live server ("HOST:PORT"): the marker's ``target``, else
+    ``--whiztap-target``.  Override this fixture to start one for the test."""
+    return _marker(request)[1].get("target") or request.config.getoption("--whiztap-target")
+
+
+@pytest.fixture
+def whiztap_recording(request: pytest.FixtureRequest) -> Path:
+    """The path of the test's recording (it may not exist yet)."""
+    return _settings(request).recording
+
+
+# -- the server fixture ------------------------------------------------------------------------------
+
+
+class WhiztapServer:
+    """Where the client under test connects: a stub serving the recording, or
+    the recording proxy in front of the target (``recording`` is then True)."""
+
+    def __init__(self, host: str, port: int, path: Path, recording: bool, stub: Any = None) -> None:
+        self.host, self.port, self.path, self.recording = host, port, path, recording
+        self._stub = stub
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    @property
+    def unanswered(self) -> list:
+        """Requests the stub had no recorded answer for (``sniffer.stub.Unanswered``)."""
+        return list(self._stub.unanswered) if self._stub is not None else []
+
+    def check(self) -> None:
+        missing = self.unanswered
+        if missing:
+            lines = "\n".join("  " + m.line() for m in missing)
+            pytest.fail(f"whiztap: {len(missing)} request(s) not in {self.path} (record mode none):\n{lines}\n"
+                        f"re-record with --whiztap-record=all if the client changed on purpose", pytrace=False)
+
+
+@pytest.fixture
+def whiztap_server(request: pytest.FixtureRequest) -> Iterator[WhiztapServer]:
+    """A stub serving the test's recording, or (record modes) a recording proxy
+    in front of the target; see the module docstring."""
+    mode = request.config.getoption("--whiztap-record")
+    settings = _settings(request)
+    path = settings.recording
+    record = mode == "all" or (mode == "once" and not path.exists())
+    if not record and not path.exists():
+        pytest.fail(f"whiztap: no recording {path}; run pytest with --whiztap-record=once to make it",
+                    pytrace=False)
+    with BackgroundLoop() as background:
+        if record:
+            target = request.getfixturevalue("whiztap_target")
+            if target is None:
+                pytest.fail("whiztap: recording needs a live server: give the marker target=HOST:PORT, "
+                            "--whiztap-target, or a whiztap_target fixture", pytrace=False)
+            yield from _recorded(background, path, _address(target))
+        else:
+            yield from _stubbed(background, path)
+
+
+def _load(path: Path) -> Any:
+    """The recording's exchanges, or the test fails saying why."""
+    from analyzer.exchanges import load_exchanges
+    from analyzer.recording import RecordingError
+
+    try:
+        return load_exchanges(str(path))
+    except (OSError, RecordingError) as e:
+        pytest.fail(f"whiztap: cannot read {path}: {e}", pytrace=False)
+
+
+def _stubbed(background: BackgroundLoop, path: Path) -> Iterator[WhiztapServer]:
+    from sniffer.stub import Stub
+
+    recording = _load(path)
+
+    async def start() -> Any:
+        stub = Stub(recording, "127.0.0.1", 0)
+        await stub.start()
+        return stub
+
+    stub = background.run(start())
+    try:
+        yield WhiztapServer("127.0.0.1", stub.port, path, False, stub)
+    finally:
+        background.run(stub.close())
+
+
+def _recorded(background: BackgroundLoop, path: Path, target: tuple[str, int]) -> Iterator[WhiztapServer]:
+    from sniffer.record_run import Recording, RecordSettings
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    recording = Recording(RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True))
+    background.run(recording.start())
+    try:
+        yield WhiztapServer("127.0.0.1", recording.proxy.port, path, True)  # type: ignore[union-attr]
+    finally:
+        background.run(recording.stop())
+        if recording.error:
+            pytest.fail(f"whiztap: recording {path} failed: {recording.error}", pytrace=False)
+
+
+# -- the replay fixture ---------------------------------------------------------------------------------
+
+
+class ReplayCheck:
+    """Replays a recording against a live server; the test fails with the diff
+    when an answer differs.  Call it from a synchronous test, or await
+    ``run_async`` from an asyncio test (the target may then share its loop)."""
+
+    def __init__(self, request: pytest.FixtureRequest) -> None:
+        self._request = request
+
+    def __call__(self, recording: str | Path | None = None, target: str | None = None, **options: Any) -> Any:
+        with BackgroundLoop() as background:
+            return background.run(self.run_async(recording, target or self._target(), **options), timeout=None)
+
+    def _target(self) -> str:
+        target = self._request.getfixturevalue("whiztap_target")
+        if target is None:
+            pytest.fail("whiztap: replay needs a live server: give target=, the marker's target, "
+                        "--whiztap-target, or a whiztap_target fixture", pytrace=False)
+        return target
+
+    async def run_async(self, recording: str | Path | None = None, target: str | None = None,
+                        **options: Any) -> Any:
+        """Options: pace, rate, segments ("frames"/"exact"), compare, tolerance
+        ({"sensor_value": 20}), ignore_fields, ignore_kinds, timeout, loop,
+        conns, start, end, kinds, output; and password.  The result
+        (``sniffer.replay.ReplayResult``) when every answer matched."""
+        from sniffer.replay import Replay, ReplayError
+
+        settings = _settings(self._request)
+        path = Path(recording) if recording is not None else settings.recording
+        if not path.is_absolute():
+            path = self._request.path.parent / path
+        target = target or self._target()
+        if not path.exists():
+            pytest.fail(f"whiztap: no recording {path}", pytrace=False)
+        exchanges = _load(path)
+        merged = {"checksum_rule": exchanges.checksum_rule, **settings.options, **options}
+        password = merged.pop("password", None) or settings.password
+        replay_options = _replay_options(merged, _address(target), password)
+        try:
+            result = await Replay(exchanges, replay_options).run()
+        except ReplayError as e:
+            pytest.fail(f"whiztap: {e}", pytrace=False)
+        if result.error is not None:
+            pytest.fail(f"whiztap: {result.error}", pytrace=False)
+        if not result.ok:
+            diffs = "\n".join(d.diff for d in result.differences)
+            pytest.fail(f"whiztap: replay of {path} against {target} differs\n{diffs}\n{result.summary()}",
+                        pytrace=False)
+        return result
+
+
+def _replay_options(options: dict[str, Any], target: tuple[str, int], password: str | None) -> Any:
+    from analyzer.compare import CompareError, CompareRules
+    from sniffer.replay import Pace, ReplayOptions
+    from sniffer.replay_plan import Selection
+
+    tolerance = options.pop("tolerance", {})
+    try:
+        rules = CompareRules.parse(options.pop("compare", "structure"),
+                                   [f"{k}={v}" for k, v in dict(tolerance).items()],
+                                   options.pop("ignore_fields", ()), options.pop("ignore_kinds", ()))
+    except CompareError as e:
+        pytest.fail(f"whiztap: {e}", pytrace=False)
+    selection = Selection(frozenset(options.pop("conns", ())), options.pop("start", None),
+                          options.pop("end", None), frozenset(options.pop("kinds", ())))
+    segments = options.pop("segments", "frames") == "exact"
+    pace = Pace(options.pop("pace", "recorded"))
+    try:
+        return ReplayOptions(target=target, password=password.encode() if password else None, pace=pace,
+                             segments=segments, rules=rules, selection=selection, **options)
+    except TypeError as e:
+        pytest.fail(f"whiztap: unknown replay option ({e})", pytrace=False)
+
+
+@pytest.fixture
+def whiztap_replay(request: pytest.FixtureRequest) -> ReplayCheck:
+    """Replay the test's recording against ``whiztap_target`` and fail on a difference."""
+    return ReplayCheck(request)

@@ -1,0 +1,73 @@
+"""Helpers for the replay, stub and plugin tests: a client session recorded
+through the real proxy from the real simulator, and simulators to replay it to.
+
+The simulator's clock is frozen, so every answer is a function of the seed and
+the commands alone: a replay against the same seed must match byte for byte,
+and one against another seed differs exactly in the sensor readings.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+
+from sniffer.client import Client
+from sniffer.faults import FaultConfig
+from sniffer.simulator import Simulator
+from tests.record_support import LOCAL, WAIT, recording
+
+PASSWORD = "replay-pw"
+FROZEN_NS = 5_000_000_000
+WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+SENSORS = (12, 13, 14, 15, 16)
+
+
+def simulator(seed: int = 1, faults: FaultConfig = FaultConfig()) -> Simulator:
+    return Simulator(port=0, mode="winsock", password=PASSWORD, seed=seed, clock=lambda: FROZEN_NS,
+                     faults=faults)
+
+
+async def client_session(port: int) -> list:
+    """Every kind of request, a few pauses; what the client got back."""
+    got: list = []
+    async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
+        got.append(await client.fetch_configuration())
+        for channel in SENSORS[:4]:
+            got.append(await client.sensor(channel))
+        await client.normal_send(2, 1500)
+        got.append(await client.servo_position(2))
+        await client.activate_switch(7)
+        await asyncio.sleep(0.03)
+        await client.deactivate_switch(7)
+        got.append(len(await client.fetch_camera_image()))
+        await asyncio.sleep(0.03)
+        for channel in (12, SENSORS[4]):
+            got.append(await client.sensor(channel))
+        got.append(await client.servo_position(2))
+    return got
+
+
+async def until_closed(sim: Simulator) -> None:
+    for _ in range(int(WAIT * 100)):
+        if sim.stats.open_connections == 0:
+            return
+        await asyncio.sleep(0.01)
+
+
+async def record(path: Path, seed: int = 1, session=client_session) -> list:  # noqa: ANN001 - async callable
+    """Record ``session`` through the proxy against a frozen-clock simulator."""
+    async with simulator(seed) as sim, recording(sim.port, path) as rec:
+        got = await session(rec.proxy.port)
+        await until_closed(sim)
+        await rec.stop()
+    return got
+
+
+async def whiztap(*args: str, env: dict | None = None, stdin: bytes | None = None) -> tuple[int, str, str]:
+    """Run a whiztap command to completion: (exit status, stdout, stderr)."""
+    proc = await asyncio.create_subprocess_exec(
+        WHIZTAP, *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL, env=env)
+    out, err = await asyncio.wait_for(proc.communicate(stdin), WAIT)
+    return proc.returncode, out.decode(), err.decode()
