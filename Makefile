@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench samples clean
+.PHONY: demo test test-deps bench samples clean
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
@@ -14,13 +14,18 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
-# Until the full demo (simulator + proxy + TUI) exists, the demo runs the
-# analyzer on a scripted session that uses every message of the spec.
+# The whole tool on an embedded robot: simulator, recording proxy and a scripted
+# client, live in the TUI, recorded to demo.mcap.  Without a terminal (CI) it
+# runs headless for a few seconds and prints the conformance report.
 demo: $(STAMP)
-	$(BIN)/whiztap decode samples/spec-session.txt
+	$(BIN)/whiztap demo
 
-test: $(STAMP)
+test: $(STAMP) test-deps
 	$(BIN)/pytest -q
+
+# Debian and npm packages some tests use (tcpdump, socat, @mcap/core); idempotent.
+test-deps:
+	@bash .ci/install-test-deps
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

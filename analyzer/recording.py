@@ -30,9 +30,10 @@ from analyzer.messages import (
     ChannelResponse,
     DeactivateSwitch,
     NormalSend,
+    ServoPositionRequest,
 )
 from analyzer.rules import Violation
-from analyzer.session import Observation
+from analyzer.session import Direction, Observation
 from analyzer.text import escape
 
 FORMAT_VERSION = "1"
@@ -201,24 +202,81 @@ def event_message(conn: int, event: str, t_ns: int, **details: Any) -> dict:
     return {"conn": conn, "event": event, "t_ns": t_ns, **details}
 
 
-def frame_message(conn: int, obs: Observation, offset: int, redact: bool) -> dict:
-    """A /frames message.  With ``redact`` a password's bytes become '*' and its
-    text ``<redacted>``; its length stays, so offsets and replays still line up."""
+def encode_read(conn: int, direction: str, t_ns: int, offset: int, data: bytes,
+                redacted: list[tuple[int, int]] | None = None) -> bytes:
+    """``encode(read_message(...))``, built directly: one of these per TCP read."""
+    if redacted:
+        return encode(read_message(conn, direction, t_ns, offset, data, redacted))
+    return b'{"conn":%d,"dir":"%s","t_ns":%d,"offset":%d,"size":%d,"data":"%s"}' % (
+        conn, direction.encode(), t_ns, offset, len(data), base64.b64encode(data))
+
+
+def _frame_static(obs: Observation, redact: bool) -> dict:
+    """The part of a /frames message fixed by the item's bytes and meaning."""
     item = obs.item
     raw = item.raw
     hidden = redact and item.kind is ItemKind.PASSWORD
     if hidden:
         raw = MASK_BYTE * len(raw)
+    decoded = fields(obs)
+    decoded.pop("latency_ns", None)  # a top-level field of the frame
     return {
-        "conn": conn, "dir": obs.direction.value, "index": obs.index, "kind": item.kind.value,
-        "reason": item.reason.value if item.reason is not None else None,
-        "t_start_ns": item.t_start_ns, "t_end_ns": item.t_end_ns, "offset": offset, "size": len(raw),
-        "raw": _b64(raw), "text": REDACTED if hidden else escape(raw), "meaning": meaning(obs),
-        "message": obs.message.title if obs.message is not None else None,
-        "fields": fields(obs), "violations": [v.rule_id for v in obs.violations],
-        "answers": obs.answers.index if obs.answers is not None else None,
-        "latency_ns": obs.latency_ns, "redacted": hidden,
+        "kind": item.kind.value, "reason": item.reason.value if item.reason is not None else None,
+        "size": len(raw), "raw": _b64(raw), "text": REDACTED if hidden else escape(raw), "meaning": meaning(obs),
+        "message": obs.message.title if obs.message is not None else None, "fields": decoded,
+        "violations": [v.rule_id for v in obs.violations], "redacted": hidden,
     }
+
+
+def frame_message(conn: int, obs: Observation, offset: int, redact: bool) -> dict:
+    """A /frames message.  With ``redact`` a password's bytes become '*' and its
+    text ``<redacted>``; its length stays, so offsets and replays still line up."""
+    item = obs.item
+    return {
+        "conn": conn, "dir": obs.direction.value, "index": obs.index,
+        "t_start_ns": item.t_start_ns, "t_end_ns": item.t_end_ns, "offset": offset,
+        "answers": obs.answers.index if obs.answers is not None else None, "latency_ns": obs.latency_ns,
+        **_frame_static(obs, redact),
+    }
+
+
+_FRAME_HEAD = '{"conn":%d,"dir":"%s","index":%d,"t_start_ns":%d,"t_end_ns":%d,"offset":%d,"answers":%s,"latency_ns":%s,'
+_DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
+_CACHED_RAW_MAX = 256  # longer items (images, unframed runs) are rare: not worth keeping
+_CACHE_LIMIT = 4096  # distinct frames kept; answers with varying values mostly miss anyway
+
+
+class FrameEncoder:
+    """``encode(frame_message(...))``, built fast: one of these per frame.
+
+    Real sessions repeat a few hundred distinct frames, so the JSON of the part
+    that depends only on the bytes and their meaning (``_frame_static``) is
+    kept, keyed by everything that decides it; each frame then costs one string
+    format for its connection, position, times and pairing.  Passwords are never
+    kept.
+    """
+
+    def __init__(self) -> None:
+        self._cache: dict[tuple, str] = {}
+
+    def encode(self, conn: int, obs: Observation, offset: int, redact: bool) -> bytes:
+        item = obs.item
+        if item.kind is ItemKind.PASSWORD or len(item.raw) > _CACHED_RAW_MAX:
+            static = _dumps(_frame_static(obs, redact))[1:]
+        else:
+            answers = obs.answers
+            key = (item.raw, item.kind, item.reason, obs.direction, type(obs.message),
+                   type(answers.message) if answers is not None else None, obs.violations)
+            static = self._cache.get(key)  # type: ignore[assignment]
+            if static is None:
+                if len(self._cache) >= _CACHE_LIMIT:
+                    self._cache.clear()
+                static = self._cache[key] = _dumps(_frame_static(obs, redact))[1:]
+        answers = obs.answers
+        latency = obs.latency_ns
+        return (_FRAME_HEAD % (conn, _DIR_TEXT[obs.direction], obs.index, item.t_start_ns, item.t_end_ns, offset,
+                               "null" if answers is None else answers.index,
+                               "null" if latency is None else latency) + static).encode()
 
 
 def violation_message(conn: int, violation: Violation, about: Observation | None, t_ns: int,
@@ -259,6 +317,29 @@ def plot_messages(conn: int, obs: Observation) -> list[tuple[str, dict]]:
         return [(TOPIC_CAMERA, {"timestamp": {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000},
                                 "frame_id": f"conn-{conn}", "data": _b64(message.data),
                                 "format": message.format})]
+    return []
+
+
+_SENSOR = b'{"conn":%d,"channel":%d,"value":%d,"latency_ns":%s}'
+_SERVO = b'{"conn":%d,"channel":%d,"data":%d,"position":%s,"latency_ns":%s}'
+_PLOTTED = (NormalSend, ActivateSwitch, DeactivateSwitch, CameraImage)
+
+
+def encode_plots(conn: int, obs: Observation) -> list[tuple[str, bytes]]:
+    """``plot_messages`` encoded; the answers to sensor and servo requests,
+    which come by the thousand, are built directly."""
+    message = obs.message
+    if type(message) is ChannelResponse:
+        answers = obs.answers
+        if answers is None:
+            return []
+        latency = b"null" if obs.latency_ns is None else b"%d" % obs.latency_ns
+        if type(answers.message) is ServoPositionRequest:
+            return [(TOPIC_SERVOS, _SERVO % (conn, message.channel, message.data,
+                                             repr(message.data / 4).encode(), latency))]
+        return [(TOPIC_SENSORS, _SENSOR % (conn, message.channel, message.data, latency))]
+    if isinstance(message, _PLOTTED):
+        return [(topic, encode(m)) for topic, m in plot_messages(conn, obs)]
     return []
 
 

@@ -147,6 +147,33 @@ class _Pending(NamedTuple):
     t_ns: int
 
 
+class _PendingQueue(deque):
+    """The outstanding requests, oldest first, counting those that certainly
+    expect an answer, so pairing need not scan thousands of ambiguous ones
+    (a pipelining client before the channel map) looking for one that is not."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.certain = 0
+
+    def append(self, pending: _Pending) -> None:
+        super().append(pending)
+        self.certain += pending.certain
+
+    def popleft(self) -> _Pending:
+        pending = super().popleft()
+        self.certain -= pending.certain
+        return pending
+
+    def remove(self, pending: _Pending) -> None:
+        super().remove(pending)
+        self.certain -= pending.certain
+
+    def clear(self) -> None:
+        super().clear()
+        self.certain = 0
+
+
 class _Plan(NamedTuple):
     """What a command's bytes mean in the current channel map, once worked out."""
 
@@ -186,7 +213,7 @@ class Session:
         self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
-        self._pending: deque[_Pending] = deque()
+        self._pending = _PendingQueue()
         self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
         self._index = 0
         self._commands = 0
@@ -475,6 +502,8 @@ class Session:
                     found = pending
                     break
                 maybe = maybe or pending
+                if not self._pending.certain:
+                    break  # no certain request to prefer: the oldest maybe it is
         found = found or maybe
         if found is None:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by a {kind}"))

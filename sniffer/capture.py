@@ -22,6 +22,7 @@ from sniffer.writer import RecordingFile, RecordingWriteError
 
 TICK_EVERY = 2048  # packets between flush/rotation checks when importing
 SNAP = 1 << 18  # larger than any frame on a 64 KiB-MTU loopback
+DRAIN_MAX = 100_000  # packets read after a stop, at most
 
 
 class CaptureError(Exception):
@@ -143,17 +144,21 @@ def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
 def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = None,
                  timeout: float | None = None, announce: Callable[[str], None] | None = None) -> dict:
     """Record traffic to ``settings.port`` seen on ``iface`` until Ctrl-C, SIGTERM,
-    ``count`` packets or ``timeout`` seconds; the summary."""
+    ``count`` packets or ``timeout`` seconds; the summary.
+
+    Ctrl-C and SIGTERM only set a flag, so a packet is never half processed; the
+    packets the kernel has already queued for the socket are still recorded."""
     sock = _open_live(iface, settings.port)
     start = time.time_ns()
     recorder = _recorder(settings, "live", start, iface=iface)
     stop = False
 
-    def on_term(signum: int, frame: object) -> None:
+    def on_signal(signum: int, frame: object) -> None:
         nonlocal stop
         stop = True
 
-    previous = signal.signal(signal.SIGTERM, on_term)
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    t = start
     try:
         recorder.start(start, detail=f"live capture on {iface}, port {settings.port}")
         reassembler = Reassembler(settings.port, recorder)
@@ -161,25 +166,33 @@ def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = N
             announce(f"capturing tcp port {settings.port} on {iface} into {settings.output} (Ctrl-C to stop)")
         seen = 0
         deadline = None if timeout is None else time.monotonic() + timeout
-        t = start
         while not stop and (count is None or seen < count) and (deadline is None or time.monotonic() < deadline):
-            ready, _, _ = select.select([sock], [], [], 0.1)
-            if ready:
-                _cls, frame, ts = sock.recv_raw(SNAP)
-                if frame is not None:
-                    t = int(ts * 1e9) if ts else time.time_ns()
-                    segment = parse_frame(_live_linktype(frame), frame, t)
-                    if segment is not None:
-                        reassembler.segment(segment)
-                        seen += 1
+            if select.select([sock], [], [], 0.1)[0]:
+                t, seen = _live_packet(sock, reassembler, t, seen)
             recorder.tick(time.time_ns())
-    except KeyboardInterrupt:
-        pass  # Ctrl-C: finish the file below
+        for _ in range(DRAIN_MAX):  # what was captured before the stop
+            if (count is not None and seen >= count) or not select.select([sock], [], [], 0)[0]:
+                break
+            t, seen = _live_packet(sock, reassembler, t, seen)
+        t = max(t, time.time_ns())
+        reassembler.finish(t)
+        return _summary(recorder, t, "capture stopped")
     except RecordingWriteError as e:
         raise CaptureError(str(e)) from None
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         sock.close()
-    t = max(t, time.time_ns())
-    reassembler.finish(t)
-    return _summary(recorder, t, "capture stopped")
+
+
+def _live_packet(sock, reassembler: Reassembler, t: int, seen: int) -> tuple[int, int]:  # noqa: ANN001
+    """Read one packet; the time of the latest, and how many TCP segments so far."""
+    _cls, frame, ts = sock.recv_raw(SNAP)
+    if frame is None:
+        return t, seen
+    t = int(ts * 1e9) if ts else time.time_ns()
+    segment = parse_frame(_live_linktype(frame), frame, t)
+    if segment is None:
+        return t, seen
+    reassembler.segment(segment)
+    return t, seen + 1

@@ -55,6 +55,10 @@ _PIPE_SIZE = 1 << 20
 _F_SETPIPE_SZ = 1031
 TICK_S = 0.1
 EXIT_WRITE_ERROR = 3
+# Recording is background work: when the cores are busy, forwarding goes first.
+# Measured here with 4 clients doing round trips (20 s): nice 5 gave about 20%
+# more round trips than 0; at 10 the writer fell clearly behind.
+WRITER_NICE = 5
 
 
 class WriterError(Exception):
@@ -284,6 +288,7 @@ def _run(config: dict[str, Any]) -> int:
         nonlocal stop_requested
         stop_requested = True
 
+    os.nice(WRITER_NICE)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a file size limit is an error to report, not a death

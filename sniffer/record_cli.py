@@ -9,7 +9,6 @@ from __future__ import annotations
 import datetime
 import re
 import socket
-import sys
 import uuid
 from collections.abc import Callable
 
@@ -77,14 +76,12 @@ def summary_lines(summary: dict, what: str) -> list[str]:
 
 
 def _run_loop(main: Callable) -> object:
-    """Run a coroutine function on uvloop when it is installed (it forwards
-    about twice as fast as the default loop), else on asyncio's own."""
+    """Run a coroutine function on uvloop: an asyncio.Protocol proxy on it
+    forwards about twice as fast as on the default loop."""
     import asyncio
 
-    try:
-        import uvloop
-    except ImportError:  # pragma: no cover - uvloop is a dependency; kept for odd platforms
-        return asyncio.run(main())
+    import uvloop
+
     with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
         return runner.run(main())
 
@@ -213,8 +210,6 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
                                    announce=None if quiet else click.echo)
     except CaptureError as e:
         fail(str(e))
-    except KeyboardInterrupt:  # pragma: no cover - capture_live handles it; here for a Ctrl-C at startup
-        sys.exit(2)
     if not quiet:
         for line in summary_lines(summary, "captured"):
             click.echo(line)

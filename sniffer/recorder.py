@@ -41,10 +41,11 @@ from analyzer.recording import (
     TOPIC_FRAMES,
     TOPIC_READS,
     TOPIC_VIOLATIONS,
+    FrameEncoder,
+    encode,
+    encode_plots,
+    encode_read,
     event_message,
-    frame_message,
-    plot_messages,
-    read_message,
     violation_message,
 )
 from analyzer.rules import Violation
@@ -54,6 +55,9 @@ from sniffer.writer import RecordingFile
 HOLD_LIMIT_S = 0.5
 C2S, S2C = Direction.C2S, Direction.S2C
 _NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})
+_PASSWORD = ItemKind.PASSWORD
+_AWAIT_PASSWORD = HandshakeState.AWAIT_PASSWORD
+_DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
 
 ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
 
@@ -122,6 +126,9 @@ class Recorder:
         self.summary = Summary()
         self._conns: dict[int, _Conn] = {}
         self._reads: deque[_Read] = deque()
+        self._frames = FrameEncoder()
+        self._frame_counts = {C2S: 0, S2C: 0}
+        self._bytes = {C2S: 0, S2C: 0}  # of closed connections
         self._t = 0
         file.on_new_part = self._continued
 
@@ -147,15 +154,18 @@ class Recorder:
         self._event(conn, EV_UPSTREAM_FAILED, self._clock(t_ns), by="server", detail=detail)
 
     def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
-        t = self._clock(t_ns)
+        if t_ns > self._t:
+            self._t = t_ns
+        t = self._t
         c = self._conns[conn]
-        read = _Read(conn, direction, t, c.received[direction], data)
-        c.received[direction] += len(data)
-        self.summary.bytes[direction.value] += len(data)
-        if self.keep_secrets:
-            self._write_read(read)
+        offset = c.received[direction]
+        c.received[direction] = offset + len(data)
+        if self.keep_secrets or (not self._reads and c.session.state is not _AWAIT_PASSWORD):
+            # nothing held and no password can end in this read: write it now
+            self.file.write(TOPIC_READS, t, encode_read(conn, _DIR_TEXT[direction], t, offset, data))
             self._observe_all(conn, c, c.session.receive(direction, data, t))
             return
+        read = _Read(conn, direction, t, offset, data)
         self._reads.append(read)
         if c.held and direction is C2S:
             read.held = True
@@ -179,6 +189,7 @@ class Recorder:
         c = self._conns[conn]
         offset = c.received[direction]
         c.received[direction] += length
+        self._bytes[direction] -= length  # counted as received at close; never seen
         self._event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length,
                     detail="bytes missing from the capture; the session model restarts after them")
         # The framer cannot know what the missing bytes were: it finishes what it
@@ -192,6 +203,8 @@ class Recorder:
     def closed(self, conn: int, t_ns: int, by: str, detail: str = "") -> None:
         t = self._clock(t_ns)
         c = self._conns.pop(conn)
+        for direction, n in c.received.items():
+            self._bytes[direction] += n
         self._observe_all(conn, c, c.session.close(t))
         self._update_hold(c, None, force=True)
         self._drain_reads()
@@ -215,6 +228,8 @@ class Recorder:
             self.closed(conn, t, "recorder", detail or "recording stopped")
         self._event(0, EV_RECORDING_STOPPED, t, by="recorder", detail=detail)
         self.summary.messages = self.file.messages
+        self.summary.frames.update({d.value: n for d, n in self._frame_counts.items()})
+        self.summary.bytes.update({d.value: n for d, n in self._bytes.items()})
         self.summary.files = self.file.finish()
         return self.summary
 
@@ -227,10 +242,10 @@ class Recorder:
         return self._t
 
     def _event(self, conn: int, event: str, t: int, **details: object) -> None:
-        self.file.write(TOPIC_EVENTS, t, event_message(conn, event, t, **details))
+        self.file.write(TOPIC_EVENTS, t, encode(event_message(conn, event, t, **details)))
 
     def _write_read(self, r: _Read) -> None:
-        self.file.write(TOPIC_READS, r.t, read_message(r.conn, r.dir.value, r.t, r.offset, r.data, r.spans))
+        self.file.write(TOPIC_READS, r.t, encode_read(r.conn, _DIR_TEXT[r.dir], r.t, r.offset, r.data, r.spans))
 
     def _drain_reads(self) -> None:
         reads = self._reads
@@ -238,36 +253,41 @@ class Recorder:
             self._write_read(reads.popleft())
 
     def _observe_all(self, conn: int, c: _Conn, events: list[Event]) -> None:
-        for event in events:
-            if isinstance(event, LateViolation):
-                self._violation(conn, event.violation, event.about, event.t_ns, late=True)
-            else:
-                self._observe(conn, c, event)
-
-    def _observe(self, conn: int, c: _Conn, obs: Observation) -> None:
-        item = obs.item
-        direction = obs.direction
-        offset = c.framed[direction]
-        c.framed[direction] = offset + len(item.raw)
-        if item.kind is ItemKind.PASSWORD and not self.keep_secrets:
-            # the client's reads not yet written (held ones, and the one being
-            # processed) are the only ones that can hold it
-            for read in self._reads:
-                if read.conn == conn and read.dir is C2S:
-                    read.mask(offset, len(item.raw))
-        t = item.t_end_ns
+        """Write what the session made of a read: the hot loop of recording."""
         write = self.file.write
-        write(TOPIC_FRAMES, t, frame_message(conn, obs, offset, not self.keep_secrets))
-        for topic, message in plot_messages(conn, obs):
-            write(topic, t, message)
-        if item.kind not in _NOT_FRAMES:
-            self.summary.frames[direction.value] += 1
-        for v in obs.violations:
-            self._violation(conn, v, obs, t, late=False)
+        encode_frame = self._frames.encode
+        redact = not self.keep_secrets
+        framed = c.framed
+        frames = self._frame_counts
+        for obs in events:
+            if type(obs) is LateViolation:
+                self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)
+                continue
+            item = obs.item
+            direction = obs.direction
+            offset = framed[direction]
+            framed[direction] = offset + len(item.raw)
+            kind = item.kind
+            if kind is _PASSWORD and redact:
+                # the client's reads not yet written (held ones, and the one being
+                # processed) are the only ones that can hold it
+                for read in self._reads:
+                    if read.conn == conn and read.dir is C2S:
+                        read.mask(offset, len(item.raw))
+            t = item.t_end_ns
+            write(TOPIC_FRAMES, t, encode_frame(conn, obs, offset, redact))
+            if obs.message is not None:
+                for topic, message in encode_plots(conn, obs):
+                    write(topic, t, message)
+            if kind not in _NOT_FRAMES:
+                frames[direction] += 1
+            for v in obs.violations:
+                self._violation(conn, v, obs, t, late=False)
 
     def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool) -> None:
         self.summary.violations[str(v.severity)] += 1
-        self.file.write(TOPIC_VIOLATIONS, t, violation_message(conn, v, about, t, late, not self.keep_secrets))
+        self.file.write(TOPIC_VIOLATIONS, t,
+                        encode(violation_message(conn, v, about, t, late, not self.keep_secrets)))
         if self.on_violation is not None:
             self.on_violation(conn, t, v, about, late)
 

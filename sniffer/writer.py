@@ -3,8 +3,8 @@
 The file is written as ``NAME.mcap.part`` and renamed to ``NAME.mcap`` only once
 ``finish()`` has written the index, so a file with the final name is always a
 complete MCAP and a ``.part`` is always something ``whiztap recover`` can salvage.
-The open chunk is flushed to disk at least every ``FLUSH_INTERVAL_S`` (the mcap
-Writer keeps it in memory until then), so ``kill -9`` loses at most about a
+The open chunk is flushed to disk at least every ``FLUSH_INTERVAL_S`` (an MCAP
+writer keeps it in memory until then), so ``kill -9`` loses at most about a
 second.  Optional rotation starts numbered files by size or duration.
 
 When a write fails (disk full, file too large, I/O error) the file is cut back
@@ -19,20 +19,15 @@ import os
 import time
 from collections.abc import Callable
 
-from mcap.data_stream import RecordBuilder
-from mcap.records import DataEnd, Footer
-from mcap.writer import CompressionType, Writer
-
 from analyzer.recording import (
-    MAGIC,
     MESSAGE_ENCODING,
     METADATA_NAME,
     PROFILE,
     SCHEMA_ENCODING,
     TOPICS,
-    encode,
     schema_bytes,
 )
+from sniffer.mcapwriter import McapWriter, minimal_end
 
 FLUSH_INTERVAL_S = 0.5  # < 1 s, so a kill -9 loses at most about a second
 DEFAULT_CHUNK_SIZE = 1 << 20
@@ -45,7 +40,7 @@ class RecordingWriteError(Exception):
 
 
 class _FileStream:
-    """The file object the mcap Writer writes to: a plain buffer over a file
+    """The file object the MCAP writer writes to: a plain buffer over a file
     descriptor, so that after a failed write we know exactly how many bytes
     reached the file and no buffered object retries the write behind our back."""
 
@@ -75,14 +70,6 @@ class _FileStream:
             self.written += done
 
 
-def _tail() -> bytes:
-    """DataEnd + Footer (no summary) + magic: the smallest valid end of an MCAP."""
-    builder = RecordBuilder()
-    DataEnd(0).write(builder)
-    Footer(0, 0, 0).write(builder)
-    return builder.end() + MAGIC
-
-
 def part_path(path: str, part: int | None) -> str:
     """The final name of part ``part`` (None: an unsplit recording)."""
     if part is None:
@@ -102,7 +89,7 @@ class RecordingFile:
 
     def __init__(self, path: str, metadata: dict[str, str], *, split_size: int | None = None,
                  split_duration_ns: int | None = None, chunk_size: int = DEFAULT_CHUNK_SIZE,
-                 compression: CompressionType = CompressionType.ZSTD) -> None:
+                 compression: str = "zstd") -> None:
         self.path = path
         self.metadata = metadata
         self.split_size = split_size
@@ -116,7 +103,7 @@ class RecordingFile:
         self.part: int | None = 1 if split else None
         self.finished: list[str] = []  # final names of completed files
         self.messages = 0  # over all parts
-        self._writer: Writer | None = None
+        self._writer: McapWriter | None = None
         self._stream: _FileStream | None = None
         self._channels: dict[str, int] = {}
         self._part_start_ns = 0
@@ -145,8 +132,9 @@ class RecordingFile:
             raise RecordingWriteError(f"cannot write {target}: {e.strerror}") from None
         self._stream = _FileStream(fd)
         self._good = 0
-        writer = Writer(self._stream, chunk_size=self.chunk_size, compression=self.compression)
+        writer = McapWriter(self._stream, chunk_size=self.chunk_size, compression=self.compression)
         self._writer = writer
+        self._add = writer.add_message
         self._part_start_ns = t_ns
         metadata = dict(self.metadata, part=str(self.part or 1))
         try:
@@ -165,9 +153,10 @@ class RecordingFile:
         self._good = self._stream.written
         self._last_flush = time.monotonic()
 
-    def write(self, topic: str, t_ns: int, message: dict) -> None:
+    def write(self, topic: str, t_ns: int, data: bytes) -> None:
+        """Add one message (its JSON bytes) at ``t_ns``."""
         try:
-            self._writer.add_message(self._channels[topic], t_ns, encode(message), t_ns)  # type: ignore[union-attr]
+            self._add(self._channels[topic], t_ns, data)
         except OSError as e:
             self._fail(e)
         self.messages += 1
@@ -231,7 +220,7 @@ class RecordingFile:
         self._writer = None
         try:
             os.ftruncate(stream.fd, self._good)  # type: ignore[union-attr]
-            os.pwrite(stream.fd, _tail(), self._good)  # type: ignore[union-attr]
+            os.pwrite(stream.fd, minimal_end(), self._good)  # type: ignore[union-attr]
             self._close_and_rename()
         except OSError:
             try:

@@ -1,0 +1,264 @@
+"""The recording proxy: round trips, pipelined frames recorded, memory over time.
+
+Everything runs as separate processes on this machine, as a user would run
+them: the simulator (``whiztap sim --mode vpn``), ``socat`` as a plain relay
+when it is installed, ``whiztap record -q``, and a blocking-socket client in
+this process.
+
+* Round trips: one Sensor Request, wait for its response, repeat, for
+  ``WHIZTAP_BENCH_RT_S`` seconds (default 3) per path; direct, socat and
+  whiztap record take turns ``ROUNDS`` times and the median counts.
+* Pipelined: a Fetch Configuration, its answer, then ``WHIZTAP_BENCH_PIPELINE_FRAMES``
+  Sensor Requests (default 200k) written as fast as the socket takes them
+  through whiztap record to a responder that answers each at C speed (the
+  simulator answers too slowly to be what is measured), read back in
+  parallel; then Ctrl-C, and the clock stops when the file is finished.
+  Requests and responses both count as frames.  The recording is read back
+  and must hold every byte and every frame.
+* Memory: resident size of the proxy and its writer process sampled every
+  second while the request/response client runs through it to the simulator
+  without a pause, for ``WHIZTAP_BENCH_SOAK_S`` seconds (default 60, to keep
+  ``make bench`` short; the 10-minute run is ``WHIZTAP_BENCH_SOAK_S=600 make bench``).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import shutil
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+RT_S = float(os.environ.get("WHIZTAP_BENCH_RT_S", 3))
+ROUNDS = 3
+PIPELINE_FRAMES = int(os.environ.get("WHIZTAP_BENCH_PIPELINE_FRAMES", 200_000))
+SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", 60))
+WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+REQUEST = b"rr1-12--0--0-ss1"
+FETCH_CONFIG = b"rr1-24--0--0-ss1"
+RESPONDER = """
+import asyncio, sys, uvloop
+CONFIG = b"sr1-\\x18" + b"200" * 24 + b"-ss1"
+class Responder(asyncio.Protocol):  # every Sensor Request answered with data 0, at C speed
+    def connection_made(self, t): self.t = t
+    def data_received(self, d):
+        if d.startswith(b"rr1-24--0--0-ss1"):
+            self.t.write(CONFIG)
+            d = d[16:]
+        self.t.write(d.replace(b"rr1-", b"cr1-"))
+async def main():
+    s = await asyncio.get_running_loop().create_server(Responder, "127.0.0.1", int(sys.argv[1]))
+    await s.serve_forever()
+uvloop.run(main())
+"""
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_port(port: int) -> None:
+    for _ in range(500):
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return
+        except OSError:
+            time.sleep(0.02)
+    raise RuntimeError(f"nothing listens on {port}")
+
+
+def _spawn(args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def _stop(proc: subprocess.Popen) -> str:
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=600)
+    return out.decode()
+
+
+def _recv_frame(sock: socket.socket) -> None:
+    buf = b""
+    while not buf.endswith(b"-ss1"):
+        data = sock.recv(65536)
+        if not data:
+            raise ConnectionError("closed")
+        buf += data
+
+
+def _round_trips(port: int, seconds: float) -> float:
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.sendall(FETCH_CONFIG)
+        _recv_frame(s)
+        n = 0
+        start = time.perf_counter()
+        end = start + seconds
+        while time.perf_counter() < end:
+            for _ in range(100):
+                s.sendall(REQUEST)
+                _recv_frame(s)
+            n += 100
+        return n / (time.perf_counter() - start)
+
+
+def _rss_kib(pid: int) -> int:
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0
+    m = re.search(r"VmRSS:\s+(\d+)", text)
+    return int(m.group(1)) if m else 0
+
+
+def _tree_rss(pid: int) -> tuple[int, int]:
+    """(proxy, writer) resident KiB: the writer is the proxy's child."""
+    children = Path(f"/proc/{pid}/task/{pid}/children")
+    kids = [int(c) for c in children.read_text().split()] if children.exists() else []
+    return _rss_kib(pid), sum(_rss_kib(k) for k in kids)
+
+
+def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
+    paths: dict[str, list[float]] = {"direct": [], "socat": [], "whiztap record": []}
+    socat = shutil.which("socat")
+    if socat is None:
+        del paths["socat"]
+    for _ in range(ROUNDS):
+        paths["direct"].append(_round_trips(sim_port, RT_S))
+        if socat is not None:
+            port = _free_port()
+            relay = _spawn([socat, f"TCP-LISTEN:{port},reuseaddr,fork,nodelay,bind=127.0.0.1",
+                            f"TCP:127.0.0.1:{sim_port},nodelay"])
+            _wait_port(port)
+            paths["socat"].append(_round_trips(port, RT_S))
+            relay.terminate()
+            relay.wait()
+        port = _free_port()
+        rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
+                      "-o", str(tmp / "rt.mcap")])
+        _wait_port(port)
+        paths["whiztap record"].append(_round_trips(port, RT_S))
+        _stop(rec)
+    return {name: statistics.median(rates) for name, rates in paths.items()}
+
+
+def pipelined(tmp: Path) -> dict[str, float]:
+    from analyzer.recording import rebuild_streams, stream_bytes
+
+    upstream_port, port = _free_port(), _free_port()
+    upstream = subprocess.Popen([sys.executable, "-c", RESPONDER, str(upstream_port)])
+    _wait_port(upstream_port)
+    out = tmp / "pipelined.mcap"
+    rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
+                  "-o", str(out)])
+    _wait_port(port)
+    payload = b"".join(b"rr1-%d--0--0-ss1" % (12 + i % 12) for i in range(PIPELINE_FRAMES))
+    got = bytearray()
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        start = time.perf_counter()
+        s.sendall(FETCH_CONFIG)  # as a client does: the channel map first, then the requests
+        _recv_frame(s)
+
+        def read() -> None:
+            while len(got) < len(payload):  # each response is as long as its request
+                got.extend(s.recv(1 << 20))
+
+        reader = threading.Thread(target=read)
+        reader.start()
+        s.sendall(payload)
+        reader.join()
+        forwarded = time.perf_counter()
+    payload = FETCH_CONFIG + payload
+    got[:0] = b"sr1-\x18" + b"200" * 24 + b"-ss1"
+    stdout = _stop(rec)
+    finished = time.perf_counter()
+    upstream.terminate()
+    upstream.wait()
+    streams = {k: stream_bytes(v) for k, v in rebuild_streams(str(out)).items()}
+    conn = max(c for c, _ in streams)  # the benchmark's connection (the port probe is #1)
+    lost = streams.get((conn, "c2s")) != payload or streams.get((conn, "s2c")) != bytes(got)
+    m = re.search(r"c2s (\d+) frames .*; s2c (\d+) frames", stdout)
+    recorded = int(m.group(1)) + int(m.group(2)) if m else 0
+    frames = 2 * (PIPELINE_FRAMES + 1)
+    return {"frames": frames, "recorded_frames": recorded, "lost": float(lost or recorded != frames),
+            "forwarding_fps": frames / (forwarded - start), "recorded_fps": frames / (finished - start),
+            "size": out.stat().st_size}
+
+
+def soak(sim_port: int, tmp: Path) -> dict[str, object]:
+    port = _free_port()
+    rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
+                  "-o", str(tmp / "soak.mcap")])
+    _wait_port(port)
+    stop = threading.Event()
+    done = [0]
+
+    def client() -> None:  # the same request/response client as the round trips
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            s.sendall(FETCH_CONFIG)
+            _recv_frame(s)
+            while not stop.is_set():
+                s.sendall(REQUEST)
+                _recv_frame(s)
+                done[0] += 1
+
+    thread = threading.Thread(target=client)
+    thread.start()
+    samples: list[tuple[float, int, int]] = []
+    start = time.monotonic()
+    while time.monotonic() - start < SOAK_S:
+        time.sleep(1)
+        samples.append((time.monotonic() - start, *_tree_rss(rec.pid)))
+    stop.set()
+    thread.join()
+    _stop(rec)
+    second_half = samples[len(samples) // 2:]
+    xs = [s[0] for s in second_half]
+    totals = [s[1] + s[2] for s in second_half]
+    slope = statistics.linear_regression(xs, totals).slope * 60 if len(second_half) > 2 else 0.0
+    return {"seconds": SOAK_S, "round_trips": done[0], "proxy_kib": (samples[0][1], samples[-1][1]),
+            "writer_kib": (samples[0][2], samples[-1][2]), "max_total_kib": max(s[1] + s[2] for s in samples),
+            "slope_kib_per_min": slope}
+
+
+def main() -> None:
+    print("== recording proxy (bench_proxy) ==")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+          f"{platform.platform()}")
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        sim_port = _free_port()
+        sim = _spawn([WHIZTAP, "sim", "--mode", "vpn", "--port", str(sim_port), "-q", "--camera", "none"])
+        _wait_port(sim_port)
+        try:
+            rates = round_trip_comparison(sim_port, tmp)
+            direct = rates["direct"]
+            for name, rate in rates.items():
+                print(f"round trips/s {name:15} {rate:9,.0f}   {rate / direct:.2f} x direct")
+            p = pipelined(tmp)
+            print(f"pipelined: {p['frames']:,} frames (requests and responses) through whiztap record: "
+                  f"forwarded at {p['forwarding_fps']:,.0f} frames/s; recorded (until the file was finished) "
+                  f"at {p['recorded_fps']:,.0f} frames/s; {p['recorded_frames']:,} frames in the recording, "
+                  f"{'SOME LOST' if p['lost'] else 'nothing lost'}; {p['size'] / 1e6:.1f} MB")
+            s = soak(sim_port, tmp)
+            print(f"memory over {s['seconds']:.0f} s of round trips ({s['round_trips']:,}): resident size after 1 s "
+                  f"-> at the end: proxy {s['proxy_kib'][0]:,} -> {s['proxy_kib'][1]:,} KiB, writer "
+                  f"{s['writer_kib'][0]:,} -> {s['writer_kib'][1]:,} KiB; both at most {s['max_total_kib']:,} KiB; "
+                  f"trend over the second half {s['slope_kib_per_min']:+,.0f} KiB/min")
+        finally:
+            _stop(sim)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,218 @@
+"""The TUI with a million frames and with 10,000 frames a second.
+
+- First screen: a fresh process runs ``whiztap tui`` on the cached one-million-
+  frame recording (bench_analyze's pipelined file) with Textual's headless
+  driver, and reports when the frame list first painted rows, counted from
+  before the process was started (interpreter, imports and all).
+- Scrolling to the end: End pressed while the file is still loading (the list
+  jumps to what is loaded and follows it), and again once everything is
+  loaded; the time until the last row is painted.
+- Memory: what the frame store's columns hold per frame, and the process's
+  resident size grown per frame from the first screen to the full load.
+- Live: the proxy inside the app, in front of ``whiztap sim`` (another
+  process), with a pipelined client (a third process) sending 5,000 Sensor
+  Requests a second, i.e. 10,000 frames a second both ways.  The delay is,
+  at each tick that shows new frames, how long the oldest of them waited
+  since it arrived at the proxy; the backlog is what the proxy had passed on
+  and the model had not taken yet.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+FRAMES = 1_000_000
+LIVE_RATE = 5_000  # requests a second; as many answers come back
+LIVE_SECONDS = 6.0
+_PAINTED: dict[int, float] = {}  # frame id -> when a row showing it was first painted
+_CURSOR: dict[int, float] = {}  # frame id -> when it was first painted under the cursor
+
+
+def _instrument() -> None:
+    """Note when rows are painted (benchmark only: wraps the list's render_line,
+    which runs for every line drawn, cached strip or not)."""
+    from tui.frame_list import FrameList
+
+    render_line = FrameList.render_line
+
+    def timed(self, y):  # noqa: ANN001, ANN202
+        strip = render_line(self, y)
+        row = self.scroll_offset.y + y
+        if row < self.rows:
+            now = time.perf_counter()
+            _PAINTED.setdefault(self.view[row], now)
+            if row == self.cursor:
+                _CURSOR.setdefault(self.view[row], now)
+        return strip
+
+    FrameList.render_line = timed
+
+
+def _rss_kib() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * resource.getpagesize() // 1024
+
+
+async def _key(app, key: str, painted: dict, frame: int) -> float:  # noqa: ANN001
+    """Seconds from a key reaching the app to ``frame`` being painted.  The key
+    is posted as the terminal driver posts it: Pilot.press first waits for the
+    app to be idle, which a loading app never is."""
+    from textual import events
+
+    painted.clear()
+    start = time.perf_counter()
+    app.post_message(events.Key(key, None))
+    while frame not in painted:
+        await asyncio.sleep(0.001)
+    return painted[frame] - start
+
+
+async def _browse(path: str, started: float) -> dict:
+    """In the fresh process: open the recording headless and time what a user sees."""
+    _instrument()
+    from tui.app import WhiztapApp
+    from tui.sources import FileSource
+
+    app = WhiztapApp(FileSource(path))
+    out: dict = {}
+    async with app.run_test(size=(160, 50)):
+        frames = app.frames
+        while not _PAINTED:
+            await asyncio.sleep(0.001)
+        out["first_screen_s"] = min(_PAINTED.values()) - started
+        out["rss_first_kib"] = _rss_kib()
+        out["frames_at_first_screen"] = app.model.store.count
+        await asyncio.sleep(0.3)
+        moves = [await _key(app, "j", _CURSOR, frames.view[frames.cursor + 1]) for _ in range(20)]
+        out["j_while_loading_s"] = sorted(moves)[len(moves) // 2]
+        out["end_while_loading_s"] = await _key(app, "end", _PAINTED, frames.view[frames.rows - 1])
+        out["frames_when_end_pressed"] = frames.rows
+        while not app.fed:
+            await asyncio.sleep(0.05)
+        out["load_s"] = time.perf_counter() - started
+        await _key(app, "home", _PAINTED, 0)
+        await asyncio.sleep(0.2)
+        out["end_loaded_s"] = await _key(app, "end", _PAINTED, app.model.store.count - 1)
+        store = app.model.store
+        out["frames"] = store.count
+        out["store_bytes_per_frame"] = store.nbytes() / store.count
+        out["rss_loaded_kib"] = _rss_kib()
+    return out
+
+
+def _first_screen(path: str) -> dict:
+    # perf_counter is CLOCK_MONOTONIC on Linux, the same in every process: the
+    # child measures from this moment, before it was started.
+    code = (f"import asyncio, json; from benchmarks.bench_tui import _browse; "
+            f"print(json.dumps(asyncio.run(_browse({path!r}, {time.perf_counter()!r}))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+# -- live ---------------------------------------------------------------------------------------
+
+
+async def _drive(port: int, rate: int, seconds: float) -> None:
+    """The load: pipelined Sensor Requests at ``rate`` a second, answers read and dropped."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+
+    async def drain() -> None:
+        while await reader.read(1 << 16):
+            pass
+
+    draining = asyncio.create_task(drain())
+    batch = 50
+    frame = b"rr1-12--0--0-ss1"
+    writer.write(b"rr1-24--0--0-ss1")
+    start = time.perf_counter()
+    sent = 0
+    while time.perf_counter() - start < seconds:
+        writer.write(frame * batch)
+        sent += batch
+        await writer.drain()
+        ahead = sent / rate - (time.perf_counter() - start)
+        if ahead > 0:
+            await asyncio.sleep(ahead)
+    await asyncio.sleep(0.5)
+    writer.close()
+    draining.cancel()
+    print(sent)
+
+
+async def _live(tmp: str) -> dict:
+    from sniffer.record_run import RecordSettings
+    from tui.app import WhiztapApp
+    from tui.sources import LiveSource, ProxyRig
+
+    whiztap = str(Path(sys.executable).with_name("whiztap"))
+    sim = subprocess.Popen([whiztap, "sim", "--mode", "vpn", "--port", "0", "-q"], stdout=subprocess.PIPE, text=True)
+    try:
+        sim_port = int(re.search(r"listening on \S+:(\d+)", sim.stdout.readline()).group(1))
+        settings = RecordSettings(("127.0.0.1", 0), ("127.0.0.1", sim_port), f"{tmp}/live.mcap", quiet=True)
+        app = WhiztapApp(LiveSource(ProxyRig(settings), "live"))
+        async with app.run_test(size=(160, 50)) as pilot:
+            while app.source.recording is None or app.source.recording.proxy is None:
+                await pilot.pause(0.05)
+            port = app.source.recording.proxy.port
+            backlog = 0
+            driver = await asyncio.create_subprocess_exec(
+                sys.executable, "-c", f"import asyncio; from benchmarks.bench_tui import _drive; "
+                                      f"asyncio.run(_drive({port}, {LIVE_RATE}, {LIVE_SECONDS}))",
+                stdout=asyncio.subprocess.PIPE)
+            app.lags.clear()
+            while driver.returncode is None:
+                backlog = max(backlog, app.source.backlog)
+                try:
+                    await asyncio.wait_for(driver.wait(), 0.05)
+                except TimeoutError:
+                    pass
+            sent = int((await driver.stdout.read()).split()[-1])
+            while app.source.backlog:
+                await pilot.pause(0.05)
+            await pilot.pause(0.5)
+            lags = sorted(app.lags)
+            frames = app.model.store.count
+            await pilot.press("q")
+            while app.is_running:
+                await pilot.pause(0.05)
+    finally:
+        sim.terminate()
+        sim.wait()
+    pick = lambda q: lags[min(len(lags) - 1, int(q * len(lags)))] / 1e6  # noqa: E731
+    return {"sent_requests": sent, "frames_shown": frames, "lag_p50_ms": pick(0.5), "lag_p99_ms": pick(0.99),
+            "lag_max_ms": lags[-1] / 1e6, "backlog_max": backlog, "ticks": len(lags)}
+
+
+def main() -> None:
+    import tempfile
+
+    from benchmarks.bench_analyze import READ, recording
+
+    print("== tui")
+    path = str(recording("pipelined", FRAMES, READ))
+    r = _first_screen(path)
+    print(f"first screen of {r['frames']:,} frames (fresh process, headless): {r['first_screen_s']:.2f} s "
+          f"({r['frames_at_first_screen']:,} frames loaded by then); all loaded after {r['load_s']:.1f} s")
+    print(f"while loading: j moves the cursor in {r['j_while_loading_s'] * 1e3:.0f} ms (median of 20); "
+          f"End paints the last row loaded ({r['frames_when_end_pressed']:,}) in {r['end_while_loading_s'] * 1e3:.0f} ms")
+    print(f"once loaded: End paints the last of {r['frames']:,} rows in {r['end_loaded_s'] * 1e3:.0f} ms")
+    grown = (r["rss_loaded_kib"] - r["rss_first_kib"]) * 1024 / (r["frames"] - r["frames_at_first_screen"])
+    print(f"memory held per frame: store {r['store_bytes_per_frame']:.0f} B; "
+          f"process grew {grown:.0f} B/frame from first screen to full load")
+    with tempfile.TemporaryDirectory() as tmp:
+        live = asyncio.run(_live(tmp))
+    print(f"live at {2 * LIVE_RATE:,} frames/s for {LIVE_SECONDS:g} s: {2 * live['sent_requests']:,} frames sent, "
+          f"{live['frames_shown']:,} shown; longest wait from arrival to screen per tick: p50 {live['lag_p50_ms']:.0f} ms, "
+          f"p99 {live['lag_p99_ms']:.0f} ms, max {live['lag_max_ms']:.0f} ms; "
+          f"largest backlog {live['backlog_max']:,} reads")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,239 @@
+"""Helpers for the recorder tests: loopback servers, a recording in a test's
+event loop, and checks that read recordings back with the real MCAP reader."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import json
+import re
+import signal
+import socket
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import jsonschema
+from mcap.reader import make_reader
+
+from analyzer.framing import Framer, Item
+from analyzer.recording import (
+    SCHEMA_ENCODING,
+    TOPIC_FRAMES,
+    TOPIC_READS,
+    rebuild_streams,
+    stream_bytes,
+)
+from sniffer.record_run import RecordSettings, Recording
+
+LOCAL = "127.0.0.1"
+WAIT = 20.0  # generous bound for anything a test waits on; never a timing assertion
+
+
+# -- loopback servers ------------------------------------------------------------------------
+
+
+class EchoServer:
+    """Echoes every byte; answers a FIN with a FIN.  Keeps what each connection sent."""
+
+    def __init__(self) -> None:
+        self.received: list[bytearray] = []
+        self._server: asyncio.AbstractServer | None = None
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        got = bytearray()
+        self.received.append(got)
+        try:
+            while data := await reader.read(65536):
+                got += data
+                writer.write(data)
+                await writer.drain()
+            writer.write_eof()
+            await writer.drain()
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            writer.close()
+
+    async def __aenter__(self) -> EchoServer:
+        self._server = await asyncio.start_server(self._handle, LOCAL, 0, backlog=512)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._server.close()
+
+    @property
+    def port(self) -> int:
+        return self._server.sockets[0].getsockname()[1]
+
+
+class ScriptedServer:
+    """Reads an 8-byte tag, then sends ``replies[tag]`` in its given pieces,
+    half-closes, and reads the client's bytes until the client's FIN."""
+
+    def __init__(self) -> None:
+        self.replies: dict[bytes, list[bytes]] = {}
+        self.received: dict[bytes, bytes] = {}
+        self._server: asyncio.AbstractServer | None = None
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            tag = await reader.readexactly(8)
+            for piece in self.replies[tag]:
+                writer.write(piece)
+                await writer.drain()
+            writer.write_eof()
+            self.received[tag] = tag + await reader.read(-1)
+        except (ConnectionError, OSError, asyncio.IncompleteReadError):
+            pass
+        finally:
+            writer.close()
+
+    async def __aenter__(self) -> ScriptedServer:
+        self._server = await asyncio.start_server(self._handle, LOCAL, 0, backlog=512)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._server.close()
+
+    @property
+    def port(self) -> int:
+        return self._server.sockets[0].getsockname()[1]
+
+
+def closed_port() -> int:
+    """A port nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind((LOCAL, 0))
+        return s.getsockname()[1]
+
+
+# -- a recording in the test's loop --------------------------------------------------------------
+
+
+@contextlib.asynccontextmanager
+async def recording(upstream_port: int, path: str, **options):
+    """A recording proxy on a free port in front of ``upstream_port``; finished on exit."""
+    settings = RecordSettings((LOCAL, 0), (LOCAL, upstream_port), str(path), **options)
+    lines: list[str] = []
+    rec = Recording(settings, lines.append)
+    rec.lines = lines  # type: ignore[attr-defined]
+    await rec.start()
+    try:
+        yield rec
+    finally:
+        if rec.summary is None:
+            await rec.stop()
+
+
+# -- the command, as a user runs it --------------------------------------------------------------
+
+WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+_LISTENING = re.compile(rb"recording 127\.0\.0\.1:(\d+) -> ")
+
+
+class RecordProcess:
+    """A ``whiztap record`` subprocess."""
+
+    def __init__(self, proc: asyncio.subprocess.Process) -> None:
+        self.proc = proc
+        self.lines: list[str] = []
+        self.port = 0
+
+    @classmethod
+    async def start(cls, upstream: int, output: Path, *args: str, preexec_fn=None,
+                    new_session: bool = False) -> RecordProcess:  # noqa: ANN001
+        quiet = "-q" in args
+        port = closed_port() if quiet else 0  # -q prints no port to read back
+        proc = await asyncio.create_subprocess_exec(
+            WHIZTAP, "record", "--listen", f"127.0.0.1:{port}", "--upstream", f"{LOCAL}:{upstream}",
+            "-o", str(output), *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+            preexec_fn=preexec_fn, start_new_session=new_session)
+        rec = cls(proc)
+        if quiet:
+            rec.port = port
+            return rec
+        first = await asyncio.wait_for(proc.stdout.readline(), WAIT)
+        m = _LISTENING.match(first)
+        assert m, first + await proc.stderr.read()
+        rec.port = int(m.group(1))
+        return rec
+
+    async def connect(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        """Connect through the proxy, waiting for it to listen (with -q nothing says when)."""
+        for _ in range(int(WAIT * 100)):
+            try:
+                return await asyncio.open_connection(LOCAL, self.port)
+            except ConnectionRefusedError:
+                await asyncio.sleep(0.01)
+        raise AssertionError("whiztap record never listened")
+
+    async def wait_line(self, pattern: str) -> str:
+        while True:
+            line = (await asyncio.wait_for(self.proc.stdout.readline(), WAIT)).decode()
+            assert line, f"no line matching {pattern!r}; got {self.lines}"
+            self.lines.append(line.rstrip("\n"))
+            if re.search(pattern, line):
+                return line
+
+    async def finish(self, sig: int | None = signal.SIGINT) -> tuple[int, str, str]:
+        if sig is not None:
+            self.proc.send_signal(sig)
+        out, err = await asyncio.wait_for(self.proc.communicate(), WAIT)
+        return self.proc.returncode, "\n".join(self.lines) + out.decode(), err.decode()
+
+
+
+# -- reading recordings back ------------------------------------------------------------------------
+
+
+def read_all(path: str) -> dict[str, list[dict]]:
+    """Every message by topic, read with mcap's own indexed reader with CRC
+    checks on, each checked against its channel's JSON schema."""
+    by_topic: dict[str, list[dict]] = defaultdict(list)
+    validators: dict[int, jsonschema.Draft202012Validator] = {}
+    last_time: dict[str, int] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None, f"{path} has no summary: not finished"
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            assert channel.topic.startswith("/") and "." not in channel.topic
+            assert channel.message_encoding == "json" and schema.encoding == SCHEMA_ENCODING
+            if channel.id not in validators:
+                validators[channel.id] = jsonschema.Draft202012Validator(json.loads(schema.data))
+            decoded = json.loads(message.data)
+            validators[channel.id].validate(decoded)
+            assert message.log_time >= last_time.get(channel.topic, 0), f"log_time went back on {channel.topic}"
+            last_time[channel.topic] = message.log_time
+            by_topic[channel.topic].append(decoded)
+    return by_topic
+
+
+def streams(path: str, topic: str = TOPIC_READS) -> dict[tuple[int, str], bytes]:
+    return {key: stream_bytes(segments) for key, segments in rebuild_streams(path, topic).items()}
+
+
+def both_ways(path: str) -> dict[tuple[int, str], bytes]:
+    """The streams rebuilt from /tcp/reads, checked equal to those from /frames."""
+    from_reads = streams(path, TOPIC_READS)
+    from_frames = streams(path, TOPIC_FRAMES)
+    assert from_reads == from_frames
+    return from_reads
+
+
+def frame_items(frames: list[dict], conn: int, direction: str) -> list[tuple[str, bytes]]:
+    return [(f["kind"], base64.b64decode(f["raw"])) for f in frames if f["conn"] == conn and f["dir"] == direction]
+
+
+def framed(data: bytes) -> list[tuple[str, bytes]]:
+    """What a framer makes of a whole stream (framing does not depend on chunking)."""
+    framer = Framer()
+    items: list[Item] = framer.feed(data, 0) + framer.end(1)
+    return [(i.kind.value, i.raw) for i in items]
+
+
+def events(by_topic: dict[str, list[dict]], conn: int) -> list[str]:
+    return [e["event"] for e in by_topic["/tcp/events"] if e["conn"] == conn]
+

@@ -1,0 +1,202 @@
+"""``whiztap capture``: pcap/pcapng import with real reassembly, live capture,
+and the Scapy layer."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import signal
+import subprocess
+
+import pytest
+from scapy.layers.inet import IP, TCP
+from scapy.layers.l2 import Ether
+from scapy.utils import PcapNgWriter, PcapWriter
+
+from sniffer.capture import CaptureError, CaptureSettings, import_pcap
+from sniffer.client import Client
+from sniffer.scapy_layer import Progwhiz, bind
+from sniffer.simulator import Simulator
+from tests.record_support import LOCAL, WAIT, WHIZTAP, frame_items, read_all, recording, streams
+
+CLIENT, SERVER = ("10.1.1.2", 40000), ("10.1.1.9", 5000)
+ISN_C, ISN_S = 1000, 9000
+
+
+def _packet(src, dst, seq, ack, flags, payload=b"", t=0.0):  # noqa: ANN001, ANN202 - test shorthand
+    p = Ether() / IP(src=src[0], dst=dst[0]) / TCP(sport=src[1], dport=dst[1], seq=seq % (1 << 32),
+                                                   ack=ack % (1 << 32), flags=flags) / payload
+    p.time = t
+    return p
+
+
+def _session(c2s_segments, s2c_segments, isn_c=ISN_C, isn_s=ISN_S):  # noqa: ANN001, ANN202
+    """Packets of one connection: handshake, the given (offset, bytes) segments
+    in the given order, then FINs.  Offsets are stream offsets."""
+    t = [1_700_000_000.0]
+
+    def tick() -> float:
+        t[0] += 0.001
+        return t[0]
+
+    pkts = [_packet(CLIENT, SERVER, isn_c, 0, "S", t=tick()),
+            _packet(SERVER, CLIENT, isn_s, isn_c + 1, "SA", t=tick()),
+            _packet(CLIENT, SERVER, isn_c + 1, isn_s + 1, "A", t=tick())]
+    for (off, data), (soff, sdata) in zip(c2s_segments, s2c_segments):
+        if data is not None:
+            pkts.append(_packet(CLIENT, SERVER, isn_c + 1 + off, isn_s + 1, "PA", data, t=tick()))
+        if sdata is not None:
+            pkts.append(_packet(SERVER, CLIENT, isn_s + 1 + soff, isn_c + 1, "PA", sdata, t=tick()))
+    c_end = max(o + len(d) for o, d in c2s_segments if d is not None)
+    s_end = max(o + len(d) for o, d in s2c_segments if d is not None)
+    pkts += [_packet(CLIENT, SERVER, isn_c + 1 + c_end, isn_s + 1 + s_end, "FA", t=tick()),
+             _packet(SERVER, CLIENT, isn_s + 1 + s_end, isn_c + 2 + c_end, "FA", t=tick()),
+             _packet(CLIENT, SERVER, isn_c + 2 + c_end, isn_s + 2 + s_end, "A", t=tick())]
+    return pkts
+
+
+def _write(path, pkts, ng=False) -> str:  # noqa: ANN001
+    writer = (PcapNgWriter if ng else PcapWriter)(str(path))
+    for p in pkts:
+        writer.write(p)
+    writer.close()
+    return str(path)
+
+
+C2S = b"rr1-24--0--0-ss1rr1-12--0--0-ss1rr1-3--0--2-ss1"
+S2C = b"sr1-\x03200200000-ss1cr1-12--431--0-ss1cr1-3--400--0-ss1"
+
+
+@pytest.mark.parametrize("ng", [False, True], ids=["pcap", "pcapng"])
+def test_retransmissions_reordering_and_duplicates_reassemble_exactly(tmp_path, ng):
+    # each list is in capture order: holes filled late, a retransmission, overlaps
+    c = [(0, C2S[:16]), (32, C2S[32:]), (16, C2S[16:32]), (16, C2S[16:32])]
+    s = [(0, S2C[:10]), (20, S2C[20:]), (10, S2C[10:20]), (5, S2C[5:25])]
+    pcap = _write(tmp_path / ("in.pcapng" if ng else "in.pcap"), _session(c, s), ng)
+    out = tmp_path / "out.mcap"
+    summary = import_pcap(pcap, CaptureSettings(5000, str(out)))
+    assert summary["connections"] == 1
+    assert streams(str(out)) == {(1, "c2s"): C2S, (1, "s2c"): S2C}
+    by_topic = read_all(str(out))
+    assert [e["event"] for e in by_topic["/tcp/events"] if e["conn"] == 1] == [
+        "opened", "upstream_connected", "half_closed", "half_closed", "closed"]
+    assert not any(e["event"] == "gap" for e in by_topic["/tcp/events"])
+    assert [v["value"] for v in by_topic["/sensors"]] == [431]
+    assert [v["position"] for v in by_topic["/servos"]] == [100.0]
+    opened = by_topic["/tcp/events"][1]
+    assert (opened["client"], opened["upstream"]) == ("10.1.1.2:40000", "10.1.1.9:5000")
+
+
+def test_missing_bytes_are_a_gap_never_zeros(tmp_path):
+    c = [(0, C2S[:16]), (32, C2S[32:]), (16, None)]  # the middle frame never captured
+    s = [(0, S2C[:5]), (5, S2C[5:]), (0, None)]
+    pkts = _session(c, s, isn_c=(1 << 32) - 20)  # and sequence numbers wrap around
+    pcap = _write(tmp_path / "gap.pcap", pkts)
+    out = tmp_path / "gap.mcap"
+    import_pcap(pcap, CaptureSettings(5000, str(out)))
+    from analyzer.recording import rebuild_streams
+
+    segments = rebuild_streams(str(out))[(1, "c2s")]
+    assert [(seg.offset, seg.data) for seg in segments] == [(0, C2S[:16]), (32, C2S[32:])]
+    gaps = [e for e in read_all(str(out))["/tcp/events"] if e["event"] == "gap"]
+    assert [(g["dir"], g["offset"], g["length"]) for g in gaps] == [("c2s", 16, 16)]
+    frames = read_all(str(out))["/frames"]
+    assert b"\x00" not in b"".join(raw for _, raw in frame_items(frames, 1, "c2s"))
+
+
+def test_bad_input_is_a_clear_error(tmp_path):
+    junk = tmp_path / "junk.pcap"
+    junk.write_bytes(b"definitely not a capture file")
+    with pytest.raises(CaptureError, match="not a pcap or pcapng file"):
+        import_pcap(str(junk), CaptureSettings(5000, str(tmp_path / "x.mcap")))
+    with pytest.raises(CaptureError, match="No such file"):
+        import_pcap(str(tmp_path / "missing.pcap"), CaptureSettings(5000, str(tmp_path / "x.mcap")))
+
+
+def test_scapy_layer_dissects_both_directions():
+    bind(5000)
+    request = IP(bytes(IP() / TCP(sport=40000, dport=5000) / b"rr1-3--0--2-ss1"))
+    reply = IP(bytes(IP() / TCP(sport=5000, dport=40000) / b"cr1-3--400--0-ss1cr1-4--1--0-ss1"))
+    assert request[Progwhiz].describe_items() == ["Servo Position Request ch 3"]
+    assert [i.raw for i in reply[Progwhiz].items()] == [b"cr1-3--400--0-ss1", b"cr1-4--1--0-ss1"]
+    assert "Progwhiz Response ch 3 data 400" in reply.summary()
+
+
+# -- real traffic ------------------------------------------------------------------------------------------
+
+
+async def _session_through_proxy(path, sim_port: int) -> None:  # noqa: ANN001
+    async with recording(sim_port, path) as rec:
+        async with await Client.connect(LOCAL, rec.proxy.port, password="progwhiz") as client:
+            await client.fetch_configuration()
+            for ch in (12, 13, 0, 1):
+                await (client.sensor(ch) if ch >= 12 else client.servo_position(ch))
+            await client.normal_send(2, 700)
+            await client.fetch_camera_image()
+
+
+@pytest.mark.skipif(shutil.which("tcpdump") is None,
+                    reason="tcpdump is not installed (make test installs it with apt-get as root)")
+@pytest.mark.skipif(os.geteuid() != 0, reason="tcpdump on lo needs root")
+async def test_a_tcpdump_capture_imports_to_the_frames_the_proxy_recorded(tmp_path):
+    pcap, proxy_rec, imported = tmp_path / "lo.pcap", tmp_path / "proxy.mcap", tmp_path / "imported.mcap"
+    async with Simulator(port=0, mode="winsock", password="progwhiz", seed=5) as sim:
+        port = sim.port
+        dump = await asyncio.create_subprocess_exec(
+            # immediate mode: else packets wait in the kernel ring for a timeout
+            # that SIGINT may cut short, and the file comes out empty
+            "tcpdump", "-i", "lo", "--immediate-mode", "-U", "-s", "0", "-w", str(pcap), f"tcp port {port}",
+            stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+        line = await asyncio.wait_for(dump.stderr.readline(), WAIT)  # "listening on lo, ..."
+        assert b"listening on" in line, line
+        await _session_through_proxy(proxy_rec, port)
+        stable, size = 0, -1
+        for _ in range(int(WAIT * 10)):  # until tcpdump has written the last packets
+            await asyncio.sleep(0.1)
+            stable, size = (stable + 1, size) if pcap.stat().st_size == size else (0, pcap.stat().st_size)
+            if stable >= 3:
+                break
+        dump.send_signal(signal.SIGINT)
+        await asyncio.wait_for(dump.wait(), WAIT)
+    import_pcap(str(pcap), CaptureSettings(port, str(imported)))
+    # the proxy's upstream leg is what tcpdump saw: same streams, same frames
+    assert streams(str(imported)) == streams(str(proxy_rec))
+    a, b = read_all(str(imported)), read_all(str(proxy_rec))
+    for direction in ("c2s", "s2c"):
+        assert frame_items(a["/frames"], 1, direction) == frame_items(b["/frames"], 1, direction)
+    assert [m["value"] for m in a["/sensors"]] == [m["value"] for m in b["/sensors"]]
+    assert len(a["/camera"]) == 1
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="live capture needs root or CAP_NET_RAW")
+async def test_live_capture_on_loopback_until_ctrl_c(tmp_path):
+    out = tmp_path / "live.mcap"
+    async with Simulator(port=0, mode="vpn", seed=2, camera=False) as sim:
+        proc = await asyncio.create_subprocess_exec(
+            WHIZTAP, "capture", "--iface", "lo", "--port", str(sim.port), "-o", str(out),
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        assert b"capturing tcp port" in await asyncio.wait_for(proc.stdout.readline(), WAIT)
+        async with await Client.connect(LOCAL, sim.port) as client:
+            await client.fetch_configuration()
+            value = await client.sensor(15)
+        proc.send_signal(signal.SIGINT)  # it still records what the kernel queued before
+        stdout, stderr = await asyncio.wait_for(proc.communicate(), WAIT)
+    assert proc.returncode == 0, stderr
+    assert b"captured 1 connection(s)" in stdout
+    by_topic = read_all(str(out))
+    assert [m["value"] for m in by_topic["/sensors"]] == [value]
+    recorded = streams(str(out))
+    assert recorded[(1, "c2s")] == b"rr1-24--0--0-ss1rr1-15--0--0-ss1"
+
+
+def test_live_capture_without_the_right_says_what_is_needed(tmp_path):
+    command = [WHIZTAP, "capture", "--iface", "lo", "--port", "5000", "-o", str(tmp_path / "x.mcap")]
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.skip("running as root and setpriv (util-linux) is missing to drop the right")
+        command = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", "--inh-caps=-all", *command]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=WAIT)
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert "needs root or the CAP_NET_RAW capability" in result.stderr

@@ -1,0 +1,361 @@
+"""The recording format: schemas, messages, the fast reader, the file writer and
+the recorder, in process; and a second MCAP implementation reading our files."""
+
+from __future__ import annotations
+
+import base64
+import errno
+import io
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import jsonschema
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcap.writer import Writer
+
+import sniffer.recorder as recorder_module
+import sniffer.writer as writer_module
+from analyzer.recording import (
+    SCHEMAS,
+    TOPIC_FRAMES,
+    TOPIC_READS,
+    TOPICS,
+    FrameEncoder,
+    RecordingError,
+    RecordingScan,
+    encode,
+    encode_plots,
+    encode_read,
+    frame_message,
+    mask,
+    metadata_record,
+    plot_messages,
+    read_message,
+    read_metadata,
+    rebuild_streams,
+    schema_bytes,
+    stream_bytes,
+)
+from analyzer.session import Direction, Session
+from sniffer.recorder import Recorder
+from sniffer.writer import RecordingFile, RecordingWriteError
+from tests.record_support import read_all
+from tests.streams import chunked, stream_pieces
+
+T0 = 1_700_000_000_000_000_000
+C2S, S2C = Direction.C2S, Direction.S2C
+CHECK = Path(__file__).parent / "mcap_check"
+
+
+def _recorder(path: Path, **kwargs) -> Recorder:
+    metadata = metadata_record(source="test", listen="", upstream="")
+    file = RecordingFile(str(path), metadata, **{k: kwargs.pop(k) for k in list(kwargs)
+                                                 if k in ("split_size", "split_duration_ns", "compression")})
+    rec = Recorder(file, **kwargs)
+    rec.start(T0)
+    return rec
+
+
+def _session(rec: Recorder, conn: int = 1, t: int = T0) -> int:
+    """A short winsock session with a password sent in three reads."""
+    rec.opened(conn, t + 1, "127.0.0.1:5555", "127.0.0.1:5000")
+    steps = [(S2C, b"sendchkpass"), (C2S, b"pa"), (C2S, b"ss"), (C2S, b"wd"), (S2C, b"readytogo"),
+             (C2S, b"rr1-24--0--0-ss1"), (S2C, b"sr1-\x03200000101-ss1"), (C2S, b"rr1-0--0--0-ss1"),
+             (S2C, b"cr1-0--1000--0-ss1"), (C2S, b"rr1-1--0--2-ss1"), (S2C, b"cr1-1--4000--0-ss1"),
+             (C2S, b"rr1-1--7--0-ss1rr1-2--1--0-ss1rr1-99--0--0-ss1")]
+    for i, (d, data) in enumerate(steps):
+        rec.data(conn, d, t + 10 + i, data)
+    rec.closed(conn, t + 100, "client", "closed")
+    return t + 100
+
+
+# -- schemas and topics ------------------------------------------------------------------------------
+
+
+def test_every_schema_is_valid_json_schema_and_every_topic_is_foxglove_friendly():
+    for name, schema in SCHEMAS.items():
+        jsonschema.Draft202012Validator.check_schema(schema)
+        assert json.loads(schema_bytes(name)) == schema
+        assert "$ref" not in json.dumps(schema)  # Foxglove does not follow references
+    for topic, schema in TOPICS.items():
+        assert topic.startswith("/") and "." not in topic and schema in SCHEMAS
+    image = SCHEMAS["foxglove.CompressedImage"]["properties"]
+    assert set(image) == {"timestamp", "frame_id", "data", "format"}
+
+
+def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
+    path = tmp_path / "s.mcap"
+    rec = _recorder(path)
+    summary = rec.stop(_session(rec))
+    assert summary.connections == 1 and summary.files == [str(path)]
+    by_topic = read_all(str(path))  # schemas validated, CRCs checked, log_time monotonic
+    assert [(m["channel"], m["value"]) for m in by_topic["/sensors"]] == [(0, 1000)]
+    assert [(m["channel"], m["data"], m["position"]) for m in by_topic["/servos"]] == [(1, 4000, 1000.0)]
+    assert [(m["channel"], m["value"]) for m in by_topic["/sends"]] == [(1, 7)]
+    assert [(m["channel"], m["state"]) for m in by_topic["/switches"]] == [(2, 1)]
+    assert all(isinstance(m["latency_ns"], int) for m in by_topic["/sensors"] + by_topic["/servos"])
+    violations = {v["rule_id"]: v for v in by_topic["/violations"]}
+    assert violations["PW-RANGE-CHANNEL"]["level"] == 3 and violations["PW-RANGE-CHANNEL"]["frame_index"] > 0
+    meta = read_metadata(str(path))
+    assert meta["format_version"] == "1" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
+    assert meta["source"] == "test"
+
+
+def test_password_is_masked_in_reads_and_frames_yet_streams_rebuild_the_same(tmp_path):
+    path = tmp_path / "pw.mcap"
+    rec = _recorder(path)
+    rec.stop(_session(rec))
+    by_topic = read_all(str(path))
+    password = [f for f in by_topic["/frames"] if f["kind"] == "password"]
+    assert len(password) == 1
+    assert password[0]["text"] == "<redacted>" and password[0]["fields"] == {"message": "Password", "length": 6}
+    assert base64.b64decode(password[0]["raw"]) == b"******"
+    c2s_reads = [r for r in by_topic["/tcp/reads"] if r["dir"] == "c2s"][:3]
+    assert [base64.b64decode(r["data"]) for r in c2s_reads] == [b"**", b"**", b"**"]
+    assert all(r["redacted"] == [[0, 2]] for r in c2s_reads)
+    reads, frames = rebuild_streams(str(path)), rebuild_streams(str(path), TOPIC_FRAMES)
+    assert reads == frames
+    assert stream_bytes(reads[(1, "c2s")]).startswith(b"******rr1-24")
+    assert "passwd" not in json.dumps(by_topic)
+
+
+def test_a_password_left_pending_is_masked_after_the_hold_limit(tmp_path, monkeypatch):
+    monkeypatch.setattr(recorder_module, "HOLD_LIMIT_S", 0.0)
+    path = tmp_path / "hold.mcap"
+    rec = _recorder(path)
+    rec.opened(1, T0 + 1, "a:1", "b:2")
+    rec.data(1, S2C, T0 + 2, b"sendchkpass")
+    rec.data(1, C2S, T0 + 3, b"topsecret")  # no verdict yet: held
+    rec.data(1, S2C, T0 + 4, b"cr1-0--1--0-ss1")  # behind it in /tcp/reads order
+    rec.tick(T0 + 5)  # the hold limit passed: masked and written
+    rec.data(1, S2C, T0 + 6, b"readytogo")
+    rec.stop(T0 + 7)
+    reads = read_all(str(path))["/tcp/reads"]
+    assert [base64.b64decode(r["data"]) for r in reads] == [b"sendchkpass", b"*********", b"cr1-0--1--0-ss1",
+                                                            b"readytogo"]
+
+
+@settings(max_examples=60, deadline=None)
+@given(pieces=stream_pieces(), answers=stream_pieces(), cuts=st.lists(st.integers(0, 2000), max_size=8),
+       redact=st.booleans())
+def test_the_fast_encoders_write_exactly_what_the_reference_dicts_say(pieces, answers, cuts, redact):
+    """Frames, reads and plot messages are built by string templates and a
+    cache on the hot path; they must equal the plain dict builders, encoded."""
+    s = Session()
+    encoder = FrameEncoder()
+    events = s.receive(S2C, b"sendchkpass", 1) + s.receive(C2S, b"pw\r\nrr1-24--0--0-ss1", 2)
+    events += s.receive(S2C, b"readytogosr1-\x03200000101-ss1", 3)
+    events += s.receive(C2S, b"rr1-0--0--0-ss1rr1-1--0--2-ss1rr1-1--500--0-ss1rr1-2--1--0-ss1", 3)
+    events += s.receive(S2C, b"cr1-0--7--0-ss1cr1-1--4000--0-ss1", 3)
+    for t, chunk in enumerate(chunked(b"".join(pieces), cuts), start=4):
+        events += s.receive(C2S, chunk, t)
+        events += s.receive(S2C, b"".join(answers[:t % 4]) + b"cr1-0--7--0-ss1cr1-1--4000--0-ss1", t)
+    events += s.close(99)
+    offset = 0
+    for obs in events:
+        if not hasattr(obs, "item"):
+            continue
+        for _ in range(2):  # a cache miss, then a hit
+            assert encoder.encode(3, obs, offset, redact) == encode(frame_message(3, obs, offset, redact))
+        assert encode_plots(3, obs) == [(topic, encode(m)) for topic, m in plot_messages(3, obs)]
+        assert encode_read(3, obs.direction.value, obs.item.t_end_ns, offset, obs.item.raw) == encode(
+            read_message(3, obs.direction.value, obs.item.t_end_ns, offset, obs.item.raw))
+        offset += len(obs.item.raw)
+    assert {topic for obs in events if hasattr(obs, "item") for topic, _ in encode_plots(3, obs)} >= {
+        "/sensors", "/servos", "/sends", "/switches"}
+
+
+# -- reading -------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(reads=st.lists(st.tuples(st.integers(1, 4), st.sampled_from([C2S, S2C]), st.binary(min_size=1, max_size=300)),
+                      max_size=60),
+       compression=st.sampled_from(["zstd", "lz4", ""]))
+def test_the_fast_reader_gives_back_every_read_exactly(tmp_path, reads, compression):
+    path = tmp_path / f"fast-{compression or 'none'}.mcap"
+    rec = _recorder(path, keep_secrets=True, compression=compression)
+    expected: dict[tuple[int, str], bytes] = {}
+    for conn in range(1, 5):
+        rec.opened(conn, T0, "a:1", "b:2")
+    for i, (conn, d, data) in enumerate(reads):
+        rec.data(conn, d, T0 + i, data)
+        expected[(conn, d.value)] = expected.get((conn, d.value), b"") + data
+    rec.stop(T0 + len(reads))
+    with open(path, "rb") as f:
+        scan = RecordingScan(f)
+        got = [(r.conn, r.dir, r.data) for r in scan.reads()]
+    assert got == [(c, d.value, data) for c, d, data in reads]
+    assert not scan.truncated
+    assert {k: stream_bytes(v) for k, v in rebuild_streams(str(path)).items()} == expected
+
+
+def test_the_fast_reader_falls_back_for_another_key_order_and_checks_crcs(tmp_path):
+    path = tmp_path / "other.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("whiztap.TcpRead", "jsonschema", schema_bytes("whiztap.TcpRead"))
+        cid = w.register_channel(TOPIC_READS, "json", sid)
+        ours = read_message(1, "c2s", 5, 0, b"abc")
+        theirs = {"data": base64.b64encode(b"def").decode(), "size": 3, "offset": 3, "t_ns": 6, "dir": "c2s",
+                  "conn": 1}
+        w.add_message(cid, 5, json.dumps(ours, separators=(",", ":")).encode(), 5)
+        w.add_message(cid, 6, json.dumps(theirs).encode(), 6)
+        w.finish()
+    assert [s.data for s in rebuild_streams(str(path))[(1, "c2s")]] == [b"abcdef"]
+    data = bytearray(path.read_bytes())
+    at = data.index(b"zstd") + 20  # inside the compressed chunk
+    data[at] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(Exception):  # zstd error or CRC mismatch, never wrong bytes
+        rebuild_streams(str(path))
+
+
+def test_a_truncated_file_reads_up_to_its_last_complete_chunk(tmp_path):
+    path = tmp_path / "cut.mcap"
+    rec = _recorder(path, keep_secrets=True)
+    rec.opened(1, T0, "a:1", "b:2")
+    rec.data(1, C2S, T0 + 1, b"first")
+    rec.file.flush()
+    size = rec.file.size
+    rec.data(1, C2S, T0 + 2, b"second")
+    rec.stop(T0 + 3)
+    cut = tmp_path / "cut.mcap.part"
+    cut.write_bytes(path.read_bytes()[:size + 30])
+    with open(cut, "rb") as f:
+        scan = RecordingScan(f)
+        assert [r.data for r in scan.reads()] == [b"first"]
+    assert scan.truncated
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        RecordingScan(io.BytesIO(b"nope")).reads().__next__()
+
+
+def test_mask_and_stream_bytes():
+    assert mask(b"abcdef", [(1, 2), (5, 1)]) == b"a**de*"
+    with pytest.raises(RecordingError, match="not contiguous"):
+        from analyzer.recording import Segment
+
+        stream_bytes([Segment(0, b"ab"), Segment(5, b"cd")])
+
+
+# -- the file ------------------------------------------------------------------------------------------
+
+
+def test_split_by_duration_writes_numbered_files_that_continue_each_other(tmp_path):
+    path = tmp_path / "d.mcap"
+    rec = _recorder(path, keep_secrets=True, split_duration_ns=1000)
+    rec.opened(1, T0, "a:1", "b:2")
+    sent = b""
+    for i in range(10):
+        data = b"rr1-%d--0--0-ss1" % i
+        rec.data(1, C2S, T0 + i * 400, data)
+        sent += data
+        rec.tick(T0 + i * 400)
+    summary = rec.stop(T0 + 5000)
+    assert [Path(p).name for p in summary.files] == [f"d-{n:04d}.mcap" for n in range(1, len(summary.files) + 1)]
+    assert len(summary.files) >= 3
+    joined = b""
+    for part in summary.files:
+        read_all(part)
+        for seg in rebuild_streams(part).get((1, "c2s"), []):
+            assert seg.offset == len(joined)
+            joined += seg.data
+        assert read_metadata(part)["part"] == Path(part).stem[-4:].lstrip("0")
+    assert joined == sent
+
+
+def test_a_failing_disk_keeps_what_was_flushed_readable(tmp_path, monkeypatch):
+    path = tmp_path / "full.mcap"
+    rec = _recorder(path, keep_secrets=True)
+    rec.opened(1, T0, "a:1", "b:2")
+    rec.data(1, C2S, T0 + 1, b"kept")
+    rec.file.flush()
+    real_write = os.write
+
+    def full(fd: int, data: bytes) -> int:
+        if fd == rec.file._stream.fd:  # noqa: SLF001 - fail only the recording's writes
+            real_write(fd, bytes(data)[:10])  # a partial write, then the disk is full
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(writer_module.os, "write", full)
+    rec.data(1, C2S, T0 + 2, os.urandom(3000))
+    with pytest.raises(RecordingWriteError, match=r"No space left on device; recording stopped, what was written"):
+        rec.file.flush()
+    monkeypatch.undo()
+    assert path.exists() and not Path(str(path) + ".part").exists()
+    with open(path, "rb") as f:
+        scan = RecordingScan(f)
+        assert [r.data for r in scan.reads()] == [b"kept"]
+    assert not scan.truncated
+
+
+def test_an_unwritable_path_fails_at_once(tmp_path):
+    file = RecordingFile(str(tmp_path / "missing" / "x.mcap"), metadata_record())
+    with pytest.raises(RecordingWriteError, match="cannot write .*x.mcap.part: No such file or directory"):
+        file.open(T0)
+
+
+# -- a second implementation ------------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
+@pytest.mark.skipif(not (CHECK / "node_modules" / "@mcap" / "core").is_dir(),
+                    reason="@mcap/core is not installed: run 'make test' (it runs npm ci in tests/mcap_check)")
+def test_the_typescript_mcap_reader_reads_our_recordings_as_foxglove_would(tmp_path):
+    path = tmp_path / "ts.mcap"
+    rec = _recorder(path)
+    rec.stop(_session(rec))
+    result = subprocess.run(["node", str(CHECK / "check.mjs"), str(path)], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    python_side = read_all(str(path))
+    assert report["perTopic"] == {topic: len(python_side.get(topic, [])) for topic in TOPICS}
+    assert report["indexedCount"] == report["streamCount"] == report["statistics"] > 0
+    assert report["backwards"] == 0 and report["done"]
+    assert report["metadata"]["format_version"] == "1"
+    for topic, info in report["topics"].items():
+        assert (info["schema"], info["schemaEncoding"], info["messageEncoding"]) == (TOPICS[topic], "jsonschema",
+                                                                                   "json")
+
+
+def test_pairing_stays_linear_when_a_client_pipelines_before_the_channel_map():
+    """Thousands of ambiguous requests outstanding: each answer must not rescan
+    them all (it did, and a 200k-frame pipeline took the recorder hours)."""
+    from analyzer import session as session_module
+
+    scanned = 0
+
+    class Counting(session_module._PendingQueue):  # noqa: SLF001 - counts how much pairing looks at
+        def __iter__(self):
+            nonlocal scanned
+            for pending in super().__iter__():
+                scanned += 1
+                yield pending
+
+    n = 3000
+    s = Session()
+    s._pending = Counting()  # noqa: SLF001
+    requests = b"rr1-24--0--0-ss1" + b"".join(b"rr1-%d--0--0-ss1" % (12 + i % 12) for i in range(n))
+    answers = b"sr1-\x18" + b"200" * 24 + b"-ss1" + b"".join(b"cr1-%d--5--0-ss1" % (12 + i % 12) for i in range(n))
+    s.receive(C2S, requests, 1)
+    events = s.receive(S2C, answers, 2)
+    assert sum(1 for e in events if getattr(e, "answers", None) is not None) == n + 1
+    assert scanned < 20 * n
+
+
+def test_the_format_page_shows_every_topic_and_schema_as_they_are():
+    from analyzer.recording import FORMAT_VERSION
+
+    page = (Path(__file__).parent.parent / "docs" / "recording-format.md").read_text()
+    assert f'The format version is the string `"{FORMAT_VERSION}"`' in page
+    for topic, name in TOPICS.items():
+        assert f"| `{topic}` | `{name}` |" in page, topic
+        assert json.dumps(SCHEMAS[name], indent=1) in page, name

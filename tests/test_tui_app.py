@@ -1,0 +1,192 @@
+"""The TUI on sample recordings, driven by key presses as a user would."""
+
+from analyzer.framing import ItemKind
+from analyzer.session import Direction
+from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
+from tui.app import WhiztapApp
+from tui.help import HelpScreen
+from tui.sources import FileSource
+
+
+def app_on(name: str) -> WhiztapApp:
+    return WhiztapApp(FileSource(str(SAMPLES / name)))
+
+
+async def test_a_recording_opens_on_its_first_frame_with_its_connections():
+    app = app_on("clean-winsock.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        store = app.model.store
+        assert app.frames.rows == store.count > 0
+        assert app.frames.cursor == 0 and app.detail.frame == 0
+        assert not app.frames.tail  # a recording does not follow
+        await settled(pilot)
+        assert "1" in app.connections.rows and "all" in app.connections.rows
+        status = str(app.status.render())
+        assert f"{store.count:,} frames" in status
+
+
+async def test_vim_keys_move_the_cursor_and_the_detail_follows():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        last = app.frames.rows - 1
+        await pilot.press("j", "j", "down")
+        assert app.frames.cursor == 3
+        await pilot.press("k")
+        assert app.frames.cursor == 2
+        await pilot.press("G")
+        assert app.frames.cursor == last and app.frames.tail
+        await pilot.press("g")
+        assert app.frames.cursor == 0 and not app.frames.tail
+        await pilot.press("end")
+        assert app.frames.cursor == last
+        await pilot.press("home", "pagedown")
+        assert app.frames.cursor > 10
+        await pilot.press("pageup")
+        assert app.frames.cursor == 0
+        await pilot.pause()
+        assert app.detail.frame == 0
+
+
+async def test_n_and_N_walk_the_violations_in_order():
+    app = app_on("violations.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        store = app.model.store
+        seen = []
+        for _ in range(5):
+            await pilot.press("n")
+            seen.append(app.frames.frame)
+        assert seen == store.violating[:5]
+        await pilot.press("N", "N")
+        assert app.frames.frame == store.violating[2]
+        await pilot.pause()
+        assert app.detail.frame == store.violating[2]
+        await pilot.press("G", "n")  # nothing after the last one: the cursor stays
+        assert app.frames.cursor == app.frames.rows - 1
+
+
+async def test_p_jumps_between_a_request_and_its_response():
+    app = app_on("clean-winsock.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        store = app.model.store
+        request = next(n for n in range(store.count)
+                       if store.kind(n) is ItemKind.COMMAND and store.pair[n] >= 0)
+        for _ in range(request):
+            await pilot.press("j")
+        await pilot.press("p")
+        response = app.frames.frame
+        assert store.pair[response] == request and store.direction(response) is Direction.S2C
+        await pilot.press("p")
+        assert app.frames.frame == request
+
+
+async def test_the_filter_bar_narrows_the_list_and_an_empty_filter_restores_it():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        total = app.frames.rows
+        await pilot.press("slash")
+        assert app.filter_bar.has_focus
+        await pilot.press(*"kind:response ch:12", "enter")
+        await until(pilot, lambda: app.frames.view.complete and app.frames.rows == len(app.frames.view))
+        store = app.model.store
+        shown = frames_shown(app)
+        assert shown and all(store.kind(n) is ItemKind.RESPONSE for n in shown)
+        assert all("ch 12" in store.meaning(n) for n in shown)
+        assert app.frames.has_focus and "kind:response ch:12" in str(app.status.render())
+        await pilot.press("slash", "home", "ctrl+k", "enter")  # an empty filter
+        await until(pilot, lambda: app.frames.rows == total)
+        assert app.frames.view.all
+
+
+async def test_free_text_and_violations_only_in_the_filter():
+    app = app_on("violations.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await pilot.press("slash", *"violations junk", "enter")
+        await until(pilot, lambda: app.frames.view.complete and app.frames.rows == len(app.frames.view))
+        store = app.model.store
+        shown = frames_shown(app)
+        assert shown and all(store.violations.get(n) for n in shown)
+        assert all("junk" in store.observation(n).item.raw.decode("latin-1") for n in shown)
+
+
+async def test_a_bad_filter_is_reported_and_changes_nothing():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await pilot.press("slash", *"dir:sideways", "enter")
+        await pilot.pause()
+        assert app.frames.view.all
+        assert any("c2s or s2c" in n.message for n in app._notifications)  # noqa: SLF001
+        await pilot.press("escape")
+        assert app.frames.has_focus
+
+
+async def test_choosing_a_connection_shows_only_its_frames():
+    app = app_on("violations.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await settled(pilot)
+        await pilot.press("c")
+        assert app.connections.has_focus
+        await pilot.press("j", "down", "enter")  # below "all" and connection 1
+        await until(pilot, lambda: app.frames.view.complete and app.frames.rows == len(app.frames.view))
+        store = app.model.store
+        assert {store.conn[n] for n in frames_shown(app)} == {2}
+        assert app.frames.has_focus
+        await pilot.press("c", "g", "enter")  # "all"
+        await until(pilot, lambda: app.frames.view.all and app.frames.rows == store.count)
+
+
+async def test_help_opens_over_the_list_and_closes():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await pilot.press("question_mark")
+        assert isinstance(app.screen, HelpScreen)
+        await pilot.press("j", "slash")  # the main screen's keys do nothing meanwhile
+        assert app.frames.cursor == 0 and not app.filter_bar.has_class("shown")
+        await pilot.press("escape")
+        assert not isinstance(app.screen, HelpScreen)
+
+
+async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await pilot.press("s")
+        await pilot.pause()
+        assert app.tabs.active == "stats"
+        latency = str(app.stats.query_one("#latency").render())
+        assert "Sensor Request" in latency and "p99" in latency
+        await until(pilot, lambda: len(app.stats.query("ChannelPlot")) == len(app.model.channel_values()))
+        plots = {(p.kind, p.channel) for p in app.stats.query("ChannelPlot")}
+        assert ("servo", 2) in plots and ("sensor", 12) in plots
+        await pilot.press("d")
+        assert app.tabs.active == "detail"
+
+
+async def test_q_quits():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await pilot.press("q")
+        await pilot.pause()
+        assert not app.is_running
+
+
+async def test_z_gives_the_list_the_whole_width_and_d_brings_the_pane_back():
+    app = app_on("vpn.mcap")
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        narrow = app.frames.size.width
+        await pilot.press("z")
+        await pilot.pause()
+        assert app.frames.size.width > narrow and not app.tabs.display
+        await pilot.press("d")
+        await pilot.pause()
+        assert app.frames.size.width == narrow and app.tabs.active == "detail"

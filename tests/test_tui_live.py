@@ -1,0 +1,144 @@
+"""Traffic that keeps coming: following a growing recording, the proxy inside
+the app in front of the simulator, and the demo."""
+
+import time
+from pathlib import Path
+
+from analyzer.analyze_cli import analyse_file
+from analyzer.examples import CONFIG
+from analyzer.recording import metadata_record, read_metadata
+from analyzer.session import Direction
+from sniffer.client import Client
+from sniffer.record_run import RecordSettings
+from sniffer.recorder import Recorder
+from sniffer.simulator import Simulator
+from sniffer.writer import RecordingFile
+from tests.tui_support import SIZE, until
+from tui.app import WhiztapApp
+from tui.demo import PASSWORD, DemoRig
+from tui.sources import FollowSource, LiveSource, ProxyRig
+
+LOCAL = "127.0.0.1"
+C2S, S2C = Direction.C2S, Direction.S2C
+
+
+class GrowingRecording:
+    """A recording written as ``whiztap record`` writes one: a real Recorder and
+    RecordingFile, flushed when the test says so."""
+
+    def __init__(self, path: Path, t_ns: int | None = None) -> None:
+        self.file = RecordingFile(str(path), metadata_record(source="test"))
+        self.recorder = Recorder(self.file)
+        self.t = time.time_ns() if t_ns is None else t_ns
+        self.recorder.start(self.t)
+        self.recorder.opened(1, self.t, "127.0.0.1:40000", "127.0.0.1:5000")
+
+    def exchange(self, request: bytes, answer: bytes) -> None:
+        for direction, data in ((C2S, request), (S2C, answer)):
+            self.t += 1_000_000
+            self.recorder.data(1, direction, self.t, data)
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def finish(self) -> None:
+        self.recorder.closed(1, self.t, "client")
+        self.recorder.stop(self.t)
+
+
+async def test_follow_shows_what_the_recorder_flushes_and_stops_when_it_finishes(tmp_path):
+    path = tmp_path / "growing.mcap"
+    growing = GrowingRecording(path)
+    growing.exchange(b"rr1-24--0--0-ss1", CONFIG)
+    growing.flush()
+    app = WhiztapApp(FollowSource(str(path) + ".part"))
+    async with app.run_test(size=SIZE) as pilot:
+        frames = app.frames
+        await until(pilot, lambda: frames.rows == 2, "the first flush")
+        assert frames.tail and frames.cursor == 1
+        for value in range(5):
+            growing.exchange(b"rr1-3--0--0-ss1", b"cr1-3--%d--0-ss1" % value)
+        growing.flush()
+        await until(pilot, lambda: frames.rows == 12, "the second flush")
+        assert frames.cursor == 11  # following
+
+        await pilot.press("k")  # the user looks back: the list stops following
+        assert not frames.tail and frames.cursor == 10
+        growing.exchange(b"rr1-0--0--2-ss1", b"cr1-0--4000--0-ss1")
+        growing.flush()
+        await until(pilot, lambda: frames.rows == 14, "the third flush")
+        assert frames.cursor == 10 and frames.new_rows == 2
+        assert "2 new" in frames.border_subtitle
+        await pilot.press("end")  # follow again
+        assert frames.tail and frames.cursor == 13 and frames.new_rows == 0
+
+        assert not app.fed
+        growing.finish()  # the recorder writes the index and renames the .part
+        await until(pilot, lambda: app.fed, "the end of the recording")
+        assert not Path(str(path) + ".part").exists() and path.exists()
+        assert app.model.finished and "the recorder finished it" in app.sub_title
+        assert app.model.connections()[0].state == "closed by client"
+
+
+async def test_live_mode_records_through_the_proxy_and_shows_frames_as_they_pass(tmp_path):
+    output = tmp_path / "live.mcap"
+    async with Simulator(mode="winsock", password="pw", seed=3) as sim:
+        settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(output), quiet=True)
+        app = WhiztapApp(LiveSource(ProxyRig(settings), "live"))
+        async with app.run_test(size=SIZE) as pilot:
+            source = app.source
+            await until(pilot, lambda: source.recording is not None and source.recording.proxy is not None,
+                        "the proxy")
+            assert str(source.recording.proxy.port) in app.sub_title
+            frames = app.frames
+            async with await Client.connect(LOCAL, source.recording.proxy.port, password="pw") as client:
+                await client.fetch_configuration()
+                await client.sensor(12)
+                await until(pilot, lambda: frames.rows >= 7, "the first frames")
+                assert frames.tail and frames.cursor == frames.rows - 1
+                store = app.model.store
+                assert b"pw" not in store.raws  # the password shows as '*', as it is recorded
+
+                await pilot.press("k", "k")
+                stopped_at = frames.cursor
+                for _ in range(3):
+                    await client.servo_position(0)
+                await until(pilot, lambda: frames.new_rows == 6, "three more exchanges")
+                assert frames.cursor == stopped_at and "6 new" in frames.border_subtitle
+                await pilot.press("G")
+                assert frames.tail and frames.cursor == frames.rows - 1
+                [row] = app.model.connections()
+                assert (row.mode, row.handshake, row.state) == ("winsock", "readytogo", "open")
+            await pilot.press("q")  # finishes the recording first
+            await until(pilot, lambda: not app.is_running, "the app to quit")
+        shown = app.model.store.count
+    assert read_metadata(str(output))["source"] == "proxy"
+    analysis = analyse_file(output, "dev-sum")
+    assert analysis.frames == shown and analysis.connections[0].handshake == "readytogo"
+
+
+async def test_live_mode_says_so_when_it_cannot_listen(tmp_path):
+    async with Simulator(mode="vpn") as sim:
+        taken = sim.port  # the simulator holds it
+        settings = RecordSettings((LOCAL, taken), (LOCAL, taken), str(tmp_path / "x.mcap"), quiet=True)
+        app = WhiztapApp(LiveSource(ProxyRig(settings), "live"))
+        async with app.run_test(size=SIZE) as pilot:
+            await until(pilot, lambda: not app.is_running, "the app to give up")
+    assert app.error.startswith("cannot listen") and app.return_code == 2
+
+
+async def test_the_demo_runs_its_robot_live_and_finishes_demo_mcap_on_quit(tmp_path):
+    output = tmp_path / "demo.mcap"
+    app = WhiztapApp(LiveSource(DemoRig(str(output)), "demo"))
+    async with app.run_test(size=SIZE) as pilot:
+        store = app.model.store
+        await until(pilot, lambda: len(store.violating) >= 6, "the demo's deliberate violations")
+        handshakes = sorted(row.handshake for row in app.model.connections())
+        assert handshakes == ["failed validation", "readytogo"]
+        assert PASSWORD.encode() not in store.raws
+        await pilot.press("g", "n")
+        assert app.frames.frame == store.next_violation(0) and not app.frames.tail
+        await pilot.press("q")
+        await until(pilot, lambda: not app.is_running, "the app to quit")
+    rules = set(analyse_file(output, "dev-sum").violation_counts)
+    assert {"PW-SETCFG-CHECKSUM", "PW-FRAME-GARBAGE", "PW-HS-AFTER-FAILED"} <= rules

@@ -1,0 +1,50 @@
+"""Helpers for the TUI tests: waiting on the app without timing assertions."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from pathlib import Path
+
+ROOT = Path(__file__).parent.parent
+SAMPLES = ROOT / "samples"
+WAIT = 20.0  # a generous bound on anything awaited; never a timing assertion
+SIZE = (130, 40)
+
+
+async def until(pilot, condition: Callable[[], bool], what: str = "condition") -> None:  # noqa: ANN001
+    """Let the app run until ``condition()`` holds (fail after WAIT seconds)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + WAIT
+    while not condition():
+        if loop.time() > deadline:
+            raise AssertionError(f"gave up waiting for {what}")
+        await pilot.pause(0.02)
+
+
+async def loaded(pilot) -> None:  # noqa: ANN001
+    """Until the recording is read and the list shows all of it."""
+    app = pilot.app
+    await until(pilot, lambda: app.fed and app.frames.rows == len(app.frames.view) and app.frames.view.complete,
+                "the recording to load")
+    await pilot.pause()
+
+
+async def settled(pilot) -> None:  # noqa: ANN001
+    """Until the slow panes caught up: every connection in its table, every plot drawn."""
+    app = pilot.app
+    app.refresh_summaries()
+    await until(pilot, lambda: len(app.connections.rows) == len(app.model.connections()) + 1, "the connections")
+    if app.tabs.active == "stats":
+        from textual.widgets import Sparkline
+
+        wanted = len(app.model.channel_values())
+        await until(pilot, lambda: len(app.stats.query("ChannelPlot")) == wanted and all(
+            plot.query_one(Sparkline).data for plot in app.stats.query("ChannelPlot")), "the plots")
+    await pilot.pause()
+
+
+def frames_shown(app) -> list[int]:  # noqa: ANN001
+    """The frame ids of the list's rows."""
+    view = app.frames.view
+    return [view[row] for row in range(app.frames.rows)]

@@ -1,0 +1,165 @@
+"""``whiztap tui`` and ``whiztap demo``.
+
+Textual and the proxy are imported inside the commands, so that ``whiztap
+--help`` does not pay for them.  Everything the user can get wrong (a missing
+file, a bad address, a port in use) is one line and exit status 2.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from analyzer.cli import fail
+
+HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
+
+
+def _check_recording(path: str) -> None:
+    from analyzer.recording import RecordingError, read_metadata
+
+    try:
+        read_metadata(path)
+    except RecordingError as e:
+        fail(f"{path}: {e}")
+    except OSError as e:
+        fail(f"{path}: cannot read ({e.strerror})")
+
+
+def _need_terminal(what: str) -> None:
+    if not (sys.stdin.isatty() and sys.stdout.isatty()):
+        fail(f"{what} needs a terminal; for a report use 'whiztap analyze', for frames 'whiztap cat'")
+
+
+def _hints(path: str) -> list[str]:
+    from pathlib import Path
+
+    if not Path(path).exists():
+        return [f"no recording was written to {path}"]
+    return [f"recorded {path}",
+            f"  whiztap analyze {path}      conformance report",
+            f"  whiztap cat {path}          every frame, decoded",
+            f"  whiztap tui {path}          browse it again (r: replay it from the TUI)",
+            f"  whiztap replay {path} --target HOST:PORT --password progwhiz",
+            "                                replay it against a server (e.g. 'whiztap sim --port 5000')"]
+
+
+@click.command("tui")
+@click.argument("path", required=False, type=click.Path(dir_okay=False))
+@click.option("--follow", metavar="FILE.mcap.part", default=None,
+              help="Follow a recording that 'whiztap record' is writing.")
+@click.option("--upstream", metavar="HOST:PORT", default=None,
+              help="Live: run the recording proxy in the app, in front of this server.")
+@click.option("--listen", metavar="[HOST:]PORT", default="127.0.0.1:6000", show_default=True,
+              help="Live: where clients connect.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Live: the recording to write [default: whiztap-DATE-TIME.mcap].")
+@click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
+@click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules').")
+def tui_command(path: str | None, follow: str | None, upstream: str | None, listen: str, output: str | None,
+                keep_secrets: bool, checksum_rule: str | None) -> None:
+    """Frames decoded and checked as they pass: a recording, live traffic, or a
+    recording being written.
+
+    \b
+    whiztap tui FILE.mcap                               browse a recording
+    whiztap tui --upstream HOST:PORT [--listen ADDR] [-o FILE.mcap]
+                                                        live, through the proxy
+    whiztap tui --follow FILE.mcap.part                 follow 'whiztap record'
+
+    Press ? in the app for its keys.
+    """
+    from sniffer.record_cli import check_checksum_rule, parse_address
+
+    if sum(x is not None for x in (path, follow, upstream)) != 1:
+        fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
+    rule = check_checksum_rule(checksum_rule)
+    from tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
+
+    if path is not None:
+        _check_recording(path)
+        source = FileSource(path)
+    elif follow is not None:
+        follow = follow_path(follow)
+        _check_recording(follow)
+        source = FollowSource(follow)
+    else:
+        from sniffer.record_run import RecordSettings
+
+        settings = RecordSettings(parse_address(listen, "127.0.0.1", "--listen"),
+                                  parse_address(upstream, None, "--upstream"), output or default_output(),
+                                  keep_secrets=keep_secrets, checksum_rule=rule, quiet=True)
+        source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
+    _need_terminal("whiztap tui")
+    from tui.app import WhiztapApp
+
+    app = WhiztapApp(source, checksum_rule=rule)
+    app.run()
+    if app.error:
+        fail(app.error)
+    if isinstance(source, LiveSource):
+        for line in _hints(source.rig.output):
+            click.echo(line)
+
+
+@click.command("demo")
+@click.option("--headless", is_flag=True, help="No TUI: run, then print the conformance report.")
+@click.option("--seconds", type=click.FloatRange(min=0.1), default=None, metavar="N",
+              help=f"Stop after N seconds [headless default: {HEADLESS_SECONDS:g}; the TUI runs until q].")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default="demo.mcap", show_default=True,
+              help="The recording to write.")
+def demo_command(headless: bool, seconds: float | None, output: str) -> None:
+    """The whole tool on an embedded robot: the simulator, the recording proxy in
+    front of it, and a scripted client using every command of the spec (with a
+    few deliberate violations), shown live in the TUI and recorded.
+
+    Without a terminal (or with --headless) it runs for a few seconds and prints
+    the conformance report.  Exit status 0 when the demo ran, whatever the
+    report says (its violations are deliberate); 2 when it could not run.
+    """
+    if not headless and not (sys.stdin.isatty() and sys.stdout.isatty()):
+        seconds = seconds or HEADLESS_SECONDS
+        click.echo(f"whiztap demo: no terminal, so no TUI: running headless for {seconds:g} s "
+                   f"(whiztap demo --headless)")
+        headless = True
+    if headless:
+        _headless(output, seconds or HEADLESS_SECONDS)
+        return
+    from tui.app import WhiztapApp
+    from tui.demo import DemoRig
+    from tui.sources import LiveSource
+
+    app = WhiztapApp(LiveSource(DemoRig(output), "demo", redact_passwords=True), quit_after=seconds)
+    app.run()
+    if app.error:
+        fail(app.error)
+    for line in _hints(output):
+        click.echo(line)
+
+
+def _headless(output: str, seconds: float) -> None:
+    import asyncio
+    from pathlib import Path
+
+    from analyzer.analyze_cli import analyse_file, render
+    from analyzer.report import build
+    from sniffer.feed import WriterError
+    from tui.demo import DELIBERATE_RULES, run_headless
+
+    try:
+        client_error = asyncio.run(run_headless(output, seconds))
+    except WriterError as e:
+        fail(str(e))
+    except OSError as e:
+        fail(f"the demo could not start: {e.strerror or e}")
+    if client_error:
+        click.echo(f"whiztap demo: the demo client stopped early: {client_error}", err=True)
+    analysis = analyse_file(Path(output), "dev-sum")
+    report = build(analysis)
+    text = render(report, analysis, "text", to_terminal=sys.stdout.isatty())
+    if text:
+        click.echo(text, nl=not text.endswith("\n"))
+    click.echo(f"The demo breaks these rules on purpose: {', '.join(DELIBERATE_RULES)}.")
+    for line in _hints(output):
+        click.echo(line)

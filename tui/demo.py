@@ -1,0 +1,167 @@
+"""``whiztap demo``: the whole tool on an embedded robot.
+
+The simulator (winsock mode, password ``progwhiz``), the recording proxy in
+front of it writing ``demo.mcap``, and a scripted client that uses every
+command of the spec, then keeps a robot busy: sensor polling, servo moves
+watched until they arrive, switches, scripts, camera images.  A few frames
+break the spec on purpose, so there are violations to look at: a Set
+Configuration with a wrong checksum, a channel out of range, a Servo Position
+Request to a sensor, a number with a leading zero, stray bytes; and a second
+client gives a wrong password.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+from analyzer import messages as m
+from sniffer.client import Client, ClientError
+
+LOCAL = "127.0.0.1"
+PASSWORD = "progwhiz"
+SEED = 7
+PACE_S = 0.05  # between the demo client's requests: a few dozen frames a second
+# The deliberate violations, as raw bytes the client library would never send.
+DELIBERATE = (
+    (b"rr1-31--0--2-ss1", "PW-RANGE-CHANNEL"),  # channel 31 does not exist
+    (b"rr1-20--0--2-ss1", "PW-UNIT-MISMATCH"),  # a Servo Position Request to sensor 20
+    (b"rr1-1--0700--0-ss1", "PW-SYNTAX-LEADING-ZERO"),  # served, with a warning
+    (b"hello robot", "PW-FRAME-GARBAGE"),
+)
+# ... and what follows from them: the server ignores both requests, so they go unanswered.
+DELIBERATE_RULES = ("PW-SETCFG-CHECKSUM", *(rule for _, rule in DELIBERATE), "PW-CHANNEL-UNCONFIGURED",
+                    "PW-HS-AFTER-FAILED",
+                    "PW-PAIR-UNANSWERED")
+
+
+async def every_command(client: Client) -> None:
+    """Every command of the spec once, the deliberate violations among them."""
+    await client.fetch_configuration()
+    for channel in (12, 13, 14):
+        await client.sensor(channel)
+    await client.normal_send(0, 1800)
+    await client.servo_position(0)
+    await client.activate_switch(6)
+    await client.deactivate_switch(6)
+    await client.play_internal_script(120)
+    await asyncio.sleep(0.3)
+    await client.stop_internal_script()
+    await client.play_external_script(272)
+    await client.stop_external_script()
+    entries = tuple(m.SetConfigEntry(12, port, 0) for port in range(6))
+    await client.set_configuration(entries)  # the right checksum (72, as in the spec's example)
+    await client.set_configuration(entries, checksum=73)  # a wrong one: PW-SETCFG-CHECKSUM
+    await client.fetch_camera_image()
+    for data, _rule in DELIBERATE:
+        await client.send_raw(data)
+        await asyncio.sleep(PACE_S)
+
+
+async def busy_robot(client: Client, stop: asyncio.Event) -> None:
+    """Poll sensors, move servos and watch them travel, toggle a switch; an
+    image now and then; until ``stop`` is set."""
+    targets = (200, 1800, 1000, 600, 1400)
+    n = 0
+    while not stop.is_set():
+        if n % 20 == 0:
+            await client.normal_send(n // 20 % 3, targets[n // 20 % len(targets)])
+        for channel in (12, 13, 14, 15):
+            await client.sensor(channel)
+        for channel in (0, 1, 2):
+            await client.servo_position(channel)
+        if n % 10 == 0:
+            await (client.activate_switch(7) if n // 10 % 2 == 0 else client.deactivate_switch(7))
+        if n % 50 == 25:
+            await client.fetch_camera_image()
+        n += 1
+        await asyncio.sleep(PACE_S)
+
+
+async def wrong_password(port: int) -> None:
+    """A client that gets the password wrong, then sends a command anyway."""
+    reader, writer = await asyncio.open_connection(LOCAL, port)
+    try:
+        await asyncio.wait_for(reader.readexactly(len(b"sendchkpass")), 5)
+        writer.write(b"not-the-password")
+        await writer.drain()
+        await asyncio.wait_for(reader.readexactly(len(b"Failed Validation")), 5)
+        writer.write(b"rr1-24--0--0-ss1")  # after Failed Validation: PW-HS-AFTER-FAILED
+        await writer.drain()
+        await asyncio.sleep(0.1)
+    except (OSError, asyncio.IncompleteReadError, TimeoutError):
+        pass
+    finally:
+        writer.close()
+        with contextlib.suppress(OSError):
+            await writer.wait_closed()
+
+
+async def demo_client(port: int, stop: asyncio.Event) -> None:
+    """What the demo's robot client does, until ``stop`` is set."""
+    await wrong_password(port)
+    async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
+        await every_command(client)
+        await busy_robot(client, stop)
+
+
+class DemoRig:
+    """Simulator, recording proxy and demo client: ``start()`` returns the Recording."""
+
+    def __init__(self, output: str) -> None:
+        self.output = output
+        self.simulator = None
+        self.recording = None
+        self.client: asyncio.Task | None = None
+        self.client_error: str | None = None
+        self._stop_client = asyncio.Event()
+
+    async def start(self):  # noqa: ANN201 - a sniffer.record_run.Recording
+        from sniffer.record_run import Recording, RecordSettings
+        from sniffer.simulator import Simulator
+
+        self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
+        await self.simulator.start()
+        self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
+                                                  quiet=True))
+        try:
+            await self.recording.start()
+        except BaseException:
+            await self.simulator.close()
+            raise
+        self.client = asyncio.get_running_loop().create_task(self._client())
+        return self.recording
+
+    async def _client(self) -> None:
+        try:
+            await demo_client(self.recording.proxy.port, self._stop_client)
+        except (ClientError, OSError) as e:
+            self.client_error = str(e)
+
+    async def stop(self) -> dict | None:
+        """Stop the client, finish the recording, stop the robot; the writer's summary."""
+        if self.client is not None:
+            # Ask first: on Python 3.11 a cancel that lands as a request's answer
+            # arrives can be swallowed by asyncio.wait_for inside the client.
+            self._stop_client.set()
+            while not self.client.done():
+                await asyncio.wait({self.client}, timeout=1.0)
+                self.client.cancel()
+            await asyncio.gather(self.client, return_exceptions=True)
+        summary = None
+        if self.recording is not None and self.recording.writer is not None:
+            summary = await self.recording.stop("demo finished")
+        if self.simulator is not None:
+            await self.simulator.close()
+        return summary
+
+
+async def run_headless(output: str, seconds: float) -> str | None:
+    """The demo without a screen for ``seconds``; the client's error, if it had one."""
+    rig = DemoRig(output)
+    await rig.start()
+    try:
+        await asyncio.sleep(seconds)
+    finally:
+        await rig.stop()
+    return rig.client_error

@@ -1,0 +1,204 @@
+"""The selected frame in full: fields with their spec ranges, violations, bytes, pairing.
+
+Built only for the one frame under the cursor, from the store, so it may take
+its time: every decoded field, each with the range the spec allows, every
+violation with its rule, the exact bytes as escaped text and as hex, and the
+request or response it pairs with, with the latency.
+"""
+
+from __future__ import annotations
+
+import datetime
+from typing import Any
+
+from rich.console import Group, RenderableType
+from rich.table import Table
+from rich.text import Text
+from textual.containers import VerticalScroll
+from textual.widgets import Static
+
+from analyzer.codec import (
+    EXTERNAL_SCRIPTS,
+    INTERNAL_SCRIPTS,
+    MAX_CHANNEL,
+    MAX_CONFIG_CHANNELS,
+    MAX_DEVICE,
+    MAX_SEND_VALUE,
+    MAX_SENSOR_DATA,
+    MAX_SERVO_DATA,
+)
+from analyzer.describe import response_meaning
+from analyzer.rules import RULES
+from analyzer.text import escape
+from tui.store import NS, FrameStore
+
+HEX_WIDTH = 8  # bytes per hex line: fits the side pane
+HEX_LINES = 128  # 1 KiB of hex; an image shows its head
+SEVERITY_STYLE = {1: "blue", 2: "yellow", 3: "bold red"}
+UNITS = {0: "servo", 1: "switch", 2: "sensor"}
+
+# field name -> what the spec allows (Data ranges of the message descriptions)
+SPEC_RANGES: dict[str, str] = {
+    "channel": f"0-{MAX_CHANNEL}",
+    "value": f"0-{MAX_SEND_VALUE}",
+    "servo_position": f"0-{MAX_SERVO_DATA // 4} (data / 4)",
+    "sensor_value": f"0-{MAX_SENSOR_DATA}",
+    "checksum": "one byte, from the entries",
+    "length": "any",
+    "format": "jpeg or png",
+    "data1": "a command code",
+    "data2": "a command code",
+    "data3": "0, 2, a script or stop code",
+}
+_SCRIPT_RANGES = {
+    "Play Internal Script": f"{INTERNAL_SCRIPTS.start}-{INTERNAL_SCRIPTS.stop - 1}",
+    "Play External Script": f"{EXTERNAL_SCRIPTS.start}-{EXTERNAL_SCRIPTS.stop - 1}",
+}
+
+
+def clock(t_ns: int) -> str:
+    """UTC wall time with microseconds: recordings move between time zones."""
+    t = datetime.datetime.fromtimestamp(t_ns / NS, datetime.timezone.utc)
+    return t.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
+
+
+def latency_text(ns: int) -> str:
+    if ns < 1_000_000:
+        return f"{ns / 1e3:.0f} µs"
+    return f"{ns / 1e6:.2f} ms" if ns < NS else f"{ns / NS:.3f} s"
+
+
+def _data_range(observation_as: str | None) -> str:
+    if observation_as == "servo":
+        return f"0-{MAX_SERVO_DATA} (servo data)"
+    if observation_as == "sensor":
+        return f"0-{MAX_SENSOR_DATA} (sensor data)"
+    return f"0-{MAX_SENSOR_DATA} sensor, 0-{MAX_SERVO_DATA} servo"
+
+
+def _field_rows(values: dict[str, Any], answered_as: str | None) -> list[tuple[str, str, str]]:
+    rows: list[tuple[str, str, str]] = []
+    title = values.get("message", "")
+    for name, value in values.items():
+        if name in ("message", "latency_ns", "candidates"):
+            continue
+        if name == "channels":  # Configuration Settings: one row per channel
+            rows.append(("channels", str(len(value)), f"at most {MAX_CONFIG_CHANNELS}"))
+            for ch, c in enumerate(value):
+                unit = UNITS.get(c["unit_type"], f"? {c['unit_type']}")
+                rows.append((f"  ch {ch}", f"{unit} (unused {c['unused']}, switch type {c['switch_type']})",
+                             "unit 0-2, unused 0, switch type 0-1"))
+        elif name == "entries":  # Set Configuration: one row per entry
+            for i, e in enumerate(value):
+                unit = UNITS.get(e["unit_type"], f"? {e['unit_type']}")
+                rows.append((f"  entry {i}", f"dev {e['device']} port {e['port']} {unit}",
+                             f"dev 0-{MAX_DEVICE}, port 0-{MAX_CHANNEL}, unit 0-2"))
+        elif name == "data":
+            rows.append((name, str(value), _data_range(answered_as) if isinstance(value, int) else "bytes"))
+        elif name == "script":
+            rows.append((name, str(value), _SCRIPT_RANGES.get(title, "")))
+        else:
+            rows.append((name, str(value), SPEC_RANGES.get(name, "")))
+    return rows
+
+
+def hex_dump(data: bytes, lines: int = HEX_LINES, width: int = HEX_WIDTH) -> str:
+    out = []
+    for offset in range(0, min(len(data), lines * width), width):
+        chunk = data[offset:offset + width]
+        hexes = " ".join(f"{b:02x}" for b in chunk)
+        text = "".join(chr(b) if 0x20 <= b < 0x7F else "." for b in chunk)
+        out.append(f"{offset:04x}  {hexes:<{3 * width - 1}}  {text}")
+    return "\n".join(out)
+
+
+def describe_frame(store: FrameStore, n: int) -> RenderableType:
+    """Everything about frame ``n`` as one renderable."""
+    with store.lock:
+        obs = store.observation(n)
+        values = store.fields(n)
+        meaning = store.meaning(n)
+        size = store.size(n)
+        paired = store.pair[n]
+        paired_meaning = store.meaning(paired) if paired >= 0 else ""
+        paired_latency = abs(store.t_end[n] - store.t_end[paired]) if paired >= 0 else 0
+        conn = store.conn[n]
+        relative = store.relative_s(n)
+    item = obs.item
+    parts: list[RenderableType] = []
+    head = Text()
+    head.append(meaning, style="bold")
+    head.append(f"\nconn #{conn}, item {obs.index} of the session, {obs.direction.sender} → "
+                f"{'server' if obs.direction.sender == 'client' else 'client'}, {item.kind}"
+                + (f" ({item.reason})" if item.reason else ""), style="dim")
+    head.append(f"\nat {relative:.6f} s  ({clock(item.t_end_ns)})", style="dim")
+    if item.t_start_ns != item.t_end_ns:
+        head.append(f"\nfirst byte {(item.t_end_ns - item.t_start_ns) / 1e6:.3f} ms earlier", style="dim")
+    parts.append(head)
+
+    if obs.message is None and obs.candidates:
+        parts.append(Text("may mean: " + " / ".join(c.describe() for c in obs.candidates), style="yellow"))
+    rows = _field_rows(values, response_meaning(obs))
+    if rows:
+        table = Table(title="Fields", title_justify="left", expand=True, show_edge=False, pad_edge=False)
+        table.add_column("field", style="cyan", no_wrap=True)
+        table.add_column("value")
+        table.add_column("spec allows", style="dim")
+        for row in rows:
+            table.add_row(*row)
+        parts.append(table)
+
+    if obs.violations:
+        violations = Text("Violations\n", style="bold")
+        for v in obs.violations:
+            rule = RULES[v.rule_id]
+            violations.append(f"● {v.rule_id}", style=SEVERITY_STYLE[rule.severity])
+            violations.append(f" ({rule.severity}, {rule.section})\n", style="dim")
+            violations.append(f"  {rule.summary}\n  {v.detail}\n")
+        parts.append(violations)
+
+    if paired >= 0:
+        pairing = Text("Pairing\n", style="bold")
+        what = "answers" if obs.direction.sender == "server" else "answered by"
+        pairing.append(f"{what}: {paired_meaning}\nlatency {latency_text(paired_latency)}  (p jumps there)")
+        parts.append(pairing)
+
+    kept = store.raw(n)
+    shown = Text("Bytes", style="bold")
+    shown.append(f" ({size} bytes" + (f", first {len(kept)} kept" if len(kept) < size else "") + ")\n")
+    shown.append(escape(kept[:1024]) + ("…" if len(kept) > 1024 else ""), style="bold")
+    parts.append(shown)
+    dump = hex_dump(kept)
+    more = len(kept) - HEX_LINES * HEX_WIDTH
+    parts.append(Text(dump + (f"\n… {more} more bytes" if more > 0 else ""), style="dim"))
+    return Group(*parts)
+
+
+class DetailPane(VerticalScroll):
+    """Shows one frame; empty until the cursor is on one."""
+
+    DEFAULT_CSS = """
+    DetailPane { padding: 0 1; }
+    DetailPane > Static { width: 100%; }
+    """
+
+    def __init__(self, store: FrameStore, *, id: str | None = None) -> None:  # noqa: A002
+        super().__init__(id=id)
+        self.store = store
+        self.frame: int | None = None
+
+    def compose(self):  # noqa: ANN201
+        yield Static("No frame yet.", id="detail-body")
+
+    def show(self, frame: int | None) -> None:
+        if frame == self.frame:
+            return
+        self.frame = frame
+        body = self.query_one("#detail-body", Static)
+        body.update("No frame yet." if frame is None else describe_frame(self.store, frame))
+        self.scroll_home(animate=False)
+
+    def refresh_frame(self) -> None:
+        """Show the frame again: a late violation may have marked it."""
+        frame, self.frame = self.frame, None
+        self.show(frame)

@@ -1,0 +1,71 @@
+"""The help screen (``?``): every key, the modes, and the filter's words."""
+
+from __future__ import annotations
+
+from rich.markdown import Markdown
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import VerticalScroll
+from textual.screen import ModalScreen
+from textual.widgets import Static
+
+from tui.view import FILTER_HELP
+
+HELP = f"""\
+# whiztap tui
+
+Frames of the Progwhiz Robotics Server API (Rev 1.8), decoded and checked as
+they pass.  A mark before a frame means it breaks a rule: **●** error,
+**▲** warning, **·** info.
+
+## Keys
+
+- `j` / `↓`, `k` / `↑`: next / previous frame
+- `PgDn` / `PgUp`: a page down / up
+- `g` / `Home`: first frame
+- `G` / `End`: last frame, and follow new frames (live and follow mode)
+- `n` / `N`: next / previous frame with a violation
+- `p`: the paired frame: a response's request, a request's response
+- `/`: the filter bar (`Enter` applies, an empty filter shows everything, `Esc` leaves it)
+- `c`: the connections pane (`Enter` on a row shows only that connection; `all` shows every one)
+- `d` / `s`: detail / statistics in the right pane
+- `z`: hide or show the right pane (a wide frame list)
+- `r`: the replay screen: replay this recording against a server
+- `Tab`: next pane
+- `?`: this help (`Esc` closes it)
+- `q` (`Ctrl+q` in a text field): quit; a live recording is finished first
+
+## Modes
+
+- **recording** (`whiztap tui FILE.mcap`): the file loads in the background;
+  the first frames show at once.
+- **live** (`whiztap tui --listen ADDR --upstream ADDR`): the recording proxy runs
+  inside the app; clients connect to the listen address.
+- **follow** (`whiztap tui --follow FILE.mcap.part`): a file another `whiztap record`
+  is writing; frames show within a second of being flushed.
+
+In live and follow mode the list follows new frames.  Moving up stops
+following; the list's border counts the frames that arrived since; `End` follows again.
+
+## Filter
+
+`{FILTER_HELP}`
+
+For example `conn:2 kind:response ch:12`, or `violations dir:c2s`, or `Servo`.
+The same filter as `whiztap cat`; it is applied in the background.
+"""
+
+
+class HelpScreen(ModalScreen):
+    BINDINGS = [Binding("escape,question_mark,q", "dismiss", "Close")]
+    DEFAULT_CSS = """
+    HelpScreen { align: center middle; }
+    HelpScreen > VerticalScroll {
+        width: 90; max-width: 100%; height: 90%;
+        border: thick $primary; background: $surface; padding: 0 1;
+    }
+    """
+
+    def compose(self) -> ComposeResult:
+        with VerticalScroll():
+            yield Static(Markdown(HELP))  # rendered at once (Textual's Markdown widget builds later)

@@ -1,0 +1,96 @@
+"""The traffic the TUI shows: the analyzer's sessions and the frame store, fed together.
+
+Whatever the source (a recording, a growing file, the proxy inside the app),
+reads and connection events come here.  The ``Analyzer`` runs one ``Session``
+per connection over the raw bytes, exactly as ``whiztap analyze`` and ``cat``
+do, and its events go into the ``FrameStore``.  The panes read summaries from
+here (connections, latencies, values per channel), under the same lock the
+feeder holds, so they never see half of a batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from analyzer.analysis import Analyzer, Series
+from analyzer.checksum import DEFAULT_CHECKSUM_RULE
+from analyzer.stats import LatencyStats
+from tui.store import FrameStore
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionRow:
+    """One line of the connections pane."""
+
+    conn: int
+    client: str
+    upstream: str
+    mode: str
+    handshake: str
+    frames: int
+    violations: int
+    state: str  # "open", or who closed it
+
+
+class TrafficModel:
+    def __init__(self, name: str = "", checksum_rule: str = DEFAULT_CHECKSUM_RULE,
+                 redact_passwords: bool = False) -> None:
+        self.analyzer = Analyzer(name, checksum_rule)
+        self.store = FrameStore(redact_passwords)
+        self.lock = self.store.lock
+        self.finished = False  # no more traffic will come (the file ended, the proxy stopped)
+
+    # -- feeding (one worker thread) --------------------------------------------------------
+
+    def read(self, conn: int, direction: str, t_ns: int, data: bytes) -> None:
+        with self.lock:
+            self.store.add(conn, self.analyzer.read(conn, direction, t_ns, data))
+
+    def event(self, message: dict) -> None:
+        with self.lock:
+            self.store.add(message["conn"], self.analyzer.event(message))
+
+    def finish(self) -> None:
+        """End every open session: requests still unanswered become violations."""
+        with self.lock:
+            for conn, events in self.analyzer.close_all():
+                self.store.add(conn, events)
+            self.finished = True
+
+    # -- summaries (the screen) ----------------------------------------------------------------
+
+    def connections(self) -> list[ConnectionRow]:
+        analyzer = self.analyzer
+        rows = []
+        with self.lock:
+            for conn, summary in sorted(analyzer.summaries.items()):
+                session = analyzer.sessions.get(conn)
+                if session is not None:  # still open: the live session knows more than the summary
+                    mode, handshake = str(session.mode), session.handshake_outcome
+                    frames = sum(session.counts.values())
+                    violations = sum(session.violation_counts.values())
+                    state = "open"
+                else:
+                    mode, handshake = summary.mode, summary.handshake
+                    frames = sum(summary.frames.values())
+                    violations = sum(summary.violations.values())
+                    state = f"closed by {summary.closed_by}" if summary.closed_by else "ended"
+                rows.append(ConnectionRow(conn, summary.client, summary.upstream, mode, handshake,
+                                          frames, violations, state))
+        return rows
+
+    def latencies(self) -> dict[str, LatencyStats]:
+        """Latency by request title over every session, open or closed."""
+        merged: dict[str, LatencyStats] = {}
+        with self.lock:
+            sources = [self.analyzer.result.latencies] + [s.latencies for s in self.analyzer.sessions.values()]
+            for source in sources:
+                for title, stats in source.items():
+                    merged.setdefault(title, LatencyStats()).merge(stats)
+        return dict(sorted(merged.items()))
+
+    def channel_values(self) -> dict[tuple[str, int], list[tuple[int, float]]]:
+        """("sensor" | "servo", channel) -> (t_ns, value) points, down-sampled."""
+        with self.lock:
+            values: dict[tuple[str, int], Series] = self.analyzer.result.values
+            return {key: list(series.points) for key, series in sorted(values.items())}

@@ -1,0 +1,275 @@
+"""The replay screen (``r``): replay the open recording against a server.
+
+Choose a target, a password (recordings keep it redacted), pace, rate and how
+answers are compared; start, pause, step one write at a time, stop.  Each
+answer the server gives appears beside the recorded one, differences marked;
+the selected row's side-by-side diff shows below.  With "save as" the replayed
+session is written as a recording too.  The replay runs in a worker thread on
+its own event loop (``ReplayRunner``); the list reads its results on a timer.
+"""
+
+from __future__ import annotations
+
+import os
+
+from rich.style import Style
+from rich.text import Text
+from textual import on, work
+from textual.app import App, ComposeResult
+from textual.binding import Binding
+from textual.containers import Horizontal, Vertical
+from textual.screen import Screen
+from textual.widgets import Button, Footer, Header, Input, Label, Select, Static
+
+from analyzer.text import escape
+from tui.virtual_list import VirtualList
+
+TICK_S = 0.1
+DEFAULT_TARGET = "127.0.0.1:5000"  # where `whiztap sim` listens by default
+MARKS = {"match": "✔", "mismatch": "✘", "missing": "?", "extra": "+", "ignored": "·", "unanswered": " "}
+STATUS_STYLES = {"match": "green", "mismatch": "bold red", "missing": "yellow", "extra": "magenta",
+                 "ignored": "dim", "unanswered": "dim"}
+
+
+def _cut(text: str, width: int) -> str:
+    return f"{text:<{width}}" if len(text) <= width else text[:width - 1] + "…"
+
+
+class ComparisonList(VirtualList):
+    """Recorded and replayed answers side by side, one row per judged answer."""
+
+    def __init__(self, *, id: str | None = None) -> None:  # noqa: A002
+        super().__init__(id=id)
+        self.runner = None
+        self.counts_new = False
+
+    def row_count(self) -> int:
+        return len(self.runner.comparisons) if self.runner is not None else 0
+
+    def row_key(self, row: int) -> tuple[int, int]:
+        return id(self.runner), row
+
+    def row_cells(self, row: int) -> list[tuple[str, Style]]:
+        c = self.runner.comparisons[row]
+        status = str(c.status)
+        style = Style.parse(STATUS_STYLES.get(status, ""))
+        recorded = escape(c.recorded) if c.recorded is not None else "(none recorded)"
+        replayed = escape(c.replayed) if c.replayed is not None else "(no answer)"
+        return [
+            (f"{MARKS.get(status, ' ')} {status:<9}", style),
+            (f"c{c.conn:<3} {c.recorded_s:9.3f} s  ", Style(dim=True)),
+            (_cut(c.request_text, 30) + "  ", Style()),
+            (_cut(recorded, 24), Style(bold=True)),
+            (" │ ", Style(dim=True)),
+            (replayed, style if not c.match else Style(bold=True)),
+        ]
+
+
+class ReplayScreen(Screen):
+    BINDINGS = [
+        Binding("f5", "start", "Start"),
+        Binding("f6", "pause", "Pause/resume"),
+        Binding("f7", "step", "Step"),
+        Binding("f8", "stop", "Stop"),
+        Binding("escape", "back", "Back"),
+    ]
+    DEFAULT_CSS = """
+    ReplayScreen .form { height: 3; }
+    ReplayScreen .form > Label { padding: 1 1 0 1; width: auto; }
+    ReplayScreen .form > Input { width: 1fr; }
+    ReplayScreen .form > Select { width: 18; }
+    ReplayScreen #rate { width: 8; }
+    ReplayScreen .buttons { height: 3; }
+    ReplayScreen .buttons > Button { margin-right: 1; }
+    ReplayScreen #replay-status { height: 2; padding: 0 1; }
+    ReplayScreen #comparisons { height: 1fr; }
+    ReplayScreen #diff { height: 8; border: round $primary 50%; padding: 0 1; }
+    """
+
+    def __init__(self, path: str) -> None:
+        super().__init__()
+        self.path = path
+        self.runner = None
+        self.comparisons = ComparisonList(id="comparisons")
+
+    def compose(self) -> ComposeResult:
+        yield Header(show_clock=False)
+        with Horizontal(classes="form"):
+            yield Label("Target")
+            yield Input(DEFAULT_TARGET, id="target")
+            yield Label("Password")
+            yield Input(os.environ.get("WHIZTAP_PASSWORD", ""), password=True, id="password",
+                        placeholder="the recording keeps it redacted")
+            yield Label("Save as")
+            yield Input("", id="output", placeholder="replay.mcap (optional)")
+        with Horizontal(classes="form"):
+            yield Label("Pace")
+            yield Select([(p, p) for p in ("recorded", "lockstep", "max")], value="recorded",
+                         allow_blank=False, id="pace")
+            yield Label("Rate")
+            yield Input("1", id="rate")
+            yield Label("Compare")
+            yield Select([(m, m) for m in ("structure", "exact", "none")], value="structure",
+                         allow_blank=False, id="compare")
+        with Horizontal(classes="buttons"):
+            yield Button("Start (F5)", id="start", variant="primary")
+            yield Button("Pause (F6)", id="pause", disabled=True)
+            yield Button("Step (F7)", id="step")
+            yield Button("Stop (F8)", id="stop", disabled=True)
+        yield Static(f"Replay {self.path}: choose a target and start.", id="replay-status")
+        with Vertical():
+            yield self.comparisons
+            yield Static("", id="diff")
+        yield Footer()
+
+    def on_mount(self) -> None:
+        self.sub_title = f"replay {self.path}"
+        self.comparisons.border_title = "Answers: recorded │ replayed"
+        self.set_interval(TICK_S, self._tick)
+
+    # -- options -------------------------------------------------------------------------------
+
+    def _options(self, output: str | None):  # noqa: ANN202 - a sniffer.replay.ReplayOptions
+        """The form as ReplayOptions; raises ValueError with a line for the user."""
+        import click
+
+        from analyzer.compare import CompareError, CompareRules
+        from sniffer.record_cli import parse_address
+        from sniffer.replay import Pace, ReplayOptions
+
+        try:
+            target = parse_address(self.query_one("#target", Input).value.strip(), None, "target")
+        except click.ClickException as e:
+            raise ValueError(e.format_message()) from None
+        try:
+            rate = float(self.query_one("#rate", Input).value)
+        except ValueError:
+            raise ValueError("rate: a number such as 1 (as recorded) or 2 (twice as fast)") from None
+        if rate <= 0:
+            raise ValueError("rate must be above 0")
+        try:
+            rules = CompareRules.parse(str(self.query_one("#compare", Select).value))
+        except CompareError as e:
+            raise ValueError(str(e)) from None
+        password = self.query_one("#password", Input).value
+        return ReplayOptions(target=target, password=password.encode() if password else None,
+                             pace=Pace(str(self.query_one("#pace", Select).value)), rate=rate, rules=rules,
+                             output=output)
+
+    # -- actions -------------------------------------------------------------------------------
+
+    def _start(self, paused: bool) -> bool:
+        from tui.replay_runner import ReplayRunner
+
+        output = self.query_one("#output", Input).value.strip() or None
+        try:
+            options = self._options(output)
+        except ValueError as e:
+            self.notify(str(e), severity="error", timeout=6)
+            return False
+        self.runner = ReplayRunner(self.path, options, start_paused=paused)
+        self.comparisons.runner = self.runner
+        self.comparisons.tail = True
+        self.comparisons.reset()
+        self._run(self.runner)
+        return True
+
+    @work(thread=True, group="replay")
+    def _run(self, runner) -> None:  # noqa: ANN001 - a ReplayRunner
+        runner.run()
+
+    def action_start(self) -> None:
+        if self.runner is not None and not self.runner.done:
+            self.notify("a replay is running: stop it first", timeout=3)
+            return
+        self._start(paused=False)
+
+    def action_pause(self) -> None:
+        if self.runner is None or self.runner.done:
+            return
+        self.runner.control("resume" if self.runner.state == "paused" else "pause")
+
+    def action_step(self) -> None:
+        if self.runner is None or self.runner.done:
+            if not self._start(paused=True):
+                return
+        self.runner.control("step")
+
+    def action_stop(self) -> None:
+        if self.runner is not None and not self.runner.done:
+            self.runner.control("stop")
+
+    def action_back(self) -> None:
+        self.action_stop()
+        self.dismiss()
+
+    def on_unmount(self) -> None:
+        """Leaving (or quitting the app): a replay must not outlive its screen."""
+        self.action_stop()
+
+    @on(Button.Pressed)
+    def _on_button(self, event: Button.Pressed) -> None:
+        getattr(self, f"action_{event.button.id}")()
+
+    @on(VirtualList.Moved, "#comparisons")
+    def _on_moved(self, message: VirtualList.Moved) -> None:
+        self._show_diff(message.row)
+
+    # -- display -------------------------------------------------------------------------------
+
+    def _tick(self) -> None:
+        self.comparisons.sync()
+        runner = self.runner
+        if runner is None:
+            return
+        state = runner.state
+        running = not runner.done
+        self.query_one("#pause", Button).disabled = not running
+        self.query_one("#stop", Button).disabled = not running
+        self.query_one("#pause", Button).label = "Resume (F6)" if state == "paused" else "Pause (F6)"
+        self.query_one("#replay-status", Static).update(self._status_text(runner))
+
+    @staticmethod
+    def _status_text(runner) -> Text:  # noqa: ANN001 - a ReplayRunner
+        text = Text()
+        text.append(runner.state.upper(), style="bold red" if runner.state == "failed" else "bold")
+        if runner.error:
+            text.append(f"  {runner.error}", style="red")
+        counts: dict[str, int] = {}
+        for c in runner.comparisons:
+            counts[str(c.status)] = counts.get(str(c.status), 0) + 1
+        text.append(f"  {runner.connections} connection(s), {runner.sent} writes; ")
+        text.append(", ".join(f"{n} {status}" for status, n in counts.items()) or "no answer judged yet")
+        result = runner.result
+        if result is not None:
+            text.append(f"\n{result.summary()}", style="dim")
+            if result.drift is not None:
+                text.append(f"; {result.drift.text()}", style="dim")
+            if runner.options.output and not result.error:
+                text.append(f"; saved as {runner.options.output}", style="dim")
+        return text
+
+    def _show_diff(self, row: int | None) -> None:
+        diff = self.query_one("#diff", Static)
+        if row is None or self.runner is None:
+            diff.update("")
+            return
+        c = self.runner.comparisons[row]
+        if c.diff:
+            diff.update(Text(c.diff, style="red" if not c.match else ""))
+            return
+        replayed = escape(c.replayed) if c.replayed is not None else "(no answer)"
+        diff.update(Text(f"{c.status}: {c.request_text}\n  recorded {escape(c.recorded or b'')}\n"
+                         f"  replayed {replayed}"))
+
+
+def open_replay(app: App) -> None:
+    """The replay screen for the open recording; live traffic has no finished file yet."""
+    from tui.sources import FileSource
+
+    source = getattr(app, "source", None)
+    if not isinstance(source, FileSource):
+        app.notify("replay works on a finished recording: quit, then 'whiztap tui FILE.mcap' and r",
+                   severity="warning", timeout=6)
+        return
+    app.push_screen(ReplayScreen(source.path))

@@ -1,0 +1,309 @@
+"""Where the TUI's traffic comes from: a recording, a growing recording, or the proxy.
+
+Each source has ``feed(model, stop)``, which runs in a worker thread and puts
+reads and connection events into the model until the traffic ends or ``stop``
+is set; the screen never waits on the disk or the network.  Live sources also
+have ``start()`` and ``stop()`` coroutines that run on the app's event loop,
+where the proxy lives.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import os
+import threading
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Protocol
+
+from analyzer.recording import TOPIC_EVENTS, TOPIC_READS, Read, RecordingError, RecordingScan
+from analyzer.session import Direction
+from tui.model import TrafficModel
+
+POLL_S = 0.1  # a growing file is looked at this often; the recorder flushes every 0.5 s
+DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
+LOADING_GC_THRESHOLD = 100_000
+
+
+class SourceError(Exception):
+    """The traffic cannot be read; one line for the user."""
+
+
+class Source(Protocol):
+    title: str  # what the header says
+    live: bool  # traffic keeps coming: the frame list follows it
+    redact_passwords: bool  # show passwords as '*' (recordings are redacted already)
+    progress: float | None  # 0..1 while a file loads, None when not known
+    note: str  # what went wrong or is worth saying once the feed ended ("" if nothing)
+
+    def feed(self, model: TrafficModel, stop: threading.Event) -> None: ...
+
+
+def _feed_scan(scan: RecordingScan, model: TrafficModel) -> None:
+    read, event = model.read, model.event
+    for record in scan.stream():
+        if type(record) is Read:
+            read(record.conn, record.dir, record.t_ns, record.data)
+        else:
+            event(record)
+
+
+class FileSource:
+    """A finished recording, read once from start to end."""
+
+    live = False
+    redact_passwords = False
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.title = path
+        self.progress: float | None = 0.0
+        self.note = ""
+        self._size = max(os.path.getsize(path), 1)
+
+    def feed(self, model: TrafficModel, stop: threading.Event) -> None:
+        # Loading makes millions of short-lived tuples; the collector's default
+        # threshold would run it every 700 of them (see analyzer.throughput).
+        threshold = gc.get_threshold()
+        gc.set_threshold(LOADING_GC_THRESHOLD, *threshold[1:])
+        try:
+            self._read(model, stop)
+        finally:
+            gc.set_threshold(*threshold)
+
+    def _read(self, model: TrafficModel, stop: threading.Event) -> None:
+        with open(self.path, "rb") as f:
+            counted = _Counting(f, self, stop)
+            scan = RecordingScan(counted, (TOPIC_READS, TOPIC_EVENTS))
+            try:
+                _feed_scan(scan, model)
+            except _Stopped:
+                return
+            except RecordingError as e:
+                self.note = f"{self.path}: {e}; showing what came before"
+            if scan.truncated:
+                self.note = (f"{self.path} is truncated (no footer): showing what was complete; "
+                             f"'whiztap recover {self.path}' makes a complete copy")
+        self.progress = 1.0
+        model.finish()
+
+
+class _Stopped(Exception):
+    """The app is closing: unwind the reader."""
+
+
+class _Counting:
+    """A file whose reads advance the source's progress and notice a stop."""
+
+    def __init__(self, f: IO[bytes], source: FileSource, stop: threading.Event) -> None:
+        self.f, self.source, self.stop = f, source, stop
+        self.done = 0
+
+    def read(self, n: int = -1) -> bytes:
+        if self.stop.is_set():
+            raise _Stopped
+        data = self.f.read(n)
+        self.done += len(data)
+        self.source.progress = min(self.done / self.source._size, 1.0)  # noqa: SLF001
+        return data
+
+
+class GrowingFile:
+    """A recording still being written: ``read(n)`` waits until n bytes are there.
+
+    The recorder writes whole chunks at each flush, so waiting inside a read
+    lets ``RecordingScan`` parse a file that is still growing as if it were
+    complete; it ends at the DataEnd record the recorder writes when it
+    finishes (the open file survives the rename of ``.part`` to ``.mcap``).
+    """
+
+    def __init__(self, f: IO[bytes], stop: threading.Event, poll_s: float = POLL_S) -> None:
+        self.f, self.stop, self.poll_s = f, stop, poll_s
+
+    def read(self, n: int = -1) -> bytes:
+        chunks = []
+        need = n
+        while need:
+            data = self.f.read(need)
+            if data:
+                chunks.append(data)
+                need -= len(data)
+            elif self.stop.wait(self.poll_s):
+                raise _Stopped
+        return b"".join(chunks)
+
+
+class FollowSource:
+    """A ``.mcap.part`` that a separate ``whiztap record`` is writing."""
+
+    live = True
+    progress = None
+    redact_passwords = False
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.title = f"following {path}"
+        self.note = ""
+
+    def feed(self, model: TrafficModel, stop: threading.Event) -> None:
+        with open(self.path, "rb") as f:
+            scan = RecordingScan(GrowingFile(f, stop), (TOPIC_READS, TOPIC_EVENTS))
+            try:
+                _feed_scan(scan, model)
+            except _Stopped:
+                return
+            except RecordingError as e:
+                self.note = f"{self.path}: {e}"
+                return
+        self.title = f"followed {self.path}: the recorder finished it"
+        model.finish()
+
+
+# -- live -----------------------------------------------------------------------------------
+
+
+class Tap:
+    """The proxy's sink, teed: the writer process gets every event as before, and
+    a copy goes on a queue for the TUI.  Called on the proxy's forwarding path,
+    so it only appends."""
+
+    def __init__(self, sink, queue: deque) -> None:  # noqa: ANN001 - a sniffer.proxy.Sink
+        self.sink = sink
+        self.queue = queue
+
+    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
+        self.sink.opened(conn, t_ns, client, upstream)
+        self.queue.append({"conn": conn, "event": "opened", "t_ns": t_ns, "client": client, "upstream": upstream})
+
+    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None:
+        self.sink.upstream_connected(conn, t_ns, detail)
+
+    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
+        self.sink.upstream_failed(conn, t_ns, detail)
+        self.queue.append({"conn": conn, "event": "upstream_failed", "t_ns": t_ns, "detail": detail})
+
+    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
+        self.sink.data(conn, direction, t_ns, data)
+        self.queue.append((conn, direction.value, t_ns, data))
+
+    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
+        self.sink.half_closed(conn, direction, t_ns)
+        self.queue.append({"conn": conn, "event": "half_closed", "t_ns": t_ns, "dir": direction.value})
+
+    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None:
+        self.sink.closed(conn, t_ns, by, detail)
+        self.queue.append({"conn": conn, "event": "closed", "t_ns": t_ns, "by": by, "detail": detail})
+
+
+class Rig(Protocol):
+    """What runs the proxy: ``start()`` returns the running Recording."""
+
+    output: str
+
+    async def start(self): ...  # noqa: ANN201 - a sniffer.record_run.Recording
+    async def stop(self) -> None: ...
+
+
+class ProxyRig:
+    """The recording proxy alone, in front of an upstream server."""
+
+    def __init__(self, settings) -> None:  # noqa: ANN001 - sniffer.record_run.RecordSettings
+        self.settings = settings
+        self.output = settings.output
+        self.recording = None
+
+    async def start(self):  # noqa: ANN201
+        from sniffer.record_run import Recording
+
+        self.recording = Recording(self.settings)
+        await self.recording.start()
+        return self.recording
+
+    async def stop(self) -> None:
+        if self.recording is not None and self.recording.writer is not None:
+            await self.recording.stop()
+
+
+class LiveSource:
+    """Traffic through the recording proxy running inside the app."""
+
+    live = True
+    progress = None
+
+    def __init__(self, rig: Rig, title: str, redact_passwords: bool = True) -> None:
+        self.rig = rig
+        self.redact_passwords = redact_passwords
+        self.title = title
+        self.note = ""
+        self.queue: deque = deque()
+        self.recording = None
+        self.stopped = threading.Event()  # the proxy is closed: drain and finish
+        self.on_failure: Callable[[str], None] | None = None  # the recording stopped on its own
+        self._watcher: asyncio.Task | None = None
+
+    @property
+    def backlog(self) -> int:
+        """Reads and events the proxy passed on that the model has not taken yet."""
+        return len(self.queue)
+
+    async def start(self) -> None:
+        """Start the proxy (and whatever the rig runs with it); raises SourceError."""
+        from sniffer.feed import WriterError
+
+        try:
+            self.recording = await self.rig.start()
+        except WriterError as e:
+            raise SourceError(str(e)) from None
+        except OSError as e:
+            raise SourceError(f"cannot listen: {e.strerror or e}") from None
+        proxy = self.recording.proxy
+        proxy.sink = Tap(proxy.sink, self.queue)
+        self.title = f"{self.title}: {proxy.listen_text} -> {proxy.upstream_text}, recording {self.rig.output}"
+        self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
+
+    async def _watch_writer(self) -> None:
+        await self.recording.stopped.wait()
+        self.note = f"recording stopped: {self.recording.error}"
+        if self.on_failure is not None:
+            self.on_failure(self.note)
+
+    async def stop(self) -> None:
+        """Close every connection and finish the recording file."""
+        if self._watcher is not None:
+            self._watcher.cancel()
+        try:
+            await self.rig.stop()
+        finally:
+            self.stopped.set()
+
+    def feed(self, model: TrafficModel, stop: threading.Event) -> None:
+        queue = self.queue
+        read, event = model.read, model.event
+        while True:
+            while queue:
+                record = queue.popleft()
+                if type(record) is tuple:
+                    read(*record)
+                else:
+                    event(record)
+            if self.stopped.is_set() and not queue:
+                break
+            if stop.wait(DRAIN_S):
+                return
+        model.finish()
+
+
+def default_output() -> str:
+    """A new recording's name when none is given: whiztap-YYYYmmdd-HHMMSS.mcap."""
+    import time
+
+    return time.strftime("whiztap-%Y%m%d-%H%M%S.mcap")
+
+
+def follow_path(path: str) -> str:
+    """The file to follow: the ``.part`` if it is still there, else what it became."""
+    if not Path(path).exists() and path.endswith(".part") and Path(path[:-5]).exists():
+        return path[:-5]
+    return path

@@ -1,0 +1,115 @@
+"""Live statistics: frames per second by direction, latency percentiles, and a
+small plot of each sensor and servo channel's value over time.
+
+Everything shown comes from the model's summaries (bounded in size whatever
+the traffic: per-second counts, latency buckets, down-sampled series), and is
+redrawn on a slow timer, not per frame.  One plot widget per channel seen, at
+most 24 sensors and 24 servos.
+"""
+
+from __future__ import annotations
+
+from rich.text import Text
+from textual.app import ComposeResult
+from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.widgets import Label, Sparkline, Static
+
+from tui.detail import latency_text
+from tui.model import TrafficModel
+
+LIVE_WINDOW_S = 60  # live: the last minute of frames per second
+PERCENTILES = (50, 95, 99)
+
+
+class ChannelPlot(Horizontal):
+    """One channel: its name, its values over time, and the latest value."""
+
+    DEFAULT_CSS = """
+    ChannelPlot { height: 1; }
+    ChannelPlot > .name { width: 10; color: $text-muted; }
+    ChannelPlot > Sparkline { width: 1fr; }
+    ChannelPlot > .value { width: 18; text-align: right; }
+    """
+
+    def __init__(self, kind: str, channel: int) -> None:
+        super().__init__(id=f"plot-{kind}-{channel}")
+        self.kind, self.channel = kind, channel
+
+    def compose(self) -> ComposeResult:
+        yield Label(f"{self.kind} {self.channel}", classes="name")
+        yield Sparkline([], summary_function=lambda values: sum(values) / len(values))
+        yield Label("", classes="value")
+
+    def show(self, points: list[tuple[int, float]]) -> None:
+        values = [v for _, v in points]
+        self.query_one(Sparkline).data = values
+        if values:
+            self.query_one(".value", Label).update(f"{values[-1]:g} ({min(values):g}-{max(values):g})")
+
+
+class StatsPane(VerticalScroll):
+    DEFAULT_CSS = """
+    StatsPane { padding: 0 1; }
+    StatsPane .title { text-style: bold; margin-top: 1; }
+    StatsPane .rate { height: 1; }
+    StatsPane .rate > Label { width: 10; color: $text-muted; }
+    StatsPane .rate > Sparkline { width: 1fr; }
+    StatsPane .rate > .now { width: 18; text-align: right; }
+    StatsPane #rate-c2s > Sparkline > .sparkline--max-color { color: $success; }
+    StatsPane #rate-s2c > Sparkline > .sparkline--max-color { color: $warning; }
+    """
+
+    def __init__(self, model: TrafficModel, live: bool, *, id: str | None = None) -> None:  # noqa: A002
+        super().__init__(id=id)
+        self.model = model
+        self.live = live
+
+    def compose(self) -> ComposeResult:
+        yield Static("Frames per second", classes="title", id="rate-title")
+        for direction, label in (("c2s", "client →"), ("s2c", "server ←")):
+            with Horizontal(classes="rate", id=f"rate-{direction}"):
+                yield Label(label)
+                yield Sparkline([])
+                yield Label("", classes="now")
+        yield Static("Latency", classes="title")
+        yield Static("no answered request yet", id="latency")
+        yield Static("Channels (sensor value, servo position)", classes="title")
+        yield Vertical(id="plots")
+
+    def update_stats(self) -> None:
+        window = LIVE_WINDOW_S if self.live else None
+        c2s, s2c = self.model.store.rate_series(window)
+        span = f"last {len(c2s)} s" if self.live else f"{len(c2s)} s recorded"
+        self.query_one("#rate-title", Static).update(f"Frames per second ({span})")
+        for direction, series in (("c2s", c2s), ("s2c", s2c)):
+            row = self.query_one(f"#rate-{direction}")
+            row.query_one(Sparkline).data = series
+            peak = max(series, default=0)
+            row.query_one(".now", Label).update(f"{series[-1] if series else 0:,}/s (max {peak:,})")
+        self.query_one("#latency", Static).update(self._latency_table())
+        self._plots()
+
+    def _latency_table(self) -> Text:
+        """Two lines per request kind: narrow enough for the side pane."""
+        latencies = self.model.latencies()
+        if not latencies:
+            return Text("no answered request yet", style="dim")
+        out = Text()
+        for title, stats in latencies.items():
+            out.append(f"{title}", style="bold")
+            out.append(f"  {stats.count:,} answered\n", style="dim")
+            cells = [f"p{p} {latency_text(stats.percentile(p))}" for p in PERCENTILES]
+            out.append("  " + "  ".join(cells + [f"max {latency_text(stats.max)}"]) + "\n")
+        out.rstrip()
+        return out
+
+    def _plots(self) -> None:
+        holder = self.query_one("#plots", Vertical)
+        for (kind, channel), points in self.model.channel_values().items():
+            plots = holder.query(f"#plot-{kind}-{channel}")
+            if plots:
+                plots.first(ChannelPlot).show(points)
+            else:
+                plot = ChannelPlot(kind, channel)
+                holder.mount(plot)
+                plot.call_after_refresh(plot.show, points)

@@ -1,0 +1,145 @@
+"""Which frames the list shows: all of them, or those the filter accepts.
+
+The filter is ``analyzer.item_filter.ItemFilter``, the one ``whiztap cat`` uses,
+written in the filter bar as words (``conn:2 dir:c2s kind:response ch:12
+since:1.5 until:9 violations`` and free text).  A filtered view is an index:
+the sorted ids of accepted frames, built by a worker thread in slices so the
+screen stays live, and extended as frames arrive.
+"""
+
+from __future__ import annotations
+
+import shlex
+from array import array
+from bisect import bisect_left, insort
+from dataclasses import replace
+
+from analyzer.framing import ItemKind
+from analyzer.item_filter import ItemFilter
+from tui.store import FrameStore
+
+SLICE = 4096  # frames judged between looks at whether the filter was replaced
+
+FILTER_HELP = ("conn:N[,N]  dir:c2s|s2c  kind:K[,K]  ch:N[,N]  since:S  until:S  "
+               "violations (or !)  and any other words: text in the bytes or the meaning")
+
+
+class FilterSyntaxError(ValueError):
+    """The filter bar's text does not parse; the message says which word."""
+
+
+def _ints(key: str, value: str) -> frozenset[int]:
+    try:
+        return frozenset(int(v) for v in value.split(",") if v)
+    except ValueError:
+        raise FilterSyntaxError(f"{key}: wants numbers separated by commas, got {value!r}") from None
+
+
+def _seconds(key: str, value: str) -> float:
+    try:
+        return float(value)
+    except ValueError:
+        raise FilterSyntaxError(f"{key}: wants seconds from the start, got {value!r}") from None
+
+
+def parse_filter(text: str) -> ItemFilter:
+    """The filter bar's words as an ItemFilter (an empty text accepts everything)."""
+    try:
+        words = shlex.split(text)
+    except ValueError as e:
+        raise FilterSyntaxError(str(e)) from None
+    options: dict = {}
+    free: list[str] = []
+    for word in words:
+        key, sep, value = word.partition(":")
+        key = key.lower()
+        if word.lower() in ("violations", "!", "v:1"):
+            options["violations_only"] = True
+        elif sep and key in ("conn", "c"):
+            options["conns"] = _ints(key, value)
+        elif sep and key in ("ch", "channel"):
+            options["channels"] = _ints(key, value)
+        elif sep and key in ("dir", "d"):
+            if value not in ("c2s", "s2c"):
+                raise FilterSyntaxError(f"dir: wants c2s or s2c, got {value!r}")
+            options["direction"] = value
+        elif sep and key in ("kind", "k"):
+            kinds = value.split(",")
+            known = {k.value for k in ItemKind}
+            bad = [k for k in kinds if k not in known]
+            if bad:
+                raise FilterSyntaxError(f"kind: {bad[0]!r} is not one of {', '.join(sorted(known))}")
+            options["kinds"] = frozenset(ItemKind(k) for k in kinds)
+        elif sep and key == "since":
+            options["since_s"] = _seconds(key, value)
+        elif sep and key == "until":
+            options["until_s"] = _seconds(key, value)
+        else:
+            free.append(word)
+    return ItemFilter(text=" ".join(free), **options)
+
+
+def with_connection(item_filter: ItemFilter, conn: int | None) -> ItemFilter:
+    """The filter narrowed to the connection chosen in the connections pane."""
+    return item_filter if conn is None else replace(item_filter, conns=frozenset({conn}))
+
+
+class FrameView:
+    """Rows of the frame list: row -> frame id."""
+
+    def __init__(self, store: FrameStore, item_filter: ItemFilter = ItemFilter()) -> None:
+        self.store = store
+        self.filter = item_filter
+        self.all = item_filter == ItemFilter()
+        self.rows = array("q")
+        self.judged = 0  # frames below this id have been judged
+        self._late_seen = 0  # store.late_marked entries looked at
+
+    def __len__(self) -> int:
+        return self.store.count if self.all else len(self.rows)
+
+    def __getitem__(self, row: int) -> int:
+        return row if self.all else self.rows[row]
+
+    @property
+    def complete(self) -> bool:
+        """Every frame stored so far has been judged."""
+        return self.all or self.judged >= self.store.count
+
+    def row_of(self, frame: int) -> int:
+        """The row showing ``frame``, or the row of the first frame after it."""
+        if self.all:
+            return frame
+        return bisect_left(self.rows, frame)
+
+    def judge(self, cancelled=lambda: False) -> None:  # noqa: ANN001 - a callable
+        """Judge the frames not judged yet (in a worker thread), in slices."""
+        store = self.store
+        accepts = self.filter.accepts
+        rows = self.rows
+        while not cancelled():
+            end = min(store.count, self.judged + SLICE)
+            if self.judged >= end:
+                break
+            start_ns = store.start_ns or 0
+            observation, conn = store.observation, store.conn
+            for n in range(self.judged, end):
+                if accepts(conn[n], observation(n), start_ns):
+                    rows.append(n)
+            self.judged = end
+        self._rejudge_late_marks()
+
+    def _rejudge_late_marks(self) -> None:
+        """A violation found later (an unanswered request) can let in a frame
+        already judged, under ``violations``."""
+        marked = self.store.late_marked
+        new, self._late_seen = marked[self._late_seen:], len(marked)
+        if not self.filter.violations_only:
+            return
+        start_ns = self.store.start_ns or 0
+        for n in new:
+            if n < self.judged:
+                at = bisect_left(self.rows, n)
+                if (at == len(self.rows) or self.rows[at] != n) and \
+                        self.filter.accepts(self.store.conn[n], self.store.observation(n), start_ns):
+                    insort(self.rows, n)
