@@ -147,33 +147,6 @@ class _Pending(NamedTuple):
     t_ns: int
 
 
-class _PendingQueue(deque):
-    """The outstanding requests, oldest first, counting those that certainly
-    expect an answer, so pairing need not scan thousands of ambiguous ones
-    (a pipelining client before the channel map) looking for one that is not."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.certain = 0
-
-    def append(self, pending: _Pending) -> None:
-        super().append(pending)
-        self.certain += pending.certain
-
-    def popleft(self) -> _Pending:
-        pending = super().popleft()
-        self.certain -= pending.certain
-        return pending
-
-    def remove(self, pending: _Pending) -> None:
-        super().remove(pending)
-        self.certain -= pending.certain
-
-    def clear(self) -> None:
-        super().clear()
-        self.certain = 0
-
-
 class _Plan(NamedTuple):
     """What a command's bytes mean in the current channel map, once worked out."""
 
@@ -213,7 +186,10 @@ class Session:
         self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
-        self._pending = _PendingQueue()
+        self._pending: deque[_Pending] = deque()
+        # How many of them certainly expect an answer: with none, pairing takes the
+        # oldest match at once instead of rescanning thousands of ambiguous ones.
+        self._certain = 0
         self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
         self._index = 0
         self._commands = 0
@@ -241,6 +217,7 @@ class Session:
             if pending.certain:
                 events.append(self._unanswered(pending, t_ns, "the session ended first"))
         self._pending.clear()
+        self._certain = 0
         return events
 
     # -- state ------------------------------------------------------------------------
@@ -314,6 +291,7 @@ class Session:
                     self.violation_counts[v.rule_id] += 1
             if answer_kind is not None:
                 pending.append(_new(_Pending, (obs, answer_kind, channel, certain, t)))
+                self._certain += certain
             append(obs)
         if fast:
             self._index = index
@@ -347,6 +325,7 @@ class Session:
                     asked = request.message
                     if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
                         pending.popleft()
+                        self._certain -= 1
                         latencies[asked.title].add(t - t_request)
                         append(_new(Observation, (index, direction, item, message, candidates, (),
                                                   request, t - t_request)))
@@ -422,6 +401,7 @@ class Session:
             answer_kind, channel, certain = _answer_spec(message, candidates)
             if answer_kind is not None:
                 self._pending.append(_Pending(observation, answer_kind, channel, certain, t))
+                self._certain += certain
             if state_before is _S.READY and self.state is _S.READY and self._commands > 1:
                 # from now on these bytes mean the same until the channel map changes
                 self._plans[item.raw] = _Plan(message, candidates, observation.violations,
@@ -502,7 +482,7 @@ class Session:
                     found = pending
                     break
                 maybe = maybe or pending
-                if not self._pending.certain:
+                if not self._certain:
                     break  # no certain request to prefer: the oldest maybe it is
         found = found or maybe
         if found is None:
@@ -510,6 +490,7 @@ class Session:
             request = None
         else:
             self._pending.remove(found)
+            self._certain -= found.certain
             request = found.request
         if isinstance(message, ConfigurationSettings):
             self.channel_map = dict(enumerate(message.channels))
@@ -541,6 +522,7 @@ class Session:
     def _expire(self, t: int, events: list[Event]) -> None:
         while self._pending and t - self._pending[0].t_ns > self.answer_timeout_ns:
             pending = self._pending.popleft()
+            self._certain -= pending.certain
             if pending.certain:
                 events.append(self._unanswered(pending, t, f"no answer within {self.answer_timeout_ns / 1e9:g} s"))
 

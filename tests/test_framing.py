@@ -12,7 +12,7 @@ from analyzer.framing import (
     ItemKind,
     Unframed,
 )
-from tests.spec_vectors import ALL_FRAMES, COMMANDS, HANDSHAKE_SERVER, RESPONSES, SET_CONFIG_EXAMPLE
+from tests.spec_vectors import ALL_FRAMES, COMMANDS, HANDSHAKE_SERVER, RESPONSES
 from tests.streams import TINY_JPEG, TINY_PNG, chunked, frame_all, stream_pieces
 
 
