@@ -8,6 +8,7 @@ scapy, mcap) inside their functions.
 
 from __future__ import annotations
 
+import os
 import sys
 from importlib.metadata import entry_points
 from typing import NoReturn
@@ -67,6 +68,12 @@ def main() -> None:
     except BrokenPipeError:
         sys.stderr.close()  # output piped into `head`: not an error
         sys.exit(0)
+    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
+        if os.environ.get("WHIZTAP_DEBUG"):
+            raise
+        click.echo(f"whiztap: unexpected error: {type(e).__name__}: {e} "
+                   "(set WHIZTAP_DEBUG=1 to see where; please report it)", err=True)
+        sys.exit(EXIT_USAGE)
 
 
 @click.command("rules")

@@ -354,7 +354,8 @@ def metadata_record(**values: Any) -> dict[str, str]:
 
 MAGIC = b"\x89MCAP0\r\n"
 _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x03, 0x04, 0x05, 0x06
-_OP_METADATA, _OP_DATA_END, _OP_FOOTER = 0x0C, 0x0F, 0x02
+_OP_MESSAGE_INDEX, _OP_METADATA, _OP_DATA_END, _OP_FOOTER = 0x07, 0x0C, 0x0F, 0x02
+_MAX_RECORD = 256 << 20  # no record whiztap writes comes near this: a larger length means damage
 _RECORD_HEAD = struct.Struct("<BQ")
 _RECORD_HEAD_CHANNEL = struct.Struct("<BQH")  # opcode, length, then a Message's channel id
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
@@ -383,16 +384,19 @@ class Segment(NamedTuple):
 
 
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
-    if compression == "":
-        return data
-    if compression == "zstd":
-        import zstandard
+    try:
+        if compression == "":
+            return data
+        if compression == "zstd":
+            import zstandard
 
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if compression == "lz4":
-        import lz4.frame
+            return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+        if compression == "lz4":
+            import lz4.frame
 
-        return lz4.frame.decompress(data)
+            return lz4.frame.decompress(data)
+    except Exception as e:  # noqa: BLE001 - each library has its own error types for damaged data
+        raise RecordingError(f"a {compression} chunk does not decompress ({e}): the file is damaged") from None
     raise RecordingError(f"unsupported chunk compression {compression!r}")
 
 
@@ -444,34 +448,82 @@ class RecordingScan:
         f = self._stream
         if f.read(8) != MAGIC:
             raise RecordingError("not an MCAP file (bad magic)")
+        head = f.read(9)
         while True:
-            head = f.read(9)
             if len(head) < 9:
                 self.truncated = True
                 return
             op, length = _RECORD_HEAD.unpack(head)
             if op in (_OP_DATA_END, _OP_FOOTER):
                 return
+            if length > _MAX_RECORD:
+                raise RecordingError(f"a record claims {length} bytes: the file is damaged")
             body = f.read(length)
             if len(body) < length:
                 self.truncated = True
                 return
-            if op == _OP_CHUNK:
-                yield from self._chunk(body)
-            else:
+            if op != _OP_CHUNK:
                 yield from self._record(op, head + body, 0, 9 + length)
+                head = f.read(9)
+                continue
+            # The chunk's message indexes follow it: with them, only the wanted
+            # messages are looked at (a recording holds several messages per
+            # frame, of which an analysis wants one per TCP read).  Only in
+            # whiztap's own files, whose writer defines every channel before the
+            # first chunk, so a chunk skipped this way cannot hide a channel.
+            offsets: list[int] | None = [] if METADATA_NAME in self.metadata else None
+            head = f.read(9)
+            while len(head) == 9 and head[0] == _OP_MESSAGE_INDEX:
+                size = _RECORD_HEAD.unpack(head)[1]
+                index = f.read(size) if size <= _MAX_RECORD else b""
+                if len(index) < size:
+                    head = b""  # the file ends inside the index: the chunk itself is whole
+                    offsets = None
+                    break
+                if offsets is not None:
+                    offsets = self._indexed_offsets(index, offsets)
+                head = f.read(9)
+            yield from self._chunk(body, offsets)
 
-    def _chunk(self, body: bytes) -> Iterator[tuple[int, str, bytes, int, int]]:
+    def _indexed_offsets(self, index: bytes, offsets: list[int]) -> list[int] | None:
+        """Add one MessageIndex record's offsets for wanted channels; None when it
+        names a channel not yet defined (then the chunk is walked whole)."""
+        channel = _U16.unpack_from(index, 0)[0]
+        topic = self.channels.get(channel)
+        if topic is None:
+            return None
+        if topic in self._wanted:
+            n = _U32.unpack_from(index, 2)[0]
+            if 6 + n > len(index) or n % 16:
+                raise RecordingError("a message index is malformed: the file is damaged")
+            offsets.extend(struct.unpack_from(f"<{n // 8}Q", index, 6)[1::2])
+        return offsets
+
+    def _chunk(self, body: bytes, offsets: list[int] | None) -> Iterator[tuple[int, str, bytes, int, int]]:
         _start, _end, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
         compression, pos = _string(body, _CHUNK_HEAD.size)
         n = _U64.unpack_from(body, pos)[0]
         records = _decompress(compression, body[pos + 8:pos + 8 + n], size)
         if self.validate_crcs and crc and zlib.crc32(records) != crc:
             raise RecordingError("chunk CRC mismatch: the file is damaged")
-        pos, end = 0, len(records)
-        wanted = self._wanted_ids()
         unpack = _RECORD_HEAD_CHANNEL.unpack_from
         log_time = _U64.unpack_from
+        if offsets:
+            wanted = self._wanted_ids()
+            offsets.sort()  # file order is arrival order; the index is in log-time order
+            end = len(records)
+            for pos in offsets:
+                if pos + 23 > end:
+                    raise RecordingError("a message index points outside its chunk: the file is damaged")
+                op, length, channel = unpack(records, pos)
+                if op == _OP_MESSAGE and channel in wanted:
+                    yield log_time(records, pos + 15)[0], wanted[channel], records, pos + _MESSAGE_DATA_AT, \
+                        pos + 9 + length
+            return
+        if offsets is not None:
+            return  # indexed, and nothing wanted in it
+        pos, end = 0, len(records)
+        wanted = self._wanted_ids()
         while pos < end:
             op, length, channel = unpack(records, pos)
             stop = pos + 9 + length

@@ -230,3 +230,21 @@ def test_info_on_a_crash_leftover(tmp_path):
     result = run("info", part)
     assert result.returncode == 0
     assert "NO: truncated" in result.stdout and "whiztap recover" in result.stdout
+
+
+def _damaged(tmp_path, how):
+    data = bytearray(CLEAN.read_bytes())
+    if how == "chunk":
+        at = data.index(b"zstd") + 40  # inside the first compressed chunk's bytes
+        data[at:at + 16] = b"\xa5" * 16
+    else:  # a record whose length field is absurd, right after the magic
+        data[9:17] = (2**62).to_bytes(8, "little")
+    path = tmp_path / f"damaged-{how}.mcap"
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("how", ["chunk", "length"])
+@pytest.mark.parametrize("command", ["analyze", "cat", "info"])
+def test_damaged_files_are_one_line_errors(tmp_path, how, command):
+    assert "damaged" in one_line_error(run(command, _damaged(tmp_path, how)))
