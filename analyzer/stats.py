@@ -46,8 +46,10 @@ class LatencyStats:
         self.total += ns
         if ns > self.max:
             self.max = ns
-        key = _bucket(ns)
-        self._buckets[key] = self._buckets.get(key, 0) + 1
+        shift = ns.bit_length() - _SUB_BITS  # _bucket(ns), inline: this runs once per response
+        key = ns if shift <= 0 else (shift << _SUB_BITS) | (ns >> shift)
+        buckets = self._buckets
+        buckets[key] = buckets.get(key, 0) + 1
 
     def merge(self, other: LatencyStats) -> None:
         if not other.count:
