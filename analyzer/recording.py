@@ -432,10 +432,14 @@ class RecordingScan:
     """
 
     def __init__(self, stream: IO[bytes], topics: Iterable[str] = (TOPIC_READS,),
-                 validate_crcs: bool = True) -> None:
+                 validate_crcs: bool = True, growing: bool = False) -> None:
         self._stream = stream
         self._wanted = set(topics)
         self.validate_crcs = validate_crcs
+        # a file still being written (the TUI's follow mode): yield each chunk
+        # as soon as it is read, without reading on to its message indexes,
+        # which would wait for the recorder's next flush
+        self.growing = growing
         self.channels: dict[int, str] = {}  # channel id -> topic
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False
@@ -464,6 +468,10 @@ class RecordingScan:
                 return
             if op != _OP_CHUNK:
                 yield from self._record(op, head + body, 0, 9 + length)
+                head = f.read(9)
+                continue
+            if self.growing:
+                yield from self._chunk(body, None)
                 head = f.read(9)
                 continue
             # The chunk's message indexes follow it: with them, only the wanted

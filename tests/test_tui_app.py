@@ -190,3 +190,16 @@ async def test_z_gives_the_list_the_whole_width_and_d_brings_the_pane_back():
         await pilot.press("d")
         await pilot.pause()
         assert app.frames.size.width == narrow and app.tabs.active == "detail"
+
+
+async def test_a_recording_cut_short_shows_what_was_complete_and_says_how_to_recover(tmp_path):
+    from tests.test_tui_live import GrowingRecording
+
+    crashed = GrowingRecording(tmp_path / "crashed.mcap")  # flushed, never finished: a crash leftover
+    crashed.exchange(b"rr1-24--0--0-ss1", b"sr1-\x01200-ss1")
+    crashed.flush()
+    app = WhiztapApp(FileSource(str(tmp_path / "crashed.mcap.part")))
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        assert app.model.store.count == 2
+        assert any("whiztap recover" in n.message for n in app._notifications)  # noqa: SLF001

@@ -149,7 +149,7 @@ class FollowSource:
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         with open(self.path, "rb") as f:
-            scan = RecordingScan(GrowingFile(f, stop), (TOPIC_READS, TOPIC_EVENTS))
+            scan = RecordingScan(GrowingFile(f, stop), (TOPIC_READS, TOPIC_EVENTS), growing=True)
             try:
                 _feed_scan(scan, model)
             except _Stopped:
