@@ -32,7 +32,8 @@ def _need_terminal(what: str) -> None:
         fail(f"{what} needs a terminal; for a report use 'whiztap analyze', for frames 'whiztap cat'")
 
 
-def _hints(path: str) -> list[str]:
+def _hints(path: str, password: str = "PASSWORD") -> list[str]:
+    """What to do with a recording just made (printed when the app ends)."""
     from pathlib import Path
 
     if not Path(path).exists():
@@ -41,7 +42,7 @@ def _hints(path: str) -> list[str]:
             f"  whiztap analyze {path}      conformance report",
             f"  whiztap cat {path}          every frame, decoded",
             f"  whiztap tui {path}          browse it again (r: replay it from the TUI)",
-            f"  whiztap replay {path} --target HOST:PORT --password progwhiz",
+            f"  whiztap replay {path} --target HOST:PORT --password {password}",
             "                                replay it against a server (e.g. 'whiztap sim --port 5000')"]
 
 
@@ -127,14 +128,14 @@ def demo_command(headless: bool, seconds: float | None, output: str) -> None:
         _headless(output, seconds or HEADLESS_SECONDS)
         return
     from tui.app import WhiztapApp
-    from tui.demo import DemoRig
+    from tui.demo import PASSWORD, DemoRig
     from tui.sources import LiveSource
 
     app = WhiztapApp(LiveSource(DemoRig(output), "demo", redact_passwords=True), quit_after=seconds)
     app.run()
     if app.error:
         fail(app.error)
-    for line in _hints(output):
+    for line in _hints(output, PASSWORD):
         click.echo(line)
 
 
@@ -145,7 +146,7 @@ def _headless(output: str, seconds: float) -> None:
     from analyzer.analyze_cli import analyse_file, render
     from analyzer.report import build
     from sniffer.feed import WriterError
-    from tui.demo import DELIBERATE_RULES, run_headless
+    from tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
 
     try:
         client_error = asyncio.run(run_headless(output, seconds))
@@ -161,5 +162,5 @@ def _headless(output: str, seconds: float) -> None:
     if text:
         click.echo(text, nl=not text.endswith("\n"))
     click.echo(f"The demo breaks these rules on purpose: {', '.join(DELIBERATE_RULES)}.")
-    for line in _hints(output):
+    for line in _hints(output, PASSWORD):
         click.echo(line)
