@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,13 +19,19 @@ from analyzer.messages import ChannelConfig
 from sniffer.camera import render_frame
 from sniffer.channels import DEFAULT_CHANNELS, parse_channels
 from sniffer.faults import FaultConfig, FaultPlanner
-from sniffer.robot import DEFAULT_PASSWORD, DEFAULT_SERVO_SPEED, Output, Robot, RobotConnection, ServerMode
+from sniffer.robot import (
+    DEFAULT_PASSWORD,
+    DEFAULT_SERVO_SPEED,
+    Output,
+    Robot,
+    RobotConnection,
+    ServerMode,
+)
+from sniffer.tcp_server import READ_SIZE, TcpServer
 
 log = logging.getLogger("whiztap.sim")
 log.addHandler(logging.NullHandler())  # a library stays quiet until its user sets up logging
 
-READ_SIZE = 65536
-BACKLOG = 1024  # many clients connect at once in tests; asyncio's default is 100
 MAX_QUEUED = 1024  # replies held back by fault injection before the connection stops reading
 
 
@@ -43,7 +48,7 @@ class Stats:
     errors: int = 0  # connections ended by an unexpected exception
 
 
-class Simulator:
+class Simulator(TcpServer):
     """A Progwhiz Robotics Server on ``host:port`` (127.0.0.1 unless told)."""
 
     def __init__(
@@ -61,8 +66,7 @@ class Simulator:
         faults: FaultConfig = FaultConfig(),
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
-        self.host = host
-        self.requested_port = port
+        super().__init__(host, port)
         self.mode = ServerMode(mode)
         self.password = password.encode() if isinstance(password, str) else password
         if self.mode is ServerMode.WINSOCK and not self.password:
@@ -76,56 +80,15 @@ class Simulator:
                            camera=render_frame if camera else None,
                            checksum_rule=checksum_rule, start_ns=clock())
         self.stats = Stats()
-        self._server: asyncio.Server | None = None
-        self._handlers: set[asyncio.Task] = set()
-
-    @property
-    def addresses(self) -> list[tuple[str, int]]:
-        """Every (address, port) listened on: a host name may resolve to several."""
-        if self._server is None:
-            raise RuntimeError("the simulator is not listening")
-        return [sock.getsockname()[:2] for sock in self._server.sockets]
-
-    @property
-    def port(self) -> int:
-        return self.addresses[0][1]
-
-    async def start(self) -> None:
-        self._server = await asyncio.start_server(
-            self._handle, self.host, self.requested_port, backlog=BACKLOG, limit=READ_SIZE)
-
-    async def close(self) -> None:
-        """Stop listening and end every connection."""
-        if self._server is None:
-            return
-        self._server.close()
-        for task in list(self._handlers):
-            task.cancel()
-        await asyncio.gather(*self._handlers, return_exceptions=True)
-        await self._server.wait_closed()
-        self._server = None
-
-    async def __aenter__(self) -> Simulator:
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
 
     # -- one connection ----------------------------------------------------------------
 
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        assert task is not None
-        self._handlers.add(task)
+    async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.stats.connections += 1
         self.stats.open_connections += 1
         number = self.stats.connections
         peer = writer.get_extra_info("peername")
         name = f"conn {number} {peer[0]}:{peer[1]}" if peer else f"conn {number}"
-        sock = writer.get_extra_info("socket")
-        if sock is not None:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sender = _Sender(writer, self.stats, FaultPlanner(self.faults, f"{self.seed}:{number}")
                          if self.faults.active else None)
         log.info("%s: connected", name)
@@ -149,7 +112,6 @@ class Simulator:
                     sender.abort()
             finally:
                 self.stats.open_connections -= 1
-                self._handlers.discard(task)
                 log.info("%s: closed", name)
 
     async def _serve(self, connection: RobotConnection, reader: asyncio.StreamReader,

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import socket
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -33,8 +32,8 @@ from analyzer.messages import FailedValidation, ReadyToGo
 from analyzer.session import Direction, Mode, Observation, Session
 from analyzer.text import escape
 from sniffer.replay import Pace
+from sniffer.tcp_server import READ_SIZE, TcpServer
 
-READ_SIZE = 65536
 NS = 1_000_000_000
 _PASSWORD_END = (b"\r", b"\n", b"rr1-", b"sr1-")
 _FAILED = FailedValidation().title.encode()
@@ -86,7 +85,7 @@ class _Script:
             self.answers.setdefault(key[0], []).append(entry)
 
 
-class Stub:
+class Stub(TcpServer):
     """Serves ``recording`` on ``host:port``; ``start()``/``close()`` or ``async with``.
 
     ``on_log(line)`` gets a line per client connection and per request with no
@@ -109,7 +108,7 @@ class Stub:
         if not scripts:
             raise ValueError("the recording has no connection to serve")
         self.recording = recording
-        self.host, self.requested_port = host, port
+        super().__init__(host, port)
         self.password = password
         self.rate = rate
         self.exhausted = Exhausted(exhausted)
@@ -120,51 +119,13 @@ class Stub:
         self.finished = asyncio.Event()  # set each time a client connection ends
         self._scripts = scripts
         self._numbers = itertools.count(1)
-        self._server: asyncio.Server | None = None
-        self._handlers: set[asyncio.Task] = set()
-
-    @property
-    def port(self) -> int:
-        assert self._server is not None, "the stub is not listening"
-        return self._server.sockets[0].getsockname()[1]
-
-    @property
-    def addresses(self) -> list[tuple[str, int]]:
-        assert self._server is not None, "the stub is not listening"
-        return [s.getsockname()[:2] for s in self._server.sockets]
-
-    async def start(self) -> None:
-        """Listen (OSError if the address cannot be bound)."""
-        self._server = await asyncio.start_server(self._handle, self.host, self.requested_port, limit=READ_SIZE)
-
-    async def close(self) -> None:
-        if self._server is None:
-            return
-        self._server.close()
-        for task in list(self._handlers):
-            task.cancel()
-        await asyncio.gather(*self._handlers, return_exceptions=True)
-        await self._server.wait_closed()
-        self._server = None
-
-    async def __aenter__(self) -> Stub:
-        await self.start()
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
 
     # -- one client ---------------------------------------------------------------------------
 
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        task = asyncio.current_task()
-        self._handlers.add(task)  # type: ignore[arg-type]
+    async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         number = next(self._numbers)
         self.connections += 1
         script = self._scripts[min(number, len(self._scripts)) - 1]
-        sock = writer.get_extra_info("socket")
-        if sock is not None:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         peer = writer.get_extra_info("peername")
         self.on_log(f"#{number} opened from {peer[0]}:{peer[1]}, answered from recorded connection {script.conn}")
         served = _Served(self, script, number, writer)
@@ -176,7 +137,6 @@ class Stub:
         except asyncio.CancelledError:  # the stub is closing; not re-raised, as
             served.abort()  # asyncio's server would log a cancelled handler
         finally:
-            self._handlers.discard(task)  # type: ignore[arg-type]
             self.on_log(f"#{number} closed")
             self.finished.set()
 
