@@ -37,9 +37,12 @@ class Recording:
     ``stopped`` is set when the recording has to end on its own (write error).
     """
 
-    def __init__(self, settings: RecordSettings, echo=None) -> None:  # noqa: ANN001 - a print-like callable
+    def __init__(self, settings: RecordSettings, echo=None, tap=None) -> None:  # noqa: ANN001 - callables
+        """``tap``, if given, wraps the writer's sink before the first client is
+        accepted (the TUI sees every event the file gets, from the first)."""
         self.settings = settings
         self.echo = echo or (lambda line: None)
+        self.tap = tap
         self.stopped = asyncio.Event()
         self.writer: WriterProcess | None = None
         self.proxy: RecordingProxy | None = None
@@ -72,7 +75,7 @@ class Recording:
         writer.on_violation = self._violation
         writer.on_error = lambda message: self.stopped.set()
         writer.on_file = lambda path: self.echo(f"finished {path}")
-        proxy.sink = writer
+        proxy.sink = self.tap(writer) if self.tap is not None else writer
         try:
             await writer.start()
         except WriterError:

@@ -116,14 +116,14 @@ class DemoRig:
         self.client_error: str | None = None
         self._stop_client = asyncio.Event()
 
-    async def start(self):  # noqa: ANN201 - a sniffer.record_run.Recording
+    async def start(self, tap):  # noqa: ANN001, ANN201 - a sink wrapper; a sniffer.record_run.Recording
         from sniffer.record_run import Recording, RecordSettings
         from sniffer.simulator import Simulator
 
         self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
         await self.simulator.start()
         self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
-                                                  quiet=True))
+                                                  quiet=True), tap=tap)
         try:
             await self.recording.start()
         except BaseException:
@@ -159,7 +159,7 @@ class DemoRig:
 async def run_headless(output: str, seconds: float) -> str | None:
     """The demo without a screen for ``seconds``; the client's error, if it had one."""
     rig = DemoRig(output)
-    await rig.start()
+    await rig.start(tap=None)
     try:
         await asyncio.sleep(seconds)
     finally:

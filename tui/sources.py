@@ -198,11 +198,12 @@ class Tap:
 
 
 class Rig(Protocol):
-    """What runs the proxy: ``start()`` returns the running Recording."""
+    """What runs the proxy: ``start(tap)`` returns the running Recording, its
+    sink wrapped by ``tap`` before any client is accepted."""
 
     output: str
 
-    async def start(self): ...  # noqa: ANN201 - a sniffer.record_run.Recording
+    async def start(self, tap): ...  # noqa: ANN001, ANN201 - a sink wrapper; a sniffer.record_run.Recording
     async def stop(self) -> None: ...
 
 
@@ -214,10 +215,10 @@ class ProxyRig:
         self.output = settings.output
         self.recording = None
 
-    async def start(self):  # noqa: ANN201
+    async def start(self, tap):  # noqa: ANN001, ANN201
         from sniffer.record_run import Recording
 
-        self.recording = Recording(self.settings)
+        self.recording = Recording(self.settings, tap=tap)
         await self.recording.start()
         return self.recording
 
@@ -253,13 +254,12 @@ class LiveSource:
         from sniffer.feed import WriterError
 
         try:
-            self.recording = await self.rig.start()
+            self.recording = await self.rig.start(lambda sink: Tap(sink, self.queue))
         except WriterError as e:
             raise SourceError(str(e)) from None
         except OSError as e:
             raise SourceError(f"cannot listen: {e.strerror or e}") from None
         proxy = self.recording.proxy
-        proxy.sink = Tap(proxy.sink, self.queue)
         self.title = f"{self.title}: {proxy.listen_text} -> {proxy.upstream_text}, recording {self.rig.output}"
         self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
 
