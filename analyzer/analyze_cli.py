@@ -16,6 +16,7 @@ from typing import IO, Any
 import click
 
 from analyzer.cli import fail
+from analyzer.report.formats import FORMATS
 
 _SEVERITIES = ["info", "warning", "error"]
 
@@ -150,7 +151,7 @@ def _analyse_in_worker(args: tuple[Path, str]):
 
 @click.command("analyze")
 @click.argument("inputs", nargs=-1, required=False, metavar="FILE_OR_FOLDER...")
-@click.option("--format", "fmt", type=click.Choice(["text", "json", "junit", "markdown", "html"]), default="text",
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="text",
               show_default=True, help="Report format; text is coloured on a terminal.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, writable=True), default=None,
               help="Write the report to this file instead of standard output.")

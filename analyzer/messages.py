@@ -236,7 +236,3 @@ class CameraImage(Message):
 
     def describe(self) -> str:
         return f"Camera image ({self.format}, {len(self.data)} bytes)"
-
-
-# Requests whose answer the session pairs, and what answers them.
-EXPECTS_RESPONSE = (FetchConfiguration, FetchCameraImage, SensorRequest, ServoPositionRequest)

@@ -10,12 +10,12 @@ import asyncio
 import sys
 from pathlib import Path
 
-from analyzer import messages as m
 from analyzer.examples import SCENARIOS
 from sniffer.client import Client, HandshakeError
 from sniffer.dialogue import Dialogue
 from sniffer.record_run import Recording, RecordSettings
 from sniffer.simulator import Simulator
+from sniffer.tour import every_command
 
 HERE = Path(__file__).parent
 LOCAL = "127.0.0.1"
@@ -35,33 +35,14 @@ async def recorded(upstream_port: int, path: Path, session) -> None:  # noqa: AN
     print(f"wrote {path.relative_to(HERE.parent)}")
 
 
-async def every_command(client: Client) -> None:
-    """Every command of the spec, with pauses so the servo travel shows."""
-    await client.fetch_configuration()
-    for channel in (12, 13):
-        await client.sensor(channel)
-    await client.normal_send(0, 1500)
-    for _ in range(5):
-        await client.servo_position(0)
-        await asyncio.sleep(0.1)
-    await client.activate_switch(6)
-    await client.deactivate_switch(6)
-    await client.play_internal_script(120)
-    await client.stop_internal_script()
-    await client.play_external_script(272)
-    await client.stop_external_script()
-    await client.set_configuration(tuple(m.SetConfigEntry(12, port, 0) for port in range(6)))
-    await client.fetch_camera_image()
-    for _ in range(10):
-        await client.sensor(12)
-        await asyncio.sleep(0.05)
-
-
 async def clean_winsock() -> None:
     async with Simulator(mode="winsock", password=PASSWORD, seed=1) as sim:
         async def session(port: int) -> None:
             async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
                 await every_command(client)
+                for _ in range(10):
+                    await client.sensor(12)
+                    await asyncio.sleep(0.05)
         await recorded(sim.port, HERE / "clean-winsock.mcap", session)
 
 

@@ -258,7 +258,6 @@ class RecordingProxy:
         self.on_connection = on_connection
         self.clock = Clock()
         self.connections: dict[int, Connection] = {}
-        self.total_connections = 0
         self._ids = itertools.count(1)
         self._server: asyncio.AbstractServer | None = None
         self._paused = False
@@ -283,7 +282,6 @@ class RecordingProxy:
     def _accept(self) -> _Leg:
         conn = Connection(self, next(self._ids))
         self.connections[conn.id] = conn
-        self.total_connections += 1
         if self._paused:
             conn.client.pause("recorder")
             conn.upstream.pause("recorder")

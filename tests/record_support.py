@@ -25,7 +25,8 @@ from analyzer.recording import (
     rebuild_streams,
     stream_bytes,
 )
-from sniffer.record_run import RecordSettings, Recording
+from sniffer.record_run import Recording, RecordSettings
+from sniffer.tcp_server import TcpServer
 
 LOCAL = "127.0.0.1"
 WAIT = 20.0  # generous bound for anything a test waits on; never a timing assertion
@@ -34,14 +35,14 @@ WAIT = 20.0  # generous bound for anything a test waits on; never a timing asser
 # -- loopback servers ------------------------------------------------------------------------
 
 
-class EchoServer:
+class EchoServer(TcpServer):
     """Echoes every byte; answers a FIN with a FIN.  Keeps what each connection sent."""
 
     def __init__(self) -> None:
+        super().__init__(LOCAL, 0)
         self.received: list[bytearray] = []
-        self._server: asyncio.AbstractServer | None = None
 
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         got = bytearray()
         self.received.append(got)
         try:
@@ -56,28 +57,17 @@ class EchoServer:
         finally:
             writer.close()
 
-    async def __aenter__(self) -> EchoServer:
-        self._server = await asyncio.start_server(self._handle, LOCAL, 0, backlog=512)
-        return self
 
-    async def __aexit__(self, *exc: object) -> None:
-        self._server.close()
-
-    @property
-    def port(self) -> int:
-        return self._server.sockets[0].getsockname()[1]
-
-
-class ScriptedServer:
+class ScriptedServer(TcpServer):
     """Reads an 8-byte tag, then sends ``replies[tag]`` in its given pieces,
     half-closes, and reads the client's bytes until the client's FIN."""
 
     def __init__(self) -> None:
+        super().__init__(LOCAL, 0)
         self.replies: dict[bytes, list[bytes]] = {}
         self.received: dict[bytes, bytes] = {}
-        self._server: asyncio.AbstractServer | None = None
 
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
             tag = await reader.readexactly(8)
             for piece in self.replies[tag]:
@@ -89,17 +79,6 @@ class ScriptedServer:
             pass
         finally:
             writer.close()
-
-    async def __aenter__(self) -> ScriptedServer:
-        self._server = await asyncio.start_server(self._handle, LOCAL, 0, backlog=512)
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        self._server.close()
-
-    @property
-    def port(self) -> int:
-        return self._server.sockets[0].getsockname()[1]
 
 
 def closed_port() -> int:

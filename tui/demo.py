@@ -15,8 +15,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from analyzer import messages as m
 from sniffer.client import Client, ClientError
+from sniffer.tour import SPEC_EXAMPLE_ENTRIES, every_command
 
 LOCAL = "127.0.0.1"
 PASSWORD = "progwhiz"
@@ -35,24 +35,10 @@ DELIBERATE_RULES = ("PW-SETCFG-CHECKSUM", *(rule for _, rule in DELIBERATE), "PW
                     "PW-PAIR-UNANSWERED")
 
 
-async def every_command(client: Client) -> None:
-    """Every command of the spec once, the deliberate violations among them."""
-    await client.fetch_configuration()
-    for channel in (12, 13, 14):
-        await client.sensor(channel)
-    await client.normal_send(0, 1800)
-    await client.servo_position(0)
-    await client.activate_switch(6)
-    await client.deactivate_switch(6)
-    await client.play_internal_script(120)
-    await asyncio.sleep(0.3)
-    await client.stop_internal_script()
-    await client.play_external_script(272)
-    await client.stop_external_script()
-    entries = tuple(m.SetConfigEntry(12, port, 0) for port in range(6))
-    await client.set_configuration(entries)  # the right checksum (72, as in the spec's example)
-    await client.set_configuration(entries, checksum=73)  # a wrong one: PW-SETCFG-CHECKSUM
-    await client.fetch_camera_image()
+async def every_command_with_mistakes(client: Client) -> None:
+    """Every command of the spec once, then the deliberate violations."""
+    await every_command(client)
+    await client.set_configuration(SPEC_EXAMPLE_ENTRIES, checksum=73)  # a wrong one: PW-SETCFG-CHECKSUM
     for data, _rule in DELIBERATE:
         await client.send_raw(data)
         await asyncio.sleep(PACE_S)
@@ -101,7 +87,7 @@ async def demo_client(port: int, stop: asyncio.Event) -> None:
     """What the demo's robot client does, until ``stop`` is set."""
     await wrong_password(port)
     async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
-        await every_command(client)
+        await every_command_with_mistakes(client)
         await busy_robot(client, stop)
 
 

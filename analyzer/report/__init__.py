@@ -16,12 +16,11 @@ from analyzer.text import escape
 
 REPORT_SCHEMA_ID = "whiztap.report"
 REPORT_VERSION = 1
-FORMATS = ("text", "json", "junit", "markdown", "html")
 
 
 def build(analysis: Analysis, threshold: Severity = Severity.ERROR,
           ignore: frozenset[str] = frozenset()) -> dict[str, Any]:
-    """The report as plain data (the JSON format, documented in docs/report-format.md)."""
+    """The report as plain data (the JSON format, documented in docs/analyze.md)."""
     counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
     by_severity = {str(s): 0 for s in (Severity.ERROR, Severity.WARNING, Severity.INFO)}
     for rule_id, n in counts.items():
