@@ -160,10 +160,14 @@ class Drift:
     p50_ns: int
     p99_ns: int
     max_ns: int
+    shift_ns: int = 0  # the most a slow handshake moved a connection's schedule
 
     def text(self) -> str:
-        return (f"drift from schedule over {self.count} writes: p50 {self.p50_ns / 1e6:.3f} ms, "
+        text = (f"drift from schedule over {self.count} writes: p50 {self.p50_ns / 1e6:.3f} ms, "
                 f"p99 {self.p99_ns / 1e6:.3f} ms, max {self.max_ns / 1e6:.3f} ms")
+        if self.shift_ns:
+            text += f" (schedule moved up to {self.shift_ns / 1e6:.3f} ms later by the server's handshake)"
+        return text
 
 
 @dataclass(frozen=True)
@@ -266,9 +270,15 @@ class _Pacer:
         except TimeoutError:
             pass
 
-    async def turn(self, t_rec: int, recorded: bool, write: bool) -> int | None:
+    def late_by(self, t_rec: int) -> int:
+        """How far now is past the time ``t_rec`` is due (0 when not yet due)."""
+        return max(0, time.perf_counter_ns() - self.due(t_rec))
+
+    async def turn(self, t_rec: int, recorded: bool, write: bool, lag_ns: int = 0) -> int | None:
         """Wait until something recorded at ``t_rec`` may happen; the due time.
 
+        ``lag_ns`` shifts the due time (a connection whose server answered its
+        handshake later than recorded keeps its gaps, not its clock times).
         Only writes take a step; opening a connection waits out a pause unless
         a step is pending (the step's write needs the connection)."""
         while True:
@@ -288,7 +298,7 @@ class _Pacer:
             if not recorded:
                 self._after_write(write)
                 return None
-            due = self.due(t_rec)
+            due = self.due(t_rec) + lag_ns
             remaining = due - time.perf_counter_ns()
             if remaining > SPIN_NS:
                 await self.changed((remaining - SPIN_NS) / NS)
@@ -323,6 +333,7 @@ class _Tally:
     counts: Counter = field(default_factory=Counter)
     differences: list[ResponseCompared] = field(default_factory=list)
     drift: LatencyStats = field(default_factory=LatencyStats)
+    shift_ns: int = 0
     writes: int = 0
     connections: int = 0
 
@@ -345,8 +356,19 @@ class _Connection:
         self.eof = False
         self.closed_by = ""
         self.sent_items: set[int] = set()
+        self.lag_ns = 0  # how much later than recorded the server let this connection go on
         self._wake = asyncio.Event()
         self._reader_task = asyncio.create_task(self._read())
+
+    def waited_for_server(self, step: int) -> None:
+        """The client had to wait for the server's ``step``-th handshake item:
+        when it came later than recorded, the writes after it keep their
+        recorded gaps from it rather than their clock times."""
+        recorded = self.plan.recorded.handshake
+        if step < len(recorded) and self.replay.options.pace is Pace.RECORDED:
+            self.lag_ns = max(self.lag_ns, self.replay._pacer.late_by(recorded[step].item.t_end_ns))
+            tally = self.replay._tally
+            tally.shift_ns = max(tally.shift_ns, self.lag_ns)
 
     # -- input ---------------------------------------------------------------------------
 
@@ -556,7 +578,7 @@ class Replay:
         drift = None
         if self.options.pace is Pace.RECORDED and t.drift.count:
             d = t.drift
-            drift = Drift(d.count, d.percentile(50), d.percentile(99), d.max)
+            drift = Drift(d.count, d.percentile(50), d.percentile(99), d.max, t.shift_ns)
         result = ReplayResult(t.connections, t.writes, dict(t.counts), tuple(t.differences), drift,
                               self._pacer.stopped, error)
         self._emit(Finished(result))
@@ -615,7 +637,7 @@ class Replay:
                 for send in p.sends:
                     if c.eof:
                         break
-                    due = await pacer.turn(send.t_ns, recorded, write=True)
+                    due = await pacer.turn(send.t_ns, recorded, write=True, lag_ns=c.lag_ns)
                     await c.write(send.data, send.items, send.t_ns, due)
                     if options.pace is Pace.LOCKSTEP:
                         await c.wait(c.answered(c.waiting_for(send, lockstep=True)), options.timeout)
@@ -654,11 +676,13 @@ class Replay:
             return True  # no sendchkpass: send the commands anyway, the difference is reported
         if not isinstance(c.handshake[0].message, SendCheckPassword):
             return True
-        due = await self._pacer.turn(c.plan.password_t_ns, recorded, write=True)
+        c.waited_for_server(0)
+        due = await self._pacer.turn(c.plan.password_t_ns, recorded, write=True, lag_ns=c.lag_ns)
         password = c.plan.recorded.password
         items = (password,) if password is not None else ()
         await c.write((self.password or b"") + c.plan.password_tail, items, c.plan.password_t_ns, due)
         await c.wait(lambda: len(c.handshake) >= 2, timeout)
+        c.waited_for_server(1)
         return not (len(c.handshake) >= 2 and isinstance(c.handshake[1].message, FailedValidation))
 
     # -- bookkeeping ---------------------------------------------------------------------------
