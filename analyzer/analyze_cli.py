@@ -54,9 +54,9 @@ def scan_recording(path: Path, stream: IO[bytes]) -> Iterator[Any]:
     Raises ``click`` errors with one-line messages for files that are not
     readable recordings, or end before their footer.
     """
-    from analyzer.recording import TOPIC_EVENTS, TOPIC_READS, RecordingError, RecordingScan
+    from analyzer.recording import STREAM_TOPICS, RecordingError, RecordingScan
 
-    scan = RecordingScan(stream, (TOPIC_READS, TOPIC_EVENTS))
+    scan = RecordingScan(stream, STREAM_TOPICS)
     try:
         yield from scan.stream()
     except RecordingError as e:

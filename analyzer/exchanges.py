@@ -22,8 +22,7 @@ from analyzer.recording import (
     EV_HALF_CLOSED,
     EV_OPENED,
     METADATA_NAME,
-    TOPIC_EVENTS,
-    TOPIC_READS,
+    STREAM_TOPICS,
     Read,
     RecordingError,
     RecordingScan,
@@ -166,7 +165,7 @@ def load_exchanges(path: str) -> RecordedSessions:
     start_ns: int | None = None
     last_ns = 0
     with open(path, "rb") as f:
-        scan = RecordingScan(f, (TOPIC_READS, TOPIC_EVENTS))
+        scan = RecordingScan(f, STREAM_TOPICS)
         for record in _records(scan):
             if isinstance(record, Read):
                 if start_ns is None:

@@ -147,6 +147,11 @@ SCHEMAS: dict[str, dict] = {
 }
 
 # topic -> schema name, in registration order (channel ids follow it).
+# What a reader of byte streams needs (the analyzer, replay, the TUI): the TCP
+# reads and the connection events, in arrival order.  The writer keeps them in
+# chunks of their own, so such a reader decompresses nothing else.
+STREAM_TOPICS = (TOPIC_READS, TOPIC_EVENTS)
+
 TOPICS: dict[str, str] = {
     TOPIC_READS: "whiztap.TcpRead",
     TOPIC_EVENTS: "whiztap.ConnectionEvent",
@@ -508,6 +513,8 @@ class RecordingScan:
         return offsets
 
     def _chunk(self, body: bytes, offsets: list[int] | None) -> Iterator[tuple[int, str, bytes, int, int]]:
+        if offsets is not None and not offsets:
+            return  # indexed, and nothing wanted in it: not even decompressed
         _start, _end, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
         compression, pos = _string(body, _CHUNK_HEAD.size)
         n = _U64.unpack_from(body, pos)[0]
@@ -528,8 +535,6 @@ class RecordingScan:
                     yield log_time(records, pos + 15)[0], wanted[channel], records, pos + _MESSAGE_DATA_AT, \
                         pos + 9 + length
             return
-        if offsets is not None:
-            return  # indexed, and nothing wanted in it
         pos, end = 0, len(records)
         wanted = self._wanted_ids()
         while pos < end:

@@ -1,6 +1,7 @@
 """`whiztap analyze` end to end on a recording of a million frames.
 
-The recording is written once (cached in the system's temp folder) by the real
+The recording is written once (cached in the system's temp folder, named after
+a digest of the code that writes recordings) by the real
 Recorder and RecordingFile, from the same mixed session bench_core frames: a
 pipelined client whose reads hold many frames.  A second, lockstep-shaped file
 has one frame per read, the worst case for the per-read cost.  Throughput is
@@ -51,8 +52,23 @@ def _write(path: Path, blocks: list[tuple[bytes, bytes]], read_size: int | None)
         os.replace(written, path)
 
 
+def _writer_digest() -> str:
+    """Changes whenever the code that lays out a recording does."""
+    import hashlib
+
+    import analyzer.recording
+    import sniffer.mcapwriter
+    import sniffer.recorder
+    import sniffer.writer
+
+    digest = hashlib.sha256()
+    for module in (analyzer.recording, sniffer.mcapwriter, sniffer.recorder, sniffer.writer):
+        digest.update(Path(module.__file__).read_bytes())
+    return digest.hexdigest()[:10]
+
+
 def recording(name: str, frames: int, read_size: int | None) -> Path:
-    path = Path(tempfile.gettempdir()) / f"whiztap-bench-{name}-{frames}.mcap"
+    path = Path(tempfile.gettempdir()) / f"whiztap-bench-{name}-{frames}-{_writer_digest()}.mcap"
     if not path.exists():
         _write(path, mixed_session(frames // 6), read_size)
     return path

@@ -12,7 +12,12 @@ with the TypeScript @mcap/core reader, CRC checks on.
 
 Unlike the reference writer, schemas and channels are written as soon as they
 are registered, before any chunk, so a file cut short anywhere still says
-what its channels are.  Single-threaded, like the reference writer.
+what its channels are.  And a channel can be registered into a chunk group of
+its own: its messages then go into chunks that hold only that group, so a
+reader that wants only those channels (the analyzer wants the TCP reads, not
+the frames decoded from them) decompresses only their chunks.  Chunks of
+different groups overlap in time, which MCAP allows; within a channel, file
+order is still time order.  Single-threaded, like the reference writer.
 """
 
 from __future__ import annotations
@@ -70,6 +75,16 @@ def _compressor(compression: str):  # noqa: ANN202 - bytes -> bytes
     raise ValueError(f"unknown compression {compression!r}: expected zstd, lz4 or ''")
 
 
+class _OpenChunk:
+    """The messages of one chunk group not yet written, and their index."""
+
+    __slots__ = ("records", "index")
+
+    def __init__(self) -> None:
+        self.records = bytearray()
+        self.index: dict[int, list[tuple[int, int]]] = {}  # channel -> (log time, offset in chunk)
+
+
 class McapWriter:
     """Writes one MCAP file to ``stream`` (anything with write, tell and flush)."""
 
@@ -81,8 +96,8 @@ class McapWriter:
         self._schemas: list[bytes] = []  # record bytes, repeated in the summary
         self._channels: list[bytes] = []
         self._counts: dict[int, int] = {}  # messages per channel
-        self._chunk = bytearray()
-        self._index: dict[int, list[tuple[int, int]]] = {}  # channel -> (log time, offset in chunk)
+        self._group_of: dict[int, int] = {}  # channel -> chunk group
+        self._chunks: list[_OpenChunk] = [_OpenChunk()]  # the open chunk of each group
         self._chunk_indexes: list[bytes] = []
         self._metadata_indexes: list[bytes] = []
         self._start = self._end = None  # message times over the file
@@ -99,17 +114,21 @@ class McapWriter:
         self._stream.write(record)
         return schema_id
 
-    def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int, group: int = 0) -> int:
+        """``group``: channels of the same group share chunks; 0 is the default group."""
         channel_id = len(self._channels) + 1
         record = _record(OP_CHANNEL, struct.pack("<HH", channel_id, schema_id) + _str(topic)
                          + _str(message_encoding) + _map({}))
         self._channels.append(record)
         self._counts[channel_id] = 0
+        while len(self._chunks) <= group:
+            self._chunks.append(_OpenChunk())
+        self._group_of[channel_id] = group
         self._stream.write(record)
         return channel_id
 
     def add_metadata(self, name: str, values: dict[str, str]) -> None:
-        self._finish_chunk()
+        self._finish_chunks()
         offset = self._stream.tell()
         record = _record(OP_METADATA, _str(name) + _map(values))
         self._stream.write(record)
@@ -117,33 +136,38 @@ class McapWriter:
                                               + _str(name)))
 
     def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
-        """Append a message (publish time = log time) to the open chunk."""
-        chunk = self._chunk
-        index = self._index.get(channel_id)
+        """Append a message (publish time = log time) to its group's open chunk."""
+        open_chunk = self._chunks[self._group_of[channel_id]]
+        chunk = open_chunk.records
+        index = open_chunk.index.get(channel_id)
         if index is None:
-            index = self._index[channel_id] = []
+            index = open_chunk.index[channel_id] = []
         index.append((log_time, len(chunk)))
         chunk += _MESSAGE.pack(OP_MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
         chunk += data
         if len(chunk) >= self.chunk_size:
-            self._finish_chunk()
+            self._finish_chunk(open_chunk)
 
     @property
     def pending(self) -> int:
-        """Bytes in the open chunk (not yet on the stream)."""
-        return len(self._chunk)
+        """Bytes in the open chunks (not yet on the stream)."""
+        return sum(len(c.records) for c in self._chunks)
 
     def flush(self) -> None:
-        """Close the open chunk and flush the stream: everything so far is on disk."""
-        self._finish_chunk()
+        """Close the open chunks and flush the stream: everything so far is on disk."""
+        self._finish_chunks()
         self._stream.flush()
 
-    def _finish_chunk(self) -> None:
-        if not self._index:
+    def _finish_chunks(self) -> None:
+        for open_chunk in self._chunks:
+            self._finish_chunk(open_chunk)
+
+    def _finish_chunk(self, open_chunk: _OpenChunk) -> None:
+        if not open_chunk.index:
             return
-        records = bytes(self._chunk)
-        start = min(min(index)[0] for index in self._index.values())
-        end = max(max(index)[0] for index in self._index.values())
+        records = bytes(open_chunk.records)
+        start = min(min(index)[0] for index in open_chunk.index.values())
+        end = max(max(index)[0] for index in open_chunk.index.values())
         compressed = self._compress(records)
         chunk = _record(OP_CHUNK, struct.pack("<QQQI", start, end, len(records), zlib.crc32(records))
                         + _str(self.compression) + struct.pack("<Q", len(compressed)) + compressed)
@@ -153,7 +177,7 @@ class McapWriter:
         index_offset = stream.tell()
         offsets = bytearray()
         indexes = bytearray()
-        for channel_id, index in self._index.items():
+        for channel_id, index in open_chunk.index.items():
             offsets += struct.pack("<HQ", channel_id, index_offset + len(indexes))
             entries = struct.pack(f"<{2 * len(index)}Q", *itertools.chain.from_iterable(index))
             indexes += _record(OP_MESSAGE_INDEX, struct.pack("<HI", channel_id, len(entries)) + entries)
@@ -166,12 +190,12 @@ class McapWriter:
                                            + struct.pack("<QQ", len(compressed), len(records))))
         self._start = start if self._start is None else min(self._start, start)
         self._end = end if self._end is None else max(self._end, end)
-        self._chunk.clear()
-        self._index = {}
+        open_chunk.records.clear()
+        open_chunk.index = {}
 
     def finish(self) -> None:
-        """Write the last chunk, the summary and the footer."""
-        self._finish_chunk()
+        """Write the last chunks, the summary and the footer."""
+        self._finish_chunks()
         stream = self._stream
         stream.write(_record(OP_DATA_END, struct.pack("<I", 0)))
         summary_start = stream.tell()

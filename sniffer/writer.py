@@ -24,6 +24,7 @@ from analyzer.recording import (
     METADATA_NAME,
     PROFILE,
     SCHEMA_ENCODING,
+    STREAM_TOPICS,
     TOPICS,
     schema_bytes,
 )
@@ -144,7 +145,8 @@ class RecordingFile:
             for topic, schema in TOPICS.items():
                 if schema not in schema_ids:
                     schema_ids[schema] = writer.register_schema(schema, SCHEMA_ENCODING, schema_bytes(schema))
-                self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, schema_ids[schema])
+                self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, schema_ids[schema],
+                                                                group=int(topic in STREAM_TOPICS))
             self._stream.flush()
         except OSError as e:
             os.close(fd)

@@ -16,12 +16,15 @@ import jsonschema
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from mcap.reader import make_reader
 from mcap.writer import Writer
 
+import analyzer.recording as recording_module
 import sniffer.recorder as recorder_module
 import sniffer.writer as writer_module
 from analyzer.recording import (
     SCHEMAS,
+    STREAM_TOPICS,
     TOPIC_FRAMES,
     TOPIC_READS,
     TOPICS,
@@ -234,6 +237,31 @@ def test_a_truncated_file_reads_up_to_its_last_complete_chunk(tmp_path):
     assert scan.truncated
     with pytest.raises(RecordingError, match="not an MCAP file"):
         RecordingScan(io.BytesIO(b"nope")).reads().__next__()
+
+
+def test_stream_topics_have_chunks_of_their_own_that_readers_of_streams_alone_decompress(tmp_path, monkeypatch):
+    path = tmp_path / "grouped.mcap"
+    rec = _recorder(path, compression="")
+    t = T0
+    for conn in range(1, 4):  # several flushes, so several chunks of each group
+        t = _session(rec, conn, t)
+        rec.file.flush()
+    rec.stop(t + 1)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    topics = {cid: c.topic for cid, c in summary.channels.items()}
+    groups = [{topics[cid] for cid in chunk.message_index_offsets} for chunk in summary.chunk_indexes]
+    stream_chunks = [g for g in groups if g <= set(STREAM_TOPICS)]
+    assert stream_chunks and all(g <= set(STREAM_TOPICS) or not g & set(STREAM_TOPICS) for g in groups)
+    assert len(stream_chunks) < len(groups)  # the frames and the rest are elsewhere
+    decompressed = []
+    real = recording_module._decompress
+    monkeypatch.setattr(recording_module, "_decompress",
+                        lambda *a: decompressed.append(a) or real(*a))
+    with open(path, "rb") as f:
+        reads = list(RecordingScan(f, STREAM_TOPICS).reads())
+    assert len(decompressed) == len(stream_chunks)
+    assert len(reads) == 3 * 12 and {r.conn for r in reads} == {1, 2, 3}
 
 
 def test_mask_and_stream_bytes():

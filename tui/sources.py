@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
-from analyzer.recording import TOPIC_EVENTS, TOPIC_READS, Read, RecordingError, RecordingScan
+from analyzer.recording import STREAM_TOPICS, Read, RecordingError, RecordingScan
 from analyzer.session import Direction
 from tui.model import TrafficModel
 
@@ -76,7 +76,7 @@ class FileSource:
     def _read(self, model: TrafficModel, stop: threading.Event) -> None:
         with open(self.path, "rb") as f:
             counted = _Counting(f, self, stop)
-            scan = RecordingScan(counted, (TOPIC_READS, TOPIC_EVENTS))
+            scan = RecordingScan(counted, STREAM_TOPICS)
             try:
                 _feed_scan(scan, model)
             except _Stopped:
@@ -149,7 +149,7 @@ class FollowSource:
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         with open(self.path, "rb") as f:
-            scan = RecordingScan(GrowingFile(f, stop), (TOPIC_READS, TOPIC_EVENTS), growing=True)
+            scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
             try:
                 _feed_scan(scan, model)
             except _Stopped:
