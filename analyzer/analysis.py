@@ -147,8 +147,11 @@ class Analyzer:
     """Feeds a recording's reads and events through one session per connection."""
 
     def __init__(self, file: str = "", checksum_rule: str = DEFAULT_CHECKSUM_RULE,
-                 answer_timeout_ns: int = 5 * NS, max_violations: int = 10_000) -> None:
+                 answer_timeout_ns: int = 5 * NS, max_violations: int = 10_000, every_event: bool = True) -> None:
+        """``every_event=False``: ``read()`` may leave out clean commands (see
+        ``Session``), for a report, which needs only what they add up to."""
         self.file = file
+        self._every_event = every_event
         self._rule = get_rule(checksum_rule)
         self._timeout = answer_timeout_ns
         self.sessions: dict[int, Session] = {}
@@ -161,7 +164,8 @@ class Analyzer:
     def _session(self, conn: int) -> Session:
         session = self.sessions.get(conn)
         if session is None:
-            session = self.sessions[conn] = Session(self._rule.name, self._timeout)
+            session = self.sessions[conn] = Session(self._rule.name, self._timeout,
+                                                    clean_commands=self._every_event)
             self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
         return session
 

@@ -118,7 +118,7 @@ def analyse_file(path: Path, checksum_rule: str, progress: _Progress | None = No
     from analyzer.analysis import Analyzer
     from analyzer.recording import Read
 
-    analyzer = Analyzer(str(path), checksum_rule)
+    analyzer = Analyzer(str(path), checksum_rule, every_event=False)
     try:
         stream = progress.open(path) if progress else open(path, "rb")
     except OSError as e:

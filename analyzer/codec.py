@@ -286,10 +286,12 @@ _DECODERS = {
     ItemKind.IMAGE: _decode_image,
 }
 # Decoded text frames by bytes: sessions repeat the same commands endlessly, and
-# responses take at most 24 x 8001 well-formed values.  Only these small frames
-# are cached; the limit bounds memory (a few tens of MB at worst) on hostile input.
+# responses take at most 24 x 8001 well-formed values, all of which the response
+# cache can hold (a smaller one, emptied when full, kept missing on long sessions
+# of servo positions).  Only these small frames are cached; the limits bound
+# memory (a few tens of MB at worst) on hostile input.
 _CACHES: dict[ItemKind, dict[bytes, Decoded]] = {ItemKind.COMMAND: {}, ItemKind.RESPONSE: {}}
-_CACHE_LIMIT = 65536  # distinct frames remembered per kind
+_CACHE_LIMITS = {ItemKind.COMMAND: 65536, ItemKind.RESPONSE: (MAX_CHANNEL + 1) * (MAX_SERVO_DATA + 1)}
 
 
 def decode_cache(kind: ItemKind) -> dict[bytes, Decoded]:
@@ -305,7 +307,7 @@ def decode(kind: ItemKind, raw: bytes, reason: Unframed | None = None) -> Decode
         hit = cache.get(raw)
         if hit is None:
             hit = _DECODERS[kind](raw)
-            if len(cache) >= _CACHE_LIMIT:
+            if len(cache) >= _CACHE_LIMITS[kind]:
                 cache.clear()
             cache[raw] = hit
         return hit

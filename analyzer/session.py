@@ -174,8 +174,15 @@ class Session:
         checksum_rule: str = DEFAULT_CHECKSUM_RULE,
         answer_timeout_ns: int = 5_000_000_000,
         max_item: int = DEFAULT_MAX_ITEM,
+        clean_commands: bool = True,
     ) -> None:
+        """``clean_commands=False`` leaves out of the events the commands of
+        established traffic that broke no rule: they are counted and paired all
+        the same (a response's ``answers`` still names them).  For consumers
+        that only aggregate, like ``whiztap analyze``: most frames are such
+        commands, and not handing them over saves a pass over them."""
         self.checksum_rule = get_rule(checksum_rule)
+        self.clean_commands = clean_commands
         self.answer_timeout_ns = answer_timeout_ns
         self.framers = {Direction.C2S: Framer(max_item), Direction.S2C: Framer(max_item)}
         self.state = HandshakeState.START
@@ -265,6 +272,7 @@ class Session:
         command = ItemKind.COMMAND
         direction = Direction.C2S
         ready = self.state is _S.READY
+        every = self.clean_commands
         index = self._index
         fast = 0
         t = None
@@ -283,16 +291,19 @@ class Session:
             if pending and t - pending[0][4] > timeout:
                 self._expire(t, events)
             message, candidates, violations, answer_kind, channel, certain = plan
-            obs = _new(Observation, (index, direction, item, message, candidates, violations, None, None))
             index += 1
             fast += 1
             if violations:
                 for v in violations:
                     self.violation_counts[v.rule_id] += 1
+            elif answer_kind is None and not every:
+                continue  # nobody will see it
+            obs = _new(Observation, (index - 1, direction, item, message, candidates, violations, None, None))
             if answer_kind is not None:
                 pending.append(_new(_Pending, (obs, answer_kind, channel, certain, t)))
                 self._certain += certain
-            append(obs)
+            if every or violations:
+                append(obs)
         if fast:
             self._index = index
             self._commands += fast
@@ -308,7 +319,7 @@ class Session:
         timeout = self.answer_timeout_ns
         response = ItemKind.RESPONSE
         direction = Direction.S2C
-        latencies = self.latencies
+        waited: dict[str, list[int]] = {}  # latencies by request title, added in bulk at the end
         known = decode_cache(response)
         ready = self.state is _S.READY
         index = self._index
@@ -326,7 +337,11 @@ class Session:
                     if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
                         pending.popleft()
                         self._certain -= 1
-                        latencies[asked.title].add(t - t_request)
+                        title = asked.title
+                        batch = waited.get(title)
+                        if batch is None:
+                            batch = waited[title] = []
+                        batch.append(t - t_request)
                         append(_new(Observation, (index, direction, item, message, candidates, (),
                                                   request, t - t_request)))
                         index += 1
@@ -343,6 +358,8 @@ class Session:
             self.counts[(direction, response)] += fast
             self._last_kind[direction] = response
             self.last_t_ns = t
+        for title, batch in waited.items():
+            self.latencies[title].add_many(batch)
         return events
 
     def _observe(self, direction: Direction, item: Item, events: list[Event]) -> None:

@@ -11,7 +11,10 @@ import jsonschema
 import pytest
 from junitparser import Failure, JUnitXml, Skipped
 
-from analyzer.recording import rebuild_streams, stream_bytes
+from analyzer.analysis import Analyzer
+from analyzer.analyze_cli import scan_recording
+from analyzer.recording import Read, rebuild_streams, stream_bytes
+from analyzer.report import build
 from analyzer.report.schema import REPORT_SCHEMA
 from analyzer.rules import RULES
 
@@ -41,6 +44,22 @@ def test_clean_samples_pass_with_nothing_to_report(sample):
     code, data = report(sample)
     assert code == 0 and data["passed"]
     assert data["rule_counts"] == {} and data["violations"] == []
+
+
+@pytest.mark.parametrize("sample", [CLEAN, VPN, FAILED, VIOLATIONS])
+def test_a_report_is_the_same_whether_clean_commands_come_out_as_events_or_not(sample):
+    """analyze leaves them out for speed (Analyzer(every_event=False)); cat and the TUI do not."""
+    def report_data(every_event: bool) -> dict:
+        analyzer = Analyzer(str(sample), every_event=every_event)
+        with open(sample, "rb") as f:
+            for record in scan_recording(sample, f):
+                if type(record) is Read:
+                    analyzer.read(record.conn, record.dir, record.t_ns, record.data)
+                else:
+                    analyzer.event(record)
+        return build(analyzer.finish())
+
+    assert report_data(every_event=False) == report_data(every_event=True)
 
 
 def test_clean_winsock_summary():

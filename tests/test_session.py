@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from analyzer import messages as m
 from analyzer.codec import encode
 from analyzer.examples import CONFIG, SCENARIOS, VPN_OPEN, WINSOCK_OPEN
+from analyzer.framing import ItemKind
 from analyzer.rules import RULES
 from analyzer.session import Direction, HandshakeState, LateViolation, Mode, Observation, Session
 from tests.streams import TINY_JPEG, chunked
@@ -208,9 +209,27 @@ def test_fast_path_matches_the_general_path(exchanges, batch, winsock):
         script.append((C, b"".join(c for c, _ in group)))
         script.append((S, b"".join(s for _, s in group)))
     script = [(d, data) for d, data in script if data]
-    fast = run(script, session=Session(answer_timeout_ns=3_500_000))[1]
+    fast_session, fast = run(script, session=Session(answer_timeout_ns=3_500_000))
     slow = run(script, session=SlowSession(answer_timeout_ns=3_500_000))[1]
     assert _shape(fast) == _shape(slow)
+    # without clean commands as events: the rest is the same, and so is every total
+    quiet_session, quiet = run(script, session=Session(answer_timeout_ns=3_500_000, clean_commands=False))
+    full, lean = _shape(fast), _shape(quiet)
+    missing = []
+    j = 0
+    for e, shape in zip(fast, full):
+        if j < len(lean) and lean[j] == shape:
+            j += 1
+        else:
+            missing.append(e)
+    assert j == len(lean)  # the lean events are the full ones, in order, less some
+    assert all(isinstance(e, Observation) and e.direction is C and e.item.kind is ItemKind.COMMAND
+               and not e.violations for e in missing)
+    a, b = fast_session, quiet_session
+    assert (a.counts, a.violation_counts, a.state, a.channel_map) == (b.counts, b.violation_counts, b.state,
+                                                                       b.channel_map)
+    assert {k: (v.count, v.total, v.histogram()) for k, v in a.latencies.items()} == \
+        {k: (v.count, v.total, v.histogram()) for k, v in b.latencies.items()}
 
 
 def test_pairing_stays_linear_when_a_client_pipelines_before_the_channel_map():

@@ -13,14 +13,20 @@ def exact_percentile(values, p):
     return ordered[max(1, round(p / 100 * len(ordered))) - 1]
 
 
-@given(st.lists(st.integers(0, 10**11), min_size=1, max_size=300), st.sampled_from([50, 95, 99, 100]))
-def test_percentiles_within_one_percent(values, p):
-    stats = LatencyStats()
+@given(st.lists(st.integers(0, 10**11), min_size=1, max_size=300), st.sampled_from([50, 95, 99, 100]),
+       st.integers(1, 50))
+def test_percentiles_within_one_percent(values, p, batch):
+    """Added one by one or in batches (as the session adds a read's answers)."""
+    singly, batched = LatencyStats(), LatencyStats()
     for v in values:
-        stats.add(v)
+        singly.add(v)
+    for i in range(0, len(values), batch):
+        batched.add_many(values[i:i + batch])
     exact = exact_percentile(values, p)
-    assert abs(stats.percentile(p) - exact) <= max(1, exact // 100)
-    assert stats.count == len(values) and stats.max == max(values)
+    for stats in (singly, batched):
+        assert abs(stats.percentile(p) - exact) <= max(1, exact // 100)
+        assert (stats.count, stats.total, stats.min, stats.max) == (len(values), sum(values), min(values), max(values))
+    assert batched.histogram() == singly.histogram()
 
 
 def test_merge_equals_adding_everything():
