@@ -5,8 +5,12 @@ a digest of the code that writes recordings) by the real
 Recorder and RecordingFile, from the same mixed session bench_core frames: a
 pipelined client whose reads hold many frames.  A second, lockstep-shaped file
 has one frame per read, the worst case for the per-read cost.  Throughput is
-CPU time of one process (time.process_time), best of three; memory is the peak
-resident size of a fresh process analysing half the file and the whole file.
+CPU time of one process (time.process_time), best of three.  Since this
+machine's speed drifts by up to 2x from one minute to the next, mcap's own
+Python reader takes turns with the analysis on a file of small messages (what
+the issue's reference figure of 110,000 messages/s was quoted for), and the
+ratio of the two is printed too.  Memory is the peak resident size of a fresh
+process analysing half the file and the whole file.
 """
 
 from __future__ import annotations
@@ -74,19 +78,62 @@ def recording(name: str, frames: int, read_size: int | None) -> Path:
     return path
 
 
+REFERENCE_MESSAGES = 200_000
+REFERENCE_RATE = 110_000  # what the issue measured the mcap reader at, messages/s
+
+
+def _reference_file() -> Path:
+    """Small messages (16-byte frames, one message each) written by mcap's own
+    writer: what the mcap reader's speed was quoted for."""
+    path = Path(tempfile.gettempdir()) / f"whiztap-bench-mcap-reference-{REFERENCE_MESSAGES}.mcap"
+    if not path.exists():
+        from mcap.writer import Writer
+
+        part = Path(str(path) + ".tmp")
+        with open(part, "wb") as f:
+            writer = Writer(f)
+            writer.start()
+            schema = writer.register_schema("frame", "jsonschema", b"{}")
+            channel = writer.register_channel("/frames", "json", schema)
+            for i in range(REFERENCE_MESSAGES):
+                writer.add_message(channel, i, b"rr1-%02d--0--0-ss1" % (i % 24), i)
+            writer.finish()
+        os.replace(part, path)
+    return path
+
+
 def _analyse_seconds(path: Path) -> tuple[float, int]:
     from analyzer.analyze_cli import analyse_file
+
+    start = time.process_time()
+    analysis = analyse_file(path, "dev-sum")
+    return time.process_time() - start, analysis.frames
+
+
+def _reader_seconds(path: Path) -> float:
+    from mcap.reader import make_reader
+
+    start = time.process_time()
+    with open(path, "rb") as f:
+        count = sum(1 for _ in make_reader(f).iter_messages())
+    assert count == REFERENCE_MESSAGES
+    return time.process_time() - start
+
+
+def _side_by_side(path: Path) -> tuple[float, int, float]:
+    """Best of three, analysis and the mcap reader taking turns, so both see the
+    same machine (its speed drifts by up to 2x here)."""
     from analyzer.throughput import tune_gc
 
     tune_gc()
-    best = float("inf")
+    reference = _reference_file()
+    analyse = reader = float("inf")
     frames = 0
     for _ in range(3):
-        start = time.process_time()
-        analysis = analyse_file(path, "dev-sum")
-        best = min(best, time.process_time() - start)
-        frames = analysis.frames
-    return best, frames
+        seconds, frames = _analyse_seconds(path)
+        analyse = min(analyse, seconds)
+        reader = min(reader, _reader_seconds(reference))
+    return analyse, frames, REFERENCE_MESSAGES / reader
 
 
 def _peak_rss_mib(path: Path) -> float:
@@ -101,9 +148,11 @@ def main() -> None:
     print("== analyze")
     for name, read_size, frames in (("pipelined", READ, FRAMES), ("lockstep", None, FRAMES // 5)):
         path = recording(name, frames, read_size)
-        seconds, observed = _analyse_seconds(path)
-        print(f"{name:10} {observed:>10,} items, {path.stat().st_size / 1e6:6.1f} MB: "
-              f"{observed / seconds:>10,.0f} items/s")
+        seconds, observed, reader_rate = _side_by_side(path)
+        rate = observed / seconds
+        print(f"{name:10} {observed:>10,} items, {path.stat().st_size / 1e6:6.1f} MB: {rate:>10,.0f} items/s; "
+              f"mcap's reader meanwhile {reader_rate:,.0f} messages/s: {rate / reader_rate:.2f}x it "
+              f"(= {rate / reader_rate * REFERENCE_RATE:,.0f}/s where it reads {REFERENCE_RATE:,})")
     half = recording("pipelined", FRAMES // 2, READ)
     whole = recording("pipelined", FRAMES, READ)
     print(f"peak memory analysing {FRAMES // 2:,} frames: {_peak_rss_mib(half):.0f} MiB; "
