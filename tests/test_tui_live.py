@@ -26,8 +26,9 @@ class GrowingRecording:
     """A recording written as ``whiztap record`` writes one: a real Recorder and
     RecordingFile, flushed when the test says so."""
 
-    def __init__(self, path: Path, t_ns: int | None = None) -> None:
-        self.file = RecordingFile(str(path), metadata_record(source="test"))
+    def __init__(self, path: Path, t_ns: int | None = None, split_duration_ns: int | None = None) -> None:
+        metadata = metadata_record(source="test", split_duration=str(split_duration_ns or ""))
+        self.file = RecordingFile(str(path), metadata, split_duration_ns=split_duration_ns)
         self.recorder = Recorder(self.file)
         self.t = time.time_ns() if t_ns is None else t_ns
         self.recorder.start(self.t)
@@ -78,6 +79,34 @@ async def test_follow_shows_what_the_recorder_flushes_and_stops_when_it_finishes
         assert not Path(str(path) + ".part").exists() and path.exists()
         assert app.model.finished and "the recorder finished it" in app.sub_title
         assert app.model.connections()[0].state == "closed by client"
+
+
+async def test_follow_goes_on_to_each_part_of_a_split_recording(tmp_path):
+    path = tmp_path / "split.mcap"
+    growing = GrowingRecording(path, split_duration_ns=10_000_000)
+    growing.exchange(b"rr1-24--0--0-ss1", CONFIG)
+    growing.flush()
+    first = tmp_path / "split-0001.mcap.part"
+    app = WhiztapApp(FollowSource(str(first)))
+    async with app.run_test(size=SIZE) as pilot:
+        frames = app.frames
+        await until(pilot, lambda: frames.rows == 2, "part 1")
+        for part in (2, 3):
+            growing.t += 20_000_000
+            growing.recorder.tick(growing.t)  # the split duration is over: a new part begins
+            assert Path(growing.file.current_path) == tmp_path / f"split-{part:04d}.mcap"
+            growing.exchange(b"rr1-3--0--0-ss1", b"cr1-3--%d--0-ss1" % part)
+            growing.flush()
+            await until(pilot, lambda part=part: frames.rows == 2 * part, f"part {part}")
+            assert f"split-{part:04d}.mcap.part" in app.sub_title
+        assert frames.tail and frames.cursor == 5
+        growing.finish()
+        await until(pilot, lambda: app.fed, "the end of the recording")
+        assert "split-0003.mcap: the recorder finished it" in app.sub_title
+        [connection] = app.model.connections()  # one connection, not one per part
+        assert connection.state == "closed by client"
+        # the answers of parts 2 and 3 were paired with requests as one session
+        assert app.model.analyzer.summaries[1].notes == []
 
 
 async def test_live_mode_records_through_the_proxy_and_shows_frames_as_they_pass(tmp_path):

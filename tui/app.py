@@ -190,6 +190,8 @@ class WhiztapApp(App):
                 and now - self._last_sync < LOADING_TICK_S:
             return
         self._last_sync = now
+        if self.live and self.sub_title != self.source.title:
+            self.sub_title = self.source.title  # a followed recording moved on to its next part
         before = frames.rows
         if frames.sync():
             self.detail.refresh_frame()

@@ -18,7 +18,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
-from analyzer.recording import STREAM_TOPICS, Read, RecordingError, RecordingScan
+from analyzer.recording import (
+    EV_CONTINUED,
+    EV_RECORDING_STOPPED,
+    METADATA_NAME,
+    STREAM_TOPICS,
+    Read,
+    RecordingError,
+    RecordingScan,
+)
 from analyzer.session import Direction
 from tui.model import TrafficModel
 
@@ -39,15 +47,6 @@ class Source(Protocol):
     note: str  # what went wrong or is worth saying once the feed ended ("" if nothing)
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None: ...
-
-
-def _feed_scan(scan: RecordingScan, model: TrafficModel) -> None:
-    read, event = model.read, model.event
-    for record in scan.stream():
-        if type(record) is Read:
-            read(record.conn, record.dir, record.t_ns, record.data)
-        else:
-            event(record)
 
 
 class FileSource:
@@ -136,7 +135,9 @@ class GrowingFile:
 
 
 class FollowSource:
-    """A ``.mcap.part`` that a separate ``whiztap record`` is writing."""
+    """A ``.mcap.part`` that a separate ``whiztap record`` is writing, and, when
+    that recording is split (``--split-size``/``--split-duration``), each part
+    after it as the recorder starts it."""
 
     live = True
     progress = None
@@ -148,17 +149,80 @@ class FollowSource:
         self.note = ""
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
-        with open(self.path, "rb") as f:
-            scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
+        path = self.path
+        moved_on = False
+        while True:
+            self.title = f"following {path}"
             try:
-                _feed_scan(scan, model)
+                with open(path, "rb") as f:
+                    scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
+                    stopped = _feed_scan(scan, model, skip_continued=moved_on)
             except _Stopped:
                 return
             except RecordingError as e:
-                self.note = f"{self.path}: {e}"
+                self.note = f"{path}: {e}"
                 return
-        self.title = f"followed {self.path}: the recorder finished it"
+            except OSError as e:
+                self.note = f"{path}: cannot read ({e.strerror})"
+                return
+            following = None if stopped else _next_part(path, scan.metadata.get(METADATA_NAME, {}))
+            if following is None:
+                break
+            self.title = f"waiting for {following}.part"
+            path = _wait_for_part(following, stop)
+            if path is None:
+                return
+            moved_on = True
+        self.title = f"followed {path.removesuffix('.part')}: the recorder finished it"
         model.finish()
+
+
+def _feed_scan(scan: RecordingScan, model: TrafficModel, skip_continued: bool = False) -> bool:
+    """Feed one file of a recording to the model; whether the recording stopped in it.
+
+    A part that ends without the recording's stop event was closed by a
+    rotation.  The next one starts by saying which connections continue from
+    it: news to someone who opened that part alone, not to the follower, whose
+    model already has them."""
+    read, event = model.read, model.event
+    stopped = False
+    for record in scan.stream():
+        if type(record) is Read:
+            read(record.conn, record.dir, record.t_ns, record.data)
+            continue
+        name = record.get("event")
+        if name == EV_RECORDING_STOPPED:
+            stopped = True
+        elif name == EV_CONTINUED and skip_continued:
+            continue
+        event(record)
+    return stopped
+
+
+def _next_part(path: str, metadata: dict[str, str]) -> str | None:
+    """The final name of the part after ``path`` in a split recording, else None."""
+    from sniffer.writer import part_path
+
+    if not (metadata.get("split_size") or metadata.get("split_duration")) or not metadata.get("part", "").isdigit():
+        return None
+    part = int(metadata["part"])
+    final = path.removesuffix(".part")
+    stem, ext = os.path.splitext(final)
+    suffix = f"-{part:04d}"
+    if not stem.endswith(suffix):
+        return None  # renamed by hand: its neighbours cannot be told
+    return part_path(stem.removesuffix(suffix) + ext, part + 1)
+
+
+def _wait_for_part(final: str, stop: threading.Event) -> str | None:
+    """The next part's file once the recorder has created it (its ``.part``, or
+    the finished file if it is already done); None when told to stop."""
+    while True:
+        for candidate in (final + ".part", final):
+            if os.path.exists(candidate):
+                return candidate
+        if stop.wait(POLL_S):
+            return None
 
 
 # -- live -----------------------------------------------------------------------------------
