@@ -58,6 +58,7 @@ LAYOUT_DATA1 = 25  # Set Configuration's Data1 as one raw byte (the Layout line'
 JPEG_SOI = b"\xff\xd8\xff"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 TEXT_FRAME_MAX = 48  # longest rr1/cr1 frame considered before giving up on a trailer
+SMALL_READ = 512  # reads up to this size first try to be whole text frames
 
 # Fast path: well-formed text frames.  Anything else goes through the slow path,
 # which still frames it (with spaces, letters, wide fields) as long as a trailer
@@ -121,6 +122,14 @@ class Framer:
         if not data:
             return []
         first_new = len(self._buf)
+        if (not first_new and len(data) <= SMALL_READ and not self._password_mode
+                and _TEXT_RUN.fullmatch(data) is not None):
+            # the commonest read of request/response traffic: a whole frame or
+            # two, nothing pending (larger reads rarely end on a frame's end)
+            pieces = data.split(TRAILER)
+            pieces.pop()
+            return [_new_item(Item, (ItemKind.COMMAND if p[0] == 0x72 else ItemKind.RESPONSE, p + TRAILER,
+                                     t_ns, t_ns, None)) for p in pieces]
         self._marks.append((first_new, t_ns))
         if first_new:
             self._buf += data

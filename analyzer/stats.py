@@ -41,9 +41,12 @@ class LatencyStats:
         """``add`` each of them.  Pipelined answers that arrive in one read share
         a few distinct latencies, so counting them first does most of the work
         at C speed."""
-        if not latencies:
+        if len(latencies) < 2:  # one answer per read, as in request/response traffic
+            counts = dict.fromkeys(latencies, 1)
+        else:
+            counts = Counter(latencies)
+        if not counts:
             return
-        counts = Counter(latencies)
         low, high = min(counts), max(counts)
         if not self.count or low < self.min:
             self.min = low
