@@ -279,9 +279,11 @@ def _dispatch(recorder, kind: int, conn: int, direction: int, t: int, payload: b
 
 
 def _run(config: dict[str, Any]) -> int:
+    from analyzer.throughput import tune_gc
     from sniffer.recorder import Recorder
     from sniffer.writer import RecordingFile, RecordingWriteError
 
+    tune_gc()  # bulk work on millions of short-lived tuples, like the batch commands
     stop_requested = False
 
     def on_term(signum: int, frame: object) -> None:

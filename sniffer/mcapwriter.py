@@ -22,9 +22,9 @@ order is still time order.  Single-threaded, like the reference writer.
 
 from __future__ import annotations
 
-import itertools
 import struct
 import zlib
+from collections.abc import Iterable
 from typing import Protocol
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -76,13 +76,16 @@ def _compressor(compression: str):  # noqa: ANN202 - bytes -> bytes
 
 
 class _OpenChunk:
-    """The messages of one chunk group not yet written, and their index."""
+    """The messages of one chunk group not yet written, and their index: for each
+    channel of the group, a flat list of (log time, offset in chunk) pairs.  The
+    lists live as long as the writer and are emptied in place, so a message
+    finds its chunk and its index with one look-up (``McapWriter._slots``)."""
 
     __slots__ = ("records", "index")
 
     def __init__(self) -> None:
         self.records = bytearray()
-        self.index: dict[int, list[tuple[int, int]]] = {}  # channel -> (log time, offset in chunk)
+        self.index: dict[int, list[int]] = {}  # channel -> [log time, offset, log time, offset, ...]
 
 
 class McapWriter:
@@ -96,8 +99,9 @@ class McapWriter:
         self._schemas: list[bytes] = []  # record bytes, repeated in the summary
         self._channels: list[bytes] = []
         self._counts: dict[int, int] = {}  # messages per channel
-        self._group_of: dict[int, int] = {}  # channel -> chunk group
         self._chunks: list[_OpenChunk] = [_OpenChunk()]  # the open chunk of each group
+        # channel -> (its group's open chunk records, its index list, its group's _OpenChunk)
+        self._slots: dict[int, tuple[bytearray, list[int], _OpenChunk]] = {}
         self._chunk_indexes: list[bytes] = []
         self._metadata_indexes: list[bytes] = []
         self._start = self._end = None  # message times over the file
@@ -123,7 +127,9 @@ class McapWriter:
         self._counts[channel_id] = 0
         while len(self._chunks) <= group:
             self._chunks.append(_OpenChunk())
-        self._group_of[channel_id] = group
+        open_chunk = self._chunks[group]
+        index = open_chunk.index[channel_id] = []
+        self._slots[channel_id] = (open_chunk.records, index, open_chunk)
         self._stream.write(record)
         return channel_id
 
@@ -137,16 +143,22 @@ class McapWriter:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
         """Append a message (publish time = log time) to its group's open chunk."""
-        open_chunk = self._chunks[self._group_of[channel_id]]
-        chunk = open_chunk.records
-        index = open_chunk.index.get(channel_id)
-        if index is None:
-            index = open_chunk.index[channel_id] = []
-        index.append((log_time, len(chunk)))
-        chunk += _MESSAGE.pack(OP_MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
-        chunk += data
-        if len(chunk) >= self.chunk_size:
-            self._finish_chunk(open_chunk)
+        self.add_messages(((channel_id, log_time, data),))
+
+    def add_messages(self, messages: Iterable[tuple[int, int, bytes]]) -> None:
+        """``add_message`` for each (channel id, log time, data): the recorder's
+        hot path, one call per TCP read rather than per message."""
+        slots = self._slots
+        pack = _MESSAGE.pack
+        limit = self.chunk_size
+        for channel_id, log_time, data in messages:
+            chunk, index, open_chunk = slots[channel_id]
+            index.append(log_time)
+            index.append(len(chunk))
+            chunk += pack(OP_MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
+            chunk += data
+            if len(chunk) >= limit:
+                self._finish_chunk(open_chunk)
 
     @property
     def pending(self) -> int:
@@ -163,11 +175,12 @@ class McapWriter:
             self._finish_chunk(open_chunk)
 
     def _finish_chunk(self, open_chunk: _OpenChunk) -> None:
-        if not open_chunk.index:
+        indexes_in_use = [(channel_id, index) for channel_id, index in open_chunk.index.items() if index]
+        if not indexes_in_use:
             return
         records = bytes(open_chunk.records)
-        start = min(min(index)[0] for index in open_chunk.index.values())
-        end = max(max(index)[0] for index in open_chunk.index.values())
+        start = min(min(index[0::2]) for _, index in indexes_in_use)
+        end = max(max(index[0::2]) for _, index in indexes_in_use)
         compressed = self._compress(records)
         chunk = _record(OP_CHUNK, struct.pack("<QQQI", start, end, len(records), zlib.crc32(records))
                         + _str(self.compression) + struct.pack("<Q", len(compressed)) + compressed)
@@ -177,12 +190,13 @@ class McapWriter:
         index_offset = stream.tell()
         offsets = bytearray()
         indexes = bytearray()
-        for channel_id, index in open_chunk.index.items():
+        for channel_id, index in indexes_in_use:
             offsets += struct.pack("<HQ", channel_id, index_offset + len(indexes))
-            entries = struct.pack(f"<{2 * len(index)}Q", *itertools.chain.from_iterable(index))
+            entries = struct.pack(f"<{len(index)}Q", *index)
             indexes += _record(OP_MESSAGE_INDEX, struct.pack("<HI", channel_id, len(entries)) + entries)
-            self._counts[channel_id] += len(index)
-            self.message_count += len(index)
+            self._counts[channel_id] += len(index) // 2
+            self.message_count += len(index) // 2
+            index.clear()
         stream.write(bytes(indexes))
         self._chunk_indexes.append(_record(OP_CHUNK_INDEX, struct.pack("<QQQQ", start, end, chunk_offset, len(chunk))
                                            + struct.pack("<I", len(offsets)) + offsets
@@ -191,7 +205,6 @@ class McapWriter:
         self._start = start if self._start is None else min(self._start, start)
         self._end = end if self._end is None else max(self._end, end)
         open_chunk.records.clear()
-        open_chunk.index = {}
 
     def finish(self) -> None:
         """Write the last chunks, the summary and the footer."""

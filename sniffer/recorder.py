@@ -253,15 +253,19 @@ class Recorder:
             self._write_read(reads.popleft())
 
     def _observe_all(self, conn: int, c: _Conn, events: list[Event]) -> None:
-        """Write what the session made of a read: the hot loop of recording."""
-        write = self.file.write
+        """Write what the session made of a read: the hot loop of recording.
+        Its messages go to the file in one call, in the order they were made."""
+        ids = self.file.channel_ids
+        frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
+        out: list[tuple[int, int, bytes]] = []
+        add = out.append
         encode_frame = self._frames.encode
         redact = not self.keep_secrets
         framed = c.framed
         frames = self._frame_counts
         for obs in events:
             if type(obs) is LateViolation:
-                self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)
+                add((violations_id, obs.t_ns, self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)))
                 continue
             item = obs.item
             direction = obs.direction
@@ -275,21 +279,23 @@ class Recorder:
                     if read.conn == conn and read.dir is C2S:
                         read.mask(offset, len(item.raw))
             t = item.t_end_ns
-            write(TOPIC_FRAMES, t, encode_frame(conn, obs, offset, redact))
+            add((frames_id, t, encode_frame(conn, obs, offset, redact)))
             if obs.message is not None:
                 for topic, message in encode_plots(conn, obs):
-                    write(topic, t, message)
+                    add((ids[topic], t, message))
             if kind not in _NOT_FRAMES:
                 frames[direction] += 1
             for v in obs.violations:
-                self._violation(conn, v, obs, t, late=False)
+                add((violations_id, t, self._violation(conn, v, obs, t, late=False)))
+        if out:
+            self.file.write_all(out)
 
-    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool) -> None:
+    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool) -> bytes:
+        """Count and report a violation; its /violations message."""
         self.summary.violations[str(v.severity)] += 1
-        self.file.write(TOPIC_VIOLATIONS, t,
-                        encode(violation_message(conn, v, about, t, late, not self.keep_secrets)))
         if self.on_violation is not None:
             self.on_violation(conn, t, v, about, late)
+        return encode(violation_message(conn, v, about, t, late, not self.keep_secrets))
 
     def _update_hold(self, c: _Conn, read: _Read | None, force: bool = False) -> None:
         """Hold the client's reads while they may end in an unfinished password."""

@@ -135,7 +135,6 @@ class RecordingFile:
         self._good = 0
         writer = McapWriter(self._stream, chunk_size=self.chunk_size, compression=self.compression)
         self._writer = writer
-        self._add = writer.add_message
         self._part_start_ns = t_ns
         metadata = dict(self.metadata, part=str(self.part or 1))
         try:
@@ -155,13 +154,23 @@ class RecordingFile:
         self._good = self._stream.written
         self._last_flush = time.monotonic()
 
+    @property
+    def channel_ids(self) -> dict[str, int]:
+        """Topic -> channel id in the file being written (the same in every part)."""
+        return self._channels
+
     def write(self, topic: str, t_ns: int, data: bytes) -> None:
         """Add one message (its JSON bytes) at ``t_ns``."""
+        self.write_all([(self._channels[topic], t_ns, data)])
+
+    def write_all(self, messages: list[tuple[int, int, bytes]]) -> None:
+        """Add (channel id, t_ns, JSON bytes) messages, ids from ``channel_ids``:
+        what one TCP read produced, in one call."""
         try:
-            self._add(self._channels[topic], t_ns, data)
+            self._writer.add_messages(messages)  # type: ignore[union-attr]
         except OSError as e:
             self._fail(e)
-        self.messages += 1
+        self.messages += len(messages)
         self._dirty = True
 
     def flush(self) -> None:
