@@ -246,8 +246,11 @@ def frame_message(conn: int, obs: Observation, offset: int, redact: bool) -> dic
     }
 
 
-_FRAME_HEAD = '{"conn":%d,"dir":"%s","index":%d,"t_start_ns":%d,"t_end_ns":%d,"offset":%d,"answers":%s,"latency_ns":%s,'
-_DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
+_FRAME_START = b'{"conn":%d,"dir":"%s","index":%d,"t_start_ns":%d,"t_end_ns":%d,"offset":%d,'
+_FRAME_HEAD = _FRAME_START + b'"answers":%s,"latency_ns":%s,'
+_COMMAND_HEAD = _FRAME_START + b'"answers":null,"latency_ns":null,'
+_ANSWER_HEAD = _FRAME_START + b'"answers":%d,"latency_ns":%d,'
+_DIR_BYTES = {d: d.value.encode() for d in Direction}  # Enum.value is a slow property
 _CACHED_RAW_MAX = 256  # longer items (images, unframed runs) are rare: not worth keeping
 _CACHE_LIMIT = 4096  # distinct frames kept; answers with varying values mostly miss anyway
 
@@ -257,32 +260,36 @@ class FrameEncoder:
 
     Real sessions repeat a few hundred distinct frames, so the JSON of the part
     that depends only on the bytes and their meaning (``_frame_static``) is
-    kept, keyed by everything that decides it; each frame then costs one string
-    format for its connection, position, times and pairing.  Passwords are never
-    kept.
+    kept, keyed by everything that decides it; each frame then costs one bytes
+    format for its connection, position, times and pairing (a template each for
+    the two commonest cases: nothing answered, and an answer with its latency).
+    Passwords are never kept.
     """
 
     def __init__(self) -> None:
-        self._cache: dict[tuple, str] = {}
+        self._cache: dict[tuple, bytes] = {}
 
     def encode(self, conn: int, obs: Observation, offset: int, redact: bool) -> bytes:
-        item = obs.item
-        if item.kind is ItemKind.PASSWORD or len(item.raw) > _CACHED_RAW_MAX:
-            static = _dumps(_frame_static(obs, redact))[1:]
+        index, direction, item, message, _, violations, answers, latency = obs
+        kind, raw, t_start, t_end, reason = item
+        if kind is ItemKind.PASSWORD or len(raw) > _CACHED_RAW_MAX:
+            static = _dumps(_frame_static(obs, redact))[1:].encode()
         else:
-            answers = obs.answers
-            key = (item.raw, item.kind, item.reason, obs.direction, type(obs.message),
-                   type(answers.message) if answers is not None else None, obs.violations)
+            key = (raw, kind, reason, message.__class__, None if answers is None else answers[3].__class__,
+                   violations)
             static = self._cache.get(key)  # type: ignore[assignment]
             if static is None:
                 if len(self._cache) >= _CACHE_LIMIT:
                     self._cache.clear()
-                static = self._cache[key] = _dumps(_frame_static(obs, redact))[1:]
-        answers = obs.answers
-        latency = obs.latency_ns
-        return (_FRAME_HEAD % (conn, _DIR_TEXT[obs.direction], obs.index, item.t_start_ns, item.t_end_ns, offset,
-                               "null" if answers is None else answers.index,
-                               "null" if latency is None else latency) + static).encode()
+                static = self._cache[key] = _dumps(_frame_static(obs, redact))[1:].encode()
+        if answers is None and latency is None:
+            return _COMMAND_HEAD % (conn, _DIR_BYTES[direction], index, t_start, t_end, offset) + static
+        if answers is not None and latency is not None:
+            return _ANSWER_HEAD % (conn, _DIR_BYTES[direction], index, t_start, t_end, offset, answers[0],
+                                   latency) + static
+        return _FRAME_HEAD % (conn, _DIR_BYTES[direction], index, t_start, t_end, offset,
+                              b"null" if answers is None else b"%d" % answers[0],
+                              b"null" if latency is None else b"%d" % latency) + static
 
 
 def violation_message(conn: int, violation: Violation, about: Observation | None, t_ns: int,

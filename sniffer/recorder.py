@@ -267,25 +267,23 @@ class Recorder:
             if type(obs) is LateViolation:
                 add((violations_id, obs.t_ns, self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)))
                 continue
-            item = obs.item
-            direction = obs.direction
+            _, direction, item, message, _, violations, _, _ = obs
+            kind, raw, _, t, _ = item
             offset = framed[direction]
-            framed[direction] = offset + len(item.raw)
-            kind = item.kind
+            framed[direction] = offset + len(raw)
             if kind is _PASSWORD and redact:
                 # the client's reads not yet written (held ones, and the one being
                 # processed) are the only ones that can hold it
                 for read in self._reads:
                     if read.conn == conn and read.dir is C2S:
-                        read.mask(offset, len(item.raw))
-            t = item.t_end_ns
+                        read.mask(offset, len(raw))
             add((frames_id, t, encode_frame(conn, obs, offset, redact)))
-            if obs.message is not None:
-                for topic, message in encode_plots(conn, obs):
-                    add((ids[topic], t, message))
+            if message is not None:
+                for topic, plot in encode_plots(conn, obs):
+                    add((ids[topic], t, plot))
             if kind not in _NOT_FRAMES:
                 frames[direction] += 1
-            for v in obs.violations:
+            for v in violations:
                 add((violations_id, t, self._violation(conn, v, obs, t, late=False)))
         if out:
             self.file.write_all(out)
