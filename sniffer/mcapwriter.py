@@ -17,7 +17,8 @@ its own: its messages then go into chunks that hold only that group, so a
 reader that wants only those channels (the analyzer wants the TCP reads, not
 the frames decoded from them) decompresses only their chunks.  Chunks of
 different groups overlap in time, which MCAP allows; within a channel, file
-order is still time order.  Single-threaded, like the reference writer.
+order is still time order.  A flush closes the open chunks in group order.
+Single-threaded, like the reference writer.
 """
 
 from __future__ import annotations

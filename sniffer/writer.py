@@ -144,8 +144,10 @@ class RecordingFile:
             for topic, schema in TOPICS.items():
                 if schema not in schema_ids:
                     schema_ids[schema] = writer.register_schema(schema, SCHEMA_ENCODING, schema_bytes(schema))
+                # the stream topics' chunks first at every flush: a crash then loses
+                # decoded frames before the reads they were decoded from
                 self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, schema_ids[schema],
-                                                                group=int(topic in STREAM_TOPICS))
+                                                                group=0 if topic in STREAM_TOPICS else 1)
             self._stream.flush()
         except OSError as e:
             os.close(fd)
