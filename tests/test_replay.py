@@ -122,7 +122,7 @@ async def test_recorded_pacing_keeps_writing_on_schedule_and_reports_its_drift(e
     sent: list = []
     async with simulator(seed=1, faults=faults) as sim:
         result = await replay(exchanges, options(sim.port, pace=Pace.RECORDED, rules=STRUCTURE, timeout=0.4,
-                                                 rate=2.0), sent)
+                                                 rate=1.0), sent)
     writes = [e for e in sent if isinstance(e, RequestSent)]
     planned = sum(len(p.sends) for p in plan(exchanges, Selection(), False)) + 1  # + the password
     assert len(writes) == result.writes == planned  # no write waited for a dropped answer
@@ -137,6 +137,15 @@ async def test_recorded_pacing_keeps_writing_on_schedule_and_reports_its_drift(e
     # the writes after it keep their recorded gaps from it instead of all leaving late
     assert drift.shift_ns >= 20_000_000 / 2
     assert any(d.status is Status.MISSING for d in result.differences)
+
+
+def test_the_schedule_divides_recorded_gaps_by_the_rate():
+    from sniffer.replay import _Pacer
+
+    pacer = _Pacer(rate=2.0)
+    pacer.anchor(1_000_000_000)
+    assert pacer.due(1_010_000_000) - pacer.due(1_000_000_000) == 5_000_000  # 10 ms recorded, at 2x
+    assert pacer.late_by(10**18) == 0  # not due for decades: not late
 
 
 async def test_exact_segments_resend_the_recorded_reads(exchanges, tmp_path):
