@@ -5,8 +5,11 @@ word; a recording must never invent bytes, so whiztap reassembles itself.  Each
 direction keeps the next sequence number it expects.  A segment at or before it
 is a retransmission (its new part, if any, is used); one after it waits in a
 small buffer for the hole to fill.  A hole is declared a gap (an event, never
-zeros) when the receiver acknowledges bytes the capture never showed, when the
-connection ends, or when too much waits behind it.
+zeros) when the receiver acknowledges bytes the capture never showed, or the
+sender's FIN comes after them, and they still have not shown up
+``ACK_GRACE_NS`` later (a capture taken on several CPUs can list a packet
+after the ACK that answered it); when the connection resets or the capture
+ends; or when too much waits behind it.
 
 Also here: decoding the link, IP and TCP headers of a captured frame by hand,
 which is many times faster than dissecting it with Scapy.
@@ -24,6 +27,7 @@ from analyzer.session import Direction
 
 C2S, S2C = Direction.C2S, Direction.S2C
 MAX_PENDING = 4 << 20  # bytes waiting behind a hole before it is declared a gap
+ACK_GRACE_NS = 200_000_000  # capture time an acknowledged hole waits for its bytes
 MAX_ENDED = 4096  # closed connections remembered
 FIN, SYN, RST, ACK = 0x01, 0x02, 0x04, 0x10
 
@@ -136,6 +140,8 @@ class _Half:
     pending_bytes: int = 0
     fin: int | None = None  # sequence number of the FIN
     done: bool = False  # FIN delivered
+    owed: int | None = None  # bytes up to here were acknowledged (or FIN'd) but not yet seen
+    owed_since: int = 0  # capture time they were first owed
 
 
 @dataclass
@@ -189,13 +195,22 @@ class Reassembler:
             self._data(conn, direction, half, s.seq, s.payload, s.t_ns)
         if s.flags & FIN and half.fin is None:
             half.fin = (s.seq + len(s.payload)) & 0xFFFFFFFF
+            if conn.closed_by is None:
+                conn.closed_by = direction.sender  # the first FIN, even if bytes before it are late
         if s.flags & ACK:
             self._acked(conn, S2C if direction is C2S else C2S, s.ack, s.t_ns)
-        self._maybe_fin(key, conn, direction, s.t_ns)
+        for d in (C2S, S2C):
+            self._settle(conn, d, s.t_ns)
+            self._maybe_fin(key, conn, d, s.t_ns)
 
     def finish(self, t_ns: int) -> None:
         """The capture ended: declare what is missing and close what is open."""
         for key, conn in list(self._conns.items()):
+            for direction in (C2S, S2C):
+                self._settle(conn, direction, t_ns, force=True)
+                self._maybe_fin(key, conn, direction, t_ns)
+            if key not in self._conns:
+                continue  # both sides had closed: nothing more was coming
             for direction, half in conn.halves.items():
                 self._flush_pending(conn, direction, half, t_ns)
             self._end(key)
@@ -273,13 +288,33 @@ class Reassembler:
 
     def _acked(self, conn: _Conn, direction: Direction, ack: int, t: int) -> None:
         """The other side acknowledged ``direction`` up to ``ack``: bytes before it
-        that the capture never showed are gone for good."""
+        that the capture has not shown are owed (``_settle`` decides their fate)."""
         half = conn.halves[direction]
         if half.next is None:
             return
         limit = ack if half.fin is None else min(ack, half.fin, key=lambda q: _diff(q, half.next))
-        if _diff(limit, half.next) <= 0:  # type: ignore[arg-type]
+        if _diff(limit, half.next) > 0:  # type: ignore[arg-type]
+            self._owe(half, limit, t)
+
+    @staticmethod
+    def _owe(half: _Half, limit: int, t: int) -> None:
+        if half.owed is None:
+            half.owed, half.owed_since = limit, t
+        elif _diff(limit, half.owed) > 0:
+            half.owed = limit
+
+    def _settle(self, conn: _Conn, direction: Direction, t: int, force: bool = False) -> None:
+        """Owed bytes that have still not shown up ``ACK_GRACE_NS`` after they were
+        owed (or at once, with ``force``) are gone for good: gaps."""
+        half = conn.halves[direction]
+        if half.owed is None:
             return
+        if _diff(half.owed, half.next) <= 0:  # type: ignore[arg-type]
+            half.owed = None  # they came after all
+            return
+        if not force and t - half.owed_since < ACK_GRACE_NS:
+            return
+        limit, half.owed = half.owed, None
         while half.pending:
             first = min(half.pending, key=lambda q: _diff(q, half.next))  # type: ignore[arg-type]
             if _diff(first, limit) >= 0:
@@ -291,20 +326,20 @@ class Reassembler:
         half = conn.halves[direction]
         if half.fin is None or half.done:
             return
-        if half.pending and _diff(half.fin, half.next) > 0:  # type: ignore[arg-type]
-            self._flush_pending(conn, direction, half, t)
-        self._gap_to(conn, direction, half, half.fin, t)
-        if half.next == half.fin:
-            half.done = True
-            if conn.closed_by is None:
-                conn.closed_by = direction.sender
-            self.sink.half_closed(conn.id, direction, t)
-            if all(h.done for h in conn.halves.values()):
-                self._end(key)
-                self.sink.closed(conn.id, t, conn.closed_by, "closed")
+        if half.next != half.fin:
+            self._owe(half, half.fin, t)  # what came before the FIN may still show up
+            return
+        half.done = True
+        if conn.closed_by is None:
+            conn.closed_by = direction.sender
+        self.sink.half_closed(conn.id, direction, t)
+        if all(h.done for h in conn.halves.values()):
+            self._end(key)
+            self.sink.closed(conn.id, t, conn.closed_by, "closed")
 
     def _reset(self, key: frozenset, conn: _Conn, direction: Direction, t: int) -> None:
         for d, half in conn.halves.items():
+            self._settle(conn, d, t, force=True)
             self._flush_pending(conn, d, half, t)
         self._end(key)
         if direction is S2C and not conn.established:

@@ -88,6 +88,23 @@ def test_retransmissions_reordering_and_duplicates_reassemble_exactly(tmp_path, 
     assert (opened["client"], opened["upstream"]) == ("10.1.1.2:40000", "10.1.1.9:5000")
 
 
+def test_a_segment_listed_after_the_ack_and_fin_that_followed_it_is_no_gap(tmp_path):
+    """A capture taken on several CPUs can list a packet after the packets that
+    answered it on the wire: here the client's last data comes after its own
+    FIN and after the server's ACK of it (this made a tcpdump capture of the
+    proxy's session lose a frame once)."""
+    c = [(0, C2S[:16]), (16, C2S[16:])]
+    s = [(0, S2C[:5]), (5, S2C[5:])]
+    syn, syn_ack, ack, c0, s0, c1, s1, c_fin, s_fin, last_ack = _session(c, s)
+    pkts = [syn, syn_ack, ack, c0, s0, s1, c_fin, s_fin, c1, last_ack]
+    out = tmp_path / "late.mcap"
+    import_pcap(_write(tmp_path / "late.pcap", pkts), CaptureSettings(5000, str(out)))
+    assert streams(str(out)) == {(1, "c2s"): C2S, (1, "s2c"): S2C}
+    events = read_all(str(out))["/tcp/events"]
+    assert not any(e["event"] == "gap" for e in events)
+    assert [(e["event"], e.get("by")) for e in events if e["conn"] == 1][-1] == ("closed", "client")
+
+
 def test_missing_bytes_are_a_gap_never_zeros(tmp_path):
     c = [(0, C2S[:16]), (32, C2S[32:]), (16, None)]  # the middle frame never captured
     s = [(0, S2C[:5]), (5, S2C[5:]), (0, None)]
