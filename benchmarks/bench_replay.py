@@ -73,7 +73,10 @@ def _replays(path: Path, sim_args: list[str]) -> None:
     sim = subprocess.Popen([WHIZTAP, "sim", "--port", "0", "--password", PASSWORD, "-q", *sim_args],
                            stdout=subprocess.PIPE, text=True)
     try:
-        port = _LISTENING.search(sim.stdout.readline()).group(1)
+        listening = _LISTENING.search(sim.stdout.readline())
+        if listening is None:
+            raise SystemExit("bench_replay: `whiztap sim` did not start (see its output above)")
+        port = listening.group(1)
         print(f"to `{' '.join(['whiztap sim', *sim_args])}`:")
         for _ in range(ROUNDS):
             out = subprocess.run([WHIZTAP, "replay", str(path), "--target", f"127.0.0.1:{port}",
