@@ -6,8 +6,11 @@ when it is installed, ``whiztap record -q``, and a blocking-socket client in
 this process.
 
 * Round trips: one Sensor Request, wait for its response, repeat, for
-  ``WHIZTAP_BENCH_RT_S`` seconds (default 3) per path; direct, socat and
-  whiztap record take turns ``ROUNDS`` times and the median counts.
+  ``WHIZTAP_BENCH_RT_S`` seconds (default 3) per path; direct, socat, a bare
+  relay and whiztap record take turns ``ROUNDS`` times and the median counts.
+  The bare relay forwards the way whiztap record does (uvloop, asyncio
+  protocols, TCP_NODELAY, each read written on at once) and records nothing:
+  it is what a relay in Python costs before recording costs anything.
 * Pipelined: a Fetch Configuration, its answer, then ``WHIZTAP_BENCH_PIPELINE_FRAMES``
   Sensor Requests (default 200k) written as fast as the socket takes them
   through whiztap record to a responder that answers each at C speed (the
@@ -59,6 +62,36 @@ async def main():
     await s.serve_forever()
 uvloop.run(main())
 """
+BARE_RELAY = """
+import asyncio, socket, sys, uvloop
+class Leg(asyncio.Protocol):  # forwards each read at once; records nothing
+    peer = None
+    def connection_made(self, t):
+        self.t, self.early = t, []
+        t.get_extra_info("socket").setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    def data_received(self, d):
+        if self.peer is None: self.early.append(d)  # read before the upstream was connected
+        else: self.peer.t.write(d)
+    def eof_received(self):
+        if self.peer is not None: self.peer.t.write_eof()
+        return True
+    def connection_lost(self, e):
+        if self.peer is not None: self.peer.t.close()
+class Client(Leg):
+    def connection_made(self, t):
+        super().connection_made(t)
+        asyncio.get_running_loop().create_task(self.connect())
+    async def connect(self):
+        _, up = await asyncio.get_running_loop().create_connection(Leg, "127.0.0.1", int(sys.argv[2]))
+        up.t.write(b"".join(self.early))
+        self.peer, up.peer = up, self
+        if self.t.is_closing(): up.t.close()
+async def main():
+    s = await asyncio.get_running_loop().create_server(Client, "127.0.0.1", int(sys.argv[1]))
+    await s.serve_forever()
+uvloop.run(main())
+"""
+
 
 def _free_port() -> int:
     with socket.socket() as s:
@@ -128,7 +161,7 @@ def _tree_rss(pid: int) -> tuple[int, int]:
 
 
 def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
-    paths: dict[str, list[float]] = {"direct": [], "socat": [], "whiztap record": []}
+    paths: dict[str, list[float]] = {"direct": [], "socat": [], "bare relay": [], "whiztap record": []}
     socat = shutil.which("socat")
     if socat is None:
         del paths["socat"]
@@ -142,6 +175,12 @@ def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
             paths["socat"].append(_round_trips(port, RT_S))
             relay.terminate()
             relay.wait()
+        port = _free_port()
+        relay = subprocess.Popen([sys.executable, "-c", BARE_RELAY, str(port), str(sim_port)])
+        _wait_port(port)
+        paths["bare relay"].append(_round_trips(port, RT_S))
+        relay.terminate()
+        relay.wait()
         port = _free_port()
         rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
                       "-o", str(tmp / "rt.mcap")])
