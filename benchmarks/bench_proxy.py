@@ -40,10 +40,10 @@ import threading
 import time
 from pathlib import Path
 
-RT_S = float(os.environ.get("WHIZTAP_BENCH_RT_S", 3))
+RT_S = float(os.environ.get("WHIZTAP_BENCH_RT_S", "3"))
 ROUNDS = 3
-PIPELINE_FRAMES = int(os.environ.get("WHIZTAP_BENCH_PIPELINE_FRAMES", 200_000))
-SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", 60))
+PIPELINE_FRAMES = int(os.environ.get("WHIZTAP_BENCH_PIPELINE_FRAMES", "200000"))
+SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", "60"))
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 REQUEST = b"rr1-12--0--0-ss1"
 FETCH_CONFIG = b"rr1-24--0--0-ss1"
