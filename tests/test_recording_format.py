@@ -216,7 +216,7 @@ def test_the_fast_reader_falls_back_for_another_key_order_and_checks_crcs(tmp_pa
     at = data.index(b"zstd") + 20  # inside the compressed chunk
     data[at] ^= 0xFF
     path.write_bytes(bytes(data))
-    with pytest.raises(Exception):  # zstd error or CRC mismatch, never wrong bytes
+    with pytest.raises(RecordingError):  # zstd error or CRC mismatch, never wrong bytes
         rebuild_streams(str(path))
 
 
