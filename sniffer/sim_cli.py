@@ -131,8 +131,9 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
 
     One COMMAND on the command line (e.g. 'sensor 12', 'servo 3 1500',
     'switch 7 on', 'script 120', 'config', 'camera -o pic.jpg', 'raw TEXT' or a
-    frame such as 'rr1-12--0--0-ss1'), or, without one, a command per line from
-    standard input ('help' lists them).
+    frame such as 'rr1-12--0--0-ss1'), quoted or not: it is read as the same
+    line typed at the prompt.  Without one, a command per line from standard
+    input ('help' lists them).
     """
     host, port = _parse_address(address)
     sys.exit(_run(_run_client(host, port, password, timeout, list(words))))
@@ -140,8 +141,9 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
 
 async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str]) -> int:
     from sniffer.client import Client, ClientError
-    from sniffer.console import CommandError, run
+    from sniffer.console import CommandError, run, split_line
 
+    words = split_line(" ".join(words))  # 'sensor 12' and sensor 12 alike, as at the prompt
     try:
         client = await Client.connect(host, port, password, timeout)
     except ClientError as e:

@@ -76,6 +76,16 @@ def test_sim_prints_its_port_and_serves_the_client(sim_port):
                              "servo:0-5,switch:6-8,switch1:9-11,sensor:12-23\n")
 
 
+def test_client_takes_a_command_quoted_or_as_words(sim_port):
+    address = f"127.0.0.1:{sim_port}"
+    quoted = whiztap("client", address, "-p", "hunter2", "servo 3 1500")
+    words = whiztap("client", address, "-p", "hunter2", "servo", "3", "1500")
+    frame = whiztap("client", address, "-p", "hunter2", "raw rr1-3--1500--0-ss1")
+    assert quoted.returncode == words.returncode == frame.returncode == 0, (quoted.stderr, words.stderr, frame.stderr)
+    assert quoted.stdout == words.stdout == "Normal Send: channel 3 -> 1500\n"
+    assert frame.stdout.startswith("sent 18 bytes\n"), frame.stdout
+
+
 def test_sim_options_shape_the_server():
     proc, port = start_sim("--mode", "vpn", "--channels", "sensor:0-1,servo:2", "--camera", "none", "-q")
     try:
