@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from analyzer.compare import ServoMotion
 from analyzer.framing import ItemKind
+from analyzer.messages import FailedValidation
 from analyzer.recording import (
     EV_CLOSED,
     EV_HALF_CLOSED,
@@ -60,6 +61,11 @@ class RecordedConnection:
     @property
     def password(self) -> ClientItem | None:
         return next((i for i in self.items if i.obs.item.kind is ItemKind.PASSWORD), None)
+
+    @property
+    def refused(self) -> bool:
+        """Whether the server answered the password with Failed Validation."""
+        return len(self.handshake) >= 2 and isinstance(self.handshake[1].message, FailedValidation)
 
     @property
     def requests(self) -> list[ClientItem]:

@@ -70,6 +70,7 @@ from analyzer.describe import meaning
 from analyzer.exchanges import ClientItem, RecordedSessions
 from analyzer.framing import ItemKind
 from analyzer.messages import FailedValidation, SendCheckPassword
+from analyzer.recording import MASK_BYTE
 from analyzer.session import Direction, Observation, Session
 from analyzer.stats import LatencyStats
 from sniffer.replay_plan import ConnectionPlan, Selection, Send, plan
@@ -507,10 +508,6 @@ class Replay:
         self.options = options
         self.on_event = on_event
         self.plans = plan(recording, options.selection, options.segments)
-        self.password = options.password
-        if self.password is None and recording.secrets_kept:
-            password = next((p.recorded.password for p in self.plans if p.recorded.password), None)
-            self.password = password.obs.item.raw if password is not None else None
         self._pacer = _Pacer(options.rate)
         self._tally = _Tally()
         self._t0 = time.perf_counter_ns()
@@ -526,8 +523,25 @@ class Replay:
             raise ReplayError("no target: give --target HOST:PORT")
         if not self.plans:
             raise ReplayError("nothing to replay: no connection is selected")
-        if self.password is None and any(p.winsock for p in self.plans):
+        if any(p.winsock and self.password_for(p) is None for p in self.plans):
             raise ReplayError("the recording's password is redacted: give --password or set WHIZTAP_PASSWORD")
+
+    def password_for(self, p: ConnectionPlan) -> bytes | None:
+        """What a connection sends as its password (None: it needs --password).
+
+        A connection the server refused is replayed refused: with the password it
+        recorded if secrets were kept, else with one sure to differ from
+        --password.  An accepted one sends --password, or the one it recorded
+        if secrets were kept.
+        """
+        recorded = p.recorded.password
+        kept = recorded.obs.item.raw if recorded is not None and self.recording.secrets_kept else None
+        if p.recorded.refused:
+            if kept is not None:
+                return kept
+            wrong = MASK_BYTE * (len(recorded.obs.item.raw) if recorded is not None else 1)
+            return wrong + MASK_BYTE if wrong == self.options.password else wrong
+        return self.options.password if self.options.password is not None else kept
 
     # -- control -------------------------------------------------------------------------------
 
@@ -680,7 +694,7 @@ class Replay:
         due = await self._pacer.turn(c.plan.password_t_ns, recorded, write=True, lag_ns=c.lag_ns)
         password = c.plan.recorded.password
         items = (password,) if password is not None else ()
-        await c.write((self.password or b"") + c.plan.password_tail, items, c.plan.password_t_ns, due)
+        await c.write((self.password_for(c.plan) or b"") + c.plan.password_tail, items, c.plan.password_t_ns, due)
         await c.wait(lambda: len(c.handshake) >= 2, timeout)
         c.waited_for_server(1)
         return not (len(c.handshake) >= 2 and isinstance(c.handshake[1].message, FailedValidation))

@@ -61,7 +61,8 @@ def _password(text: str | None) -> bytes | None:
 @click.argument("path", metavar="FILE.mcap", type=click.Path(dir_okay=False))
 @click.option("--target", metavar="HOST:PORT", help="The server to replay against (not needed with --dry-run).")
 @click.option("--password", envvar="WHIZTAP_PASSWORD", default=None,
-              help="Winsock password (default: $WHIZTAP_PASSWORD, or the recorded one if it was kept).")
+              help="Winsock password (default: $WHIZTAP_PASSWORD, or each connection's recorded one if "
+                   "it was kept); connections refused in the recording send a wrong one.")
 @click.option("--conn", "conns", type=int, multiple=True, help="Only this recorded connection; repeatable.")
 @click.option("--pace", type=click.Choice(PACES), default="recorded", show_default=True,
               help="recorded: the original gaps / --rate; lockstep: each request waits for its answer; "

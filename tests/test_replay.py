@@ -29,8 +29,9 @@ from sniffer.replay import (
     ResponseCompared,
 )
 from sniffer.replay_plan import Selection, kinds_of, plan
-from tests.record_support import LOCAL, WAIT, both_ways, closed_port
-from tests.replay_support import PASSWORD, WHIZTAP, record, simulator, whiztap
+from sniffer.client import Client, HandshakeError
+from tests.record_support import LOCAL, WAIT, both_ways, closed_port, recording
+from tests.replay_support import PASSWORD, WHIZTAP, record, simulator, until_closed, whiztap
 
 EXACT = CompareRules.parse("exact")
 STRUCTURE = CompareRules.parse("structure")
@@ -52,7 +53,8 @@ def options(port: int, **kw) -> ReplayOptions:
     kw.setdefault("pace", Pace.MAX)
     kw.setdefault("rules", EXACT)
     kw.setdefault("timeout", 1.0)
-    return ReplayOptions(target=(LOCAL, port), password=PASSWORD.encode(), **kw)
+    kw.setdefault("password", PASSWORD.encode())
+    return ReplayOptions(target=(LOCAL, port), **kw)
 
 
 def answers(exchanges) -> int:  # noqa: ANN001
@@ -178,6 +180,32 @@ async def test_a_line_break_after_the_password_is_sent_with_it(tmp_path):
         result = await replay(recording, options(sim.port, output=str(out)))
     assert result.ok, [d.diff for d in result.differences]
     assert both_ways(str(out))[(1, "c2s")] == both_ways(str(path))[(1, "c2s")]  # the redacted password and CRLF
+
+
+@pytest.mark.parametrize("keep_secrets", [False, True])
+async def test_a_refused_password_is_replayed_refused(tmp_path, keep_secrets):
+    async def refused_then_accepted(port: int) -> list:
+        with pytest.raises(HandshakeError):
+            await Client.connect(LOCAL, port, password="not-" + PASSWORD)
+        async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
+            return [await client.sensor(12)]
+
+    path = tmp_path / "refused.mcap"
+    async with simulator(seed=1) as sim, recording(sim.port, path, keep_secrets=keep_secrets) as rec:
+        await refused_then_accepted(rec.proxy.port)
+        await until_closed(sim)
+        await rec.stop()
+    recorded = load_exchanges(str(path))
+    assert [c.refused for c in recorded.connections] == [True, False]
+    # kept secrets: each connection sends the password it recorded, no --password needed
+    events: list = []
+    async with simulator(seed=1) as sim:
+        opts = options(sim.port, password=None) if keep_secrets else options(sim.port)
+        result = await replay(recorded, opts, events)
+    assert result.ok, [d.diff for d in result.differences]
+    verdicts = [(e.conn, e.replayed, e.status) for e in events
+                if isinstance(e, ResponseCompared) and e.request_text == "the password"]
+    assert verdicts == [(1, b"Failed Validation", Status.MATCH), (2, b"readytogo", Status.MATCH)]
 
 
 async def test_loop_filters_and_connection_choice(exchanges):
