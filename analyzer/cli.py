@@ -102,8 +102,9 @@ def rules_command(fmt: str) -> None:
 def decode_command(source: str | None, frames: tuple[str, ...], direction: str, checksum_rule: str | None) -> None:
     """Decode and check frames given as escaped text, one per line.
 
-    SOURCE is a file of lines (or - for standard input), optionally prefixed
-    with 'c2s ' or 's2c '.  The lines run through one session, so handshake
+    SOURCE is a file of lines (or - for standard input, which is also read
+    when it is a pipe and nothing else is given), optionally prefixed with
+    'c2s ' or 's2c '.  The lines run through one session, so handshake
     order, pairing and the channel map are checked as on a live connection.
     Exit status 1 when a rule of error severity was broken.
     """
@@ -114,6 +115,8 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
     from analyzer.text import escape, unescape
 
     lines = list(frames)
+    if source is None and not frames and not click.get_text_stream("stdin").isatty():
+        source = "-"  # piped in: read it, as filters do
     if source is not None:
         try:
             with click.open_file(source, encoding="utf-8") as f:

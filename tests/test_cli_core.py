@@ -42,13 +42,20 @@ def test_decode_reports_violations_with_exit_1():
     assert "PW-RANGE-SEND-VALUE (error): Normal Send value must be 0-2000, got 2500" in result.stdout
 
 
+def test_decode_reads_a_pipe_without_being_told():
+    piped = run("decode", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\n")
+    dashed = run("decode", "-", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\n")
+    assert piped.returncode == dashed.returncode == 0, piped.stderr
+    assert piped.stdout == dashed.stdout and "Fetch Configuration Settings" in piped.stdout
+
+
 @pytest.mark.parametrize("args", [
     ("decode", "/nonexistent/frames.txt"),
     ("decode",),
     ("decode", "-f", "rr1-24--0--0-ss1", "--checksum-rule", "crc99"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args):
-    result = run(*args)
+    result = run(*args, stdin="")  # an empty pipe: a bare 'decode' reads it and finds nothing
     assert result.returncode == 2
     assert result.stderr.startswith("whiztap: ")
     assert len(result.stderr.strip().splitlines()) == 1
