@@ -15,7 +15,7 @@ from typing import IO, Any
 
 import click
 
-from analyzer.cli import fail
+from analyzer.cli import EXIT_USAGE, fail
 from analyzer.report.formats import FORMATS
 
 _SEVERITIES = ["info", "warning", "error"]
@@ -135,15 +135,20 @@ def analyse_file(path: Path, checksum_rule: str, progress: _Progress | None = No
     return analyzer.finish()
 
 
+def _analyse_or_say_why(path: Path, checksum_rule: str, progress: _Progress | None = None):
+    """``analyse_file``, or the one-line reason it could not be read."""
+    try:
+        return analyse_file(path, checksum_rule, progress)
+    except click.ClickException as e:
+        return e.format_message()
+
+
 def _analyse_in_worker(args: tuple[Path, str]):
     """Entry point of a worker process: errors travel back as text, not tracebacks."""
     from analyzer.throughput import tune_gc
 
     tune_gc()
-    try:
-        return analyse_file(*args)
-    except click.ClickException as e:
-        return e.format_message()
+    return _analyse_or_say_why(*args)
 
 
 # -- analyze ---------------------------------------------------------------------------
@@ -192,10 +197,14 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
     paths = recording_paths(inputs)
     tune_gc()
     with _Progress(paths, enabled=not quiet) as progress:
-        analysis = _analyse_all(paths, rule_name, jobs, progress)
+        analysis, unreadable = _analyse_all(paths, rule_name, jobs, progress)
+    for u in unreadable:
+        click.echo(f"whiztap: {u['error']}", err=True)
+    if analysis is None:
+        sys.exit(EXIT_USAGE)
     from analyzer.report import build
 
-    report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore))
+    report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore), unreadable)
     report_text = render(report, analysis, fmt, to_terminal=output is None and sys.stdout.isatty())
     if output:
         try:
@@ -204,25 +213,29 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
             fail(f"cannot write {output}: {e.strerror}")
     elif report_text:
         click.echo(report_text, nl=not report_text.endswith("\n"))
-    sys.exit(0 if report["passed"] else 1)
+    sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
 
 def _analyse_all(paths: list[Path], rule_name: str, jobs: int | None, progress: _Progress):
+    """(the merged analysis of the files that could be read, or None if none
+    could; {"file", "error"} of those that could not): one bad file among many
+    costs only itself."""
     workers = jobs if jobs is not None else (min(len(paths), os.cpu_count() or 1) if len(paths) >= 4 else 1)
     if workers <= 1 or len(paths) == 1:
-        results = [analyse_file(p, rule_name, progress) for p in paths]
+        results = [_analyse_or_say_why(p, rule_name, progress) for p in paths]
     else:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(workers) as pool:
             results = list(pool.map(_analyse_in_worker, [(p, rule_name) for p in paths]))
-        for r in results:
-            if isinstance(r, str):
-                fail(r)
-    merged = results[0]
-    for other in results[1:]:
+    unreadable = [{"file": str(p), "error": r} for p, r in zip(paths, results) if isinstance(r, str)]
+    analyses = [r for r in results if not isinstance(r, str)]
+    if not analyses:
+        return None, unreadable
+    merged = analyses[0]
+    for other in analyses[1:]:
         merged.merge(other)
-    return merged
+    return merged, unreadable
 
 
 def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str:

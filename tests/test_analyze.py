@@ -9,7 +9,7 @@ from pathlib import Path
 
 import jsonschema
 import pytest
-from junitparser import Failure, JUnitXml, Skipped
+from junitparser import Error, Failure, JUnitXml, Skipped
 
 from analyzer.analysis import Analyzer
 from analyzer.analyze_cli import scan_recording
@@ -180,6 +180,33 @@ def test_truncated_part_file_names_recover(tmp_path, command):
     data = CLEAN.read_bytes()
     part.write_bytes(data[: len(data) // 2])
     assert f"whiztap recover {part}" in one_line_error(run(command, part))
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
+    shutil.copy(CLEAN, tmp_path / CLEAN.name)
+    cut = tmp_path / "cut-short.mcap"
+    cut.write_bytes(VPN.read_bytes()[:len(VPN.read_bytes()) // 2])
+    result = run("analyze", "--format", "json", "--jobs", jobs, tmp_path)
+    assert result.returncode == 2  # an input could not be read, even though a report was made
+    assert result.stderr.strip().splitlines() == [
+        f"whiztap: {cut}: the file is truncated (no footer); it looks like a recording that was cut short. "
+        f"Run 'whiztap recover {cut}' to turn it into a complete file"]
+    data = json.loads(result.stdout)
+    jsonschema.validate(data, REPORT_SCHEMA)
+    assert data["files"] == [str(tmp_path / CLEAN.name)]
+    assert data["unreadable"] == [{"file": str(cut), "error": result.stderr.strip().removeprefix("whiztap: ")}]
+    _, alone = report(tmp_path / CLEAN.name)
+    assert data["summary"] == alone["summary"] and "unreadable" not in alone
+
+    text = run("analyze", "--jobs", jobs, tmp_path).stdout
+    assert "INCOMPLETE: 1 input could not be read. PASS" in text and "cut-short.mcap" in text
+    out = tmp_path / "report.xml"
+    assert run("analyze", "--format", "junit", "-o", out, tmp_path).returncode == 2
+    cases = [case for suite in JUnitXml.fromfile(str(out)) for case in suite]
+    assert len(cases) == len(RULES) + 1
+    [broken] = [c for c in cases if any(isinstance(r, Error) for r in c.result)]
+    assert broken.result[0].text == str(cut)
 
 
 def test_unknown_rule_in_ignore():

@@ -18,9 +18,11 @@ REPORT_SCHEMA_ID = "whiztap.report"
 REPORT_VERSION = 1
 
 
-def build(analysis: Analysis, threshold: Severity = Severity.ERROR,
-          ignore: frozenset[str] = frozenset()) -> dict[str, Any]:
-    """The report as plain data (the JSON format, documented in docs/analyze.md)."""
+def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
+          unreadable: list[dict[str, str]] | None = None) -> dict[str, Any]:
+    """The report as plain data (the JSON format, documented in docs/analyze.md).
+    ``unreadable``: {"file", "error"} of the inputs left out because they could
+    not be read (the key is there only when there are some)."""
     counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
     by_severity = {str(s): 0 for s in (Severity.ERROR, Severity.WARNING, Severity.INFO)}
     for rule_id, n in counts.items():
@@ -33,7 +35,7 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR,
             frames_by_kind[direction][kind] = frames_by_kind[direction].get(kind, 0) + n
     listed = [v for v in analysis.violations if v.rule_id not in ignore]
     rule = get_rule(analysis.checksum_rule)
-    return {
+    report: dict[str, Any] = {
         "schema": REPORT_SCHEMA_ID,
         "version": REPORT_VERSION,
         "whiztap_version": __version__,
@@ -81,6 +83,9 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR,
         } for c in analysis.set_configs],
         "per_file": _per_file(analysis, ignore),
     }
+    if unreadable:
+        report["unreadable"] = list(unreadable)
+    return report
 
 
 def _per_file(analysis: Analysis, ignore: frozenset[str]) -> list[dict[str, Any]]:

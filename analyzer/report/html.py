@@ -132,5 +132,9 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
         parts.append(_table(["conn", "checksum", "expected", "candidate rules it fits"],
                             [[str(c["conn"]), str(c["checksum"]), str(c["expected"]),
                               e(", ".join(c["satisfies"]) or "none")] for c in report["set_configurations"]]))
+    if report.get("unreadable"):
+        parts.append("<h2>Not in this report (could not be read)</h2><ul>")
+        parts += [f"<li class='error'>{e(u['error'])}</li>" for u in report["unreadable"]]
+        parts.append("</ul>")
     parts.append("</body></html>")
     return "\n".join(parts)

@@ -2,6 +2,7 @@
 
 Violations of rules below the severity threshold do not fail their test case
 (the report passes with them); they are listed in its system-out instead.
+Inputs that could not be read make one more test case, in error.
 """
 
 from __future__ import annotations
@@ -20,9 +21,11 @@ def render_junit(report: dict[str, Any]) -> str:
     threshold = Severity.parse(report["severity_threshold"])
     failing = {r for r, n in report["rule_counts"].items() if n and RULES[r].severity >= threshold}
     failing_cases = len(failing)
-    suites = ET.Element("testsuites", name="whiztap", tests=str(len(RULES)), failures=str(failing_cases))
-    suite = ET.SubElement(suites, "testsuite", name="whiztap conformance", tests=str(len(RULES)),
-                          failures=str(failing_cases), skipped=str(len(ignored)), errors="0",
+    unreadable = report.get("unreadable", [])
+    tests, errors = str(len(RULES) + bool(unreadable)), str(int(bool(unreadable)))
+    suites = ET.Element("testsuites", name="whiztap", tests=tests, failures=str(failing_cases), errors=errors)
+    suite = ET.SubElement(suites, "testsuite", name="whiztap conformance", tests=tests,
+                          failures=str(failing_cases), skipped=str(len(ignored)), errors=errors,
                           timestamp="", hostname="")
     props = ET.SubElement(suite, "properties")
     for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
@@ -44,5 +47,9 @@ def render_junit(report: dict[str, Any]) -> str:
         extra = report["rule_counts"].get(rule_id, 0) - len(by_rule[rule_id])
         if extra > 0:
             ET.SubElement(case, "failure", type=str(rule.severity), message=f"{extra} more not listed")
+    if unreadable:
+        case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="every recording could be read")
+        for u in unreadable:
+            ET.SubElement(case, "error", type="unreadable", message=u["error"]).text = u["file"]
     ET.indent(suites)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(suites, encoding="unicode") + "\n"

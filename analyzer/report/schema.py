@@ -85,5 +85,10 @@ REPORT_SCHEMA = {
             "type": "object", "required": ["file", "connections", "frames", "violations"],
             "properties": {"file": _STR, "connections": _INT, "frames": _INT, "violations": _INT},
         }},
+        # only when some input could not be read: the report covers the others
+        "unreadable": {"type": "array", "minItems": 1, "items": {
+            "type": "object", "required": ["file", "error"], "additionalProperties": False,
+            "properties": {"file": _STR, "error": _STR},
+        }},
     },
 }

@@ -45,8 +45,13 @@ def verdict(report: dict[str, Any]) -> str:
     sev = report["summary"]["violations_by_severity"]
     counts = f"{sev['error']} errors, {sev['warning']} warnings, {sev['info']} info"
     if report["passed"]:
-        return f"PASS: no violation at or above {report['severity_threshold']} ({counts})"
-    return f"FAIL: violations at or above {report['severity_threshold']} ({counts})"
+        text = f"PASS: no violation at or above {report['severity_threshold']} ({counts})"
+    else:
+        text = f"FAIL: violations at or above {report['severity_threshold']} ({counts})"
+    unreadable = len(report.get("unreadable", ()))
+    if unreadable:
+        text = f"INCOMPLETE: {unreadable} input{'s' * (unreadable != 1)} could not be read. {text}"
+    return text
 
 
 def render_text(report: dict[str, Any], console: Console) -> None:
@@ -122,7 +127,12 @@ def render_text(report: dict[str, Any], console: Console) -> None:
         fits = ", ".join(c["satisfies"]) or "no candidate rule"
         console.print(f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); fits: {fits}")
 
-    console.print(Text(verdict(report), style="bold green" if report["passed"] else "bold red"))
+    if report.get("unreadable"):
+        console.print(Text("Not in this report (could not be read)", style="bold red"))
+        for u in report["unreadable"]:
+            console.print(f"  {u['error']}", overflow="fold")
+    good = report["passed"] and not report.get("unreadable")
+    console.print(Text(verdict(report), style="bold green" if good else "bold red"))
 
 
 def render_markdown(report: dict[str, Any]) -> str:
@@ -166,4 +176,7 @@ def render_markdown(report: dict[str, Any]) -> str:
                 "|---:|---:|---:|---|"]
         for c in report["set_configurations"]:
             out.append(f"| {c['conn']} | {c['checksum']} | {c['expected']} | {', '.join(c['satisfies']) or '-'} |")
+    if report.get("unreadable"):
+        out += ["", "## Not in this report (could not be read)", ""]
+        out += [f"- {u['error']}" for u in report["unreadable"]]
     return "\n".join(out) + "\n"
