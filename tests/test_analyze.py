@@ -207,6 +207,9 @@ def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
     assert len(cases) == len(RULES) + 1
     [broken] = [c for c in cases if any(isinstance(r, Error) for r in c.result)]
     assert broken.result[0].text == str(cut)
+    for fmt, heading in (("markdown", "## Not in this report"), ("html", "<h2>Not in this report")):
+        page = run("analyze", "--format", fmt, tmp_path).stdout
+        assert heading in page and f"{cut}: the file is truncated" in page, fmt
 
 
 def test_unknown_rule_in_ignore():
