@@ -202,7 +202,7 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
         click.echo(f"whiztap: {u['error']}", err=True)
     if analysis is None:
         sys.exit(EXIT_USAGE)
-    from analyzer.report import build
+    from analyzer.report.content import build
 
     report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore), unreadable)
     report_text = render(report, analysis, fmt, to_terminal=output is None and sys.stdout.isatty())

@@ -8,9 +8,10 @@ scapy, mcap) inside their functions.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
 from typing import NoReturn
 
 import click
@@ -34,14 +35,17 @@ def fail(message: str) -> NoReturn:
 
 
 class _LazyGroup(click.Group):
-    def _entry_points(self):
+    @functools.cached_property
+    def _entry_points(self) -> dict[str, EntryPoint]:
+        # once: every scan reads every installed distribution's metadata, and
+        # --help asks once per command
         return {ep.name: ep for ep in entry_points(group="whiztap.commands")}
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted(self._entry_points())
+        return sorted(self._entry_points)
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        ep = self._entry_points().get(name)
+        ep = self._entry_points.get(name)
         return ep.load() if ep is not None else None
 
 

@@ -6,7 +6,6 @@ engines load when a command runs.
 
 from __future__ import annotations
 
-import asyncio
 import os
 import signal
 import sys
@@ -23,6 +22,8 @@ PACES = ["recorded", "lockstep", "max"]
 def _run(main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
     """Run on uvloop (its timers and sockets cost less, which keeps a recorded
     schedule tighter)."""
+    import asyncio  # here, not at the top: 'whiztap --help' loads this module
+
     import uvloop
 
     with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
@@ -155,6 +156,8 @@ async def _replay(recording, options, verbose: bool, quiet: bool):  # noqa: ANN0
         click.echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
                    + f", {options.rules.describe()}")
+    import asyncio
+
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, replay.stop)
@@ -264,6 +267,8 @@ async def _serve(stub, once: bool) -> str | None:  # noqa: ANN001 - Stub, import
     where = ", ".join(f"{h}:{p}" for h, p in stub.addresses)
     click.echo(f"whiztap stub: serving {stub.recording.path} on {where} "
                f"({len(stub.recording.connections)} recorded connection(s))")
+    import asyncio
+
     stopped = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -6,7 +6,6 @@ simulator, which brings in Pillow for the camera, is imported when it runs.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import os
 import signal
@@ -29,6 +28,8 @@ _LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
 
 def _run(main: Coroutine[Any, Any, T]) -> T:
     """asyncio.run, with Ctrl-C as the usual one-line error (click would add a blank line)."""
+    import asyncio  # here, not at the top: 'whiztap --help' loads this module
+
     try:
         return asyncio.run(main)
     except KeyboardInterrupt:
@@ -95,6 +96,8 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
         await sim.start()
     except OSError as e:
         fail(f"cannot listen on {_show_address(sim.host, sim.requested_port)}: {e.strerror or e}")
+    import asyncio
+
     stopped = asyncio.Event()
     asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stopped.set)
     try:
@@ -162,6 +165,8 @@ async def _run_client(host: str, port: int, password: str | None, timeout: float
 
 
 async def _repl(client) -> int:  # noqa: ANN001 - Client is imported lazily
+    import asyncio
+
     from sniffer.client import ClientError, ConnectionClosed, HandshakeError
     from sniffer.console import CommandError, item_line, run, split_line
 

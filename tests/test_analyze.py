@@ -14,7 +14,7 @@ from junitparser import Error, Failure, JUnitXml, Skipped
 from analyzer.analysis import Analyzer
 from analyzer.analyze_cli import scan_recording
 from analyzer.recording import Read, rebuild_streams, stream_bytes
-from analyzer.report import build
+from analyzer.report.content import build
 from analyzer.report.schema import REPORT_SCHEMA
 from analyzer.rules import RULES
 

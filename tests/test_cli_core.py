@@ -66,3 +66,17 @@ def test_unknown_command_exits_2():
     result = run("frobnicate")
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
+
+
+def test_help_loads_no_event_loop_and_no_session_model():
+    """What keeps 'whiztap --help' quick (its time is in make bench, not here):
+    listing the commands imports neither asyncio nor the analyzer's session
+    model, nor any UI or packet library."""
+    code = ("import sys; sys.argv = ['whiztap', '--help']\n"
+            "from analyzer.cli import cli\n"
+            "try:\n    cli()\nexcept SystemExit:\n    pass\n"
+            "heavy = ('asyncio', 'analyzer.session', 'analyzer.analysis', 'textual', 'scapy', 'mcap')\n"
+            "print(sorted(m for m in heavy if m in sys.modules), file=sys.stderr)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "Commands:" in result.stdout, result.stderr
+    assert result.stderr.strip() == "[]"

@@ -144,7 +144,7 @@ def _headless(output: str, seconds: float) -> None:
     from pathlib import Path
 
     from analyzer.analyze_cli import analyse_file, render
-    from analyzer.report import build
+    from analyzer.report.content import build
     from sniffer.feed import WriterError
     from tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
 
