@@ -7,6 +7,7 @@ functions so that ``whiztap --help`` does not pay for them.
 from __future__ import annotations
 
 import datetime
+import os
 import re
 import socket
 import uuid
@@ -105,6 +106,23 @@ def check_checksum_rule(name: str | None) -> str:
         fail(str(e))
 
 
+def check_output_free(output: str, split: bool, force: bool) -> None:
+    """Refuse to write over a recording, or over the ``.part`` a crashed one
+    left (which 'whiztap recover' could still save), unless --force."""
+    from sniffer.writer import part_path
+
+    if force:
+        return
+    first = part_path(output, 1 if split else None)
+    if os.path.exists(first):
+        fail(f"{first} exists; use --force to overwrite it or -o to choose another name")
+    if os.path.exists(first + ".part"):
+        fail(f"{first}.part exists (a recording cut short?): run 'whiztap recover {first}.part' to save it, "
+             f"or use --force to overwrite it")
+
+
+_FORCE = click.option("--force", is_flag=True, help="Write over a recording of the same name.")
+
 _split_options = [
     click.option("--split-size", type=ByteSize(), default=None,
                  help="Start a new numbered file when this one reaches BYTES (e.g. 100M)."),
@@ -114,6 +132,7 @@ _split_options = [
                  help="Record the password as sent (default: '*' bytes and <redacted>)."),
     click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules')."),
     click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors."),
+    _FORCE,
 ]
 
 
@@ -135,7 +154,7 @@ def _with_options(options: list) -> Callable:
 @click.option("--connect-timeout", type=click.FloatRange(min=0.01), default=5.0, show_default=True,
               metavar="SECONDS", help="How long to try the upstream for each client.")
 def record_command(listen: str, upstream: str, output: str, split_size: int | None, split_duration: float | None,
-                   keep_secrets: bool, checksum_rule: str | None, quiet: bool, analyze: bool,
+                   keep_secrets: bool, checksum_rule: str | None, quiet: bool, force: bool, analyze: bool,
                    connect_timeout: float) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
@@ -146,6 +165,7 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
     listen_addr = parse_address(listen, "127.0.0.1", "--listen")
     upstream_addr = parse_address(upstream, None, "--upstream")
     rule = check_checksum_rule(checksum_rule)
+    check_output_free(output, split_size is not None or split_duration is not None, force)
     from sniffer.record_run import RecordSettings, run_record
 
     settings = RecordSettings(listen_addr, upstream_addr, output, split_size, split_duration, keep_secrets, rule,
@@ -188,7 +208,7 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
               help="Live: stop after this long.")
 def capture_command(pcap: str | None, iface: str | None, port: int, output: str, split_size: int | None,
                     split_duration: float | None, keep_secrets: bool, checksum_rule: str | None, quiet: bool,
-                    count: int | None, timeout: float | None) -> None:
+                    force: bool, count: int | None, timeout: float | None) -> None:
     """Record traffic to PORT from a capture file or a live interface.
 
     Each TCP connection is reassembled in both directions by sequence number
@@ -199,6 +219,7 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
     if (pcap is None) == (iface is None):
         fail("give exactly one of --pcap FILE or --iface NAME")
     rule = check_checksum_rule(checksum_rule)
+    check_output_free(output, split_size is not None or split_duration is not None, force)
     from sniffer.capture import CaptureError, CaptureSettings, capture_live, import_pcap
 
     settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule)

@@ -130,6 +130,19 @@ def test_bad_input_is_a_clear_error(tmp_path):
         import_pcap(str(tmp_path / "missing.pcap"), CaptureSettings(5000, str(tmp_path / "x.mcap")))
 
 
+def test_the_command_keeps_an_existing_recording_unless_forced(tmp_path):
+    pcap = _write(tmp_path / "s.pcap", _session([(0, C2S)], [(0, S2C)]))
+    out = tmp_path / "s.mcap"
+    out.write_bytes(b"an earlier recording")
+    command = [WHIZTAP, "capture", "--pcap", str(pcap), "--port", "5000", "-o", str(out), "-q"]
+    refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and f"{out} exists; use --force" in refused.stderr
+    assert out.read_bytes() == b"an earlier recording"
+    forced = subprocess.run([*command, "--force"], capture_output=True, text=True, timeout=60)
+    assert forced.returncode == 0, forced.stderr
+    assert streams(str(out)) == {(1, "c2s"): C2S, (1, "s2c"): S2C}
+
+
 def test_scapy_layer_dissects_both_directions():
     bind(5000)
     request = IP(bytes(IP() / TCP(sport=40000, dport=5000) / b"rr1-3--0--2-ss1"))

@@ -105,6 +105,35 @@ async def test_user_errors_are_one_line_and_exit_2(tmp_path):
     assert code == 2 and err == b"whiztap: --upstream must be HOST:PORT, got 'nowhere'\n"
 
 
+async def test_an_existing_recording_is_not_overwritten_without_force(tmp_path):
+    out = tmp_path / "kept.mcap"
+    async with EchoServer() as server:
+        rec = await RecordProcess.start(server.port, out)
+        assert await _talk(rec.port, b"rr1-1--0--0-ss1") == b"rr1-1--0--0-ss1"
+        await rec.finish()
+        first = out.read_bytes()
+
+        async def record(*args: str) -> tuple[int, bytes]:
+            proc = await asyncio.create_subprocess_exec(
+                WHIZTAP, "record", "--upstream", f"{LOCAL}:{server.port}", "--listen", "0", *args,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            _, err = await asyncio.wait_for(proc.communicate(), WAIT)
+            return proc.returncode, err
+
+        assert await record("-o", str(out)) == (
+            2, f"whiztap: {out} exists; use --force to overwrite it or -o to choose another name\n".encode())
+        assert out.read_bytes() == first
+        crashed = tmp_path / "crashed.mcap"
+        Path(f"{crashed}.part").write_bytes(first[:len(first) // 2])
+        code, err = await record("-o", str(crashed))
+        assert code == 2 and f"run 'whiztap recover {crashed}.part' to save it".encode() in err
+        assert Path(f"{crashed}.part").read_bytes() == first[:len(first) // 2]
+        rec = await RecordProcess.start(server.port, out, "--force")
+        assert await _talk(rec.port, b"rr1-2--0--0-ss1") == b"rr1-2--0--0-ss1"
+        await rec.finish()
+    assert both_ways(str(out))[(1, "c2s")] == b"rr1-2--0--0-ss1"
+
+
 async def test_split_size_rotates_without_losing_or_repeating_a_byte(tmp_path):
     out = tmp_path / "split.mcap"
     async with EchoServer() as server:

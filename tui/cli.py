@@ -57,9 +57,10 @@ def _hints(path: str, password: str = "PASSWORD") -> list[str]:
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Live: the recording to write [default: whiztap-DATE-TIME.mcap].")
 @click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
+@click.option("--force", is_flag=True, help="Live: write over a recording of the same name.")
 @click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules').")
 def tui_command(path: str | None, follow: str | None, upstream: str | None, listen: str, output: str | None,
-                keep_secrets: bool, checksum_rule: str | None) -> None:
+                keep_secrets: bool, force: bool, checksum_rule: str | None) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
     recording being written.
 
@@ -71,7 +72,7 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
 
     Press ? in the app for its keys.
     """
-    from sniffer.record_cli import check_checksum_rule, parse_address
+    from sniffer.record_cli import check_checksum_rule, check_output_free, parse_address
 
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
@@ -88,8 +89,10 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
     else:
         from sniffer.record_run import RecordSettings
 
+        output = output or default_output()
+        check_output_free(output, split=False, force=force)
         settings = RecordSettings(parse_address(listen, "127.0.0.1", "--listen"),
-                                  parse_address(upstream, None, "--upstream"), output or default_output(),
+                                  parse_address(upstream, None, "--upstream"), output,
                                   keep_secrets=keep_secrets, checksum_rule=rule, quiet=True)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")
