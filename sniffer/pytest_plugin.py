@@ -285,7 +285,8 @@ class ReplayCheck:
         try:
             result = await Replay(exchanges, replay_options).run()
         except ReplayError as e:
-            pytest.fail(f"whiztap: {e}", pytrace=False)
+            how = {"password": "give password= (to whiztap_replay or the marker) or --whiztap-password"}
+            pytest.fail(f"whiztap: {e.explained(how)}", pytrace=False)
         if result.error is not None:
             pytest.fail(f"whiztap: {result.error}", pytrace=False)
         if not result.ok:

@@ -90,7 +90,21 @@ class Pace(StrEnum):
 
 
 class ReplayError(Exception):
-    """The replay cannot start or go on (one line for the user)."""
+    """The replay cannot start or go on (one line for the user).
+
+    ``missing`` names a setting the replay needs and was not given ("target",
+    "password"): the command line, the TUI and the pytest plugin each say how
+    to give it in their own terms (``explained``).
+    """
+
+    def __init__(self, message: str, missing: str | None = None) -> None:
+        super().__init__(message)
+        self.missing = missing
+
+    def explained(self, how: dict[str, str]) -> str:
+        """The message, with ``how[missing]`` saying how to give what is missing."""
+        hint = how.get(self.missing or "")
+        return f"{self}: {hint}" if hint else str(self)
 
 
 @dataclass(frozen=True, slots=True)
@@ -520,11 +534,11 @@ class Replay:
     def check(self) -> None:
         """Raise ReplayError for what would stop a replay before it starts."""
         if self.options.target is None:
-            raise ReplayError("no target: give --target HOST:PORT")
+            raise ReplayError("no target", missing="target")
         if not self.plans:
             raise ReplayError("nothing to replay: no connection is selected")
         if any(p.winsock and self.password_for(p) is None for p in self.plans):
-            raise ReplayError("the recording's password is redacted: give --password or set WHIZTAP_PASSWORD")
+            raise ReplayError("the recording's password is redacted", missing="password")
 
     def password_for(self, p: ConnectionPlan) -> bytes | None:
         """What a connection sends as its password (None: it needs --password).

@@ -137,7 +137,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     try:
         result = _run(lambda: _replay(recording, options, verbose, quiet))
     except ReplayError as e:
-        fail(str(e))
+        fail(e.explained({"password": "give --password or set WHIZTAP_PASSWORD", "target": "give --target"}))
     if result.error:
         fail(result.error)
     if result.stopped:

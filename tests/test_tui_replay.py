@@ -47,6 +47,19 @@ async def test_a_replay_against_the_same_robot_matches_and_is_saved(tmp_path):
     assert analyse_file(output, "dev-sum").frames > len(runner.comparisons)
 
 
+async def test_a_missing_password_is_asked_for_in_the_screen_s_own_terms(monkeypatch):
+    monkeypatch.delenv("WHIZTAP_PASSWORD", raising=False)
+    async with Simulator(mode="winsock", password=PASSWORD, seed=SEED) as sim:
+        app = WhiztapApp(FileSource(str(SAMPLES / "clean-winsock.mcap")))
+        async with app.run_test(size=SIZE) as pilot:
+            screen = await open_screen(pilot, sim.port, "max")
+            screen.query_one("#password").value = ""
+            await pilot.press("f5")
+            await until(pilot, lambda: screen.runner.done, "the replay to give up")
+            assert screen.runner.error == "the recording's password is redacted: type it in Password"
+            assert sim.stats.connections == 0
+
+
 async def test_step_sends_one_write_at_a_time_then_resume_runs_to_the_end():
     async with Simulator(mode="winsock", password=PASSWORD, seed=SEED) as sim:
         app = WhiztapApp(FileSource(str(SAMPLES / "clean-winsock.mcap")))

@@ -99,7 +99,7 @@ class ReplayScreen(Screen):
             yield Input(DEFAULT_TARGET, id="target")
             yield Label("Password")
             yield Input(os.environ.get("WHIZTAP_PASSWORD", ""), password=True, id="password",
-                        placeholder="the recording keeps it redacted")
+                        placeholder="winsock password")
             yield Label("Save as")
             yield Input("", id="output", placeholder="replay.mcap (optional)")
         with Horizontal(classes="form"):
