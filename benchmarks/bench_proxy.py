@@ -99,12 +99,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_port(port: int) -> None:
+def _wait_port(port: int, proc: subprocess.Popen | None = None) -> None:
+    """Until ``port`` accepts; if ``proc`` (what should listen there) exits
+    first, its own error message is the one to see."""
     for _ in range(500):
         try:
             socket.create_connection(("127.0.0.1", port), timeout=1).close()
             return
         except OSError:
+            if proc is not None and proc.poll() is not None:
+                err = proc.stderr.read().decode().strip() if proc.stderr else ""
+                raise RuntimeError(f"{proc.args[1]} exited with status {proc.returncode}: {err}")
             time.sleep(0.02)
     raise RuntimeError(f"nothing listens on {port}")
 
@@ -183,8 +188,8 @@ def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
         relay.wait()
         port = _free_port()
         rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
-                      "-o", str(tmp / "rt.mcap")])
-        _wait_port(port)
+                      "-o", str(tmp / "rt.mcap"), "--force"])
+        _wait_port(port, rec)
         paths["whiztap record"].append(_round_trips(port, RT_S))
         _stop(rec)
     return {name: statistics.median(rates) for name, rates in paths.items()}
@@ -199,7 +204,7 @@ def pipelined(tmp: Path) -> dict[str, float]:
     out = tmp / "pipelined.mcap"
     rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
                   "-o", str(out)])
-    _wait_port(port)
+    _wait_port(port, rec)
     payload = b"".join(b"rr1-%d--0--0-ss1" % (12 + i % 12) for i in range(PIPELINE_FRAMES))
     got = bytearray()
     with socket.create_connection(("127.0.0.1", port)) as s:
@@ -238,7 +243,7 @@ def soak(sim_port: int, tmp: Path) -> dict[str, object]:
     port = _free_port()
     rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
                   "-o", str(tmp / "soak.mcap")])
-    _wait_port(port)
+    _wait_port(port, rec)
     stop = threading.Event()
     done = [0]
 
@@ -279,7 +284,7 @@ def main() -> None:
         tmp = Path(d)
         sim_port = _free_port()
         sim = _spawn([WHIZTAP, "sim", "--mode", "vpn", "--port", str(sim_port), "-q", "--camera", "none"])
-        _wait_port(sim_port)
+        _wait_port(sim_port, sim)
         try:
             rates = round_trip_comparison(sim_port, tmp)
             direct = rates["direct"]
