@@ -4,9 +4,11 @@ event loop, and checks that read recordings back with the real MCAP reader."""
 from __future__ import annotations
 
 import asyncio
+import atexit
 import base64
 import contextlib
 import json
+import os
 import re
 import signal
 import socket
@@ -112,6 +114,19 @@ WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 _LISTENING = re.compile(rb"recording 127\.0\.0\.1:(\d+) -> ")
 
 
+_STARTED: list[asyncio.subprocess.Process] = []
+
+
+@atexit.register
+def _stop_leftovers() -> None:
+    """A test that failed half-way leaves its recorder running: stop it with
+    the test run, as SIGTERM does (the file is finished, the writer exits)."""
+    for proc in _STARTED:
+        if proc.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(proc.pid, signal.SIGTERM)
+
+
 class RecordProcess:
     """A ``whiztap record`` subprocess."""
 
@@ -119,6 +134,7 @@ class RecordProcess:
         self.proc = proc
         self.lines: list[str] = []
         self.port = 0
+        _STARTED.append(proc)
 
     @classmethod
     async def start(cls, upstream: int, output: Path, *args: str, preexec_fn=None,
