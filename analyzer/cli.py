@@ -55,6 +55,9 @@ def cli() -> None:
     """Record, replay and check Progwhiz Robotics Server API (Rev 1.8) traffic."""
 
 
+_NO_ARGS_IS_HELP = getattr(click.exceptions, "NoArgsIsHelpError", ())  # click >= 8.2
+
+
 def main() -> None:
     try:
         cli.main(standalone_mode=False)
@@ -64,6 +67,13 @@ def main() -> None:
     except KeyboardInterrupt:
         click.echo("whiztap: interrupted", err=True)
         sys.exit(EXIT_USAGE)
+    except _NO_ARGS_IS_HELP as e:  # a bare 'whiztap': the help, as click prints it
+        e.show()
+        sys.exit(e.exit_code)
+    except click.UsageError as e:  # one line, like every other error, rather than click's three
+        command = e.ctx.command_path if e.ctx is not None else "whiztap"
+        click.echo(f"whiztap: {e.format_message()} (see '{command} --help')", err=True)
+        sys.exit(e.exit_code)
     except click.ClickException as e:
         e.show()
         sys.exit(e.exit_code)

@@ -62,10 +62,21 @@ def test_bad_input_is_one_line_and_exit_2(args):
     assert "Traceback" not in result.stderr
 
 
-def test_unknown_command_exits_2():
-    result = run("frobnicate")
-    assert result.returncode == 2
-    assert "Traceback" not in result.stderr
+@pytest.mark.parametrize("args, says", [
+    (("frobnicate",), "whiztap: No such command 'frobnicate'. (see 'whiztap --help')"),
+    (("rules", "--nope"), "whiztap: No such option '--nope'. (see 'whiztap rules --help')"),
+    (("cat",), "whiztap: Missing argument 'PATH'. (see 'whiztap cat --help')"),
+    (("info", "."), "whiztap: Invalid value for 'PATH': File '.' is a directory. (see 'whiztap info --help')"),
+])
+def test_usage_errors_are_one_line_that_names_the_help(args, says):
+    result = run(*args)
+    assert (result.returncode, result.stderr) == (2, says + "\n")
+
+
+def test_a_bare_whiztap_shows_the_help():
+    result = run()
+    assert result.returncode == 2 and result.stderr.startswith("Usage: whiztap [OPTIONS] COMMAND")
+    assert "Commands:" in result.stderr
 
 
 def test_help_loads_no_event_loop_and_no_session_model():
