@@ -155,8 +155,8 @@ async def _switch(client: Client, words: list[str]) -> str:
 
 
 async def _script(client: Client, words: list[str]) -> str:
-    if len(words) == 3 and words[1].lower() == "stop":
-        which = words[2].lower()
+    if len(words) >= 2 and words[1].lower() == "stop":
+        which = words[2].lower() if len(words) == 3 else ""
         if which == "internal":
             await client.stop_internal_script()
         elif which == "external":

@@ -211,7 +211,7 @@ async def test_every_command(session, tmp_path):
 
 @pytest.mark.parametrize("line, text", [
     ("", "no command"), ("bogus", "unknown command"), ("sensor x", "whole number"), ("sensor", "wrong arguments"),
-    ("sensor -1", "must not be negative"), ("switch 7 maybe", "on or off"), ("script stop all", "usage"),
+    ("sensor -1", "must not be negative"), ("switch 7 maybe", "on or off"), ("script stop all", "usage"), ("script stop", "usage"),
     ("camera -x", "usage"), ("setconfig motor:0", "bad channel group"), ("setconfig servo:0 300", "one byte"),
     ("sleep soon", "seconds"), ("raw", "needs the bytes"),
 ])
