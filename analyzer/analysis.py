@@ -193,6 +193,8 @@ class Analyzer:
             return []
         if name == "upstream_failed":
             summary.notes.append(f"upstream failed: {message.get('detail', '')}")
+            if conn in self.sessions:
+                self.sessions[conn].server_unreachable(message.get("detail", ""))
             return []
         if name == "gap":
             summary.notes.append(f"capture gap of {message.get('length')} bytes in {message.get('dir')}")

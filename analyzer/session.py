@@ -203,6 +203,7 @@ class Session:
         self._last_kind = {Direction.C2S: None, Direction.S2C: None}
         self._ended: set[Direction] = set()
         self._closed = False
+        self._ended_why = "the session ended first"  # of requests still unanswered at close
 
     # -- input ------------------------------------------------------------------------
 
@@ -215,6 +216,11 @@ class Session:
         self._ended.add(direction)
         return self._observe_all(direction, self.framers[direction].end(t_ns), t_ns)
 
+    def server_unreachable(self, detail: str) -> None:
+        """The proxy could not reach the server (``detail`` says why): requests
+        left unanswered at close are still reported, as no server reached."""
+        self._ended_why = f"the server was never reached ({detail})"
+
     def close(self, t_ns: int) -> list[Event]:
         if self._closed:
             return []
@@ -222,7 +228,7 @@ class Session:
         self._closed = True
         for pending in self._pending:
             if pending.certain:
-                events.append(self._unanswered(pending, t_ns, "the session ended first"))
+                events.append(self._unanswered(pending, t_ns, self._ended_why))
         self._pending.clear()
         self._certain = 0
         return events

@@ -151,6 +151,7 @@ class Recorder:
 
     def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
         self.summary.upstream_failures += 1
+        self._conns[conn].session.server_unreachable(detail)
         self._event(conn, EV_UPSTREAM_FAILED, self._clock(t_ns), by="server", detail=detail)
 
     def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:

@@ -109,6 +109,24 @@ def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
     assert meta["source"] == "test"
 
 
+def test_a_request_to_a_server_never_reached_is_reported_as_such_live_and_in_the_report(tmp_path):
+    path = tmp_path / "down.mcap"
+    rec = _recorder(path)
+    rec.opened(1, T0 + 1, "127.0.0.1:5555", "127.0.0.1:5000")
+    rec.data(1, C2S, T0 + 2, b"rr1-24--0--0-ss1")  # sent while the proxy was still connecting
+    rec.upstream_failed(1, T0 + 3, "cannot connect to 127.0.0.1:5000: Connection refused")
+    rec.closed(1, T0 + 4, "server", "cannot connect to 127.0.0.1:5000: Connection refused")
+    rec.stop(T0 + 5)
+    why = ("Fetch Configuration Settings: the server was never reached "
+           "(cannot connect to 127.0.0.1:5000: Connection refused)")
+    assert [(v["rule_id"], v["detail"]) for v in read_all(str(path))["/violations"]] == [("PW-PAIR-UNANSWERED", why)]
+    from analyzer.analyze_cli import analyse_file
+    from analyzer.report.content import build
+
+    report = build(analyse_file(path, "dev-sum"))
+    assert [(v["rule_id"], v["detail"]) for v in report["violations"]] == [("PW-PAIR-UNANSWERED", why)]
+
+
 def test_password_is_masked_in_reads_and_frames_yet_streams_rebuild_the_same(tmp_path):
     path = tmp_path / "pw.mcap"
     rec = _recorder(path)
