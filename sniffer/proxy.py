@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import os
 import socket
 import time
 from collections.abc import Callable
 from typing import Protocol
 
 from analyzer.session import Direction
+from sniffer.oserror import reason
 
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
@@ -174,8 +174,7 @@ class Connection:
         except asyncio.CancelledError:
             return
         except (OSError, asyncio.TimeoutError) as e:
-            why = "timed out" if isinstance(e, asyncio.TimeoutError) else (
-                os.strerror(e.errno) if e.errno else str(e))
+            why = "timed out" if isinstance(e, asyncio.TimeoutError) else reason(e)
             detail = f"cannot connect to {proxy.upstream_text}: {why}"
             proxy.sink.upstream_failed(self.id, proxy.clock(), detail)
             self.detail = detail

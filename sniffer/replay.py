@@ -56,7 +56,6 @@ as the server reads.  In both, connections run one after another.
 from __future__ import annotations
 
 import asyncio
-import os
 import socket
 import time
 from collections import Counter, deque
@@ -73,6 +72,7 @@ from analyzer.messages import FailedValidation, SendCheckPassword
 from analyzer.recording import MASK_BYTE
 from analyzer.session import Direction, Observation, Session
 from analyzer.stats import LatencyStats
+from sniffer.oserror import reason
 from sniffer.replay_plan import ConnectionPlan, Selection, Send, plan
 
 NS = 1_000_000_000
@@ -689,8 +689,7 @@ class Replay:
         except TimeoutError:
             raise ReplayError(f"cannot connect to {_address(host, port)}: timed out") from None
         except OSError as e:
-            why = os.strerror(e.errno) if e.errno else str(e)
-            raise ReplayError(f"cannot connect to {_address(host, port)}: {why}") from None
+            raise ReplayError(f"cannot connect to {_address(host, port)}: {reason(e)}") from None
         sock = writer.get_extra_info("socket")
         if sock is not None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)

@@ -7,7 +7,6 @@ simulator, which brings in Pillow for the camera, is imported when it runs.
 from __future__ import annotations
 
 import logging
-import os
 import signal
 import sys
 import threading
@@ -145,6 +144,7 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
 async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str]) -> int:
     from sniffer.client import Client, ClientError
     from sniffer.console import CommandError, run, split_line
+    from sniffer.oserror import reason
 
     words = split_line(" ".join(words))  # 'sensor 12' and sensor 12 alike, as at the prompt
     try:
@@ -152,8 +152,7 @@ async def _run_client(host: str, port: int, password: str | None, timeout: float
     except ClientError as e:
         fail(f"{_show_address(host, port)}: {e}")
     except OSError as e:
-        reason = os.strerror(e.errno) if e.errno else str(e)
-        fail(f"cannot connect to {_show_address(host, port)}: {reason}")
+        fail(f"cannot connect to {_show_address(host, port)}: {reason(e)}")
     async with client:
         if words:
             try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import socket
 
 import pytest
 
@@ -193,3 +194,13 @@ async def test_a_dropped_answer_costs_one_timeout_only():
             assert None in outcomes and 1000 in outcomes
             assert set(outcomes) == {None, 1000}
             assert len(outcomes) - outcomes.count(None) == sim.stats.answers_sent
+
+
+def test_connection_failures_are_told_in_the_system_s_words():
+    from sniffer.oserror import reason
+
+    # asyncio's text names the call and the address, which the message already says
+    assert reason(ConnectionRefusedError(111, "Connect call failed ('127.0.0.1', 1)")) == "Connection refused"
+    # a name that does not resolve: a negative errno of its own numbering
+    assert reason(socket.gaierror(-2, "Name or service not known")) == "Name or service not known"
+    assert reason(OSError("Multiple exceptions: ...")) == "Multiple exceptions: ..."
