@@ -30,7 +30,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from analyzer.session import Direction
-from sniffer.oserror import reason
+from sniffer.nettext import reason, show_address
 
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
@@ -60,10 +60,8 @@ class Clock:
 
 
 def address(sockname: tuple | None) -> str:
-    if not sockname:
-        return "?"
-    host, port = sockname[0], sockname[1]
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    """A socket's (host, port, ...) as host:port; "?" when there is none."""
+    return show_address(sockname[0], sockname[1]) if sockname else "?"
 
 
 class _Leg(asyncio.Protocol):

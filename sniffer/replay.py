@@ -72,7 +72,7 @@ from analyzer.messages import FailedValidation, SendCheckPassword
 from analyzer.recording import MASK_BYTE
 from analyzer.session import Direction, Observation, Session
 from analyzer.stats import LatencyStats
-from sniffer.oserror import reason
+from sniffer.nettext import reason, show_address
 from sniffer.replay_plan import ConnectionPlan, Selection, Send, plan
 
 NS = 1_000_000_000
@@ -655,7 +655,7 @@ class Replay:
         conn = self._next_conn
         self._next_conn += 1
         self._tally.connections += 1
-        local = _address(*writer.get_extra_info("sockname")[:2])
+        local = show_address(*writer.get_extra_info("sockname")[:2])
         self._record("opened", conn, local=local)
         self._emit(ConnectionOpened(conn, p.recorded.conn, loop, self._at(), local))
         c = _Connection(self, p, conn, reader, writer)
@@ -687,9 +687,9 @@ class Replay:
             reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port),
                                                     self.options.connect_timeout)
         except TimeoutError:
-            raise ReplayError(f"cannot connect to {_address(host, port)}: timed out") from None
+            raise ReplayError(f"cannot connect to {show_address(host, port)}: timed out") from None
         except OSError as e:
-            raise ReplayError(f"cannot connect to {_address(host, port)}: {reason(e)}") from None
+            raise ReplayError(f"cannot connect to {show_address(host, port)}: {reason(e)}") from None
         sock = writer.get_extra_info("socket")
         if sock is not None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -773,7 +773,7 @@ class Replay:
         options = self.options
         self._wall = Clock()
         start = self._wall()
-        target = _address(*options.target)  # type: ignore[misc]
+        target = show_address(*options.target)  # type: ignore[misc]
         metadata = base_metadata("replay", False, options.checksum_rule, start, replay_of=self.recording.path,
                                  target=target, pace=str(options.pace), rate=options.rate)
         self._recorder = Recorder(RecordingFile(options.output, metadata),  # type: ignore[arg-type]
@@ -796,7 +796,7 @@ class Replay:
             if what == "data":
                 recorder.data(conn, direction, t, data)
             elif what == "opened":
-                recorder.opened(conn, t, details["local"], _address(*self.options.target))  # type: ignore[misc]
+                recorder.opened(conn, t, details["local"], show_address(*self.options.target))  # type: ignore[misc]
                 recorder.upstream_connected(conn, t)
             elif what == "half_closed":
                 recorder.half_closed(conn, direction, t)
@@ -833,6 +833,3 @@ class Replay:
         if error:
             raise ReplayError(error)
 
-
-def _address(host: str, port: int) -> str:
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"

@@ -18,6 +18,7 @@ import click
 from analyzer.checksum import CHECKSUM_RULES, DEFAULT_CHECKSUM_RULE
 from analyzer.cli import fail
 from sniffer.channels import DEFAULT_CHANNELS
+from sniffer.nettext import reason, show_address
 from sniffer.robot import DEFAULT_PASSWORD, DEFAULT_SERVO_SPEED
 
 DEFAULT_PORT = 5000
@@ -33,10 +34,6 @@ def _run(main: Coroutine[Any, Any, T]) -> T:
         return asyncio.run(main)
     except KeyboardInterrupt:
         fail("interrupted")
-
-
-def _show_address(host: str, port: int) -> str:
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 @click.command("sim")
@@ -94,13 +91,13 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
     try:
         await sim.start()
     except OSError as e:
-        fail(f"cannot listen on {_show_address(sim.host, sim.requested_port)}: {e.strerror or e}")
+        fail(f"cannot listen on {show_address(sim.host, sim.requested_port)}: {e.strerror or e}")
     import asyncio
 
     stopped = asyncio.Event()
     asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stopped.set)
     try:
-        where = ", ".join(_show_address(host, port) for host, port in sim.addresses)
+        where = ", ".join(show_address(host, port) for host, port in sim.addresses)
         click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
                    f"seed {sim.seed})")
         await stopped.wait()
@@ -144,15 +141,14 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
 async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str]) -> int:
     from sniffer.client import Client, ClientError
     from sniffer.console import CommandError, run, split_line
-    from sniffer.oserror import reason
 
     words = split_line(" ".join(words))  # 'sensor 12' and sensor 12 alike, as at the prompt
     try:
         client = await Client.connect(host, port, password, timeout)
     except ClientError as e:
-        fail(f"{_show_address(host, port)}: {e}")
+        fail(f"{show_address(host, port)}: {e}")
     except OSError as e:
-        fail(f"cannot connect to {_show_address(host, port)}: {reason(e)}")
+        fail(f"cannot connect to {show_address(host, port)}: {reason(e)}")
     async with client:
         if words:
             try:

@@ -197,7 +197,7 @@ async def test_a_dropped_answer_costs_one_timeout_only():
 
 
 def test_connection_failures_are_told_in_the_system_s_words():
-    from sniffer.oserror import reason
+    from sniffer.nettext import reason
 
     # asyncio's text names the call and the address, which the message already says
     assert reason(ConnectionRefusedError(111, "Connect call failed ('127.0.0.1', 1)")) == "Connection refused"

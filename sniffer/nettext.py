@@ -1,4 +1,5 @@
-"""Why a connection failed, in the system's own words, for one-line messages."""
+"""Network things as one-line messages write them: an address, and why a
+connection failed (in the system's own words)."""
 
 from __future__ import annotations
 
@@ -17,3 +18,8 @@ def reason(e: OSError) -> str:
     if isinstance(e, socket.gaierror) or not e.errno:
         return e.strerror or str(e)
     return os.strerror(e.errno)
+
+
+def show_address(host: str, port: int) -> str:
+    """host:port, with an IPv6 host in brackets."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
