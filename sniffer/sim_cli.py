@@ -105,20 +105,6 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
         await sim.close()
 
 
-def _parse_address(address: str) -> tuple[str, int]:
-    host, sep, port_text = address.rpartition(":")
-    if not sep:
-        fail(f"expected HOST:PORT, got {address!r}")
-    host = host.strip("[]") or "127.0.0.1"
-    try:
-        port = int(port_text)
-    except ValueError:
-        fail(f"bad port in {address!r}")
-    if not 1 <= port <= 65535:
-        fail(f"port must be 1-65535, got {port}")
-    return host, port
-
-
 @click.command("client", context_settings={"ignore_unknown_options": True})
 @click.argument("address", metavar="HOST:PORT")
 @click.argument("words", nargs=-1, type=click.UNPROCESSED, metavar="[COMMAND]...")
@@ -134,7 +120,9 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
     line typed at the prompt.  Without one, a command per line from standard
     input ('help' lists them).
     """
-    host, port = _parse_address(address)
+    from sniffer.record_cli import parse_address
+
+    host, port = parse_address(address, None, "the server address")
     sys.exit(_run(_run_client(host, port, password, timeout, list(words))))
 
 

@@ -134,8 +134,11 @@ def test_client_to_an_unreachable_port_is_one_line():
     one_line_error(whiztap("client", f"127.0.0.1:{port}", "config"), f"cannot connect to 127.0.0.1:{port}")
 
 
-@pytest.mark.parametrize("address, text", [("nowhere", "expected HOST:PORT"), ("127.0.0.1:x", "bad port"),
-                                           (":70000", "port must be 1-65535")])
+@pytest.mark.parametrize("address, text", [
+    ("nowhere", "the server address must be HOST:PORT, got 'nowhere'"),
+    ("127.0.0.1:x", "the server address needs a port number 0-65535, got '127.0.0.1:x'"),
+    ("127.0.0.1:70000", "needs a port number 0-65535"), (":5000", "must be HOST:PORT"),
+])
 def test_client_bad_address_is_one_line(address, text):
     one_line_error(whiztap("client", address, "config"), text)
 
