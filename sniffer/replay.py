@@ -203,6 +203,27 @@ class ReplayResult:
     def exit_status(self) -> int:
         return 2 if self.error is not None else 0 if self.ok else 1
 
+    def as_dict(self) -> dict:
+        """The result as plain data (``whiztap replay --format json``); bytes as escaped text."""
+        from analyzer.text import escape
+
+        def text(data: bytes | None) -> str | None:
+            return escape(data) if data is not None else None
+
+        return {
+            "connections": self.connections, "writes": self.writes,
+            "answers": {str(s): self.counts.get(s, 0) for s in Status},
+            "ok": self.ok, "exit_status": self.exit_status, "stopped": self.stopped, "error": self.error,
+            "differences": [{
+                "conn": d.conn, "at_s": d.at_s, "recorded_s": d.recorded_s, "request": text(d.request),
+                "request_text": d.request_text, "recorded": text(d.recorded), "replayed": text(d.replayed),
+                "status": str(d.status), "diff": d.diff,
+            } for d in self.differences],
+            "drift": None if self.drift is None else {
+                "count": self.drift.count, "p50_ns": self.drift.p50_ns, "p99_ns": self.drift.p99_ns,
+                "max_ns": self.drift.max_ns, "shift_ns": self.drift.shift_ns},
+        }
+
     def summary(self) -> str:
         c = self.counts
         judged = ", ".join(f"{c.get(s, 0)} {s}" for s in (Status.MATCH, Status.MISMATCH, Status.MISSING,

@@ -96,11 +96,13 @@ def _password(text: str | None) -> bytes | None:
               help="Write the replayed session as a recording.")
 @click.option("-v", "--verbose", is_flag=True, help="Print every write and every answer, not only differences.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the summary.")
+@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
+              help="json: one object at the end (counts, differences, drift), for scripts.")
 def replay_command(path: str, target: str | None, password: str | None, conns: tuple[int, ...], pace: str,
                    rate: float, segments: str, mode: str, tolerances: tuple[str, ...], ignore_fields: tuple[str, ...],
                    ignore_kinds: tuple[str, ...], timeout: float, connect_timeout: float, loop: int,
                    start_s: float | None, end_s: float | None, kinds: tuple[str, ...], dry_run: bool,
-                   output: str | None, verbose: bool, quiet: bool) -> None:
+                   output: str | None, verbose: bool, quiet: bool, fmt: str) -> None:
     """Replay a recording's client side against a server and compare its answers.
 
     Exit status 0 when every answer matched, 1 on any difference, 2 when the
@@ -135,7 +137,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
                             connect_timeout=connect_timeout, loop=loop, selection=selection, output=output,
                             checksum_rule=recording.checksum_rule)
     try:
-        result = _run(lambda: _replay(recording, options, verbose, quiet))
+        result = _run(lambda: _replay(recording, options, verbose, quiet, fmt == "json"))
     except ReplayError as e:
         fail(e.explained({"password": "give --password or set WHIZTAP_PASSWORD", "target": "give --target"}))
     if result.error:
@@ -145,13 +147,13 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     sys.exit(result.exit_status)
 
 
-async def _replay(recording, options, verbose: bool, quiet: bool):  # noqa: ANN001, ANN202 - lazy types
+async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool):  # noqa: ANN001, ANN202
     from sniffer.replay import Replay
 
-    printer = _Printer(verbose, quiet)
+    printer = _Printer(verbose, quiet or as_json)
     replay = Replay(recording, options, on_event=printer)
     replay.check()
-    if not quiet:
+    if not (quiet or as_json):
         target = f"{options.target[0]}:{options.target[1]}"
         click.echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
@@ -167,6 +169,17 @@ async def _replay(recording, options, verbose: bool, quiet: bool):  # noqa: ANN0
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
     if result.error:
+        return result
+    if as_json:
+        import json
+
+        target = f"{options.target[0]}:{options.target[1]}"
+        click.echo(json.dumps({"recording": recording.path, "target": target, "pace": str(options.pace),
+                               "rate": options.rate, "compare": {
+                                   "mode": str(options.rules.mode), "tolerances": dict(options.rules.tolerances),
+                                   "ignore_fields": sorted(options.rules.ignore_fields),
+                                   "ignore_kinds": sorted(options.rules.ignore_kinds)},
+                               "output": options.output, **result.as_dict()}, indent=2))
         return result
     click.echo(result.summary())
     if result.drift is not None:

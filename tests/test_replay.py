@@ -7,6 +7,7 @@ recording proxy against a frozen-clock simulator (tests/replay_support.py).
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import re
 import signal
@@ -317,6 +318,27 @@ async def test_command_exit_status_0_then_1_with_a_readable_diff(recorded, tmp_p
     assert re.search(r"^  sensor_value: \d+ +\| sensor_value: \d+$", stdout, re.M)
     assert "drift: none measured (pace lockstep keeps no schedule)" in stdout
     assert "DIFFERENCES (exit status 1)" in stdout
+
+
+async def test_command_json_is_one_object_with_the_counts_and_every_difference(recorded):
+    async with simulator(seed=1) as same, simulator(seed=2) as other:
+        args = ["replay", str(recorded), "--password", PASSWORD, "--compare", "exact", "--pace", "lockstep",
+                "--format", "json"]
+        code_same, out_same, err_same = await whiztap(*args, "--target", f"{LOCAL}:{same.port}")
+        code, stdout, stderr = await whiztap(*args, "--target", f"{LOCAL}:{other.port}", "--tolerance",
+                                             "sensor_value=1")
+    assert (code_same, err_same, code, stderr) == (0, "", 1, "")
+    same_result, result = json.loads(out_same), json.loads(stdout)  # nothing but the object on stdout
+    assert same_result["ok"] and same_result["differences"] == [] and same_result["exit_status"] == 0
+    assert same_result["answers"]["mismatch"] == 0 and same_result["answers"]["match"] > 0
+    assert not result["ok"] and result["exit_status"] == 1
+    assert result["compare"] == {"mode": "exact", "tolerances": {"sensor_value": 1.0}, "ignore_fields": [],
+                                 "ignore_kinds": []}
+    assert len(result["differences"]) == result["answers"]["mismatch"] + result["answers"]["missing"] > 0
+    first = result["differences"][0]
+    assert (first["conn"], first["request"], first["status"]) == (1, "rr1-12--0--0-ss1", "mismatch")
+    assert first["diff"].startswith("MISMATCH c1 at ") and first["recorded"].startswith("cr1-12--")
+    assert result["drift"] is None and result["pace"] == "lockstep"
 
 
 @pytest.mark.parametrize("args, message", [
