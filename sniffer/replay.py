@@ -72,6 +72,7 @@ from analyzer.messages import FailedValidation, SendCheckPassword
 from analyzer.recording import MASK_BYTE
 from analyzer.session import Direction, Observation, Session
 from analyzer.stats import LatencyStats
+from analyzer.text import escape
 from sniffer.nettext import reason, show_address
 from sniffer.replay_plan import ConnectionPlan, Selection, Send, plan
 
@@ -205,7 +206,6 @@ class ReplayResult:
 
     def as_dict(self) -> dict:
         """The result as plain data (``whiztap replay --format json``); bytes as escaped text."""
-        from analyzer.text import escape
 
         def text(data: bytes | None) -> str | None:
             return escape(data) if data is not None else None
