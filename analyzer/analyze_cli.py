@@ -65,12 +65,14 @@ def scan_recording(path: Path, stream: IO[bytes]) -> Iterator[Any]:
         fail(_unreadable(path, "the file is truncated (no footer)"))
 
 
-class _Progress:
-    """A progress bar over a file's bytes, on a terminal, for files that take a moment."""
+class ByteProgress:
+    """A progress bar over files' bytes, on a terminal, for files that take a
+    moment: ``open`` counts what is read through it, ``update`` takes a
+    position from a reader that does its own reading (pcap import)."""
 
     THRESHOLD = 16 * 1024 * 1024
 
-    def __init__(self, paths: list[Path], enabled: bool) -> None:
+    def __init__(self, paths: list[Path], enabled: bool, doing: str = "analysing") -> None:
         total = sum(p.stat().st_size for p in paths)
         self.bar = None
         if enabled and total >= self.THRESHOLD and sys.stderr.isatty():
@@ -78,9 +80,9 @@ class _Progress:
 
             self.bar = Progress("[progress.description]{task.description}", BarColumn(), DownloadColumn(),
                                 TimeRemainingColumn(), transient=True, console=_stderr_console())
-            self.task = self.bar.add_task("analysing", total=total)
+            self.task = self.bar.add_task(doing, total=total)
 
-    def __enter__(self) -> _Progress:
+    def __enter__(self) -> ByteProgress:
         if self.bar:
             self.bar.start()
         return self
@@ -88,6 +90,11 @@ class _Progress:
     def __exit__(self, *exc: object) -> None:
         if self.bar:
             self.bar.stop()
+
+    def update(self, position: int) -> None:
+        """Bytes done so far, in all: for readers that do their own reading."""
+        if self.bar is not None:
+            self.bar.update(self.task, completed=position)
 
     def open(self, path: Path) -> IO[bytes]:
         f = open(path, "rb")  # noqa: SIM115 - closed by the caller
@@ -113,7 +120,7 @@ def _stderr_console():
     return Console(stderr=True)
 
 
-def analyse_file(path: Path, checksum_rule: str, progress: _Progress | None = None):
+def analyse_file(path: Path, checksum_rule: str, progress: ByteProgress | None = None):
     """One recording analysed (in this process)."""
     from analyzer.analysis import Analyzer
     from analyzer.recording import Read
@@ -135,7 +142,7 @@ def analyse_file(path: Path, checksum_rule: str, progress: _Progress | None = No
     return analyzer.finish()
 
 
-def _analyse_or_say_why(path: Path, checksum_rule: str, progress: _Progress | None = None):
+def _analyse_or_say_why(path: Path, checksum_rule: str, progress: ByteProgress | None = None):
     """``analyse_file``, or the one-line reason it could not be read."""
     try:
         return analyse_file(path, checksum_rule, progress)
@@ -196,7 +203,7 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
         fail(str(e))
     paths = recording_paths(inputs)
     tune_gc()
-    with _Progress(paths, enabled=not quiet) as progress:
+    with ByteProgress(paths, enabled=not quiet) as progress:
         analysis, unreadable = _analyse_all(paths, rule_name, jobs, progress)
     for u in unreadable:
         click.echo(f"whiztap: {u['error']}", err=True)
@@ -216,7 +223,7 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
     sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
 
-def _analyse_all(paths: list[Path], rule_name: str, jobs: int | None, progress: _Progress):
+def _analyse_all(paths: list[Path], rule_name: str, jobs: int | None, progress: ByteProgress):
     """(the merged analysis of the files that could be read, or None if none
     could; {"file", "error"} of those that could not): one bad file among many
     costs only itself."""

@@ -64,8 +64,10 @@ def _timestamp(meta, nano: bool) -> int:  # noqa: ANN001 - scapy's PacketMetadat
     return meta.sec * 1_000_000_000 + meta.usec * (1 if nano else 1000)
 
 
-def import_pcap(path: str, settings: CaptureSettings) -> dict:
-    """Record the traffic to ``settings.port`` in a pcap or pcapng file; the summary."""
+def import_pcap(path: str, settings: CaptureSettings, progress: Callable[[int], None] | None = None) -> dict:
+    """Record the traffic to ``settings.port`` in a pcap or pcapng file; the
+    summary.  ``progress`` is told how far into the file the reading is, now
+    and then and at the end."""
     from scapy.error import Scapy_Exception
     from scapy.utils import RawPcapReader
 
@@ -100,6 +102,10 @@ def import_pcap(path: str, settings: CaptureSettings) -> dict:
                 count += 1
                 if count % TICK_EVERY == 0:
                     recorder.tick(t)
+                    if progress is not None:
+                        progress(reader.f.tell())
+            if progress is not None:
+                progress(reader.f.tell())
         if recorder is None:
             recorder = _recorder(settings, "pcap", time.time_ns(), pcap=path)
             recorder.start(time.time_ns(), detail=f"import of {path} (no packets)")

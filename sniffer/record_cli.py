@@ -12,6 +12,7 @@ import re
 import socket
 import uuid
 from collections.abc import Callable
+from pathlib import Path
 
 import click
 
@@ -225,7 +226,11 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
     settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule)
     try:
         if pcap is not None:
-            summary = import_pcap(pcap, settings)
+            from analyzer.analyze_cli import ByteProgress
+
+            # a bar on a terminal for a large file; a missing one is import_pcap's to report
+            with ByteProgress([Path(pcap)] if os.path.isfile(pcap) else [], not quiet, "importing") as bar:
+                summary = import_pcap(pcap, settings, progress=bar.update)
         else:
             summary = capture_live(iface, settings, count=count, timeout=timeout,  # type: ignore[arg-type]
                                    announce=None if quiet else click.echo)

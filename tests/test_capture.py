@@ -143,6 +143,18 @@ def test_the_command_keeps_an_existing_recording_unless_forced(tmp_path):
     assert streams(str(out)) == {(1, "c2s"): C2S, (1, "s2c"): S2C}
 
 
+def test_the_import_says_how_far_into_the_file_it_is(tmp_path):
+    frames = [b"rr1-%d--0--0-ss1" % (12 + i % 10) for i in range(1100)]  # 2,200 data packets and more
+    answers = [f.replace(b"rr1-", b"cr1-") for f in frames]
+    offsets = [16 * i for i in range(len(frames))]
+    pcap = _write(tmp_path / "long.pcap", _session(list(zip(offsets, frames)), list(zip(offsets, answers))))
+    positions: list[int] = []
+    import_pcap(pcap, CaptureSettings(5000, str(tmp_path / "long.mcap")), progress=positions.append)
+    assert len(positions) >= 2 and positions == sorted(positions)  # now and then, never backwards
+    assert positions[-1] == os.path.getsize(pcap)  # and the whole file at the end
+    assert streams(str(tmp_path / "long.mcap"))[(1, "c2s")] == b"".join(frames)
+
+
 def test_scapy_layer_dissects_both_directions():
     bind(5000)
     request = IP(bytes(IP() / TCP(sport=40000, dport=5000) / b"rr1-3--0--2-ss1"))
