@@ -94,8 +94,9 @@ class ReplayError(Exception):
     """The replay cannot start or go on (one line for the user).
 
     ``missing`` names a setting the replay needs and was not given ("target",
-    "password"): the command line, the TUI and the pytest plugin each say how
-    to give it in their own terms (``explained``).
+    "password"): each front end says how to give it in its own terms
+    (``explained``); the command line and the TUI check the target themselves
+    before a replay exists, so only the password reaches them this way.
     """
 
     def __init__(self, message: str, missing: str | None = None) -> None:

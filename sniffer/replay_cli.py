@@ -139,7 +139,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     try:
         result = _run(lambda: _replay(recording, options, verbose, quiet, fmt == "json"))
     except ReplayError as e:
-        fail(e.explained({"password": "give --password or set WHIZTAP_PASSWORD", "target": "give --target"}))
+        fail(e.explained({"password": "give --password or set WHIZTAP_PASSWORD"}))  # --target is checked above
     if result.error:
         fail(result.error)
     if result.stopped:

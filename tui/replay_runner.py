@@ -77,7 +77,7 @@ class ReplayRunner:
             replay = Replay(recording, self.options, on_event=self._on_event)
             replay.check()
         except ReplayError as e:
-            self._fail(e.explained({"password": "type it in Password", "target": "fill in Target"}))
+            self._fail(e.explained({"password": "type it in Password"}))  # the screen checks Target itself
             return
         with self._lock:
             self._replay, self._loop = replay, loop
