@@ -118,7 +118,10 @@ class Framer:
 
     def feed(self, data: bytes, t_ns: int) -> list[Item]:
         if self._ended:
-            raise RuntimeError("feed() after end()")
+            # Bytes after the stream's end: only a file written out of order
+            # (another writer, an older whiztap) says so.  Frame them as they
+            # come rather than refuse the rest of the recording.
+            self._ended = False
         if not data:
             return []
         first_new = len(self._buf)

@@ -255,3 +255,13 @@ def test_pairing_stays_linear_when_a_client_pipelines_before_the_channel_map():
     events = s.receive(S, answers, 2)
     assert sum(1 for e in events if getattr(e, "answers", None) is not None) == n + 1
     assert scanned < 20 * n
+
+
+def test_bytes_after_a_half_close_are_framed_not_refused():
+    """A file written out of order (another writer, an older whiztap) can hold a
+    direction's bytes after its half-close: they are still framed and checked."""
+    s = Session()
+    s.receive(C, b"rr1-24--0-", 1)
+    s.end(C, 2)
+    events = s.receive(C, b"rr1-24--0--0-ss1", 3)
+    assert [e.item.kind for e in events] == [ItemKind.COMMAND]
