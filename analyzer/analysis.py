@@ -286,7 +286,7 @@ class Analyzer:
             kind = e.item.kind
             if kind is response:
                 request = e.answers
-                if request is not None:
+                if request is not None and e.message is not None:  # an answer may not parse
                     servo = request.message.__class__ is ServoPositionRequest
                     key = ("servo" if servo else "sensor", e.message.channel)
                     series = values.get(key)

@@ -232,3 +232,68 @@ def framed(data: bytes) -> list[tuple[str, bytes]]:
 def events(by_topic: dict[str, list[dict]], conn: int) -> list[str]:
     return [e["event"] for e in by_topic["/tcp/events"] if e["conn"] == conn]
 
+
+
+# -- a scripted two-sided session through the real proxy ---------------------------------------------
+
+
+class StepServer(TcpServer):
+    """Plays ``steps`` on each connection: ``("send", bytes)``, ``("recv", n)``
+    (wait for n more bytes from the client), ``("close",)``."""
+
+    def __init__(self, steps: list[tuple]) -> None:
+        super().__init__(LOCAL, 0)
+        self.steps = steps
+        self.received = bytearray()
+
+    async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            for step in self.steps:
+                if step[0] == "send":
+                    writer.write(step[1])
+                    await writer.drain()
+                elif step[0] == "recv":
+                    self.received += await reader.readexactly(step[1])
+                else:
+                    break
+            else:
+                self.received += await reader.read(-1)
+        except (ConnectionError, OSError, asyncio.IncompleteReadError):
+            pass
+        finally:
+            writer.close()
+
+
+async def play_client(port: int, steps: list[tuple]) -> bytes:
+    """The client side: ``("send", bytes)``, ``("recv", n)``, ``("sleep", s)``,
+    ``("eof",)`` (half-close);
+    closes at the end and returns what it received."""
+    reader, writer = await asyncio.open_connection(LOCAL, port)
+    got = bytearray()
+    try:
+        for step in steps:
+            if step[0] == "send":
+                writer.write(step[1])
+                await writer.drain()
+            elif step[0] == "recv":
+                got += await asyncio.wait_for(reader.readexactly(step[1]), WAIT)
+            elif step[0] == "sleep":
+                await asyncio.sleep(step[1])
+            elif step[0] == "eof":
+                writer.write_eof()
+    finally:
+        writer.close()
+        with contextlib.suppress(ConnectionError, OSError):
+            await writer.wait_closed()
+    return bytes(got)
+
+
+async def record_dialogue(path: Path, server_steps: list[tuple], client_steps: list[tuple],
+                          **options) -> Path:
+    """One connection client -> real recording proxy -> scripted server, recorded to ``path``."""
+    async with StepServer(server_steps) as server:
+        async with recording(server.port, str(path), **options) as rec:
+            await play_client(rec.proxy.port, client_steps)
+            await asyncio.sleep(0.05)  # the server's close reaches the proxy
+        assert rec.summary is not None
+    return path
