@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 DEFAULT_MAX_ITEM = 64 * 1024
 MIN_MAX_ITEM = 1024  # above the longest Configuration Settings frame (255 channels)
+DEFAULT_MAX_IMAGE = 32 * 1024 * 1024  # camera pictures: the spec sets no limit
 
 
 class ItemKind(StrEnum):
@@ -85,10 +86,17 @@ class Framer:
     password until a line break, a frame header, or ``close_password()``.
     """
 
-    def __init__(self, max_item: int = DEFAULT_MAX_ITEM) -> None:
+    def __init__(self, max_item: int = DEFAULT_MAX_ITEM, max_image: int = DEFAULT_MAX_IMAGE) -> None:
+        """``max_item`` bounds every item but camera images, which ``max_image``
+        bounds (at least ``max_item``): a picture of several megabytes is one item,
+        while a frame that never ends still costs at most ``max_item`` of memory."""
         if max_item < MIN_MAX_ITEM:
             raise ValueError(f"max_item must be at least {MIN_MAX_ITEM} bytes")
         self.max_item = max_item
+        self.max_image = max(max_image, max_item)
+        # Where the scan of an image at the start of the buffer resumes, so a large
+        # picture arriving in many reads is walked once, not once per read.
+        self._resume: tuple[int, int] | None = None
         self._buf: bytearray | bytes = bytearray()  # bytes only while a feed scans a fresh chunk
         # (offset in _buf, arrival time) for each chunk still partly in _buf
         self._marks: list[tuple[int, int]] = []
@@ -136,6 +144,8 @@ class Framer:
         self._marks.append((first_new, t_ns))
         if first_new:
             self._buf += data
+            if self._resume is not None and self._image_pending():
+                return []
         else:
             self._buf = data  # nothing pending: scan the chunk itself, copy only what is left
         items = self._scan(t_ns, first_new, final=False)
@@ -187,8 +197,10 @@ class Framer:
                 break
             length, kind, reason = step
             if length > self.max_item:
-                # cut exactly where a partial stream would have been cut
-                length, kind, reason = self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+                limit = self.max_image if self._is_image(pos) else self.max_item
+                if length > limit:
+                    # cut exactly where a partial stream would have been cut
+                    length, kind, reason = limit, ItemKind.UNFRAMED, Unframed.OVERSIZE
             t_start = t_ns if pos >= first_new else self._start_time(pos, t_ns)
             items.append(Item(kind, data[pos:pos + length], t_start, t_ns, reason))
             pos += length
@@ -198,6 +210,7 @@ class Framer:
 
     def _drop(self, n: int) -> None:
         """Forget the first n bytes, keeping the arrival time of the byte now first."""
+        self._resume = None
         if type(self._buf) is bytes:
             self._buf = bytearray(memoryview(self._buf)[n:])
         else:
@@ -233,11 +246,24 @@ class Framer:
             return self._wait_or_cut(pos, final)
         return result
 
+    def _image_pending(self) -> bool:
+        """Whether the image at the start of the buffer still needs more bytes
+        (looking only at what arrived since the last look)."""
+        self._window = min(len(self._buf), self.max_item)
+        self._final = False
+        scanner = Framer._scan_jpeg if self._buf[0] == 0xFF else Framer._scan_png
+        return len(self._buf) < self.max_image and scanner(self, 0) == _NEED_MORE
+
+    def _is_image(self, pos: int) -> bool:
+        buf = self._buf
+        return buf.startswith(JPEG_SOI, pos) or buf.startswith(PNG_SIGNATURE, pos)
+
     def _wait_or_cut(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
         """An item has begun but is incomplete: wait, unless the stream ended or it is too big."""
         pending = len(self._buf) - pos
-        if pending >= self.max_item:
-            return self.max_item, ItemKind.UNFRAMED, Unframed.OVERSIZE
+        limit = self.max_image if self._is_image(pos) else self.max_item
+        if pending >= limit:
+            return limit, ItemKind.UNFRAMED, Unframed.OVERSIZE
         if final:
             return pending, ItemKind.UNFRAMED, Unframed.TRUNCATED
         return None
@@ -376,16 +402,24 @@ class Framer:
         return (2 if buf[pos + 1] == 0x0A else 1), ItemKind.EOL, None
 
     def _scan_jpeg(self, pos: int):
-        buf, n = self._buf, self._window
+        buf, n = self._buf, min(len(self._buf), pos + self.max_image)
         head = bytes(buf[pos:min(n, pos + 3)])
         if not head or not JPEG_SOI.startswith(head):
             return None
         if len(head) < 3:
             return _NEED_MORE
-        i = pos + 2
+        phase, i = self._resume if pos == 0 and self._resume is not None else (0, pos + 2)
+        result = self._walk_jpeg(pos, n, phase, i) if phase == 0 else self._walk_entropy(pos, n, i)
+        if result != _NEED_MORE:
+            self._resume = None
+        return result
+
+    def _walk_jpeg(self, pos: int, n: int, phase: int, i: int):
+        buf = self._buf
         # Marker segments up to Start Of Scan carry their own lengths.
         while True:
             if i + 2 > n:
+                self._resume = (0, i) if pos == 0 else None
                 return _NEED_MORE
             if buf[i] != 0xFF:
                 return self._scan_garbage(pos, Unframed.GARBAGE)
@@ -398,18 +432,23 @@ class Framer:
                 i += 2
             else:
                 if i + 4 > n:
+                    self._resume = (0, i) if pos == 0 else None
                     return _NEED_MORE
                 seg_len = (buf[i + 2] << 8) | buf[i + 3]
                 if seg_len < 2:
                     return self._scan_garbage(pos, Unframed.GARBAGE)
                 i += 2 + seg_len
                 if marker == 0xDA:
-                    break
-        # Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts; any
-        # other marker (a further scan's tables) carries a length again.
+                    return self._walk_entropy(pos, n, i)
+
+    def _walk_entropy(self, pos: int, n: int, i: int):
+        """Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts; any
+        other marker (a further scan's tables) carries a length again."""
+        buf = self._buf
         while True:
             j = buf.find(b"\xff", i, n)
             if j == -1 or j + 1 >= n:
+                self._resume = (1, n if j == -1 else j) if pos == 0 else None
                 return _NEED_MORE
             nxt = buf[j + 1]
             if nxt == 0xD9:
@@ -420,27 +459,35 @@ class Framer:
                 i = j + 2
             else:
                 if j + 4 > n:
+                    self._resume = (1, j) if pos == 0 else None
                     return _NEED_MORE
                 i = j + 2 + ((buf[j + 2] << 8) | buf[j + 3])
 
     def _scan_png(self, pos: int):
-        buf, n = self._buf, self._window
+        buf, n = self._buf, min(len(self._buf), pos + self.max_image)
         head = bytes(buf[pos:min(n, pos + 8)])
         if not head or not PNG_SIGNATURE.startswith(head):
             return None
         if len(head) < 8:
             return _NEED_MORE
-        i = pos + 8
+        i = self._resume[1] if pos == 0 and self._resume is not None else pos + 8
         while True:
             if i + 8 > n:
+                self._resume = (2, i) if pos == 0 else None
                 return _NEED_MORE
             length = int.from_bytes(buf[i:i + 4], "big")
             ctype = bytes(buf[i + 4:i + 8])
             if not ctype.isalpha():
+                self._resume = None
                 return self._scan_garbage(pos, Unframed.GARBAGE)
-            i += 12 + length
             if ctype == b"IEND":
-                return (i - pos, ItemKind.IMAGE, None) if i <= n else _NEED_MORE
+                end = i + 12 + length
+                if end > n:
+                    self._resume = (2, i) if pos == 0 else None
+                    return _NEED_MORE
+                self._resume = None
+                return end - pos, ItemKind.IMAGE, None
+            i += 12 + length
 
 
 _SCANNERS = (

@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from analyzer.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, UNIT_OF_COMMAND, decode, decode_cache, resolve
-from analyzer.framing import DEFAULT_MAX_ITEM, Framer, Item, ItemKind
+from analyzer.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, Unframed
 from analyzer.messages import (
     ChannelConfig,
     ChannelResponse,
@@ -50,6 +50,7 @@ class Mode(StrEnum):
 
 class HandshakeState(StrEnum):
     START = "start"
+    EARLY_PASSWORD = "early_password"  # the client answered before it was asked
     AWAIT_PASSWORD = "await_password"
     AWAIT_VERDICT = "await_verdict"
     READY = "ready"
@@ -74,6 +75,9 @@ HANDSHAKE_TABLE: dict[tuple[HandshakeState, Step], tuple[HandshakeState, str | N
     (_S.START, _St.SENDCHKPASS): (_S.AWAIT_PASSWORD, None),
     (_S.START, _St.CLIENT_FRAME): (_S.READY, None),  # VPN: no handshake
     (_S.START, _St.SERVER_FRAME): (_S.START, None),  # unsolicited: pairing reports it
+    (_S.START, _St.PASSWORD): (_S.EARLY_PASSWORD, "PW-HS-ORDER"),  # an eager client
+    (_S.EARLY_PASSWORD, _St.SENDCHKPASS): (_S.AWAIT_VERDICT, None),
+    (_S.EARLY_PASSWORD, _St.CLIENT_FRAME): (_S.EARLY_PASSWORD, "PW-HS-COMMAND-BEFORE-READY"),
     (_S.AWAIT_PASSWORD, _St.PASSWORD): (_S.AWAIT_VERDICT, None),
     (_S.AWAIT_PASSWORD, _St.CLIENT_FRAME): (_S.AWAIT_PASSWORD, "PW-HS-COMMAND-BEFORE-READY"),
     (_S.AWAIT_PASSWORD, _St.READYTOGO): (_S.READY, "PW-HS-ORDER"),
@@ -86,6 +90,7 @@ HANDSHAKE_TABLE: dict[tuple[HandshakeState, Step], tuple[HandshakeState, str | N
 }
 EXPECTED_IN_STATE = {
     _S.START: "'sendchkpass' from the server or a first command from the client",
+    _S.EARLY_PASSWORD: "'sendchkpass' from the server before the client's password",
     _S.AWAIT_PASSWORD: "the client's password",
     _S.AWAIT_VERDICT: "'readytogo' or 'Failed Validation' from the server",
     _S.READY: "commands and responses",
@@ -126,6 +131,10 @@ class Observation(NamedTuple):
     violations: tuple[Violation, ...]
     answers: Observation | None = None  # for a response: the request it answers
     latency_ns: int | None = None
+
+
+EXPIRED_KEPT = 1024  # requests past their deadline that a late answer may still pair with
+EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'
 
 
 class LateViolation(NamedTuple):
@@ -175,6 +184,7 @@ class Session:
         answer_timeout_ns: int = 5_000_000_000,
         max_item: int = DEFAULT_MAX_ITEM,
         clean_commands: bool = True,
+        max_image: int = DEFAULT_MAX_IMAGE,
     ) -> None:
         """``clean_commands=False`` leaves out of the events the commands of
         established traffic that broke no rule: they are counted and paired all
@@ -184,7 +194,7 @@ class Session:
         self.checksum_rule = get_rule(checksum_rule)
         self.clean_commands = clean_commands
         self.answer_timeout_ns = answer_timeout_ns
-        self.framers = {Direction.C2S: Framer(max_item), Direction.S2C: Framer(max_item)}
+        self.framers = {Direction.C2S: Framer(max_item, max_image), Direction.S2C: Framer(max_item, max_image)}
         self.state = HandshakeState.START
         self.mode = Mode.UNKNOWN
         self.channel_map: dict[int, ChannelConfig] = {}
@@ -194,6 +204,14 @@ class Session:
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
         self._pending: deque[_Pending] = deque()
+        # Requests reported unanswered at their deadline: an answer that comes later
+        # still answers one of them, and is not unsolicited.
+        self._expired: deque[_Pending] = deque(maxlen=EXPIRED_KEPT)
+        # Client items that may be a password sent before the server asked for it
+        # (an eager client): held until the server's first item says which.
+        self._early: list[Item] | None = None
+        self._may_hold_early = True  # until the server speaks or the handshake moves on
+        self._asked_t_ns: int | None = None  # when 'sendchkpass' arrived
         # How many of them certainly expect an answer: with none, pairing takes the
         # oldest match at once instead of rescanning thousands of ambiguous ones.
         self._certain = 0
@@ -214,7 +232,10 @@ class Session:
         if direction in self._ended:
             return []
         self._ended.add(direction)
-        return self._observe_all(direction, self.framers[direction].end(t_ns), t_ns)
+        events = self._observe_all(direction, self.framers[direction].end(t_ns), t_ns)
+        if direction is Direction.C2S:
+            self._release_early(events, None)
+        return events
 
     def server_unreachable(self, detail: str) -> None:
         """The proxy could not reach the server (``detail`` says why): requests
@@ -225,6 +246,7 @@ class Session:
         if self._closed:
             return []
         events = self.end(Direction.S2C, t_ns) + self.end(Direction.C2S, t_ns)
+        self._release_early(events, None)
         self._closed = True
         for pending in self._pending:
             if pending.certain:
@@ -241,11 +263,17 @@ class Session:
             return "none (vpn)"
         return {
             _S.START: "not started",
+            _S.EARLY_PASSWORD: "password sent before 'sendchkpass'",
             _S.AWAIT_PASSWORD: "no password sent",
             _S.AWAIT_VERDICT: "no verdict",
             _S.READY: "readytogo",
             _S.FAILED: "failed validation",
         }[self.state]
+
+    @property
+    def holding_early(self) -> bool:
+        """Client bytes are held that may be a password sent before 'sendchkpass'."""
+        return self._early is not None
 
     def unit_of(self, channel: int) -> UnitType | None:
         config = self.channel_map.get(channel)
@@ -369,6 +397,11 @@ class Session:
         return events
 
     def _observe(self, direction: Direction, item: Item, events: list[Event]) -> None:
+        if self._may_hold_early:
+            if direction is Direction.S2C:
+                self._release_early(events, item)
+            elif self._hold_early(item, events):
+                return
         kind = item.kind
         t = item.t_end_ns
         if self.first_t_ns is None:
@@ -388,10 +421,13 @@ class Session:
                 # the verdict ends the password: observe the password first
                 password_items = self.framers[Direction.C2S].close_password(t)
                 events.extend(self._observe_all(Direction.C2S, password_items, t))
+            early = self.state is _S.EARLY_PASSWORD
             self._step(step, violations)
-            if step is _St.SENDCHKPASS and self.state is _S.AWAIT_PASSWORD:
+            if step is _St.SENDCHKPASS and (self.state is _S.AWAIT_PASSWORD or early):
                 self.mode = Mode.WINSOCK
-                self.framers[Direction.C2S].expect_password()
+                self._asked_t_ns = item.t_start_ns
+                if not early:
+                    self.framers[Direction.C2S].expect_password()
         elif kind in _FRAME_KINDS or kind is ItemKind.PASSWORD or kind is ItemKind.HANDSHAKE:
             own = _CLIENT_KINDS if direction is Direction.C2S else _SERVER_KINDS
             if kind not in own:
@@ -402,6 +438,10 @@ class Session:
                     step = _St.SERVER_FRAME
                 else:
                     step = _St.PASSWORD if kind is ItemKind.PASSWORD else _St.CLIENT_FRAME
+                if (step is _St.PASSWORD and self._asked_t_ns is not None
+                        and item.t_start_ns < self._asked_t_ns and self.state is _S.AWAIT_PASSWORD):
+                    violations.append(Violation(
+                        "PW-HS-ORDER", "the password began before the server's 'sendchkpass' arrived"))
                 self._step(step, violations)
                 if direction is Direction.C2S and kind is not ItemKind.PASSWORD:
                     message = self._client_frame(message, candidates, violations)
@@ -430,6 +470,34 @@ class Session:
                 self._plans[item.raw] = _Plan(message, candidates, observation.violations,
                                               answer_kind, channel, certain)
         events.append(observation)
+
+    def _hold_early(self, item: Item, events: list[Event]) -> bool:
+        """Hold a client item that may be (or follow) a password sent before the
+        server asked for one; False when it is to be observed now."""
+        if self._early is None:
+            if self.state is not _S.START:
+                self._may_hold_early = False
+                return False
+            if item.kind is not ItemKind.UNFRAMED or item.reason is not Unframed.GARBAGE:
+                return False
+            self._early = []
+        self._early.append(item)
+        if len(self._early) > EARLY_KEPT:
+            self._release_early(events, None)  # no server in sight: judge them as they are
+        return True
+
+    def _release_early(self, events: list[Event], server_first: Item | None) -> None:
+        """Observe the held client items, before the server's first item.  If that
+        item is 'sendchkpass', the first held item was the password, sent early."""
+        early, self._early = self._early, None
+        self._may_hold_early = False
+        if not early:
+            return
+        if server_first is not None and server_first.raw == b"sendchkpass":
+            first = early[0]
+            early[0] = Item(ItemKind.PASSWORD, first.raw, first.t_start_ns, first.t_end_ns)
+        for held in early:
+            self._observe(Direction.C2S, held, events)
 
     def _step(self, step: Step, violations: list[Violation]) -> None:
         state = self.state
@@ -508,12 +576,15 @@ class Session:
                 if not self._certain:
                     break  # no certain request to prefer: the oldest maybe it is
         found = found or maybe
+        if found is not None:
+            self._pending.remove(found)
+            self._certain -= found.certain
+        else:
+            found = self._late_request(kind, channel)  # already reported unanswered
         if found is None:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by a {kind}"))
             request = None
         else:
-            self._pending.remove(found)
-            self._certain -= found.certain
             request = found.request
         if isinstance(message, ConfigurationSettings):
             self.channel_map = dict(enumerate(message.channels))
@@ -542,9 +613,18 @@ class Session:
         if message.data > limit:
             violations.append(Violation(rule, f"{what} must be 0-{limit}, got {message.data}"))
 
+    def _late_request(self, kind: ItemKind, channel: int | None) -> _Pending | None:
+        """The oldest request past its deadline that this answer fits, taken out."""
+        for pending in self._expired:
+            if pending.answer_kind is kind and (channel is None or pending.channel == channel):
+                self._expired.remove(pending)
+                return pending
+        return None
+
     def _expire(self, t: int, events: list[Event]) -> None:
         while self._pending and t - self._pending[0].t_ns > self.answer_timeout_ns:
             pending = self._pending.popleft()
+            self._expired.append(pending)
             self._certain -= pending.certain
             if pending.certain:
                 events.append(self._unanswered(pending, t, f"no answer within {self.answer_timeout_ns / 1e9:g} s"))

@@ -56,7 +56,8 @@ HOLD_LIMIT_S = 0.5
 C2S, S2C = Direction.C2S, Direction.S2C
 _NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})
 _PASSWORD = ItemKind.PASSWORD
-_AWAIT_PASSWORD = HandshakeState.AWAIT_PASSWORD
+# states in which a client read may hold a password (START: an eager client's)
+_MAY_HOLD_PASSWORD = frozenset({HandshakeState.AWAIT_PASSWORD, HandshakeState.START})
 _DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
 
 ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
@@ -161,7 +162,7 @@ class Recorder:
         c = self._conns[conn]
         offset = c.received[direction]
         c.received[direction] = offset + len(data)
-        if self.keep_secrets or (not self._reads and c.session.state is not _AWAIT_PASSWORD):
+        if self.keep_secrets or (not self._reads and c.session.state not in _MAY_HOLD_PASSWORD):
             # nothing held and no password can end in this read: write it now
             self.file.write(TOPIC_READS, t, encode_read(conn, _DIR_TEXT[direction], t, offset, data))
             self._observe_all(conn, c, c.session.receive(direction, data, t))
@@ -299,8 +300,8 @@ class Recorder:
     def _update_hold(self, c: _Conn, read: _Read | None, force: bool = False) -> None:
         """Hold the client's reads while they may end in an unfinished password."""
         session = c.session
-        pending = (not force and session.state is HandshakeState.AWAIT_PASSWORD
-                   and session.framers[C2S].buffered > 0)
+        pending = not force and (session.holding_early or (session.state is HandshakeState.AWAIT_PASSWORD
+                                                           and session.framers[C2S].buffered > 0))
         if pending:
             if read is not None and read.dir is C2S and not read.held:
                 read.held = True
@@ -308,7 +309,7 @@ class Recorder:
             if c.held and c.hold_since is None:
                 c.hold_since = time.monotonic()
             return
-        if force and c.held and _password_mode(session):
+        if force and c.held and (_password_mode(session) or session.holding_early):
             # undecided bytes still in the framer: mask them rather than risk a leak
             start = c.framed[C2S]
             for r in c.held:

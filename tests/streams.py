@@ -2,7 +2,7 @@
 
 from hypothesis import strategies as st
 
-from analyzer.framing import Framer, Item
+from analyzer.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item
 from tests.spec_vectors import ALL_FRAMES, HANDSHAKE_SERVER
 
 # Smallest byte streams the framer accepts as images: structure only.
@@ -20,8 +20,26 @@ TINY_PNG = (
 )
 
 
-def frame_all(chunks: list[bytes], max_item: int | None = None) -> list[Item]:
-    framer = Framer(max_item) if max_item else Framer()
+def big_jpeg(size: int, seed: int = 0) -> bytes:
+    """A JPEG-shaped stream of about ``size`` bytes: long APP segments, then
+    entropy data holding stuffed FF 00 pairs and restarts."""
+    out = bytearray(b"\xff\xd8")
+    header = min(size // 2, 3 * 65533)
+    while header > 0:
+        n = min(header, 65533)
+        out += b"\xff\xe1" + (n + 2).to_bytes(2, "big") + bytes((seed + i) % 251 for i in range(n))
+        header -= n
+    out += b"\xff\xda\x00\x04\x01\x02"
+    body = bytearray((seed * 7 + i * 13) % 255 for i in range(max(size - len(out) - 2, 0)))
+    body[::997] = b"\xff" * len(body[::997])  # every 997th byte an FF: stuffed or a restart
+    for i in range(0, len(body), 997):
+        if i + 1 < len(body):
+            body[i + 1] = 0x00 if (i // 997) % 2 else 0xD3
+    return bytes(out + body + b"\xff\xd9")
+
+
+def frame_all(chunks: list[bytes], max_item: int | None = None, max_image: int | None = None) -> list[Item]:
+    framer = Framer(max_item or DEFAULT_MAX_ITEM, max_image or DEFAULT_MAX_IMAGE)
     items: list[Item] = []
     for t, chunk in enumerate(chunks):
         items += framer.feed(chunk, t)

@@ -13,7 +13,7 @@ from analyzer.framing import (
     Unframed,
 )
 from tests.spec_vectors import ALL_FRAMES, COMMANDS, HANDSHAKE_SERVER, RESPONSES
-from tests.streams import TINY_JPEG, TINY_PNG, chunked, frame_all, stream_pieces
+from tests.streams import big_jpeg, TINY_JPEG, TINY_PNG, chunked, frame_all, stream_pieces
 
 
 def shape(items: list[Item]) -> list[tuple]:
@@ -207,7 +207,7 @@ def test_lossless_and_chunking_independent_on_protocol_like_streams(pieces, cuts
 @settings(max_examples=100, deadline=None)
 @given(pieces=stream_pieces(), cuts=st.lists(st.integers(0, 4000), max_size=30))
 def test_bounded_with_smallest_limit(pieces, cuts):
-    framer = Framer(max_item=MIN_MAX_ITEM)
+    framer = Framer(max_item=MIN_MAX_ITEM, max_image=MIN_MAX_ITEM)
     data = b"".join(pieces) * 3
     out = []
     for t, chunk in enumerate(chunked(data, cuts)):
@@ -225,3 +225,44 @@ def test_valid_frames_are_recovered_exactly(frames, cuts):
     items = frame_all(chunked(b"".join(frames), cuts))
     assert [i.raw for i in items] == frames
     assert all(i.kind is not ItemKind.UNFRAMED for i in items)
+
+
+# -- camera images larger than the frame limit -------------------------------------------
+
+
+def test_an_image_of_several_megabytes_is_one_item_in_any_reads():
+    """The spec sets no size for a camera picture: it is one item, however it
+    arrives, while other items keep the 64 KiB bound (a 5 MB picture fed 1 KiB at a
+    time is walked once: each read looks only at what it added)."""
+    picture = big_jpeg(5_000_000)
+    tail = b"cr1-12--5--0-ss1"
+    for chunks in ([picture + tail], chunked(picture + tail, list(range(0, len(picture) + 16, 1024)))):
+        items = frame_all(chunks)
+        assert [(i.kind, len(i.raw)) for i in items] == [(ItemKind.IMAGE, len(picture)),
+                                                        (ItemKind.RESPONSE, len(tail))]
+
+
+def test_an_image_past_its_limit_is_cut_where_any_chunking_cuts_it():
+    picture = big_jpeg(300_000)
+    one = frame_all([picture], max_image=100_000)
+    many = frame_all(chunked(picture, list(range(0, len(picture), 777))), max_image=100_000)
+    assert shape(one) == shape(many)
+    assert (one[0].kind, one[0].reason, len(one[0].raw)) == (ItemKind.UNFRAMED, Unframed.OVERSIZE, 100_000)
+
+
+def test_the_framer_holds_no_more_than_the_image_limit():
+    framer = Framer(max_image=100_000)
+    for t, chunk in enumerate(chunked(big_jpeg(1_000_000), list(range(0, 1_000_000, 4096)))):
+        framer.feed(chunk, t)
+        assert framer.buffered < 100_000 + 4096
+
+
+@settings(max_examples=150, deadline=None)
+@given(sizes=st.lists(st.integers(0, 6000), min_size=1, max_size=4), pieces=stream_pieces(),
+       cuts=st.lists(st.integers(0, 30000), max_size=40), limit=st.sampled_from([MIN_MAX_ITEM, 4000, 10**6]))
+def test_images_are_chunking_independent_at_any_limit(sizes, pieces, cuts, limit):
+    data = b"".join(big_jpeg(n, seed=n) + p for n, p in zip(sizes, [*pieces, b"", b"", b"", b""]))
+    one = frame_all([data], max_item=MIN_MAX_ITEM, max_image=limit)
+    many = frame_all(chunked(data, cuts), max_item=MIN_MAX_ITEM, max_image=limit)
+    assert b"".join(i.raw for i in many) == data
+    assert shape(many) == shape(one)

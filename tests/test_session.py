@@ -265,3 +265,41 @@ def test_bytes_after_a_half_close_are_framed_not_refused():
     s.end(C, 2)
     events = s.receive(C, b"rr1-24--0--0-ss1", 3)
     assert [e.item.kind for e in events] == [ItemKind.COMMAND]
+
+
+# -- eager clients and late answers ------------------------------------------------------
+
+
+def test_a_password_sent_before_sendchkpass_breaks_the_order_and_is_still_the_password():
+    """An eager client: its password and first command reach the proxy before the
+    server's greeting.  The server reads them in order and lets it in."""
+    session, events = run([(C, b"secret\r\nrr1-24--0--0-ss1"), (S, b"sendchkpass\r\n"), (S, b"readytogo\r\n"),
+                           (S, b"sr1-\x01200-ss1")])
+    obs = observations(events)
+    assert [(o.item.kind, o.item.raw) for o in obs][:3] == [
+        ("password", b"secret"), ("eol", b"\r\n"), ("command", b"rr1-24--0--0-ss1")]
+    assert fired(events) == ["PW-HS-ORDER", "PW-HS-COMMAND-BEFORE-READY"]
+    assert session.mode is Mode.WINSOCK and session.handshake_outcome == "readytogo"
+    assert obs[-1].answers is obs[2]
+
+
+def test_a_password_begun_before_sendchkpass_without_a_line_break_breaks_the_order():
+    session, events = run([(C, b"sec"), (S, b"sendchkpass"), (C, b"ret"), (S, b"readytogo")])
+    [password] = [o for o in observations(events) if o.item.kind == "password"]
+    assert password.item.raw == b"secret" and [v.rule_id for v in password.violations] == ["PW-HS-ORDER"]
+    assert session.handshake_outcome == "readytogo"
+
+
+def test_garbage_before_a_vpn_session_is_still_garbage():
+    session, events = run([(C, b"hello\r\n"), (C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x01200-ss1")])
+    assert fired(events) == ["PW-FRAME-GARBAGE", "PW-FRAME-EOL"]
+    assert session.mode is Mode.VPN
+
+
+def test_a_late_answer_is_unanswered_once_and_not_unsolicited():
+    session = Session(answer_timeout_ns=5_000_000)
+    _, events = run(VPN_OPEN + [(C, b"rr1-3--0--0-ss1")] + [(C, b"rr1-0--100--0-ss1")] * 8
+                    + [(S, b"cr1-3--10--0-ss1")], session=session)
+    assert fired(events) == ["PW-PAIR-UNANSWERED"]
+    answer = observations(events)[-1]
+    assert answer.answers is not None and answer.answers.message == m.SensorRequest(3)
