@@ -17,7 +17,7 @@ from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
 from analyzer.framing import ItemKind
 from analyzer.messages import ChannelConfig, ServoPositionRequest, SetConfiguration
 from analyzer.rules import RULES, Severity
-from analyzer.session import Direction, Event, LateViolation, Observation, Session
+from analyzer.session import Direction, Event, LateViolation, Limits, Observation, Session
 from analyzer.stats import LatencyStats
 
 NS = 1_000_000_000
@@ -147,13 +147,13 @@ class Analyzer:
     """Feeds a recording's reads and events through one session per connection."""
 
     def __init__(self, file: str = "", checksum_rule: str = DEFAULT_CHECKSUM_RULE,
-                 answer_timeout_ns: int = 5 * NS, max_violations: int = 10_000, every_event: bool = True) -> None:
+                 limits: Limits = Limits(), max_violations: int = 10_000, every_event: bool = True) -> None:
         """``every_event=False``: ``read()`` may leave out clean commands (see
         ``Session``), for a report, which needs only what they add up to."""
         self.file = file
         self._every_event = every_event
         self._rule = get_rule(checksum_rule)
-        self._timeout = answer_timeout_ns
+        self._limits = limits
         self.sessions: dict[int, Session] = {}
         self.summaries: dict[int, ConnectionSummary] = {}
         self.result = Analysis([file] if file else [], checksum_rule, max_violations=max_violations)
@@ -164,8 +164,7 @@ class Analyzer:
     def _session(self, conn: int) -> Session:
         session = self.sessions.get(conn)
         if session is None:
-            session = self.sessions[conn] = Session(self._rule.name, self._timeout,
-                                                    clean_commands=self._every_event)
+            session = self.sessions[conn] = self._limits.session(self._rule.name, self._every_event)
             self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
         return session
 
@@ -196,10 +195,17 @@ class Analyzer:
             if conn in self.sessions:
                 self.sessions[conn].server_unreachable(message.get("detail", ""))
             return []
-        if name == "gap":
-            summary.notes.append(f"capture gap of {message.get('length')} bytes in {message.get('dir')}")
-            return []
         events: list[Event] = []
+        if name == "gap":
+            length = message.get("length")
+            summary.notes.append(f"capture gap of {length} bytes in {message.get('dir')}" if length is not None
+                                 else message.get("detail") or f"gap in {message.get('dir')}")
+            if conn in self.sessions:
+                # what follows the hole cannot be framed with what came before:
+                # judge each side of it on its own, as the recorder does
+                events = self._finish_session(conn, t)
+                self._collect(conn, events)
+            return events
         if name == "half_closed" and conn in self.sessions:
             events = self.sessions[conn].end(Direction(message["dir"]), t)
         elif name == "closed":
@@ -234,12 +240,16 @@ class Analyzer:
         self._bin(conn, session)
         del self._counted[conn]
         summary = self.summaries[conn]
-        summary.first_ns, summary.last_ns = session.first_t_ns, session.last_t_ns
-        summary.mode = str(session.mode)
-        summary.handshake = session.handshake_outcome
-        summary.frames = Counter({(str(d), str(k)): n for (d, k), n in session.counts.items()})
-        summary.violations = Counter(session.violation_counts)
-        summary.channel_map = dict(session.channel_map)
+        # a connection may be judged in pieces (a capture gap): the summary adds them up
+        if summary.first_ns is None or (session.first_t_ns is not None and session.first_t_ns < summary.first_ns):
+            summary.first_ns = session.first_t_ns
+        summary.last_ns = max(t for t in (summary.last_ns, session.last_t_ns, 0) if t is not None) or None
+        if summary.mode == "unknown" or session.mode.value != "unknown":
+            summary.mode = str(session.mode)
+            summary.handshake = session.handshake_outcome
+        summary.frames.update({(str(d), str(k)): n for (d, k), n in session.counts.items()})
+        summary.violations.update(session.violation_counts)
+        summary.channel_map.update(session.channel_map)
         result = self.result
         for title, stats in session.latencies.items():
             result.latencies[title].merge(stats)

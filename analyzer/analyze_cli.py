@@ -15,7 +15,7 @@ from typing import IO, Any
 
 import click
 
-from analyzer.cli import EXIT_USAGE, fail
+from analyzer.cli import EXIT_USAGE, fail, limits_from, limits_options
 from analyzer.report.formats import FORMATS
 
 _SEVERITIES = ["info", "warning", "error"]
@@ -24,45 +24,40 @@ _SEVERITIES = ["info", "warning", "error"]
 # -- reading ----------------------------------------------------------------------------
 
 
-def recording_paths(inputs: tuple[str, ...]) -> list[Path]:
-    """Files named, and the recordings inside folders named."""
-    paths: list[Path] = []
-    for name in inputs:
-        path = Path(name)
-        if path.is_dir():
-            found = sorted(p for p in path.rglob("*") if p.suffix == ".mcap" and p.is_file())
-            if not found:
-                fail(f"{name}: no .mcap recordings in this folder")
-            paths += found
-        elif not path.exists():
-            fail(f"{name}: no such file")
-        else:
-            paths.append(path)
-    return paths
+def recordings(inputs: tuple[str, ...]):  # noqa: ANN201 - list[RecordingSet], imported lazily
+    """What the user named, as recordings (a split one's parts together);
+    a line on stderr for each whose parts are not all there."""
+    from analyzer.recording_set import RecordingInputError, find_recordings
+
+    try:
+        found = find_recordings(inputs)
+    except RecordingInputError as e:
+        fail(str(e))
+    for recording in found:
+        if recording.warning():
+            click.echo(f"whiztap: {recording.warning()}", err=True)
+    return found
 
 
-def _unreadable(path: Path, why: str) -> str:
-    if path.name.endswith(".part") or "truncated" in why:
-        return (f"{path}: {why}; it looks like a recording that was cut short. "
-                f"Run 'whiztap recover {path}' to turn it into a complete file")
-    return f"{path}: {why}"
-
-
-def scan_recording(path: Path, stream: IO[bytes]) -> Iterator[Any]:
-    """Reads (``Read``) and connection events (``dict``) in recorded order.
+def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[Any]:  # noqa: ANN001
+    """Reads (``Read``) and connection events (``dict``) of a recording (a
+    ``RecordingSet``, or one path) in recorded order, across its parts.
 
     Raises ``click`` errors with one-line messages for files that are not
     readable recordings, or end before their footer.
     """
-    from analyzer.recording import STREAM_TOPICS, RecordingError, RecordingScan
+    from analyzer.recording_set import PartError, RecordingSet, scan_set
 
-    scan = RecordingScan(stream, STREAM_TOPICS)
+    if not isinstance(recording, RecordingSet):
+        recording = RecordingSet((Path(recording),))
+    opener = progress.open if progress is not None else (lambda p: open(p, "rb"))  # noqa: SIM115
     try:
-        yield from scan.stream()
-    except RecordingError as e:
-        fail(_unreadable(path, str(e)))
-    if scan.truncated:
-        fail(_unreadable(path, "the file is truncated (no footer)"))
+        yield from scan_set(recording, opener)
+    except PartError as e:
+        if e.truncated or e.path.name.endswith(".part"):
+            fail(f"{e}; it looks like a recording that was cut short. "
+                 f"Run 'whiztap recover {e.path}' to turn it into a complete file")
+        fail(str(e))
 
 
 class ByteProgress:
@@ -90,6 +85,11 @@ class ByteProgress:
     def __exit__(self, *exc: object) -> None:
         if self.bar:
             self.bar.stop()
+
+    def done(self, path: Path) -> None:
+        """A whole file was read elsewhere (a worker process)."""
+        if self.bar is not None:
+            self.bar.advance(self.task, path.stat().st_size)
 
     def update(self, position: int) -> None:
         """Bytes done so far, in all: for readers that do their own reading."""
@@ -120,37 +120,35 @@ def _stderr_console():
     return Console(stderr=True)
 
 
-def analyse_file(path: Path, checksum_rule: str, progress: ByteProgress | None = None):
-    """One recording analysed (in this process)."""
+def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgress | None = None):  # noqa: ANN001
+    """One recording (a ``RecordingSet`` or a path) analysed in this process;
+    ``limits``: an ``analyzer.session.Limits``."""
     from analyzer.analysis import Analyzer
     from analyzer.recording import Read
+    from analyzer.recording_set import RecordingSet
+    from analyzer.session import Limits
 
-    analyzer = Analyzer(str(path), checksum_rule, every_event=False)
-    try:
-        stream = progress.open(path) if progress else open(path, "rb")
-    except OSError as e:
-        fail(f"{path}: cannot read ({e.strerror})")
-    try:
-        read, event = analyzer.read, analyzer.event
-        for record in scan_recording(path, stream):
-            if type(record) is Read:
-                read(record.conn, record.dir, record.t_ns, record.data)
-            else:
-                event(record)
-    finally:
-        stream.close()
+    if not isinstance(recording, RecordingSet):
+        recording = RecordingSet((Path(recording),))
+    analyzer = Analyzer(str(recording.name), checksum_rule, limits or Limits(), every_event=False)
+    read, event = analyzer.read, analyzer.event
+    for record in scan_recording(recording, progress):
+        if type(record) is Read:
+            read(record.conn, record.dir, record.t_ns, record.data)
+        else:
+            event(record)
     return analyzer.finish()
 
 
-def _analyse_or_say_why(path: Path, checksum_rule: str, progress: ByteProgress | None = None):
+def _analyse_or_say_why(recording, checksum_rule: str, limits, progress: ByteProgress | None = None):  # noqa: ANN001
     """``analyse_file``, or the one-line reason it could not be read."""
     try:
-        return analyse_file(path, checksum_rule, progress)
+        return analyse_file(recording, checksum_rule, limits, progress)
     except click.ClickException as e:
         return e.format_message()
 
 
-def _analyse_in_worker(args: tuple[Path, str]):
+def _analyse_in_worker(args: tuple):
     """Entry point of a worker process: errors travel back as text, not tracebacks."""
     from analyzer.throughput import tune_gc
 
@@ -175,9 +173,10 @@ def _analyse_in_worker(args: tuple[Path, str]):
 @click.option("-j", "--jobs", type=click.IntRange(1, 64), default=None,
               help="Processes for several files [default: one per core when there are many].")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@limits_options
 def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_rules: bool,
                     ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str | None,
-                    jobs: int | None, quiet: bool) -> None:
+                    jobs: int | None, quiet: bool, answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Check recordings against the spec and report how the sessions behaved.
 
     Exit status: 0 when no violation at or above the threshold, 1 when there
@@ -201,10 +200,11 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
         get_rule(rule_name)
     except ValueError as e:
         fail(str(e))
-    paths = recording_paths(inputs)
+    limits = limits_from(answer_timeout, max_frame, max_image)
+    found = recordings(inputs)
     tune_gc()
-    with ByteProgress(paths, enabled=not quiet) as progress:
-        analysis, unreadable = _analyse_all(paths, rule_name, jobs, progress)
+    with ByteProgress([p for r in found for p in r.parts], enabled=not quiet) as progress:
+        analysis, unreadable = _analyse_all(found, rule_name, limits, jobs, progress)
     for u in unreadable:
         click.echo(f"whiztap: {u['error']}", err=True)
     if analysis is None:
@@ -223,19 +223,25 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
     sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
 
-def _analyse_all(paths: list[Path], rule_name: str, jobs: int | None, progress: ByteProgress):
+def _analyse_all(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress):  # noqa: ANN001
     """(the merged analysis of the files that could be read, or None if none
     could; {"file", "error"} of those that could not): one bad file among many
     costs only itself."""
     workers = jobs if jobs is not None else (min(len(paths), os.cpu_count() or 1) if len(paths) >= 4 else 1)
     if workers <= 1 or len(paths) == 1:
-        results = [_analyse_or_say_why(p, rule_name, progress) for p in paths]
+        results = [_analyse_or_say_why(p, rule_name, limits, progress) for p in paths]
     else:
         from concurrent.futures import ProcessPoolExecutor
 
+        results = []
         with ProcessPoolExecutor(workers) as pool:
-            results = list(pool.map(_analyse_in_worker, [(p, rule_name) for p in paths]))
-    unreadable = [{"file": str(p), "error": r} for p, r in zip(paths, results) if isinstance(r, str)]
+            # in order, so the report does not depend on which worker finished first;
+            # the bar moves by each file's size as its result comes back
+            for path, result in zip(paths, pool.map(_analyse_in_worker, [(p, rule_name, limits) for p in paths])):
+                results.append(result)
+                for part in path.parts:
+                    progress.done(part)
+    unreadable = [{"file": str(p.name), "error": r} for p, r in zip(paths, results) if isinstance(r, str)]
     analyses = [r for r in results if not isinstance(r, str)]
     if not analyses:
         return None, unreadable

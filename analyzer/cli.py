@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import sys
+from collections.abc import Callable
 from importlib.metadata import EntryPoint, entry_points
 from typing import NoReturn
 
@@ -32,6 +34,45 @@ class WhiztapError(click.ClickException):
 
 def fail(message: str) -> NoReturn:
     raise WhiztapError(message)
+
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
+_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+class ByteSize(click.ParamType):
+    """A byte count: 500000, 100k, 64M, 2G (powers of 1024)."""
+
+    name = "BYTES"
+
+    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
+        if isinstance(value, int):
+            return value
+        m = _SIZE.match(str(value))
+        if m is None or float(m.group(1)) <= 0:
+            self.fail(f"{value!r} is not a size such as 1000000, 500k or 64M", param, ctx)
+        return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+
+
+def limits_options(f: Callable) -> Callable:
+    """``--answer-timeout``, ``--max-frame`` and ``--max-image``: the same three
+    on every command that judges traffic."""
+    f = click.option("--max-image", type=ByteSize(), default="32M", show_default=True,
+                     help="Largest camera image taken as one item; longer ones are cut as oversize.")(f)
+    f = click.option("--max-frame", type=ByteSize(), default="64k", show_default=True,
+                     help="Largest item other than an image (at least 1k); bounds memory on garbage.")(f)
+    return click.option("--answer-timeout", type=click.FloatRange(min=0, min_open=True), default=5.0,
+                        show_default=True, metavar="SECONDS",
+                        help="How long a request may wait for its answer before it is unanswered.")(f)
+
+
+def limits_from(answer_timeout: float, max_frame: int, max_image: int):  # noqa: ANN201 - Limits, imported lazily
+    from analyzer.framing import MIN_MAX_ITEM
+    from analyzer.session import Limits
+
+    if max_frame < MIN_MAX_ITEM:
+        fail(f"--max-frame must be at least {MIN_MAX_ITEM} bytes")
+    return Limits(round(answer_timeout * 1e9), max_frame, max(max_image, max_frame))
 
 
 class _LazyGroup(click.Group):

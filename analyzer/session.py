@@ -8,6 +8,7 @@ it took.  Recorder, reports, replayer and TUI all read traffic through it.
 from __future__ import annotations
 
 from collections import Counter, defaultdict, deque
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import NamedTuple
 
@@ -118,6 +119,25 @@ def _answer_spec(message: Message | None,
         # may be a Sensor Request: pair an answer if one comes, forgive it if none does
         return ItemKind.RESPONSE, candidates[0].channel, False
     return None, None, False
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """How long a request may wait for its answer, and how large an item may
+    grow, for every command that judges traffic (``--answer-timeout``,
+    ``--max-frame``, ``--max-image``; docs/protocol.md)."""
+
+    answer_timeout_ns: int = 5_000_000_000
+    max_frame: int = DEFAULT_MAX_ITEM
+    max_image: int = DEFAULT_MAX_IMAGE
+
+    def session(self, checksum_rule: str = DEFAULT_CHECKSUM_RULE, clean_commands: bool = True) -> Session:
+        return Session(checksum_rule, self.answer_timeout_ns, self.max_frame, clean_commands, self.max_image)
+
+    def as_dict(self) -> dict[str, int]:
+        """For the writer process's configuration."""
+        return {"answer_timeout_ns": self.answer_timeout_ns, "max_frame": self.max_frame,
+                "max_image": self.max_image}
 
 
 class Observation(NamedTuple):

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from analyzer.session import Limits
 from sniffer.recorder import Recorder
 from sniffer.tcpreasm import DLT_EN10MB, DLT_RAW, Reassembler, parse_frame
 from sniffer.writer import RecordingFile, RecordingWriteError
@@ -37,6 +38,7 @@ class CaptureSettings:
     split_duration: float | None = None
     keep_secrets: bool = False
     checksum_rule: str = "dev-sum"
+    limits: Limits = Limits()
 
 
 def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: object) -> Recorder:
@@ -47,7 +49,8 @@ def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: ob
                              split_duration=settings.split_duration, **extra)
     split_ns = int(settings.split_duration * 1e9) if settings.split_duration else None
     file = RecordingFile(settings.output, metadata, split_size=settings.split_size, split_duration_ns=split_ns)
-    return Recorder(file, keep_secrets=settings.keep_secrets, checksum_rule=settings.checksum_rule)
+    return Recorder(file, keep_secrets=settings.keep_secrets, checksum_rule=settings.checksum_rule,
+                    limits=settings.limits)
 
 
 def _summary(recorder: Recorder, t_ns: int, detail: str) -> dict:

@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from analyzer.session import Direction
+from analyzer.session import Direction, Limits
 
 REC_DATA, REC_OPENED, REC_UPSTREAM_CONNECTED, REC_UPSTREAM_FAILED, REC_HALF_CLOSED, REC_CLOSED, REC_STOP = range(1, 8)
 _HEAD = struct.Struct("<BIBQI")
@@ -297,7 +297,7 @@ def _run(config: dict[str, Any]) -> int:
     file = RecordingFile(config["path"], config["metadata"], split_size=config.get("split_size"),
                          split_duration_ns=config.get("split_duration_ns"))
     recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
-                        checksum_rule=config["checksum_rule"],
+                        checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
                         on_violation=_violation_report if config.get("analyze") else None)
     reported = 0
     try:

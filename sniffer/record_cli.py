@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import datetime
 import os
-import re
 import socket
 import uuid
 from collections.abc import Callable
@@ -16,25 +15,7 @@ from pathlib import Path
 
 import click
 
-from analyzer.cli import fail
-
-_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
-_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
-
-
-class ByteSize(click.ParamType):
-    """A byte count: 500000, 100k, 64M, 2G (powers of 1024)."""
-
-    name = "BYTES"
-
-    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
-        if isinstance(value, int):
-            return value
-        m = _SIZE.match(str(value))
-        if m is None or float(m.group(1)) <= 0:
-            self.fail(f"{value!r} is not a size such as 1000000, 500k or 64M", param, ctx)
-        return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
-
+from analyzer.cli import ByteSize, fail, limits_from, limits_options
 
 def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, int]:
     """HOST:PORT, [V6]:PORT, or PORT alone when a default host is given."""
@@ -110,7 +91,7 @@ def check_checksum_rule(name: str | None) -> str:
 def check_output_free(output: str, split: bool, force: bool) -> None:
     """Refuse to write over a recording, or over the ``.part`` a crashed one
     left (which 'whiztap recover' could still save), unless --force."""
-    from sniffer.writer import part_path
+    from analyzer.recording_set import part_path
 
     if force:
         return
@@ -154,9 +135,10 @@ def _with_options(options: list) -> Callable:
 @click.option("--analyze", is_flag=True, help="Print each violation as it happens.")
 @click.option("--connect-timeout", type=click.FloatRange(min=0.01), default=5.0, show_default=True,
               metavar="SECONDS", help="How long to try the upstream for each client.")
+@limits_options
 def record_command(listen: str, upstream: str, output: str, split_size: int | None, split_duration: float | None,
                    keep_secrets: bool, checksum_rule: str | None, quiet: bool, force: bool, analyze: bool,
-                   connect_timeout: float) -> None:
+                   connect_timeout: float, answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -170,7 +152,7 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
     from sniffer.record_run import RecordSettings, run_record
 
     settings = RecordSettings(listen_addr, upstream_addr, output, split_size, split_duration, keep_secrets, rule,
-                              quiet, analyze, connect_timeout)
+                              quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image))
     error = _run_loop(lambda: run_record(settings))
     if error:
         fail(str(error))
@@ -207,9 +189,11 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
 @click.option("--count", type=click.IntRange(min=1), default=None, help="Live: stop after this many packets.")
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=None, metavar="SECONDS",
               help="Live: stop after this long.")
+@limits_options
 def capture_command(pcap: str | None, iface: str | None, port: int, output: str, split_size: int | None,
                     split_duration: float | None, keep_secrets: bool, checksum_rule: str | None, quiet: bool,
-                    force: bool, count: int | None, timeout: float | None) -> None:
+                    force: bool, count: int | None, timeout: float | None, answer_timeout: float, max_frame: int,
+                    max_image: int) -> None:
     """Record traffic to PORT from a capture file or a live interface.
 
     Each TCP connection is reassembled in both directions by sequence number
@@ -223,7 +207,8 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
     check_output_free(output, split_size is not None or split_duration is not None, force)
     from sniffer.capture import CaptureError, CaptureSettings, capture_live, import_pcap
 
-    settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule)
+    settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule,
+                               limits_from(answer_timeout, max_frame, max_image))
     try:
         if pcap is not None:
             from analyzer.analyze_cli import ByteProgress

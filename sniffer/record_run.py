@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import click
 
+from analyzer.session import Limits
 from sniffer.feed import WriterError, WriterProcess
 from sniffer.proxy import Connection, RecordingProxy, address
 
@@ -28,6 +29,7 @@ class RecordSettings:
     quiet: bool = False
     analyze: bool = False
     connect_timeout: float = 5.0
+    limits: Limits = Limits()
 
 
 class Recording:
@@ -67,6 +69,7 @@ class Recording:
                                  split_duration=s.split_duration)
         config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
                   "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
+                  "limits": s.limits.as_dict(),
                   "split_size": s.split_size,
                   "split_duration_ns": int(s.split_duration * 1e9) if s.split_duration else None,
                   "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}}

@@ -49,7 +49,7 @@ from analyzer.recording import (
     violation_message,
 )
 from analyzer.rules import Violation
-from analyzer.session import Direction, Event, HandshakeState, LateViolation, Observation, Session
+from analyzer.session import Direction, Event, HandshakeState, LateViolation, Limits, Observation, Session
 from sniffer.writer import RecordingFile
 
 HOLD_LIMIT_S = 0.5
@@ -117,12 +117,12 @@ class Recorder:
     """Feeds each connection's bytes to its own Session and writes the recording."""
 
     def __init__(self, file: RecordingFile, *, keep_secrets: bool = False,
-                 checksum_rule: str = DEFAULT_CHECKSUM_RULE, answer_timeout_ns: int = 5_000_000_000,
+                 checksum_rule: str = DEFAULT_CHECKSUM_RULE, limits: Limits = Limits(),
                  on_violation: ViolationHook | None = None) -> None:
         self.file = file
         self.keep_secrets = keep_secrets
         self.checksum_rule = checksum_rule
-        self.answer_timeout_ns = answer_timeout_ns
+        self.limits = limits
         self.on_violation = on_violation
         self.summary = Summary()
         self._conns: dict[int, _Conn] = {}
@@ -132,6 +132,7 @@ class Recorder:
         self._bytes = {C2S: 0, S2C: 0}  # of closed connections
         self._t = 0
         file.on_new_part = self._continued
+        self._split = file.part is not None
 
     # -- input -----------------------------------------------------------------------
 
@@ -143,7 +144,9 @@ class Recorder:
 
     def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
         t = self._clock(t_ns)
-        self._conns[conn] = _Conn(Session(self.checksum_rule, self.answer_timeout_ns), client, upstream)
+        if self._split:
+            self.file.rotate_if_due(t)
+        self._conns[conn] = _Conn(self.limits.session(self.checksum_rule), client, upstream)
         self.summary.connections += 1
         self._event(conn, EV_OPENED, t, client=client, upstream=upstream)
 
@@ -159,6 +162,8 @@ class Recorder:
         if t_ns > self._t:
             self._t = t_ns
         t = self._t
+        if self._split:
+            self.file.rotate_if_due(t)
         c = self._conns[conn]
         offset = c.received[direction]
         c.received[direction] = offset + len(data)
@@ -179,6 +184,8 @@ class Recorder:
     def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
         """One side shut down its sending direction (TCP FIN)."""
         t = self._clock(t_ns)
+        if self._split:
+            self.file.rotate_if_due(t)
         c = self._conns[conn]
         self._event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
         self._observe_all(conn, c, c.session.end(direction, t))
@@ -199,11 +206,13 @@ class Recorder:
         self._observe_all(conn, c, c.session.close(t))
         self._update_hold(c, None, force=True)
         self._drain_reads()
-        c.session = Session(self.checksum_rule, self.answer_timeout_ns)
+        c.session = self.limits.session(self.checksum_rule)
         c.framed = dict(c.received)
 
     def closed(self, conn: int, t_ns: int, by: str, detail: str = "") -> None:
         t = self._clock(t_ns)
+        if self._split:
+            self.file.rotate_if_due(t)
         c = self._conns.pop(conn)
         for direction, n in c.received.items():
             self._bytes[direction] += n
@@ -225,6 +234,7 @@ class Recorder:
 
     def stop(self, t_ns: int, detail: str = "") -> Summary:
         """Close every connection still open, then finish the file(s)."""
+        self.file.closing = True  # the closing events end the part they belong to
         t = self._clock(t_ns)
         for conn in list(self._conns):
             self.closed(conn, t, "recorder", detail or "recording stopped")

@@ -28,6 +28,7 @@ from analyzer.recording import (
     TOPICS,
     schema_bytes,
 )
+from analyzer.recording_set import part_path
 from sniffer.mcapwriter import McapWriter, minimal_end
 
 FLUSH_INTERVAL_S = 0.5  # < 1 s, so a kill -9 loses at most about a second
@@ -71,19 +72,11 @@ class _FileStream:
             self.written += done
 
 
-def part_path(path: str, part: int | None) -> str:
-    """The final name of part ``part`` (None: an unsplit recording)."""
-    if part is None:
-        return path
-    stem, ext = os.path.splitext(path)
-    return f"{stem}-{part:04d}{ext or '.mcap'}"
-
-
 class RecordingFile:
     """The MCAP file(s) of one recording, written from a single thread.
 
-    ``write()`` adds a message; ``tick()`` flushes when due and rotates when a
-    split limit is reached; ``finish()`` closes the last file.  ``on_new_part``
+    ``write()`` adds a message; ``tick()`` flushes when due; ``rotate_if_due()``
+    begins the next part once a split limit is reached; ``finish()`` closes the last file.  ``on_new_part``
     is called after each rotation so the recorder can write what a reader of
     that file alone needs (the connections still open).
     """
@@ -111,6 +104,8 @@ class RecordingFile:
         self._last_flush = 0.0
         self._good = 0  # file offset just after the last complete flush
         self._dirty = False
+        self._rotate_due = False  # a split limit was reached: the next message opens a new part
+        self.closing = False  # the recording is stopping: what is left goes into this part
 
     @property
     def current_path(self) -> str:
@@ -187,21 +182,35 @@ class RecordingFile:
         self._dirty = False
         self._last_flush = time.monotonic()
 
-    def tick(self, t_ns: int) -> bool:
-        """Flush if one is due; rotate if a split limit is reached.  True if rotated."""
+    def tick(self, t_ns: int) -> None:
+        """Flush if one is due; note when a split limit is reached."""
         if self._dirty and time.monotonic() - self._last_flush >= FLUSH_INTERVAL_S:
             self.flush()
         if self.part is None:
-            return False
+            return
         if (self.split_size is not None and self.size >= self.split_size) or (
                 self.split_duration_ns is not None and t_ns - self._part_start_ns >= self.split_duration_ns):
-            self._finish_part()
-            self.part += 1
-            self._open_part(t_ns)
-            if self.on_new_part is not None:
-                self.on_new_part(self.part)
-            return True
-        return False
+            # The next part begins with the next message, not now: an idle recorder
+            # (or one about to stop) never leaves a part without traffic.
+            self._rotate_due = True
+
+    def rotate_if_due(self, t_ns: int) -> None:
+        """Begin the next part if a split limit was reached.  The recorder calls
+        this before it takes in more traffic, never in the middle of a read's
+        messages, so an idle recorder (or one about to stop) leaves no part
+        without traffic, and parts stay near --split-size however fast data comes."""
+        if self.closing:
+            return
+        if self._rotate_due or (self.split_size is not None and self.size >= self.split_size):
+            self._rotate(t_ns)
+
+    def _rotate(self, t_ns: int) -> None:
+        self._rotate_due = False
+        self._finish_part()
+        self.part += 1  # type: ignore[operator]
+        self._open_part(t_ns)
+        if self.on_new_part is not None:
+            self.on_new_part(self.part)  # type: ignore[arg-type]
 
     def finish(self) -> list[str]:
         """Write the index, close, rename the .part; returns every file written."""

@@ -93,9 +93,9 @@ async def test_follow_goes_on_to_each_part_of_a_split_recording(tmp_path):
         await until(pilot, lambda: frames.rows == 2, "part 1")
         for part in (2, 3):
             growing.t += 20_000_000
-            growing.recorder.tick(growing.t)  # the split duration is over: a new part begins
-            assert Path(growing.file.current_path) == tmp_path / f"split-{part:04d}.mcap"
+            growing.recorder.tick(growing.t)  # the split duration is over: a new part begins with the next read
             growing.exchange(b"rr1-3--0--0-ss1", b"cr1-3--%d--0-ss1" % part)
+            assert Path(growing.file.current_path) == tmp_path / f"split-{part:04d}.mcap"
             growing.flush()
             await until(pilot, lambda part=part: frames.rows == 2 * part, f"part {part}")
             assert f"split-{part:04d}.mcap.part" in app.sub_title

@@ -14,7 +14,8 @@ from analyzer.session import Direction, LateViolation, Observation
 from tui.model import TrafficModel
 from tui.sources import FileSource
 from tui.store import FrameStore
-from tui.view import FilterSyntaxError, FrameView, parse_filter, with_connection
+from analyzer.item_filter import FilterSyntaxError, parse_filter
+from tui.view import FrameView, with_connection
 
 SAMPLES = Path(__file__).parent.parent / "samples"
 ALL_SAMPLES = sorted(SAMPLES.glob("*.mcap"))

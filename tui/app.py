@@ -23,7 +23,7 @@ from textual.widgets import Footer, Header, Input, Static, TabbedContent, TabPan
 from textual.worker import get_current_worker
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE
-from analyzer.item_filter import ItemFilter
+from analyzer.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
 from tui.connections import ConnectionsPane
 from tui.detail import DetailPane
 from tui.frame_list import FrameList
@@ -32,7 +32,7 @@ from tui.model import TrafficModel
 from tui.sources import LiveSource, Source, SourceError
 from tui.stats import StatsPane
 from tui.virtual_list import VirtualList
-from tui.view import FILTER_HELP, FilterSyntaxError, FrameView, parse_filter, with_connection
+from tui.view import FrameView, with_connection
 
 TICK_S = 0.1  # new frames show within this (plus the time to decode them)
 LOADING_TICK_S = 0.5  # while a recording loads: each look repaints the screen, which slows the loading

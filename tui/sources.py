@@ -27,10 +27,10 @@ from analyzer.recording import (
     RecordingError,
     RecordingScan,
 )
+from analyzer.recording_set import GrowingFile, Stopped, next_part, wait_for_part
 from analyzer.session import Direction
 from tui.model import TrafficModel
 
-POLL_S = 0.1  # a growing file is looked at this often; the recorder flushes every 0.5 s
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
 LOADING_GC_THRESHOLD = 100_000
 
@@ -78,7 +78,7 @@ class FileSource:
             scan = RecordingScan(counted, STREAM_TOPICS)
             try:
                 _feed_scan(scan, model)
-            except _Stopped:
+            except Stopped:
                 return
             except RecordingError as e:
                 self.note = f"{self.path}: {e}; showing what came before"
@@ -87,10 +87,6 @@ class FileSource:
                              f"'whiztap recover {self.path}' makes a complete copy")
         self.progress = 1.0
         model.finish()
-
-
-class _Stopped(Exception):
-    """The app is closing: unwind the reader."""
 
 
 class _Counting:
@@ -102,36 +98,11 @@ class _Counting:
 
     def read(self, n: int = -1) -> bytes:
         if self.stop.is_set():
-            raise _Stopped
+            raise Stopped
         data = self.f.read(n)
         self.done += len(data)
         self.source.progress = min(self.done / self.source._size, 1.0)  # noqa: SLF001
         return data
-
-
-class GrowingFile:
-    """A recording still being written: ``read(n)`` waits until n bytes are there.
-
-    The recorder writes whole chunks at each flush, so waiting inside a read
-    lets ``RecordingScan`` parse a file that is still growing as if it were
-    complete; it ends at the DataEnd record the recorder writes when it
-    finishes (the open file survives the rename of ``.part`` to ``.mcap``).
-    """
-
-    def __init__(self, f: IO[bytes], stop: threading.Event, poll_s: float = POLL_S) -> None:
-        self.f, self.stop, self.poll_s = f, stop, poll_s
-
-    def read(self, n: int = -1) -> bytes:
-        chunks = []
-        need = n
-        while need:
-            data = self.f.read(need)
-            if data:
-                chunks.append(data)
-                need -= len(data)
-            elif self.stop.wait(self.poll_s):
-                raise _Stopped
-        return b"".join(chunks)
 
 
 class FollowSource:
@@ -157,7 +128,7 @@ class FollowSource:
                 with open(path, "rb") as f:
                     scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
                     stopped = _feed_scan(scan, model, skip_continued=moved_on)
-            except _Stopped:
+            except Stopped:
                 return
             except RecordingError as e:
                 self.note = f"{path}: {e}"
@@ -165,11 +136,11 @@ class FollowSource:
             except OSError as e:
                 self.note = f"{path}: cannot read ({e.strerror})"
                 return
-            following = None if stopped else _next_part(path, scan.metadata.get(METADATA_NAME, {}))
+            following = None if stopped else next_part(path, scan.metadata.get(METADATA_NAME, {}))
             if following is None:
                 break
             self.title = f"waiting for {following}.part"
-            path = _wait_for_part(following, stop)
+            path = wait_for_part(following, stop)
             if path is None:
                 return
             moved_on = True
@@ -197,32 +168,6 @@ def _feed_scan(scan: RecordingScan, model: TrafficModel, skip_continued: bool = 
             continue
         event(record)
     return stopped
-
-
-def _next_part(path: str, metadata: dict[str, str]) -> str | None:
-    """The final name of the part after ``path`` in a split recording, else None."""
-    from sniffer.writer import part_path
-
-    if not (metadata.get("split_size") or metadata.get("split_duration")) or not metadata.get("part", "").isdigit():
-        return None
-    part = int(metadata["part"])
-    final = path.removesuffix(".part")
-    stem, ext = os.path.splitext(final)
-    suffix = f"-{part:04d}"
-    if not stem.endswith(suffix):
-        return None  # renamed by hand: its neighbours cannot be told
-    return part_path(stem.removesuffix(suffix) + ext, part + 1)
-
-
-def _wait_for_part(final: str, stop: threading.Event) -> str | None:
-    """The next part's file once the recorder has created it (its ``.part``, or
-    the finished file if it is already done); None when told to stop."""
-    while True:
-        for candidate in (final + ".part", final):
-            if os.path.exists(candidate):
-                return candidate
-        if stop.wait(POLL_S):
-            return None
 
 
 # -- live -----------------------------------------------------------------------------------
