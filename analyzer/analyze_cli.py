@@ -15,10 +15,11 @@ from typing import IO, Any
 
 import click
 
-from analyzer.cli import EXIT_USAGE, fail, limits_from, limits_options
+from analyzer.cli import EXIT_USAGE, fail, limits_from, limits_options, output_stream
 from analyzer.report.formats import FORMATS
 
 _SEVERITIES = ["info", "warning", "error"]
+TEXT_SHOWN = 200  # characters of an item's escaped bytes on a line of 'cat'; longer ones end in …
 
 
 # -- reading ----------------------------------------------------------------------------
@@ -289,9 +290,27 @@ def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str
 # -- cat --------------------------------------------------------------------------------
 
 
+def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, imported lazily
+    """The one recording a command reads: a file, a split one's first part, its
+    folder or a glob (expanded by the shell or not)."""
+    from analyzer.recording_set import RecordingInputError, find_one
+
+    try:
+        found = find_one(inputs)
+    except RecordingInputError as e:
+        fail(f"{e} (see --help)")
+    if found.warning():
+        click.echo(f"whiztap: {found.warning()}", err=True)
+    return found
+
+
 @click.command("cat")
-@click.argument("path", type=click.Path(dir_okay=False))
+@click.argument("inputs", nargs=-1, metavar="RECORDING")
 @click.option("--format", "fmt", type=click.Choice(["text", "jsonl"]), default="text", show_default=True)
+@click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
+              help="Write to this file ('-': standard output, the default).")
+@click.option("--filter", "filter_text", default="", metavar="WORDS",
+              help="The TUI filter bar's words, e.g. \"kind:response ch:12 violations\" (docs/tui.md).")
 @click.option("--conn", "conns", type=int, multiple=True, help="Only this connection; repeatable.")
 @click.option("--dir", "direction", type=click.Choice(["c2s", "s2c"]), default=None, help="Only one direction.")
 @click.option("--kind", "kinds", multiple=True, metavar="KIND",
@@ -301,50 +320,89 @@ def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str
 @click.option("--since", type=float, default=None, help="Seconds from the start of the recording.")
 @click.option("--until", type=float, default=None, help="Seconds from the start of the recording (exclusive).")
 @click.option("--violations-only", is_flag=True, help="Only items that break a rule.")
+@click.option("--follow", "-f", is_flag=True,
+              help="Tail a recording being written (its .mcap.part, then each later part) until it is finished.")
 @click.option("--checksum-rule", default=None, help="Set Configuration checksum rule.")
-def cat_command(path: str, fmt: str, conns: tuple[int, ...], direction: str | None, kinds: tuple[str, ...],
-                channels: tuple[int, ...], since: float | None, until: float | None, violations_only: bool,
-                checksum_rule: str | None) -> None:
+@limits_options
+def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, filter_text: str, conns: tuple[int, ...],
+                direction: str | None, kinds: tuple[str, ...], channels: tuple[int, ...], since: float | None,
+                until: float | None, violations_only: bool, follow: bool, checksum_rule: str | None,
+                answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Print every item of a recording in time order, decoded and checked.
 
-    Streams: the first lines appear at once, and memory stays flat however
-    long the recording is.
+    RECORDING is a file, a split recording (its first part, its folder or a
+    glob), or with --follow a .mcap.part being written.  Streams: the first
+    lines appear at once, and memory stays flat however long the recording is.
     """
     from analyzer.analysis import Analyzer
     from analyzer.checksum import DEFAULT_CHECKSUM_RULE
-    from analyzer.framing import ItemKind
-    from analyzer.item_filter import ItemFilter
     from analyzer.recording import Read
 
+    item_filter = _cat_filter(filter_text, conns, direction, kinds, channels, since, until, violations_only)
+    limits = limits_from(answer_timeout, max_frame, max_image)
+    if follow:
+        if len(inputs) != 1 or not os.path.isfile(inputs[0]):
+            fail(f"--follow takes one file being written (NAME.mcap.part), got {' '.join(inputs) or 'none'}")
+        records = _followed(inputs[0])
+        name = inputs[0]
+    else:
+        recording = one_recording(inputs)
+        records, name = scan_recording(recording), str(recording.name)
     try:
-        wanted_kinds = frozenset(ItemKind(k) for k in kinds)
-    except ValueError as e:
-        fail(f"{e}; kinds are {', '.join(k.value for k in ItemKind)}")
-    path_ = recording_paths((path,))[0]
-    item_filter = ItemFilter(conns=frozenset(conns), direction=direction, kinds=wanted_kinds,
-                             channels=frozenset(channels), since_s=since, until_s=until,
-                             violations_only=violations_only)
-    try:
-        analyzer = Analyzer(str(path_), checksum_rule or DEFAULT_CHECKSUM_RULE)
+        analyzer = Analyzer(name, checksum_rule or DEFAULT_CHECKSUM_RULE, limits)
     except ValueError as e:
         fail(str(e))
-    printer = _CatPrinter(fmt, item_filter)
-    try:
-        stream = open(path_, "rb")
-    except OSError as e:
-        fail(f"{path_}: cannot read ({e.strerror})")
-    with stream:
-        for record in scan_recording(path_, stream):
+    with output_stream(output) as out:
+        printer = _CatPrinter(fmt, item_filter, out)
+        for record in records:
             if type(record) is Read:
                 printer.show(record.conn, analyzer.read(record.conn, record.dir, record.t_ns, record.data))
             else:
                 printer.show(record["conn"], analyzer.event(record))
-    for conn, events in analyzer.close_all():
-        printer.show(conn, events)
+        for conn, events in analyzer.close_all():
+            printer.show(conn, events)
+
+
+def _cat_filter(text: str, conns, direction, kinds, channels, since, until, violations_only):  # noqa: ANN001, ANN202
+    """The --filter words, narrowed by the separate options."""
+    from dataclasses import replace
+
+    from analyzer.framing import ItemKind
+    from analyzer.item_filter import FilterSyntaxError, parse_filter
+
+    try:
+        item_filter = parse_filter(text)
+    except FilterSyntaxError as e:
+        fail(f"--filter: {e}")
+    try:
+        wanted_kinds = frozenset(ItemKind(k) for k in kinds)
+    except ValueError as e:
+        fail(f"{e}; kinds are {', '.join(k.value for k in ItemKind)}")
+    given = {"conns": frozenset(conns), "direction": direction, "kinds": wanted_kinds,
+             "channels": frozenset(channels), "since_s": since, "until_s": until,
+             "violations_only": violations_only or None}
+    return replace(item_filter, **{k: v for k, v in given.items() if v})
+
+
+def _followed(path: str) -> Iterator[Any]:
+    """The records of a recording being written, until it is finished or Ctrl-C."""
+    import threading
+
+    from analyzer.recording import RecordingError
+    from analyzer.recording_set import Stopped, follow
+
+    try:
+        yield from follow(path, threading.Event())
+    except Stopped:
+        return
+    except RecordingError as e:
+        fail(f"{path}: {e}")
+    except OSError as e:
+        fail(f"{path}: cannot read ({e.strerror})")
 
 
 class _CatPrinter:
-    def __init__(self, fmt: str, item_filter) -> None:  # noqa: ANN001
+    def __init__(self, fmt: str, item_filter, out: IO[str]) -> None:  # noqa: ANN001
         from analyzer.describe import fields, meaning
         from analyzer.text import escape
 
@@ -352,8 +410,8 @@ class _CatPrinter:
         self.filter = item_filter
         self.start: int | None = None
         self._meaning, self._fields, self._escape = meaning, fields, escape
-        self._out = sys.stdout
-        self._colour = sys.stdout.isatty()
+        self._out = out
+        self._colour = out.isatty()
 
     def show(self, conn: int, events: list) -> None:  # noqa: ANN001
         from analyzer.session import LateViolation
@@ -387,8 +445,10 @@ class _CatPrinter:
             return
         rel = (item.t_end_ns - (self.start or 0)) / 1e9
         mark = f"  ! {' '.join(rules)}" if rules else ""
-        line = (f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {self._escape(item.raw)[:120]}"
-                f"  {self._meaning(e)}{mark}")
+        text = self._escape(item.raw)
+        if len(text) > TEXT_SHOWN:  # an image or a long run of garbage: the JSON lines keep it whole
+            text = text[:TEXT_SHOWN - 1] + "…"
+        line = f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {text}  {self._meaning(e)}{mark}"
         if self._colour and rules:
             line = click.style(line, fg="red" if max(v.severity for v in e.violations) >= 3 else "yellow")
         self._out.write(line + "\n")
@@ -411,16 +471,19 @@ class _CatPrinter:
 
 
 @click.command("info")
-@click.argument("path", type=click.Path(dir_okay=False))
+@click.argument("inputs", nargs=-1, metavar="RECORDING")
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True)
-def info_command(path: str, fmt: str) -> None:
+def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     """File-level facts: format version, session metadata, time span,
-    connections, messages per topic, size, and whether the file is complete."""
-    from analyzer.recording_info import recording_info
+    connections, messages per topic, size, and whether the file is complete.
+    A split recording (its first part, folder or a glob) is shown as one, with
+    its parts listed."""
+    from analyzer.recording_info import set_info
 
-    path_ = recording_paths((path,))[0]
+    recording = one_recording(inputs)
+    path_ = recording.parts[-1]
     try:
-        info = recording_info(path_)
+        info = set_info(list(recording.parts))
     except OSError as e:
         fail(f"{path_}: cannot read ({e.strerror})")
     except ValueError as e:
@@ -431,6 +494,8 @@ def info_command(path: str, fmt: str) -> None:
         click.echo(json.dumps(info, indent=2))
         return
     click.echo(f"file            {info['path']}")
+    for part in info.get("parts", []):
+        click.echo(f"  part          {part['path']} ({part['size_bytes']:,} bytes, {part['state']})")
     click.echo(f"size            {info['size_bytes']:,} bytes")
     click.echo(f"complete        {'yes (indexed)' if info['complete'] else 'NO: ' + info['state']}")
     click.echo(f"format version  {info['format_version'] or 'unknown (not written by whiztap?)'}")

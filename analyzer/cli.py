@@ -8,13 +8,14 @@ scapy, mcap) inside their functions.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from importlib.metadata import EntryPoint, entry_points
-from typing import NoReturn
+from typing import IO, NoReturn
 
 import click
 
@@ -52,6 +53,32 @@ class ByteSize(click.ParamType):
         if m is None or float(m.group(1)) <= 0:
             self.fail(f"{value!r} is not a size such as 1000000, 500k or 64M", param, ctx)
         return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+
+
+@contextlib.contextmanager
+def output_stream(output: str | None) -> Iterator[IO[str]]:
+    """Where a command writes its text: a file, or standard output for None or
+    '-'.  A reader that goes away (``| head``) ends the command quietly, status 0."""
+    if output is None or output == "-":
+        try:
+            yield sys.stdout
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _pipe_closed()
+        return
+    try:
+        f = open(output, "w", encoding="utf-8")  # noqa: SIM115 - closed below
+    except OSError as e:
+        fail(f"cannot write {output}: {e.strerror}")
+    with f:
+        yield f
+
+
+def _pipe_closed() -> NoReturn:
+    """Standard output's reader left: stop writing, say nothing, succeed."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush must not fail again
+    sys.exit(0)
 
 
 def limits_options(f: Callable) -> Callable:

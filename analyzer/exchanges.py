@@ -11,8 +11,8 @@ from a recording's raw reads, as every reader of recordings does.
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from analyzer.compare import ServoMotion
@@ -23,11 +23,10 @@ from analyzer.recording import (
     EV_HALF_CLOSED,
     EV_OPENED,
     METADATA_NAME,
-    STREAM_TOPICS,
     Read,
-    RecordingError,
-    RecordingScan,
+    read_metadata,
 )
+from analyzer.recording_set import RecordingSet, scan_set
 from analyzer.session import Direction, Mode, Observation, Session
 
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -139,21 +138,6 @@ class _Builder:
         return rec
 
 
-def _records(scan: RecordingScan) -> Iterator[Read | dict]:
-    """The scan's records; damage the reader does not name (a corrupt chunk
-    that fails to decompress) becomes a RecordingError too."""
-    records = scan.stream()
-    while True:
-        try:
-            yield next(records)
-        except StopIteration:
-            return
-        except (RecordingError, OSError):
-            raise
-        except Exception as e:  # zstd, lz4, struct and JSON errors on a damaged file
-            raise RecordingError(f"the file is damaged ({str(e) or type(e).__name__})") from e
-
-
 def _checksum_rule(metadata: dict[str, dict[str, str]]) -> str:
     name = metadata.get(METADATA_NAME, {}).get("checksum_rule") or DEFAULT_CHECKSUM_RULE
     try:
@@ -162,41 +146,40 @@ def _checksum_rule(metadata: dict[str, dict[str, str]]) -> str:
         return DEFAULT_CHECKSUM_RULE
 
 
-def load_exchanges(path: str) -> RecordedSessions:
-    """Read a recording; raises OSError, or RecordingError for a file that is no
-    complete recording (its message is one line)."""
+def load_exchanges(recording) -> RecordedSessions:  # noqa: ANN001 - a RecordingSet or a path
+    """Read a recording (all parts of a split one, as one); raises OSError, or
+    RecordingError for a file that is no complete recording (one line)."""
+    if not isinstance(recording, RecordingSet):
+        recording = RecordingSet((Path(recording),))
+    metadata = read_metadata(str(recording.name))
+    rule = _checksum_rule({METADATA_NAME: metadata})
     builders: dict[int, _Builder] = {}
     done: list[RecordedConnection] = []
     clients: dict[int, str] = {}
     start_ns: int | None = None
     last_ns = 0
-    with open(path, "rb") as f:
-        scan = RecordingScan(f, STREAM_TOPICS)
-        for record in _records(scan):
-            if isinstance(record, Read):
-                if start_ns is None:
-                    start_ns = record.t_ns
-                last_ns = record.t_ns
-                builder = builders.get(record.conn)
-                if builder is None:  # a connection continued from a previous part
-                    builder = builders[record.conn] = _Builder(record.conn, record.t_ns,
-                                                               _checksum_rule(scan.metadata))
-                    builder.rec.client = clients.get(record.conn, "")
-                builder.read(record)
-                continue
-            conn, event, t = record["conn"], record["event"], record["t_ns"]
-            if event == EV_OPENED:
-                clients[conn] = record.get("client", "")
-                builders[conn] = _Builder(conn, t, _checksum_rule(scan.metadata))
-                builders[conn].rec.client = clients[conn]
-            elif conn in builders:
-                builder = builders[conn]
-                if event == EV_HALF_CLOSED:
-                    builder.observe(builder.session.end(Direction(record["dir"]), t))
-                elif event == EV_CLOSED:
-                    done.append(builders.pop(conn).finish(t))
-        if scan.truncated:
-            raise RecordingError("the file is truncated (no footer); run 'whiztap recover' on it first")
+    for record in scan_set(recording):
+        if isinstance(record, Read):
+            if start_ns is None:
+                start_ns = record.t_ns
+            last_ns = record.t_ns
+            builder = builders.get(record.conn)
+            if builder is None:  # a connection continued from a part not given
+                builder = builders[record.conn] = _Builder(record.conn, record.t_ns, rule)
+                builder.rec.client = clients.get(record.conn, "")
+            builder.read(record)
+            continue
+        conn, event, t = record["conn"], record["event"], record["t_ns"]
+        if event == EV_OPENED:
+            clients[conn] = record.get("client", "")
+            builders[conn] = _Builder(conn, t, rule)
+            builders[conn].rec.client = clients[conn]
+        elif conn in builders:
+            builder = builders[conn]
+            if event == EV_HALF_CLOSED:
+                builder.observe(builder.session.end(Direction(record["dir"]), t))
+            elif event == EV_CLOSED:
+                done.append(builders.pop(conn).finish(t))
     done += [b.finish(last_ns) for b in builders.values()]
     connections = sorted((c for c in done if c.reads or c.handshake), key=lambda c: c.conn)
-    return RecordedSessions(path, scan.metadata.get(METADATA_NAME, {}), start_ns or 0, connections)
+    return RecordedSessions(str(recording.name), metadata, start_ns or 0, connections)

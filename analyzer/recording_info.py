@@ -67,3 +67,34 @@ def recording_info(path: Path) -> dict[str, Any]:
         "connections": len(connections),
         "topics": {topic: topics.get(topic, 0) for topic in TOPICS},
     }
+
+
+def set_info(parts: list[Path]) -> dict[str, Any]:
+    """``recording_info`` of a recording split into parts, as one: sizes and
+    counts added up, the span from the first part's start to the last's end,
+    each connection counted once; ``parts`` lists each file's own facts."""
+    infos = [recording_info(p) for p in parts]
+    if len(infos) == 1:
+        return infos[0]
+    first, last = infos[0], infos[-1]
+    starts = [i["start_ns"] for i in infos if i["start_ns"] is not None]
+    ends = [i["end_ns"] for i in infos if i["end_ns"] is not None]
+    start, end = (min(starts), max(ends)) if starts and ends else (None, None)
+    metadata = {k: v for k, v in first["metadata"].items() if k != "part"}
+    incomplete = [i for i in infos if not i["complete"]]
+    return {
+        "path": first["path"],
+        "parts": [{"path": i["path"], "size_bytes": i["size_bytes"], "state": i["state"]} for i in infos],
+        "size_bytes": sum(i["size_bytes"] for i in infos),
+        "complete": not incomplete,
+        "state": "complete" if not incomplete else f"{incomplete[0]['path']}: {incomplete[0]['state']}",
+        "format_version": first["format_version"],
+        "metadata": metadata,
+        "start_ns": start,
+        "end_ns": end,
+        "start": _iso(start),
+        "end": _iso(end),
+        "duration_s": ((end - start) / 1e9) if start is not None and end is not None else 0.0,
+        "connections": sum(i["connections"] for i in infos),  # 'opened' is written once, in its own part
+        "topics": {t: sum(i["topics"][t] for i in infos) for t in last["topics"]},
+    }

@@ -151,12 +151,28 @@ def find_recordings(inputs: Iterable[str]) -> list[RecordingSet]:
     return group(unique)
 
 
-def scan_set(recording: RecordingSet, open_file=open) -> Iterator[Read | dict]:  # noqa: ANN001
+def find_one(inputs: Iterable[str]) -> RecordingSet:
+    """The one recording a command reads (a split one's parts count as one)."""
+    names = list(inputs)
+    if not names:
+        raise RecordingInputError("no recording given")
+    found = find_recordings(names)
+    if len(found) != 1:
+        raise RecordingInputError(f"{' '.join(names)}: names {len(found)} recordings ({found[0]}, {found[1]}, ...); "
+                                  "give one (a split recording's parts count as one)")
+    return found[0]
+
+
+def _open_binary(path: Path) -> IO[bytes]:
+    return open(path, "rb")  # noqa: SIM115 - closed by the caller
+
+
+def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Read | dict]:  # noqa: ANN001
     """Reads and connection events of every part, as one stream: a connection
     continued from the previous part is the same connection (its ``continued``
     event is dropped); after a missing part, a ``gap`` event for each connection
-    that crossed it comes first.  Raises RecordingError (with the file's name)
-    (a ``PartError``) for a part that cannot be read or is truncated."""
+    that crossed it comes first.  Raises ``PartError`` (a RecordingError naming
+    the file) for a part that cannot be read or is truncated."""
     seen: set[int] = set()
     expected = None
     for path in recording.parts:
@@ -173,6 +189,8 @@ def scan_set(recording: RecordingSet, open_file=open) -> Iterator[Read | dict]: 
                 yield from _part_records(scan, seen, hole)
             except RecordingError as e:
                 raise PartError(path, str(e)) from None
+            except (KeyError, ValueError, TypeError, IndexError) as e:  # damage the reader does not name
+                raise PartError(path, f"the file is damaged ({str(e) or type(e).__name__})") from None
             if scan.truncated:
                 raise PartError(path, "the file is truncated (no footer)")
 

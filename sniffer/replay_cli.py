@@ -6,7 +6,6 @@ engines load when a command runs.
 
 from __future__ import annotations
 
-import os
 import signal
 import sys
 from collections.abc import Callable, Coroutine
@@ -34,11 +33,16 @@ def _load(path: str):  # noqa: ANN202 - RecordedSessions, imported lazily
     """The recording's exchanges, or a one-line error (exit status 2)."""
     from analyzer.exchanges import load_exchanges
     from analyzer.recording import RecordingError
+    from analyzer.recording_set import RecordingInputError, find_one
 
-    if not os.path.exists(path):
-        fail(f"{path}: no such file")
     try:
-        return load_exchanges(path)
+        recording = find_one((path,))
+    except RecordingInputError as e:
+        fail(str(e))
+    if recording.warning():
+        click.echo(f"whiztap: {recording.warning()}", err=True)
+    try:
+        return load_exchanges(recording)
     except OSError as e:
         fail(f"{path}: cannot read ({e.strerror or e})")
     except (RecordingError, KeyError) as e:  # KeyError: a message without a field the format requires
@@ -59,7 +63,7 @@ def _password(text: str | None) -> bytes | None:
 
 
 @click.command("replay")
-@click.argument("path", metavar="FILE.mcap", type=click.Path(dir_okay=False))
+@click.argument("path", metavar="RECORDING")
 @click.option("--target", metavar="HOST:PORT", help="The server to replay against (not needed with --dry-run).")
 @click.option("--password", envvar="WHIZTAP_PASSWORD", default=None,
               help="Winsock password (default: $WHIZTAP_PASSWORD, or each connection's recorded one if "
@@ -226,7 +230,7 @@ class _Printer:
 
 
 @click.command("stub")
-@click.argument("path", metavar="FILE.mcap", type=click.Path(dir_okay=False))
+@click.argument("path", metavar="RECORDING")
 @click.option("--listen", default="127.0.0.1:5000", show_default=True, metavar="[HOST:]PORT",
               help="Where clients connect (port 0 picks a free one, printed).")
 @click.option("--password", default=None, help="Check the winsock password (default: accept any).")

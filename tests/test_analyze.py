@@ -51,12 +51,11 @@ def test_a_report_is_the_same_whether_clean_commands_come_out_as_events_or_not(s
     """analyze leaves them out for speed (Analyzer(every_event=False)); cat and the TUI do not."""
     def report_data(every_event: bool) -> dict:
         analyzer = Analyzer(str(sample), every_event=every_event)
-        with open(sample, "rb") as f:
-            for record in scan_recording(sample, f):
-                if type(record) is Read:
-                    analyzer.read(record.conn, record.dir, record.t_ns, record.data)
-                else:
-                    analyzer.event(record)
+        for record in scan_recording(sample):
+            if type(record) is Read:
+                analyzer.read(record.conn, record.dir, record.t_ns, record.data)
+            else:
+                analyzer.event(record)
         return build(analyzer.finish())
 
     assert report_data(every_event=False) == report_data(every_event=True)

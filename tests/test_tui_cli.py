@@ -48,7 +48,7 @@ def test_make_demo_runs_the_demo():
 @pytest.mark.parametrize("args, says", [
     ((), "give one of"),
     ((SAMPLES / "vpn.mcap", "--upstream", "127.0.0.1:5000"), "give one of"),
-    (("missing.mcap",), "missing.mcap: cannot read"),
+    (("missing.mcap",), "missing.mcap: no such file"),
     ((ROOT / "README.md",), "not an MCAP file"),
     (("--upstream", "nohost"), "--upstream must be HOST:PORT"),
     (("--follow", "gone.mcap.part"), "gone.mcap.part: cannot read"),

@@ -27,6 +27,20 @@ def _check_recording(path: str) -> None:
         fail(f"{path}: cannot read ({e.strerror})")
 
 
+def _one_recording(path: str):  # noqa: ANN202 - a RecordingSet
+    """The recording to browse: a file, or a split one named by any of its parts,
+    its folder or a glob; checked readable before the app starts."""
+    from analyzer.recording_set import RecordingInputError, find_one
+
+    try:
+        recording = find_one((path,))
+    except RecordingInputError as e:
+        fail(str(e))
+    for part in recording.parts:
+        _check_recording(str(part))
+    return recording
+
+
 def _need_terminal(what: str) -> None:
     if not (sys.stdin.isatty() and sys.stdout.isatty()):
         fail(f"{what} needs a terminal; for a report use 'whiztap analyze', for frames 'whiztap cat'")
@@ -47,7 +61,7 @@ def _hints(path: str, password: str = "PASSWORD") -> list[str]:
 
 
 @click.command("tui")
-@click.argument("path", required=False, type=click.Path(dir_okay=False))
+@click.argument("path", required=False, metavar="[RECORDING]")
 @click.option("--follow", metavar="FILE.mcap.part", default=None,
               help="Follow a recording that 'whiztap record' is writing.")
 @click.option("--upstream", metavar="HOST:PORT", default=None,
@@ -80,8 +94,7 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
     from tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
     if path is not None:
-        _check_recording(path)
-        source = FileSource(path)
+        source = FileSource(_one_recording(path))
     elif follow is not None:
         follow = follow_path(follow)
         _check_recording(follow)

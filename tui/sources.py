@@ -27,7 +27,7 @@ from analyzer.recording import (
     RecordingError,
     RecordingScan,
 )
-from analyzer.recording_set import GrowingFile, Stopped, next_part, wait_for_part
+from analyzer.recording_set import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
 from analyzer.session import Direction
 from tui.model import TrafficModel
 
@@ -50,17 +50,21 @@ class Source(Protocol):
 
 
 class FileSource:
-    """A finished recording, read once from start to end."""
+    """A finished recording (every part of a split one), read once from start to end."""
 
     live = False
     redact_passwords = False
 
-    def __init__(self, path: str) -> None:
-        self.path = path
-        self.title = path
+    def __init__(self, recording) -> None:  # noqa: ANN001 - a RecordingSet, or one file's path
+        if not isinstance(recording, RecordingSet):
+            recording = RecordingSet((Path(recording),))
+        self.recording = recording
+        self.path = str(recording.name)
+        self.title = str(recording)
         self.progress: float | None = 0.0
         self.note = ""
-        self._size = max(os.path.getsize(path), 1)
+        self._size = max(sum(os.path.getsize(p) for p in recording.parts), 1)
+        self._done = 0
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         # Loading makes millions of short-lived tuples; the collector's default
@@ -73,20 +77,27 @@ class FileSource:
             gc.set_threshold(*threshold)
 
     def _read(self, model: TrafficModel, stop: threading.Event) -> None:
-        with open(self.path, "rb") as f:
-            counted = _Counting(f, self, stop)
-            scan = RecordingScan(counted, STREAM_TOPICS)
-            try:
-                _feed_scan(scan, model)
-            except Stopped:
-                return
-            except RecordingError as e:
-                self.note = f"{self.path}: {e}; showing what came before"
-            if scan.truncated:
-                self.note = (f"{self.path} is truncated (no footer): showing what was complete; "
-                             f"'whiztap recover {self.path}' makes a complete copy")
+        read, event = model.read, model.event
+        try:
+            for record in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):  # noqa: SIM115
+                if type(record) is Read:
+                    read(record.conn, record.dir, record.t_ns, record.data)
+                else:
+                    event(record)
+        except Stopped:
+            return
+        except PartError as e:
+            if e.truncated:
+                self.note = (f"{e.path} is truncated (no footer): showing what was complete; "
+                             f"'whiztap recover {e.path}' makes a complete copy")
+            else:
+                self.note = f"{e}; showing what came before"
         self.progress = 1.0
         model.finish()
+
+    def advance(self, n: int) -> None:
+        self._done += n
+        self.progress = min(self._done / self._size, 1.0)
 
 
 class _Counting:
@@ -94,14 +105,18 @@ class _Counting:
 
     def __init__(self, f: IO[bytes], source: FileSource, stop: threading.Event) -> None:
         self.f, self.source, self.stop = f, source, stop
-        self.done = 0
+
+    def __enter__(self) -> _Counting:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.f.close()
 
     def read(self, n: int = -1) -> bytes:
         if self.stop.is_set():
             raise Stopped
         data = self.f.read(n)
-        self.done += len(data)
-        self.source.progress = min(self.done / self.source._size, 1.0)  # noqa: SLF001
+        self.source.advance(len(data))
         return data
 
 
