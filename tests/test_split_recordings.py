@@ -1,0 +1,96 @@
+"""A recording split by --split-size/--split-duration is one recording to every
+command that reads it: named by its first part, its folder or a glob."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+from analyzer.recording_set import find_recordings
+from analyzer.session import Direction
+from sniffer.recorder import Recorder
+from sniffer.writer import RecordingFile
+from tests.record_support import WHIZTAP
+
+T0 = 1_700_000_000_000_000_000
+MS = 1_000_000
+CONFIG = b"sr1-\x02200200-ss1"
+
+
+def run(*args: object) -> subprocess.CompletedProcess:
+    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def split_vpn_session(path: Path, parts: int = 3, idle_ticks: int = 0) -> list[str]:
+    """One VPN connection whose requests and answers cross every split point:
+    each split falls between a request and its answer."""
+    file = RecordingFile(str(path), {"session_id": path.stem, "split_duration": "0.01"}, split_duration_ns=10 * MS)
+    rec = Recorder(file)
+    t = T0
+    rec.start(t)
+    rec.opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000")
+    rec.data(1, Direction.C2S, t, b"rr1-24--0--0-ss1")
+    rec.data(1, Direction.S2C, t + MS, CONFIG)
+    for n in range(parts - 1):
+        t += 2 * MS
+        rec.data(1, Direction.C2S, t, b"rr1-1--0--0-ss1")  # Sensor Request on channel 1
+        t += 20 * MS
+        rec.tick(t)  # the split duration is over
+        for _ in range(idle_ticks):  # nothing happens for a while: no part is begun for it
+            t += 20 * MS
+            rec.tick(t)
+        rec.data(1, Direction.S2C, t, b"cr1-1--%d--0-ss1" % n)  # its answer, in the next part
+    rec.closed(1, t + MS, "client")
+    return rec.stop(t + 2 * MS).files
+
+
+def test_a_session_crossing_split_points_is_judged_as_one(tmp_path):
+    files = split_vpn_session(tmp_path / "s.mcap")
+    assert len(files) == 3
+    for name in (files[0], tmp_path, str(tmp_path / "s-*.mcap"), files[1]):
+        result = run("analyze", name, "--format", "json")
+        assert result.returncode == 0, result.stdout + result.stderr  # no false config-first, no unanswered
+        report = json.loads(result.stdout)
+        assert report["rule_counts"] == {}
+        assert len(report["connections"]) == 1
+        assert {r["request"]: r["count"] for r in report["latency"]}["Sensor Request"] == 2
+    lines = [json.loads(line) for line in run("cat", files[0], "--format", "jsonl").stdout.splitlines()]
+    answers = [line for line in lines if line["kind"] == "response"]
+    assert len(answers) == 2 and not any(line["violations"] for line in lines)
+    info = json.loads(run("info", files[0], "--format", "json").stdout)
+    assert info["connections"] == 1 and [p["path"] for p in info["parts"]] == files
+
+
+def test_each_part_alone_still_reads(tmp_path):
+    files = split_vpn_session(tmp_path / "s.mcap")
+    [only] = find_recordings([files[1]])
+    assert [str(p) for p in only.parts] == files  # a part names its whole set
+
+
+def test_an_idle_recorder_and_a_stopping_one_leave_no_empty_part(tmp_path):
+    files = split_vpn_session(tmp_path / "s.mcap", parts=2, idle_ticks=5)
+    assert len(files) == 2  # not one part per idle tick, nor one for the stop alone
+
+
+def test_two_recordings_in_one_folder_stay_two(tmp_path):
+    split_vpn_session(tmp_path / "a.mcap")
+    split_vpn_session(tmp_path / "b.mcap", parts=2)
+    found = find_recordings([str(tmp_path)])
+    assert [len(r.parts) for r in found] == [3, 2]
+
+
+def test_a_missing_middle_part_is_said_and_the_rest_is_judged(tmp_path):
+    files = split_vpn_session(tmp_path / "s.mcap", parts=4)
+    Path(files[1]).unlink()
+    result = run("analyze", files[0], "--format", "json")
+    assert "part(s) 2 of this split recording are missing" in result.stderr
+    assert "unexpected error" not in result.stderr
+    assert result.returncode in (0, 1)
+
+
+def test_replay_takes_the_set(tmp_path):
+    files = split_vpn_session(tmp_path / "s.mcap")
+    result = run("replay", files[0], "--dry-run", "--target", "127.0.0.1:1")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("rr1-1--0--0-ss1") == 2
