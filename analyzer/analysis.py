@@ -22,7 +22,7 @@ from analyzer.stats import LatencyStats
 
 NS = 1_000_000_000
 _DIRECTIONS = {d.value: d for d in Direction}
-RAW_KEPT = 200  # bytes of a violating frame kept for the report
+RAW_KEPT = 2048  # bytes of a violating item kept for the report: every frame whole; an image or garbage cut
 
 
 @dataclass(slots=True)
@@ -35,6 +35,7 @@ class ViolationRecord:
     raw: bytes  # the frame's bytes (first RAW_KEPT)
     detail: str
     late: bool = False
+    cut: bool = False  # the item was longer than RAW_KEPT
 
     @property
     def severity(self) -> Severity:
@@ -313,5 +314,6 @@ class Analyzer:
         result = self.result
         result.violation_counts[rule_id] += 1
         if len(result.violations) < result.max_violations:
+            raw = about.item.raw
             result.violations.append(ViolationRecord(
-                rule_id, self.file, conn, str(about.direction), t, about.item.raw[:RAW_KEPT], detail, late))
+                rule_id, self.file, conn, str(about.direction), t, raw[:RAW_KEPT], detail, late, len(raw) > RAW_KEPT))

@@ -19,6 +19,8 @@ from analyzer.cli import EXIT_USAGE, fail, limits_from, limits_options, output_s
 from analyzer.report.formats import FORMATS
 
 _SEVERITIES = ["info", "warning", "error"]
+EXIT_NOTHING = 3  # analyze: the recordings hold no traffic to judge
+UNWRAPPED = 10_000  # the width text reports are laid out in when not on a terminal
 TEXT_SHOWN = 200  # characters of an item's escaped bytes on a line of 'cat'; longer ones end in …
 
 
@@ -164,8 +166,8 @@ def _analyse_in_worker(args: tuple):
 @click.argument("inputs", nargs=-1, required=False, metavar="FILE_OR_FOLDER...")
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default="text",
               show_default=True, help="Report format; text is coloured on a terminal.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, writable=True), default=None,
-              help="Write the report to this file instead of standard output.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
+              help="Write the report to this file ('-': standard output, the default).")
 @click.option("--rules", "list_rules", is_flag=True, help="List every rule (id, severity, spec section) and exit.")
 @click.option("--ignore", multiple=True, metavar="RULE", help="Leave this rule out of the report; repeatable.")
 @click.option("--severity-threshold", type=click.Choice(_SEVERITIES), default="error", show_default=True,
@@ -174,14 +176,23 @@ def _analyse_in_worker(args: tuple):
 @click.option("-j", "--jobs", type=click.IntRange(1, 64), default=None,
               help="Processes for several files [default: one per core when there are many].")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("--allow-empty", is_flag=True,
+              help="Pass a report on no traffic (no connection, or no server ever reached) instead of exit 3.")
 @limits_options
 def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_rules: bool,
                     ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str | None,
-                    jobs: int | None, quiet: bool, answer_timeout: float, max_frame: int, max_image: int) -> None:
+                    jobs: int | None, quiet: bool, allow_empty: bool, answer_timeout: float, max_frame: int,
+                    max_image: int) -> None:
     """Check recordings against the spec and report how the sessions behaved.
 
-    Exit status: 0 when no violation at or above the threshold, 1 when there
-    is one, 2 when an input could not be read.
+    \b
+    Exit status:
+      0  no violation at or above --severity-threshold (error by default:
+         warnings and info do not fail)
+      1  a violation at or above the threshold
+      2  an input could not be read (the report covers the others)
+      3  nothing to judge: no connection, or the server was never reached
+         (--allow-empty passes such a report)
     """
     from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
     from analyzer.rules import RULES, Severity
@@ -212,15 +223,14 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
         sys.exit(EXIT_USAGE)
     from analyzer.report.content import build
 
-    report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore), unreadable)
-    report_text = render(report, analysis, fmt, to_terminal=output is None and sys.stdout.isatty())
-    if output:
-        try:
-            Path(output).write_text(report_text, encoding="utf-8")
-        except OSError as e:
-            fail(f"cannot write {output}: {e.strerror}")
-    elif report_text:
-        click.echo(report_text, nl=not report_text.endswith("\n"))
+    report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore), unreadable, allow_empty)
+    to_stdout = output is None or output == "-"
+    report_text = render(report, analysis, fmt, to_terminal=to_stdout and sys.stdout.isatty())
+    with output_stream(output) as out:
+        out.write(report_text)
+    if report.get("nothing_judged") and not allow_empty:
+        click.echo(f"whiztap: nothing to judge: {report['nothing_judged']} (--allow-empty to pass anyway)", err=True)
+        sys.exit(EXIT_USAGE if unreadable else EXIT_NOTHING)
     sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
 
@@ -282,7 +292,8 @@ def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str
         return ""
     import io
 
-    console = Console(record=True, width=80, force_terminal=False, file=io.StringIO())
+    # to a pipe or a file: never wrapped (a frame split over lines is a frame lost to grep)
+    console = Console(record=True, width=UNWRAPPED, force_terminal=False, soft_wrap=True, file=io.StringIO())
     render_text(report, console)
     return console.export_text()
 
@@ -404,12 +415,12 @@ def _followed(path: str) -> Iterator[Any]:
 class _CatPrinter:
     def __init__(self, fmt: str, item_filter, out: IO[str]) -> None:  # noqa: ANN001
         from analyzer.describe import fields, meaning
-        from analyzer.text import escape
+        from analyzer.text import escape, shorten
 
         self.fmt = fmt
         self.filter = item_filter
         self.start: int | None = None
-        self._meaning, self._fields, self._escape = meaning, fields, escape
+        self._meaning, self._fields, self._escape, self._shorten = meaning, fields, escape, shorten
         self._out = out
         self._colour = out.isatty()
 
@@ -445,9 +456,7 @@ class _CatPrinter:
             return
         rel = (item.t_end_ns - (self.start or 0)) / 1e9
         mark = f"  ! {' '.join(rules)}" if rules else ""
-        text = self._escape(item.raw)
-        if len(text) > TEXT_SHOWN:  # an image or a long run of garbage: the JSON lines keep it whole
-            text = text[:TEXT_SHOWN - 1] + "…"
+        text = self._shorten(self._escape(item.raw), TEXT_SHOWN)  # the JSON lines keep it whole
         line = f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {text}  {self._meaning(e)}{mark}"
         if self._colour and rules:
             line = click.style(line, fg="red" if max(v.severity for v in e.violations) >= 3 else "yellow")

@@ -26,3 +26,17 @@ def unescape(text: str) -> bytes:
         pos = m.end()
     out += text[pos:].encode()
     return bytes(out)
+
+
+def shorten(text: str, width: int) -> str:
+    """Escaped text cut to ``width`` characters, ending in '…' when cut, and
+    never in the middle of an escape such as ``\\x0c``: a cut is never silent."""
+    if len(text) <= width:
+        return text
+    cut = text[:width - 1]
+    tail = cut.rfind("\\", max(len(cut) - 3, 0))
+    if tail != -1 and (text[tail:tail + 2] == "\\x" or text[tail + 1:tail + 2] in "rnt\\"):
+        end = tail + (4 if text[tail:tail + 2] == "\\x" else 2)
+        if end > len(cut):
+            cut = cut[:tail]
+    return cut + "…"

@@ -17,6 +17,7 @@ from analyzer.recording import Read, rebuild_streams, stream_bytes
 from analyzer.report.content import build
 from analyzer.report.schema import REPORT_SCHEMA
 from analyzer.rules import RULES
+from analyzer.text import shorten
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SAMPLES = Path(__file__).parent.parent / "samples"
@@ -115,21 +116,32 @@ def test_several_files_and_a_folder(tmp_path):
     assert serial["summary"]["connections"] == 2
 
 
-def test_text_report_reads_at_80_columns():
+def test_text_report_to_a_pipe_is_never_wrapped():
+    """Each escaped frame stays on one line, whole, for grep."""
     result = run("analyze", VIOLATIONS)
     assert result.returncode == 1
     assert "FAIL" in result.stdout and "PW-SETCFG-CHECKSUM" in result.stdout
-    assert max(len(line) for line in result.stdout.splitlines()) <= 80
+    _, data = report(VIOLATIONS)
+    lines = result.stdout.splitlines()
+    for v in data["violations"]:
+        frame = shorten(v["frame"], 160)  # a long one says it is cut
+        assert any(f"    {frame}   (" in line for line in lines), frame[:80]
 
 
-def test_junit_has_one_case_per_rule(tmp_path):
+def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
     out = tmp_path / "report.xml"
     assert run("analyze", VIOLATIONS, "--format", "junit", "-o", out).returncode == 1
     xml = JUnitXml.fromfile(str(out))
-    cases = [case for suite in xml for case in suite]
-    assert len(cases) == len(RULES)
+    [suite] = list(xml)
+    assert suite.timestamp and suite.hostname  # CI shows when and where
+    cases = [case for case in suite]
+    _, data = report(VIOLATIONS)
+    broken = {(r, c["conn"]) for c in data["connections"] for r in c["violations"]}
+    clean_rules = set(RULES) - {r for r, _ in broken}
+    assert len(cases) == len(broken) + len(clean_rules)  # a clean rule still has its one case
     failing = [c for c in cases if any(isinstance(r, Failure) for r in c.result)]
-    assert {c.name.split(":")[0] for c in failing} == {r for r, rule in RULES.items() if rule.severity == 3}
+    assert {(c.name.split(":")[0], int(c.name.rsplit(" conn ", 1)[1].rstrip("]"))) for c in failing} == {
+        (r, conn) for r, conn in broken if RULES[r].severity == 3}
     run("analyze", VIOLATIONS, "--format", "junit", "-o", out, "--ignore", "PW-DIRECTION")
     skipped = [c for suite in JUnitXml.fromfile(str(out)) for c in suite
                if any(isinstance(r, Skipped) for r in c.result)]

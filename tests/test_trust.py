@@ -50,3 +50,96 @@ async def test_a_login_abandoned_mid_password_is_judged_not_a_crash(tmp_path):
     [conn] = report["connections"]
     assert conn["mode"] == "winsock"
     assert b"prog" not in json.dumps(items).encode()
+
+
+# -- CI gates ---------------------------------------------------------------------------------
+
+
+def foreign_mcap(path) -> str:
+    """An MCAP file another tool wrote: its own topic, no whiztap metadata."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start("other", "another tool")
+        schema = w.register_schema("Foo", "jsonschema", b"{}")
+        channel = w.register_channel("/foo", "json", schema)
+        w.add_message(channel, log_time=1, data=b"{}", publish_time=1)
+        w.finish()
+    return str(path)
+
+
+async def test_a_report_on_nothing_does_not_pass(tmp_path):
+    from tests.record_support import closed_port, recording
+
+    async with recording(closed_port(), str(tmp_path / "empty.mcap")):
+        pass  # nobody connected
+    unreached = tmp_path / "unreached.mcap"
+    async with recording(closed_port(), str(unreached), connect_timeout=0.2) as rec:
+        from tests.record_support import play_client
+
+        await play_client(rec.proxy.port, [("send", b"rr1-24--0--0-ss1"), ("sleep", 0.5)])
+    for path, why in ((tmp_path / "empty.mcap", "no connection"), (unreached, "never reached"),
+                      (foreign_mcap(tmp_path / "other.mcap"), "no connection")):
+        for fmt in ("text", "json", "junit", "markdown"):
+            result = run("analyze", path, "--format", fmt)
+            assert result.returncode == 3, (path, fmt, result.stdout, result.stderr)
+            assert why in result.stdout and why in result.stderr and len(result.stderr.splitlines()) == 1
+            assert "PASS" not in result.stdout
+        allowed = run("analyze", path, "--allow-empty", "--format", "json")
+        assert allowed.returncode == 0 and json.loads(allowed.stdout)["passed"]
+
+
+async def test_markdown_never_cuts_a_frame_silently(tmp_path):
+    long_garbage = b"\x01" * 300
+    path = await record_dialogue(tmp_path / "r.mcap", [("recv", 16 + len(long_garbage))],
+                                 [("send", b"rr1-24--0--0-ss1" + long_garbage)])
+    md = run("analyze", path, "--format", "markdown").stdout
+    data = json.loads(run("analyze", path, "--format", "json").stdout)
+    [garbage] = [v for v in data["violations"] if v["rule_id"] == "PW-FRAME-GARBAGE"]
+    assert garbage["frame"] == "\\x01" * 300  # whole in the JSON
+    assert "\\x01" * 20 + "…`" in md and "\\x0…" not in md
+
+
+def test_dash_is_standard_output_and_a_closed_pipe_is_quiet():
+    from tests.test_analyze import CLEAN
+
+    for args in (("analyze", CLEAN, "-o", "-", "--format", "json"), ("cat", CLEAN, "-o", "-")):
+        result = run(*args)
+        assert result.returncode == 0 and result.stdout, args
+    piped = subprocess.run(f"{WHIZTAP} cat {CLEAN} | head -1", shell=True, capture_output=True, text=True,
+                           timeout=60, executable="/bin/bash")
+    code = subprocess.run(f"set -o pipefail; {WHIZTAP} cat {CLEAN} | head -1 >/dev/null", shell=True,
+                          capture_output=True, text=True, timeout=60, executable="/bin/bash")
+    assert len(piped.stdout.splitlines()) == 1 and piped.stderr == ""
+    assert code.returncode == 0 and code.stderr == ""
+
+
+def test_cat_takes_the_filter_bars_words():
+    from tests.test_analyze import CLEAN
+
+    lines = [json.loads(line) for line in
+             run("cat", CLEAN, "--format", "jsonl", "--filter", "kind:response ch:12").stdout.splitlines()]
+    assert lines and all(line["kind"] == "response" and line["fields"]["channel"] == 12 for line in lines)
+    bad = run("cat", CLEAN, "--filter", "kind:nonsense")
+    assert bad.returncode == 2 and bad.stderr.startswith("whiztap: --filter: kind:")
+
+
+async def test_cat_follow_tails_a_recording_being_written(tmp_path):
+    import asyncio
+
+    from sniffer.simulator import Simulator
+    from tests.record_support import RecordProcess, play_client
+
+    out = tmp_path / "live.mcap"
+    async with Simulator(mode="vpn", seed=1) as sim:
+        rec = await RecordProcess.start(sim.port, out)
+        follower = await asyncio.create_subprocess_exec(
+            WHIZTAP, "cat", "--follow", f"{out}.part", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        await play_client(rec.port, [("send", b"rr1-24--0--0-ss1"), ("recv", 4 + 1 + 3 * 24 + 4)])
+        first = await asyncio.wait_for(follower.stdout.readline(), 20)
+        assert b"rr1-24--0--0-ss1" in first  # shown while the recording goes on
+        await rec.finish()
+        rest, err = await asyncio.wait_for(follower.communicate(), 20)
+    assert follower.returncode == 0, err
+    assert b"config" in rest

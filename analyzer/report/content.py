@@ -15,15 +15,17 @@ REPORT_VERSION = 1
 
 
 def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
-          unreadable: list[dict[str, str]] | None = None) -> dict[str, Any]:
+          unreadable: list[dict[str, str]] | None = None, allow_empty: bool = False) -> dict[str, Any]:
     """The report as plain data (the JSON format, documented in docs/analyze.md).
     ``unreadable``: {"file", "error"} of the inputs left out because they could
-    not be read (the key is there only when there are some)."""
+    not be read (the key is there only when there are some).  A report on no
+    traffic (``nothing_judged`` says why) does not pass unless ``allow_empty``."""
     counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
     by_severity = {str(s): 0 for s in (Severity.ERROR, Severity.WARNING, Severity.INFO)}
     for rule_id, n in counts.items():
         by_severity[str(RULES[rule_id].severity)] += n
     failing = any(RULES[r].severity >= threshold for r, n in counts.items() if n)
+    nothing = nothing_judged(analysis)
     start = analysis.first_ns or 0
     frames_by_kind: dict[str, dict[str, int]] = {"c2s": {}, "s2c": {}}
     for c in analysis.connections:
@@ -40,7 +42,7 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         "checksum_rule": {"name": rule.name, "description": rule.description},
         "severity_threshold": str(threshold),
         "ignored_rules": sorted(ignore),
-        "passed": not failing,
+        "passed": not failing and (nothing is None or allow_empty),
         "summary": {
             "connections": len(analysis.connections),
             "frames": analysis.frames,
@@ -64,7 +66,8 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         "violations": [{
             "rule_id": v.rule_id, "severity": str(v.severity), "section": RULES[v.rule_id].section,
             "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
-            "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw), "detail": v.detail,
+            "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
+            "detail": v.detail,
             "late": v.late,
         } for v in listed],
         "violations_not_listed": sum(counts.values()) - len(listed),
@@ -81,7 +84,19 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
     }
     if unreadable:
         report["unreadable"] = list(unreadable)
+    if nothing is not None:
+        report["nothing_judged"] = nothing
     return report
+
+
+def nothing_judged(analysis: Analysis) -> str | None:
+    """Why the recordings give nothing to judge (None when they do): a gate
+    must not go green on a recording of nothing."""
+    if not analysis.connections:
+        return "no connection in the recording (is it a whiztap recording of traffic?)"
+    if all(any(n.startswith("upstream failed") for n in c.notes) for c in analysis.connections):
+        return "the server was never reached on any connection"
+    return None
 
 
 def _per_file(analysis: Analysis, ignore: frozenset[str]) -> list[dict[str, Any]]:

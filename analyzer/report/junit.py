@@ -1,55 +1,94 @@
-"""JUnit XML: one test case per rule, each violation a failure, so CI shows them.
+"""JUnit XML: a test case per rule per connection, each violation a failure,
+so CI shows which rule broke where.
 
-Violations of rules below the severity threshold do not fail their test case
-(the report passes with them); they are listed in its system-out instead.
-Inputs that could not be read make one more test case, in error.
+Each rule has one case per connection that broke it (named ``RULE: summary
+[file conn N]``), and one case for the whole recording when nothing broke it,
+so a clean run still lists every rule.  Violations of rules below the severity
+threshold do not fail their case (the report passes with them); they are
+listed in its system-out instead.  Inputs that could not be read make one more
+case, in error; a report on nothing to judge makes one more failing case.
 """
 
 from __future__ import annotations
 
+import datetime
+import socket
 import xml.etree.ElementTree as ET
+from collections import defaultdict
 from typing import Any
 
 from analyzer.rules import RULES, Severity
 
 
 def render_junit(report: dict[str, Any]) -> str:
-    by_rule: dict[str, list[dict[str, Any]]] = {rule_id: [] for rule_id in RULES}
+    listed: dict[tuple[str, str, int], list[dict[str, Any]]] = defaultdict(list)
     for v in report["violations"]:
-        by_rule[v["rule_id"]].append(v)
+        listed[(v["rule_id"], v["file"], v["conn"])].append(v)
+    counted: dict[str, dict[tuple[str, int], int]] = defaultdict(dict)
+    for c in report["connections"]:
+        for rule_id, n in c["violations"].items():
+            counted[rule_id][(c["file"], c["conn"])] = n
     ignored = set(report["ignored_rules"])
     threshold = Severity.parse(report["severity_threshold"])
-    failing = {r for r, n in report["rule_counts"].items() if n and RULES[r].severity >= threshold}
-    failing_cases = len(failing)
-    unreadable = report.get("unreadable", [])
-    tests, errors = str(len(RULES) + bool(unreadable)), str(int(bool(unreadable)))
-    suites = ET.Element("testsuites", name="whiztap", tests=tests, failures=str(failing_cases), errors=errors)
-    suite = ET.SubElement(suites, "testsuite", name="whiztap conformance", tests=tests,
-                          failures=str(failing_cases), skipped=str(len(ignored)), errors=errors,
-                          timestamp="", hostname="")
+    suites = ET.Element("testsuites", name="whiztap")
+    suite = ET.SubElement(suites, "testsuite", name="whiztap conformance",
+                          timestamp=_timestamp(report), hostname=socket.gethostname())
     props = ET.SubElement(suite, "properties")
     for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
                         ("severity_threshold", report["severity_threshold"])):
         ET.SubElement(props, "property", name=name, value=value)
+    tests = failures = skipped = errors = 0
     for rule_id, rule in RULES.items():
-        case = ET.SubElement(suite, "testcase", classname=f"whiztap.{rule.section}", name=f"{rule_id}: {rule.summary}")
-        if rule_id in ignored:
-            ET.SubElement(case, "skipped", message="ignored by --ignore")
+        classname = f"whiztap.{rule.section}"
+        where = sorted(counted.get(rule_id, {}).items())
+        if rule_id in ignored or not where:
+            case = ET.SubElement(suite, "testcase", classname=classname, name=f"{rule_id}: {rule.summary}")
+            tests += 1
+            if rule_id in ignored:
+                ET.SubElement(case, "skipped", message="ignored by --ignore")
+                skipped += 1
             continue
-        texts = [f"{v['file']} conn {v['conn']} {v['dir'] or ''} at +{v['t_rel_s']:.6f}s\n"
-                 f"frame: {v['frame']}\n{v['detail']}" for v in by_rule[rule_id]]
-        if rule_id not in failing:
-            if texts:
-                ET.SubElement(case, "system-out").text = "\n\n".join(texts)
-            continue
-        for v, text in zip(by_rule[rule_id], texts):
-            ET.SubElement(case, "failure", type=v["severity"], message=v["detail"]).text = text
-        extra = report["rule_counts"].get(rule_id, 0) - len(by_rule[rule_id])
-        if extra > 0:
-            ET.SubElement(case, "failure", type=str(rule.severity), message=f"{extra} more not listed")
-    if unreadable:
+        fails = rule.severity >= threshold
+        for (file, conn), n in where:
+            case = ET.SubElement(suite, "testcase", classname=classname,
+                                 name=f"{rule_id}: {rule.summary} [{file} conn {conn}]")
+            tests += 1
+            shown = listed.get((rule_id, file, conn), [])
+            texts = [f"{v['file']} conn {v['conn']} {v['dir'] or ''} at +{v['t_rel_s']:.6f}s\n"
+                     f"frame: {v['frame']}\n{v['detail']}" for v in shown]
+            if not fails:
+                if texts:
+                    ET.SubElement(case, "system-out").text = "\n\n".join(texts)
+                continue
+            failures += 1
+            for v, text in zip(shown, texts):
+                ET.SubElement(case, "failure", type=v["severity"], message=v["detail"]).text = text
+            if n > len(shown):
+                ET.SubElement(case, "failure", type=str(rule.severity), message=f"{n - len(shown)} more not listed")
+    if report.get("nothing_judged"):
+        case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="the recordings hold traffic to judge")
+        tests += 1
+        if not report["passed"]:
+            ET.SubElement(case, "failure", type="nothing_judged", message=report["nothing_judged"])
+            failures += 1
+    if report.get("unreadable"):
         case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="every recording could be read")
-        for u in unreadable:
+        tests += 1
+        errors += 1
+        for u in report["unreadable"]:
             ET.SubElement(case, "error", type="unreadable", message=u["error"]).text = u["file"]
+    for element in (suites, suite):
+        element.set("tests", str(tests))
+        element.set("failures", str(failures))
+        element.set("errors", str(errors))
+    suite.set("skipped", str(skipped))
     ET.indent(suites)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(suites, encoding="unicode") + "\n"
+
+
+def _timestamp(report: dict[str, Any]) -> str:
+    """When the recorded traffic began (ISO 8601, UTC), else now."""
+    first = report["summary"]["first_ns"]
+    t = (datetime.datetime.fromtimestamp(first / 1e9, datetime.timezone.utc) if first is not None
+         else datetime.datetime.now(datetime.timezone.utc))
+    return t.replace(tzinfo=None).isoformat(timespec="seconds")

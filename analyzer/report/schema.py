@@ -85,6 +85,8 @@ REPORT_SCHEMA = {
             "type": "object", "required": ["file", "connections", "frames", "violations"],
             "properties": {"file": _STR, "connections": _INT, "frames": _INT, "violations": _INT},
         }},
+        # only when there was no traffic to judge: why (the report does not pass, unless --allow-empty)
+        "nothing_judged": _STR,
         # only when some input could not be read: the report covers the others
         "unreadable": {"type": "array", "minItems": 1, "items": {
             "type": "object", "required": ["file", "error"], "additionalProperties": False,

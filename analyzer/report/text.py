@@ -8,7 +8,11 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from analyzer.text import shorten
+
 _STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
+TEXT_FRAME = 160  # characters of a frame in the text report; longer ones end in …
+MD_FRAME = 120  # characters of a frame in a Markdown table; longer ones end in … (the JSON has them whole)
 
 
 def duration(ns: int | float) -> str:
@@ -48,6 +52,9 @@ def verdict(report: dict[str, Any]) -> str:
         text = f"PASS: no violation at or above {report['severity_threshold']} ({counts})"
     else:
         text = f"FAIL: violations at or above {report['severity_threshold']} ({counts})"
+    if report.get("nothing_judged"):
+        allowed = " (allowed by --allow-empty)" if report["passed"] else ""
+        text = f"NOTHING TO JUDGE: {report['nothing_judged']}{allowed}"
     unreadable = len(report.get("unreadable", ()))
     if unreadable:
         text = f"INCOMPLETE: {unreadable} input{'s' * (unreadable != 1)} could not be read. {text}"
@@ -101,7 +108,8 @@ def render_text(report: dict[str, Any], console: Console) -> None:
             line.append(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  ")
             line.append(v["detail"])
             console.print(line)
-            console.print(Text(f"    {v['frame'][:160]}", style="dim"), f"  ({v['section']})", overflow="fold")
+            frame = shorten(v["frame"], TEXT_FRAME)
+            console.print(Text(f"    {frame}", style="dim"), f"  ({v['section']})", overflow="fold")
         if report["violations_not_listed"]:
             console.print(f"… and {report['violations_not_listed']} more not listed")
         counts = Table(title="Violations by rule", title_justify="left", box=None, header_style="bold")
@@ -157,7 +165,8 @@ def render_markdown(report: dict[str, Any]) -> str:
     if report["violations"]:
         out += ["| rule | severity | conn | t (s) | frame | detail |", "|---|---|---:|---:|---|---|"]
         for v in report["violations"]:
-            frame = v["frame"][:80].replace("|", "\\|").replace("`", "'")
+            frame = shorten(v["frame"], MD_FRAME)
+            frame = frame.replace("|", "\\|").replace("`", "'")
             out.append(f"| `{v['rule_id']}` | {v['severity']} | {v['conn']} | {v['t_rel_s']:.3f} | "
                        f"`{frame}` | {v['detail'].replace('|', '/')} |")
         if report["violations_not_listed"]:
