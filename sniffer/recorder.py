@@ -84,6 +84,17 @@ class _Read:
             self.spans.append((lo - self.offset, hi - lo))
 
 
+class _QueuedEvent:
+    """A connection event waiting behind held reads, so the file keeps stream order."""
+
+    __slots__ = ("conn", "message", "t")
+    held = False
+    dir = None  # not a read of either direction
+
+    def __init__(self, conn: int, t: int, message: bytes) -> None:
+        self.conn, self.t, self.message = conn, t, message
+
+
 @dataclass
 class _Conn:
     session: Session
@@ -187,10 +198,12 @@ class Recorder:
         if self._split:
             self.file.rotate_if_due(t)
         c = self._conns[conn]
-        self._event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
         self._observe_all(conn, c, c.session.end(direction, t))
         self._update_hold(c, None)
         self._drain_reads()
+        # after what the session made of the side's last bytes, and after the
+        # reads held for a password: the file keeps each stream's order
+        self._event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
 
     def gap(self, conn: int, direction: Direction, t_ns: int, length: int) -> None:
         """``length`` bytes of one direction were never seen (capture only)."""
@@ -254,7 +267,11 @@ class Recorder:
         return self._t
 
     def _event(self, conn: int, event: str, t: int, **details: object) -> None:
-        self.file.write(TOPIC_EVENTS, t, encode(event_message(conn, event, t, **details)))
+        message = encode(event_message(conn, event, t, **details))
+        if self._reads:  # reads are held back (a password may end in them): the event waits its turn
+            self._reads.append(_QueuedEvent(conn, t, message))  # type: ignore[arg-type]
+        else:
+            self.file.write(TOPIC_EVENTS, t, message)
 
     def _write_read(self, r: _Read) -> None:
         self.file.write(TOPIC_READS, r.t, encode_read(r.conn, _DIR_TEXT[r.dir], r.t, r.offset, r.data, r.spans))
@@ -262,7 +279,11 @@ class Recorder:
     def _drain_reads(self) -> None:
         reads = self._reads
         while reads and not reads[0].held:
-            self._write_read(reads.popleft())
+            r = reads.popleft()
+            if type(r) is _QueuedEvent:
+                self.file.write(TOPIC_EVENTS, r.t, r.message)
+            else:
+                self._write_read(r)
 
     def _observe_all(self, conn: int, c: _Conn, events: list[Event]) -> None:
         """Write what the session made of a read: the hot loop of recording.

@@ -559,7 +559,7 @@ class Replay:
             raise ReplayError("no target", missing="target")
         if not self.plans:
             raise ReplayError("nothing to replay: no connection is selected")
-        if any(p.winsock and self.password_for(p) is None for p in self.plans):
+        if any(p.winsock and p.recorded.password is not None and self.password_for(p) is None for p in self.plans):
             raise ReplayError("the recording's password is redacted", missing="password")
 
     def password_for(self, p: ConnectionPlan) -> bytes | None:
@@ -567,12 +567,13 @@ class Replay:
 
         A connection the server refused is replayed refused: with the password it
         recorded if secrets were kept, else with one sure to differ from
-        --password.  An accepted one sends --password, or the one it recorded
-        if secrets were kept.
+        --password; so is one whose client left before the server's verdict
+        (a password perhaps never finished).  An accepted one sends --password,
+        or the one it recorded if secrets were kept.
         """
         recorded = p.recorded.password
         kept = recorded.obs.item.raw if recorded is not None and self.recording.secrets_kept else None
-        if p.recorded.refused:
+        if p.recorded.refused or len(p.recorded.handshake) < 2:
             if kept is not None:
                 return kept
             wrong = MASK_BYTE * (len(recorded.obs.item.raw) if recorded is not None else 1)
@@ -726,8 +727,10 @@ class Replay:
         if not isinstance(c.handshake[0].message, SendCheckPassword):
             return True
         c.waited_for_server(0)
-        due = await self._pacer.turn(c.plan.password_t_ns, recorded, write=True, lag_ns=c.lag_ns)
         password = c.plan.recorded.password
+        if password is None:
+            return True  # the client never answered (a probe, a health check): neither does the replay
+        due = await self._pacer.turn(c.plan.password_t_ns, recorded, write=True, lag_ns=c.lag_ns)
         items = (password,) if password is not None else ()
         await c.write((self.password_for(c.plan) or b"") + c.plan.password_tail, items, c.plan.password_t_ns, due)
         await c.wait(lambda: len(c.handshake) >= 2, timeout)

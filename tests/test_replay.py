@@ -402,3 +402,31 @@ async def test_ctrl_c_stops_the_replay_with_what_was_found_so_far(recorded):
         out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert proc.returncode == 2 and err == b"whiztap: interrupted\n"
     assert re.search(rb"^replayed 1 connection\(s\), \d+ writes; answers: ", out, re.M)
+
+
+@pytest.mark.parametrize("sent", [b"", b"repl"])
+async def test_a_client_that_never_finished_its_password_is_replayed_without_one(tmp_path, sent):
+    """A port probe or health check (reads sendchkpass, leaves), or a client
+    that left mid-password: the replay sends what it sent and nothing more, and
+    finds no difference.  (A half-sent password needs the recording's kept
+    secret to be replayed the same: redacted, it is sent as '*'s.)"""
+    async def probe(port: int) -> list:
+        reader, writer = await asyncio.open_connection(LOCAL, port)
+        assert await reader.readexactly(11) == b"sendchkpass"
+        writer.write(sent)
+        await writer.drain()
+        writer.close()
+        return []
+
+    path = tmp_path / "probe.mcap"
+    async with simulator(seed=1) as sim, recording(sim.port, path, keep_secrets=bool(sent)) as rec:
+        await probe(rec.proxy.port)
+        await until_closed(sim)
+        await rec.stop()
+    recorded = load_exchanges(str(path))
+    events: list = []
+    async with simulator(seed=1) as sim:
+        result = await replay(recorded, options(sim.port), events)
+    assert result.ok, [d.diff for d in result.differences]
+    written = [e for e in events if isinstance(e, RequestSent)]
+    assert [len(e.data) for e in written] == ([len(sent)] if sent else [])  # never the whole password

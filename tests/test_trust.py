@@ -50,6 +50,13 @@ async def test_a_login_abandoned_mid_password_is_judged_not_a_crash(tmp_path):
     [conn] = report["connections"]
     assert conn["mode"] == "winsock"
     assert b"prog" not in json.dumps(items).encode()
+    # the file is in stream order: the held (masked) password read comes before its side's half-close
+    from analyzer.recording import STREAM_TOPICS, Read, RecordingScan
+
+    with open(path, "rb") as f:
+        order = [("read", r.dir) if type(r) is Read else (r["event"], r.get("dir"))
+                 for r in RecordingScan(f, STREAM_TOPICS).stream()]
+    assert order.index(("read", "c2s")) < order.index(("half_closed", "c2s"))
 
 
 # -- CI gates ---------------------------------------------------------------------------------
