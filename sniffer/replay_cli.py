@@ -242,16 +242,24 @@ class _Printer:
 @click.option("--when-exhausted", "exhausted", type=click.Choice(["repeat", "fail"]), default="repeat",
               show_default=True, help="When a kind's recorded answers are used up: repeat the last, or answer "
                                       "nothing (and count the request as unanswered).")
+@click.option("--unmatched", default="close", show_default=True, metavar="close|ignore|FRAME",
+              help="A request with no recorded answer: close the client's connection, ignore it (send nothing), "
+                   "or send FRAME (escaped text, e.g. 'cr1-0--0--0-ss1').")
 @click.option("--strict", is_flag=True, help="Exit with status 1 if any request had no recorded answer.")
 @click.option("--once", is_flag=True, help="Exit after the first client disconnects.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the listening line and problems.")
 def stub_command(path: str, listen: str, password: str | None, conn: int | None, pace: str, rate: float,
-                 exhausted: str, strict: bool, once: bool, quiet: bool) -> None:
+                 exhausted: str, unmatched: str, strict: bool, once: bool, quiet: bool) -> None:
     """Serve a recording's server side to a client under test.
 
+    Each client is answered from one recorded connection: by default the k-th
+    client from the k-th recorded connection that completed its handshake (VPN,
+    or a Winsock login the server let in; later clients from the last such);
+    --conn N answers every client from connection N, a refused login included.
     Each request gets the recorded answer to the same kind of request on the
-    same channel, in recorded order.  Runs until Ctrl-C or SIGTERM (or, with
-    --once, until the first client leaves).
+    same channel, in recorded order; one it cannot answer is met as --unmatched
+    says.  Runs until Ctrl-C or SIGTERM (or, with --once, until the first client
+    leaves).
     """
     from sniffer.stub import Stub
 
@@ -262,9 +270,14 @@ def stub_command(path: str, listen: str, password: str | None, conn: int | None,
         if not quiet or line.startswith("!"):
             click.echo(line)
 
+    reaction: str | bytes = unmatched
+    if unmatched not in ("close", "ignore"):
+        from analyzer.text import unescape
+
+        reaction = unescape(unmatched)
     try:
         stub = Stub(recording, *address, password=_password(password), pace=pace, rate=rate,
-                    exhausted=exhausted, conn=conn, on_log=log)
+                    exhausted=exhausted, conn=conn, unmatched=reaction, on_log=log)
     except ValueError as e:
         fail(str(e))
     error = _run(lambda: _serve(stub, once))

@@ -1,13 +1,18 @@
 """Serve a recording's server side: a stand-in server for a client under test.
 
-Each client connection is answered from one recorded connection (the k-th
-client from the k-th recorded connection, later ones from the last, or all
-from ``conn``): the same handshake, then for each request the recorded answer
-to a request of the same kind and channel, in recorded order, byte for byte.
-When a kind's answers are used up the last one is repeated, or (``exhausted=
-"fail"``) none is sent.  A request the recording has no answer for is logged
-and kept in ``unanswered``; a request whose recorded answer never came gets
-none now either.
+Each client connection is answered from one recorded connection: by default
+the k-th client from the k-th recorded connection that completed its handshake
+(a VPN one, or a Winsock one the server let in; later clients from the last
+such), or every client from ``conn``: the same handshake, then for each
+request the recorded answer to a request of the same kind and channel, in
+recorded order, byte for byte.  When a kind's answers are used up the last one
+is repeated, or (``exhausted="fail"``) none is sent.
+
+A request the stub cannot answer (the recording has no answer for it, or its
+recorded answer never came) is logged, kept in ``unanswered`` and met at once
+as ``unmatched`` says: ``close`` the connection (the default), ``ignore`` it
+(send nothing, as the recording did), or send a given frame: never a silent
+wait until the client's own timeout.
 
 The client's bytes go through the analyzer's session model, so requests are
 recognised however the client cuts its writes, and the channel map the stub
@@ -39,6 +44,11 @@ _PASSWORD_END = (b"\r", b"\n", b"rr1-", b"sr1-")
 _FAILED = FailedValidation().title.encode()
 
 
+class Unmatched(StrEnum):
+    CLOSE = "close"  # close the client's connection at once
+    IGNORE = "ignore"  # send nothing and go on
+
+
 class Exhausted(StrEnum):
     REPEAT = "repeat"  # answer with the last recorded answer again
     FAIL = "fail"  # answer nothing, and log the request as unanswered
@@ -51,9 +61,10 @@ class Unanswered:
     conn: int
     request: bytes
     text: str
+    why: str = "no recorded answer"
 
     def line(self) -> str:
-        return f"#{self.conn}: no recorded answer for {escape(self.request)} ({self.text})"
+        return f"#{self.conn}: {self.why} for {escape(self.request)} ({self.text})"
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,6 +80,7 @@ class _Script:
         self.conn = rec.conn
         self.winsock = rec.mode is Mode.WINSOCK
         shake = rec.handshake
+        self.let_in = rec.mode is Mode.VPN or (len(shake) > 1 and isinstance(shake[1].message, ReadyToGo))
         password = rec.password
         self.greeting = shake[0].item.raw if shake else b""
         self.greeting_delay = max(0, shake[0].item.t_end_ns - rec.opened_ns) if shake else 0
@@ -94,7 +106,9 @@ class Stub(TcpServer):
     def __init__(self, recording: RecordedSessions, host: str = "127.0.0.1", port: int = 0, *,
                  password: bytes | None = None, pace: Pace | str = Pace.MAX, rate: float = 1.0,
                  exhausted: Exhausted | str = Exhausted.REPEAT, conn: int | None = None,
+                 unmatched: Unmatched | str | bytes = Unmatched.CLOSE,
                  on_log: Callable[[str], None] | None = None) -> None:
+        """``unmatched``: ``"close"``, ``"ignore"``, or the bytes of a frame to send."""
         self.pace = Pace(pace)
         if self.pace is Pace.LOCKSTEP:
             raise ValueError("a stub answers at the recorded delay (recorded) or at once (max)")
@@ -105,8 +119,11 @@ class Stub(TcpServer):
             scripts = [s for s in scripts if s.conn == conn]
             if not scripts:
                 raise ValueError(f"the recording has no connection {conn}")
+        elif any(s.let_in for s in scripts):
+            scripts = [s for s in scripts if s.let_in]  # a failed login is served only on request (conn)
         if not scripts:
             raise ValueError("the recording has no connection to serve")
+        self.unmatched = unmatched if isinstance(unmatched, bytes) else Unmatched(unmatched)
         self.recording = recording
         super().__init__(host, port)
         self.password = password
@@ -160,10 +177,11 @@ class _Served:
             pending = await self._password(reader)
             if pending is None:
                 return
-        if pending:
-            self._receive(pending)
+        if pending and not self._receive(pending):
+            return
         while data := await reader.read(READ_SIZE):
-            self._receive(data)
+            if not self._receive(data):
+                return  # an unmatched request closes the connection
         self.session.end(Direction.C2S, time.perf_counter_ns())
 
     async def _password(self, reader: asyncio.StreamReader) -> bytes | None:
@@ -194,15 +212,18 @@ class _Served:
     def _feed(self, data: bytes) -> list:
         return self.session.receive(Direction.C2S, data, time.perf_counter_ns())
 
-    def _receive(self, data: bytes) -> None:
+    def _receive(self, data: bytes) -> bool:
+        """Answer the requests in ``data``; False once the connection is to close."""
         for obs in self._feed(data):
             if isinstance(obs, Observation) and obs.direction is Direction.C2S and obs.item.kind is ItemKind.COMMAND:
-                self._answer(obs)
+                if not self._answer(obs):
+                    return False
+        return True
 
-    def _answer(self, request: Observation) -> None:
+    def _answer(self, request: Observation) -> bool:
         key = answer_key(request)
         if key is None:
-            return
+            return True
         recorded = self.script.answers.get(key[0], [])
         i = self.cursors[key[0]]
         if i < len(recorded):
@@ -210,15 +231,27 @@ class _Served:
             answer = recorded[i]
         elif recorded and self.stub.exhausted is Exhausted.REPEAT:
             answer = recorded[-1]
+        elif key[1] or recorded:  # a frame that only may ask is new only if it never did
+            return self._unmatched(request, "no recorded answer")
         else:
-            if key[1] or recorded:  # a frame that only may ask is new only if it never did
-                miss = Unanswered(self.number, request.item.raw, meaning(request))
-                self.stub.unanswered.append(miss)
-                self.stub.on_log("! " + miss.line())
-            return
-        if answer is not None:
-            self.stub.answers += 1
-            self.send(answer.raw, answer.delay_ns)
+            return True
+        if answer is None:
+            return self._unmatched(request, "no answer in the recording either")
+        self.stub.answers += 1
+        self.send(answer.raw, answer.delay_ns)
+        return True
+
+    def _unmatched(self, request: Observation, why: str) -> bool:
+        """Log and count a request the stub cannot answer, and meet it at once."""
+        miss = Unanswered(self.number, request.item.raw, meaning(request), why)
+        self.stub.unanswered.append(miss)
+        reaction = self.stub.unmatched
+        if isinstance(reaction, bytes):
+            self.stub.on_log(f"! {miss.line()}: sent {escape(reaction)}")
+            self.send(reaction, 0)
+            return True
+        self.stub.on_log(f"! {miss.line()}" + ("; connection closed" if reaction is Unmatched.CLOSE else ""))
+        return reaction is not Unmatched.CLOSE
 
     def send(self, data: bytes, delay_ns: int) -> None:
         """Queue bytes to leave after the recorded delay (recorded pace) or at once."""

@@ -10,7 +10,7 @@ import pytest
 
 from analyzer.exchanges import load_exchanges
 from analyzer.session import Direction
-from sniffer.client import Client, HandshakeError, ResponseTimeout
+from sniffer.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
 from sniffer.dialogue import Dialogue
 from sniffer.stub import Stub
 from tests.record_support import LOCAL, WAIT, both_ways, recording
@@ -115,13 +115,14 @@ async def test_strict_fails_when_a_request_has_no_recorded_answer(recorded):
         WHIZTAP, "stub", str(path), "--listen", "127.0.0.1:0", "--once", "--strict",
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     port = int(re.search(rb":(\d+) \(", await asyncio.wait_for(proc.stdout.readline(), WAIT)).group(1))
-    async with await Client.connect(LOCAL, port, password="any password", timeout=0.3) as client:
+    async with await Client.connect(LOCAL, port, password="any password", timeout=WAIT) as client:
         assert await client.sensor(12) > 0
-        with pytest.raises(ResponseTimeout):
+        with pytest.raises(ConnectionClosed):  # at once, not after the client's own timeout
             await client.servo_position(5)  # never asked in the recording
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert proc.returncode == 1 and err == b""
-    assert b"! #1: no recorded answer for rr1-5--0--2-ss1 (Servo Position Request ch 5)" in out
+    assert (b"! #1: no recorded answer for rr1-5--0--2-ss1 (Servo Position Request ch 5); connection closed"
+            in out)
     assert b"1 request(s) without a recorded answer" in out
 
 
@@ -133,7 +134,7 @@ async def test_used_up_answers_repeat_the_last_or_fail(recorded):
         async with await Client.connect(LOCAL, stub.port, password="x") as client:
             assert [await client.sensor(13) for _ in range(3)] == [recorded_13] * 3
     assert stub.unanswered == []
-    async with Stub(exchanges, exhausted="fail") as stub:
+    async with Stub(exchanges, exhausted="fail", unmatched="ignore") as stub:
         async with await Client.connect(LOCAL, stub.port, password="x", timeout=0.3) as client:
             await client.fetch_configuration()  # the channel map makes the request unambiguous
             assert await client.sensor(13) == recorded_13
@@ -190,3 +191,34 @@ async def test_sigterm_stops_the_stub_with_a_summary(recorded):
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert (proc.returncode, err) == (0, b"")
     assert out == b"served 1 connection(s), 1 answers; 0 request(s) without a recorded answer\n"
+
+
+async def test_an_unmatched_request_can_get_a_chosen_answer(recorded):
+    path, _ = recorded
+    async with Stub(load_exchanges(str(path)), unmatched=b"cr1-5--0--0-ss1") as stub:
+        async with await Client.connect(LOCAL, stub.port, password="x", timeout=WAIT) as client:
+            await client.fetch_configuration()
+            assert await client.servo_position(5) == 0
+    assert [u.text for u in stub.unanswered] == ["Servo Position Request ch 5"]
+
+
+async def test_the_default_connection_is_one_that_got_in(tmp_path):
+    """A recording whose first connection failed its login: the first client is
+    served the connection that was let in, not refused."""
+    async def refused_then_accepted(port: int) -> None:
+        with pytest.raises(HandshakeError):
+            await Client.connect(LOCAL, port, password="not-" + PASSWORD)
+        async with await Client.connect(LOCAL, port, password=PASSWORD) as client:
+            await client.sensor(12)
+
+    path = tmp_path / "refused-first.mcap"
+    async with simulator(seed=1) as sim, recording(sim.port, path) as rec:
+        await refused_then_accepted(rec.proxy.port)
+        await until_closed(sim)
+        await rec.stop()
+    async with Stub(load_exchanges(str(path))) as stub:
+        async with await Client.connect(LOCAL, stub.port, password="any", timeout=WAIT) as client:
+            assert await client.sensor(12) >= 0
+    async with Stub(load_exchanges(str(path)), conn=1) as stub:  # asked for by number: served as recorded
+        with pytest.raises(HandshakeError):
+            await Client.connect(LOCAL, stub.port, password="any", timeout=WAIT)
