@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from analyzer.codec import decode, encode
 from analyzer.framing import Framer, Item, ItemKind
+from analyzer.text import escape
 from analyzer.messages import (
     ActivateSwitch,
     ChannelResponse,
@@ -56,6 +57,11 @@ class ResponseTimeout(ClientError, TimeoutError):
     """No answer came within the timeout."""
 
 
+class BreaksTheSpec(ClientError):
+    """A command that would put a frame on the wire that breaks a rule of the
+    spec (``validate`` on); the message names the rule."""
+
+
 class ConnectionClosed(ClientError, ConnectionError):
     """The server closed the connection."""
 
@@ -76,6 +82,7 @@ class Client:
         self.writer = writer
         self.timeout = timeout
         self.handshaking = handshake  # True until readytogo: handshake text is then expected
+        self.validate = False  # refuse commands whose frame breaks a rule (whiztap client sets it)
         self.stray: list[Item] = []  # items that answered nothing (garbage, unsolicited replies)
         self._framer = Framer()
         self._waiters: deque[_Waiter] = deque()
@@ -225,8 +232,21 @@ class Client:
         if self._closed is not None:
             raise self._closed
 
+    def _frame(self, message: Message) -> bytes:
+        """The message's bytes; with ``validate`` on, refused if they break a rule
+        on their own (a channel or value out of range), before anything is sent."""
+        data = encode(message)
+        if self.validate:
+            decoded = decode(ItemKind.SET_CONFIG if data.startswith(b"sr1-") else ItemKind.COMMAND, data)
+            broken = [v for v in decoded.violations if v.severity >= 3]
+            if broken:
+                rules = ", ".join(dict.fromkeys(v.rule_id for v in broken))
+                raise BreaksTheSpec(f"{message.title} {escape(data)} breaks {rules}: {broken[-1].detail} "
+                                    f"(not sent; --raw sends it anyway)")
+        return data
+
     async def _send(self, message: Message) -> None:
-        await self.send_raw(encode(message))
+        await self.send_raw(self._frame(message))
 
     async def _channel_request(self, message: Message, channel: int, timeout: float | None) -> ChannelResponse:
         item = await self._request(message, ItemKind.RESPONSE, channel, timeout)
@@ -238,10 +258,11 @@ class Client:
     async def _request(self, message: Message, kind: ItemKind, channel: int | None,
                        timeout: float | None) -> Item:
         self._check_open()
+        data = self._frame(message)
         waiter = _Waiter(kind, channel, asyncio.get_running_loop().create_future())
         self._waiters.append(waiter)
         try:
-            await self._send(message)
+            await self.send_raw(data)
             return await asyncio.wait_for(waiter.future, self.timeout if timeout is None else timeout)
         except TimeoutError:
             raise ResponseTimeout(f"no answer to {message.title} within "

@@ -7,6 +7,7 @@ simulator, which brings in Pillow for the camera, is imported when it runs.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
@@ -95,7 +96,9 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
     import asyncio
 
     stopped = asyncio.Event()
-    asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stopped.set)
+    # Ctrl-C and SIGTERM are how a server is meant to end: exit 0, as record and stub do
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        asyncio.get_running_loop().add_signal_handler(sig, stopped.set)
     try:
         where = ", ".join(show_address(host, port) for host, port in sim.addresses)
         click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
@@ -108,10 +111,13 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
 @click.command("client", context_settings={"ignore_unknown_options": True})
 @click.argument("address", metavar="HOST:PORT")
 @click.argument("words", nargs=-1, type=click.UNPROCESSED, metavar="[COMMAND]...")
-@click.option("--password", "-p", default=None, help="Do the winsock handshake with this password.")
+@click.option("--password", "-p", default=None,
+              help="Do the winsock handshake with this password (or set WHIZTAP_PASSWORD, which ps does not show).")
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True,
               help="Seconds to wait for a connection, the handshake and each answer.")
-def client_command(address: str, words: tuple[str, ...], password: str | None, timeout: float) -> None:
+@click.option("--raw", is_flag=True,
+              help="Send commands even when their frame breaks the spec (a channel or value out of range).")
+def client_command(address: str, words: tuple[str, ...], password: str | None, timeout: float, raw: bool) -> None:
     """Send commands to a Progwhiz server (or a proxy in front of one).
 
     One COMMAND on the command line (e.g. 'sensor 12', 'servo 3 1500',
@@ -119,14 +125,22 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
     frame such as 'rr1-12--0--0-ss1'), quoted or not: it is read as the same
     line typed at the prompt.  Without one, a command per line from standard
     input ('help' lists them).
+
+    A command whose frame would break the spec (sensor 99, servo 3 99999) is
+    refused before anything is sent, naming the rule; --raw sends it anyway,
+    and a frame typed as escaped text (raw TEXT, rr1-...) is always sent as is.
+    The password may also come from WHIZTAP_PASSWORD (not shown by ps).
     """
     from sniffer.record_cli import parse_address
 
     host, port = parse_address(address, None, "the server address")
-    sys.exit(_run(_run_client(host, port, password, timeout, list(words))))
+    if password is None:
+        password = os.environ.get("WHIZTAP_PASSWORD") or None
+    sys.exit(_run(_run_client(host, port, password, timeout, list(words), not raw)))
 
 
-async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str]) -> int:
+async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str],
+                      validate: bool) -> int:
     from sniffer.client import Client, ClientError
     from sniffer.console import CommandError, run, split_line
 
@@ -137,6 +151,7 @@ async def _run_client(host: str, port: int, password: str | None, timeout: float
         fail(f"{show_address(host, port)}: {e}")
     except OSError as e:
         fail(f"cannot connect to {show_address(host, port)}: {reason(e)}")
+    client.validate = validate
     async with client:
         if words:
             try:

@@ -3,6 +3,7 @@ client's command language in-process."""
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import socket
@@ -97,12 +98,13 @@ def test_sim_options_shape_the_server():
     one_line_error(camera, "no answer to Fetch Camera Image")
 
 
-def test_sigint_gives_one_line_and_status_2():
+def test_ctrl_c_stops_the_server_as_its_normal_end_like_record_and_stub():
+    """One convention (README): Ctrl-C or SIGTERM ends a server or recorder, exit 0."""
     proc, port = start_sim("-q")
     with socket.create_connection(("127.0.0.1", port)) as open_client:
         assert open_client.makefile("rb").read(11) == b"sendchkpass"
         status, err = stop(proc, signal.SIGINT)
-    assert (status, err) == (2, "whiztap: interrupted\n")
+    assert (status, err) == (0, "")
 
 
 def test_sigterm_stops_cleanly():
@@ -235,3 +237,31 @@ def test_split_keeps_raw_frames_as_typed():
     assert split_line("raw  rr1-1 --0--0-ss1\\x0c ") == ["raw", "rr1-1 --0--0-ss1\\x0c"]
     assert split_line("rr1-1--0--0-ss1\n") == ["rr1-1--0--0-ss1"]
     assert split_line("  switch 7   on ") == ["switch", "7", "on"]
+
+
+def test_client_refuses_a_command_that_breaks_the_spec_unless_raw():
+    """Nothing leaves for 'servo 3 99999' or 'sensor 99': the rule is named at
+    once (not a timeout); --raw sends it on purpose."""
+    proc, port = start_sim("-q", "--mode", "vpn")
+    try:
+        bad_value = whiztap("client", f"127.0.0.1:{port}", "servo 3 9999", "--timeout", "30")
+        too_wide = whiztap("client", f"127.0.0.1:{port}", "servo 3 99999", "--timeout", "30")
+        bad_channel = whiztap("client", f"127.0.0.1:{port}", "sensor 99", "--timeout", "30")
+        sent = whiztap("client", f"127.0.0.1:{port}", "servo 3 99999", "--raw", "--timeout", "30")
+    finally:
+        stop(proc)
+    one_line_error(bad_value, "breaks PW-RANGE-SEND-VALUE")
+    one_line_error(bad_channel, "breaks PW-RANGE-CHANNEL")
+    one_line_error(too_wide, "breaks PW-SYNTAX-WIDTH, PW-RANGE-SEND-VALUE")
+    assert "--raw" in bad_value.stderr
+    assert sent.returncode == 0 and sent.stdout == "Normal Send: channel 3 -> 99999\n"
+
+
+def test_client_takes_the_password_from_the_environment():
+    proc, port = start_sim("-q", "--password", "from-env")
+    try:
+        env_ok = subprocess.run([WHIZTAP, "client", f"127.0.0.1:{port}", "sensor 12"], capture_output=True,
+                                text=True, timeout=30, env={**os.environ, "WHIZTAP_PASSWORD": "from-env"})
+    finally:
+        stop(proc)
+    assert env_ok.returncode == 0 and env_ok.stdout.startswith("sensor 12 = "), env_ok.stderr
