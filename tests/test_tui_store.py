@@ -181,3 +181,21 @@ def test_a_late_violation_lets_a_judged_frame_into_a_violations_view():
     store.add(1, session.close(2_000))  # never answered
     view.judge()
     assert list(view.rows) == [0]
+
+
+def test_the_detail_of_a_camera_image_shows_its_size_not_sensor_ranges():
+    from rich.console import Console
+
+    from analyzer.session import Session
+    from tests.streams import TINY_JPEG
+    from tui.detail import describe_frame
+
+    session = Session()
+    store = FrameStore()
+    store.add(1, session.receive(Direction.C2S, b"rr1-24--0--0-ss1rr1-29--0--0-ss1", 1))
+    store.add(1, session.receive(Direction.S2C, b"sr1-\x01200-ss1" + TINY_JPEG, 2))
+    console = Console(width=200, record=True, file=open("/dev/null", "w"))  # noqa: SIM115
+    console.print(describe_frame(store, store.count - 1))
+    text = console.export_text()
+    assert "Camera Image" in text and f"{len(TINY_JPEG)} bytes" in text
+    assert "sensor" not in text.lower() and "servo" not in text.lower()

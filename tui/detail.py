@@ -28,6 +28,7 @@ from analyzer.codec import (
     MAX_SERVO_DATA,
 )
 from analyzer.describe import response_meaning
+from analyzer.messages import CameraImage
 from analyzer.rules import RULES
 from analyzer.text import escape
 from tui.store import NS, FrameStore
@@ -93,6 +94,8 @@ def _field_rows(values: dict[str, Any], answered_as: str | None) -> list[tuple[s
                 unit = UNITS.get(e["unit_type"], f"? {e['unit_type']}")
                 rows.append((f"  entry {i}", f"dev {e['device']} port {e['port']} {unit}",
                              f"dev 0-{MAX_DEVICE}, port 0-{MAX_CHANNEL}, unit 0-2"))
+        elif name == "data" and title == CameraImage.title:  # its size; the spec sets no limit
+            rows.append(("size", f"{value:,} bytes", "any (whiztap takes up to --max-image)"))
         elif name == "data":
             rows.append((name, str(value), _data_range(answered_as) if isinstance(value, int) else "bytes"))
         elif name == "script":
