@@ -57,6 +57,11 @@ def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[
     try:
         yield from scan_set(recording, opener)
     except PartError as e:
+        from analyzer.recording_set import being_written
+
+        if being_written(e.path):
+            fail(f"{e.path} is being written by a running recorder: 'whiztap cat --follow {e.path}' shows it "
+                 "as it grows; analyze it once the recorder has finished")
         if e.truncated or e.path.name.endswith(".part"):
             fail(f"{e}; it looks like a recording that was cut short. "
                  f"Run 'whiztap recover {e.path}' to turn it into a complete file")
@@ -515,5 +520,5 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     click.echo("messages per topic")
     for topic, n in info["topics"].items():
         click.echo(f"  {topic:14} {n:,}")
-    if not info["complete"]:
+    if not info["complete"] and not info["state"].startswith("being written"):
         click.echo(f"Run 'whiztap recover {path_}' to make a complete, indexed copy.")

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from analyzer.recording import METADATA_NAME, TOPIC_EVENTS, TOPICS, RecordingError, RecordingScan
+from analyzer.recording_set import being_written
 
 
 def _iso(t_ns: int | None) -> str:
@@ -49,8 +50,14 @@ def recording_info(path: Path) -> dict[str, Any]:
         except RecordingError as e:
             raise ValueError(str(e)) from None
     complete = not scan.truncated and _indexed(path)
-    state = "complete" if complete else ("truncated: a crash leftover" if scan.truncated
-                                         else "not indexed (no summary section)")
+    if complete:
+        state = "complete"
+    elif being_written(path):
+        state = "being written by a running recorder ('whiztap cat --follow' shows it as it grows)"
+    elif scan.truncated:
+        state = "truncated: a crash leftover"
+    else:
+        state = "not indexed (no summary section)"
     metadata = scan.metadata.get(METADATA_NAME, {})
     return {
         "path": str(path),

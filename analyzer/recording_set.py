@@ -11,6 +11,7 @@ recordings in one folder stay two.
 
 from __future__ import annotations
 
+import fcntl
 import glob
 import os
 import re
@@ -82,6 +83,24 @@ class RecordingSet:
         listed = ", ".join(str(n) for n in self.missing)
         return (f"{self.parts[0]}: part(s) {listed} of this split recording are missing; connections "
                 f"that crossed them are judged as if the missing bytes were a capture gap")
+
+
+def being_written(path: Path | str) -> bool:
+    """Whether a recorder is writing this file now (it holds a lock on it while
+    it writes; a file left by a crash holds none)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return False
 
 
 def _part_key(path: Path) -> tuple[str, int] | None:

@@ -15,6 +15,8 @@ record, which needs only a few dozen bytes: what was written stays a valid
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import time
 from collections.abc import Callable
@@ -126,6 +128,8 @@ class RecordingFile:
             fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         except OSError as e:
             raise RecordingWriteError(f"cannot write {target}: {e.strerror}") from None
+        with contextlib.suppress(OSError):  # tells readers the file is being written (being_written)
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._stream = _FileStream(fd)
         self._good = 0
         writer = McapWriter(self._stream, chunk_size=self.chunk_size, compression=self.compression)

@@ -150,3 +150,22 @@ async def test_cat_follow_tails_a_recording_being_written(tmp_path):
         rest, err = await asyncio.wait_for(follower.communicate(), 20)
     assert follower.returncode == 0, err
     assert b"config" in rest
+
+
+async def test_info_and_cat_say_a_recording_is_being_written_not_a_crash_leftover(tmp_path):
+    from sniffer.simulator import Simulator
+    from tests.record_support import RecordProcess, play_client
+
+    out = tmp_path / "live.mcap"
+    async with Simulator(mode="vpn", seed=1) as sim:
+        rec = await RecordProcess.start(sim.port, out)
+        await play_client(rec.port, [("send", b"rr1-24--0--0-ss1"), ("recv", 4 + 1 + 3 * 24 + 4)])
+        try:
+            info = run("info", f"{out}.part")
+            cat = run("cat", f"{out}.part")
+        finally:
+            await rec.finish()
+    assert "being written by a running recorder" in info.stdout and "crash" not in info.stdout
+    assert "recover" not in info.stdout
+    assert cat.returncode == 2 and "is being written by a running recorder" in cat.stderr
+    assert "cut short" not in cat.stderr
