@@ -198,10 +198,14 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
         source = "-"  # piped in: read it, as filters do
     if source is not None:
         try:
-            with click.open_file(source, encoding="utf-8") as f:
-                lines += [line.rstrip("\n") for line in f]
+            with click.open_file(source, "rb") as f:
+                text = f.read().decode("utf-8")
         except OSError as e:
             fail(f"cannot read {source}: {e.strerror}")
+        except UnicodeDecodeError:
+            fail(f"{source} is not text: decode takes frames as escaped text, one per line "
+                 f"(\\x0c for a raw byte); for a recording use 'whiztap cat'")
+        lines += text.splitlines()
     if not lines:
         fail("nothing to decode: give a file, '-' for standard input, or --frame TEXT")
     try:

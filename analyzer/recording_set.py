@@ -212,6 +212,11 @@ def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Read |
                 raise PartError(path, f"the file is damaged ({str(e) or type(e).__name__})") from None
             if scan.truncated:
                 raise PartError(path, "the file is truncated (no footer)")
+            topics = sorted(set(scan.channels.values()))
+            if METADATA_NAME not in scan.metadata and not set(topics) & set(STREAM_TOPICS):
+                found = ", ".join(topics[:5]) + (", ..." if len(topics) > 5 else "") if topics else "none"
+                raise PartError(path, f"not a whiztap recording: an MCAP file without /tcp/reads "
+                                      f"(its topics: {found})")
 
 
 def _part_records(scan: RecordingScan, seen: set[int], hole: bool) -> Iterator[Read | dict]:

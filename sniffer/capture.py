@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import select
 import signal
+import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -148,6 +149,9 @@ def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
         raise CaptureError(f"cannot capture on {iface}: {e.strerror or e}") from None
     except Scapy_Exception as e:
         raise CaptureError(f"cannot capture on {iface}: {e}") from None
+    except ValueError as e:  # scapy's "Interface 'x' not found !"
+        names = ", ".join(sorted(socket.if_nameindex() and (n for _, n in socket.if_nameindex())))
+        raise CaptureError(f"cannot capture on {iface}: no such interface (this machine has: {names})") from None
 
 
 def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = None,

@@ -44,6 +44,8 @@ def default_output(path: str) -> str:
 
 def recover(path: str, output: str | None = None, *, force: bool = False) -> RecoverResult:
     """Copy every readable record of ``path`` into a new, indexed MCAP file."""
+    if not os.path.isfile(path):
+        raise RecoverError(f"{path}: no such file" if not os.path.exists(path) else f"{path}: not a file")
     output = output or default_output(path)
     if os.path.abspath(output) == os.path.abspath(path):
         raise RecoverError(f"{output}: the output must differ from the input")

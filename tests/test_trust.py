@@ -86,8 +86,9 @@ async def test_a_report_on_nothing_does_not_pass(tmp_path):
         from tests.record_support import play_client
 
         await play_client(rec.proxy.port, [("send", b"rr1-24--0--0-ss1"), ("sleep", 0.5)])
-    for path, why in ((tmp_path / "empty.mcap", "no connection"), (unreached, "never reached"),
-                      (foreign_mcap(tmp_path / "other.mcap"), "no connection")):
+    foreign = run("analyze", foreign_mcap(tmp_path / "other.mcap"))  # says what it found, fails the gate
+    assert foreign.returncode == 2 and "not a whiztap recording" in foreign.stderr and "/foo" in foreign.stderr
+    for path, why in ((tmp_path / "empty.mcap", "no connection"), (unreached, "never reached")):
         for fmt in ("text", "json", "junit", "markdown"):
             result = run("analyze", path, "--format", fmt)
             assert result.returncode == 3, (path, fmt, result.stdout, result.stderr)
