@@ -178,7 +178,9 @@ def rules_command(fmt: str) -> None:
 @click.option("--dir", "direction", type=click.Choice(["c2s", "s2c", "auto"]), default="auto", show_default=True,
               help="Which side sent each line; auto takes rr1 frames and passwords as the client's.")
 @click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules').")
-def decode_command(source: str | None, frames: tuple[str, ...], direction: str, checksum_rule: str | None) -> None:
+@limits_options
+def decode_command(source: str | None, frames: tuple[str, ...], direction: str, checksum_rule: str | None,
+                   answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Decode and check frames given as escaped text, one per line.
 
     SOURCE is a file of lines (or - for standard input, which is also read
@@ -190,7 +192,7 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
     from analyzer.checksum import DEFAULT_CHECKSUM_RULE
     from analyzer.describe import meaning
     from analyzer.rules import Severity
-    from analyzer.session import Direction, Session
+    from analyzer.session import Direction
     from analyzer.text import escape, unescape
 
     lines = list(frames)
@@ -208,8 +210,9 @@ def decode_command(source: str | None, frames: tuple[str, ...], direction: str, 
         lines += text.splitlines()
     if not lines:
         fail("nothing to decode: give a file, '-' for standard input, or --frame TEXT")
+    limits = limits_from(answer_timeout, max_frame, max_image)
     try:
-        session = Session(checksum_rule or DEFAULT_CHECKSUM_RULE)
+        session = limits.session(checksum_rule or DEFAULT_CHECKSUM_RULE)
     except ValueError as e:
         fail(str(e))
     worst = 0

@@ -23,6 +23,7 @@ from textual.widgets import Footer, Header, Input, Static, TabbedContent, TabPan
 from textual.worker import get_current_worker
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE
+from analyzer.session import Limits
 from analyzer.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
 from tui.connections import ConnectionsPane
 from tui.detail import DetailPane
@@ -74,11 +75,11 @@ class WhiztapApp(App):
     ]
 
     def __init__(self, source: Source, *, checksum_rule: str = DEFAULT_CHECKSUM_RULE,
-                 quit_after: float | None = None) -> None:
+                 limits: Limits = Limits(), quit_after: float | None = None) -> None:
         super().__init__()
         self.source = source
         self.live = source.live
-        self.model = TrafficModel(getattr(source, "path", ""), checksum_rule, source.redact_passwords)
+        self.model = TrafficModel(getattr(source, "path", ""), checksum_rule, source.redact_passwords, limits)
         self.quit_after = quit_after
         self.error: str | None = None  # why the app ended early (the CLI prints it)
         self.fed = False

@@ -11,7 +11,7 @@ import sys
 
 import click
 
-from analyzer.cli import fail
+from analyzer.cli import fail, limits_from, limits_options
 
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
@@ -52,12 +52,28 @@ def _hints(path: str, password: str = "PASSWORD") -> list[str]:
 
     if not Path(path).exists():
         return [f"no recording was written to {path}"]
+    w = _command_name()
     return [f"recorded {path}",
-            f"  whiztap analyze {path}      conformance report",
-            f"  whiztap cat {path}          every frame, decoded",
-            f"  whiztap tui {path}          browse it again (r: replay it from the TUI)",
-            f"  whiztap replay {path} --target HOST:PORT --password {password}",
-            "                                replay it against a server (e.g. 'whiztap sim --port 5000')"]
+            f"  {w} analyze {path}      conformance report",
+            f"  {w} cat {path}          every frame, decoded",
+            f"  {w} tui {path}          browse it again (r: replay it from the TUI)",
+            f"  {w} replay {path} --target HOST:PORT --password {password}",
+            f"                                replay it against a server (e.g. '{w} sim --port 5000')"]
+
+
+def _command_name() -> str:
+    """How to run whiztap from here: its name if it is on PATH (an activated
+    venv, a pipx install), else the path of the one running (after 'make',
+    .venv/bin/whiztap)."""
+    import os
+    import shutil
+
+    running = os.path.realpath(sys.argv[0])
+    found = shutil.which("whiztap")
+    if found and os.path.realpath(found) == running:
+        return "whiztap"
+    relative = os.path.relpath(running)
+    return relative if not relative.startswith("..") else running
 
 
 @click.command("tui")
@@ -73,8 +89,10 @@ def _hints(path: str, password: str = "PASSWORD") -> list[str]:
 @click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
 @click.option("--force", is_flag=True, help="Live: write over a recording of the same name.")
 @click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules').")
+@limits_options
 def tui_command(path: str | None, follow: str | None, upstream: str | None, listen: str, output: str | None,
-                keep_secrets: bool, force: bool, checksum_rule: str | None) -> None:
+                keep_secrets: bool, force: bool, checksum_rule: str | None, answer_timeout: float, max_frame: int,
+                max_image: int) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
     recording being written.
 
@@ -91,6 +109,7 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
     rule = check_checksum_rule(checksum_rule)
+    limits = limits_from(answer_timeout, max_frame, max_image)
     from tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
     if path is not None:
@@ -106,12 +125,12 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
         check_output_free(output, split=False, force=force)
         settings = RecordSettings(parse_address(listen, "127.0.0.1", "--listen"),
                                   parse_address(upstream, None, "--upstream"), output,
-                                  keep_secrets=keep_secrets, checksum_rule=rule, quiet=True)
+                                  keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")
     from tui.app import WhiztapApp
 
-    app = WhiztapApp(source, checksum_rule=rule)
+    app = WhiztapApp(source, checksum_rule=rule, limits=limits)
     app.run()
     if app.error:
         fail(app.error)

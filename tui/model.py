@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from analyzer.analysis import Analyzer, Series
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE
+from analyzer.session import Limits
 from analyzer.stats import LatencyStats
 from tui.store import FrameStore
 
@@ -34,8 +35,8 @@ class ConnectionRow:
 
 class TrafficModel:
     def __init__(self, name: str = "", checksum_rule: str = DEFAULT_CHECKSUM_RULE,
-                 redact_passwords: bool = False) -> None:
-        self.analyzer = Analyzer(name, checksum_rule)
+                 redact_passwords: bool = False, limits: Limits = Limits()) -> None:
+        self.analyzer = Analyzer(name, checksum_rule, limits)
         self.store = FrameStore(redact_passwords)
         self.lock = self.store.lock
         self.finished = False  # no more traffic will come (the file ended, the proxy stopped)
