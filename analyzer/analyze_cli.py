@@ -314,14 +314,14 @@ def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, im
     try:
         found = find_one(inputs)
     except RecordingInputError as e:
-        fail(f"{e} (see --help)")
+        fail(f"{e} (see '{click.get_current_context().command_path} --help')")
     if found.warning():
         click.echo(f"whiztap: {found.warning()}", err=True)
     return found
 
 
 @click.command("cat")
-@click.argument("inputs", nargs=-1, metavar="RECORDING")
+@click.argument("inputs", nargs=-1, required=True, metavar="RECORDING")
 @click.option("--format", "fmt", type=click.Choice(["text", "jsonl"]), default="text", show_default=True)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
               help="Write to this file ('-': standard output, the default).")
@@ -485,7 +485,7 @@ class _CatPrinter:
 
 
 @click.command("info")
-@click.argument("inputs", nargs=-1, metavar="RECORDING")
+@click.argument("inputs", nargs=-1, required=True, metavar="RECORDING")
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True)
 def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     """File-level facts: format version, session metadata, time span,

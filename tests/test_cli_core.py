@@ -65,8 +65,10 @@ def test_bad_input_is_one_line_and_exit_2(args):
 @pytest.mark.parametrize("args, says", [
     (("frobnicate",), "whiztap: No such command 'frobnicate'. (see 'whiztap --help')"),
     (("rules", "--nope"), "whiztap: No such option '--nope'. (see 'whiztap rules --help')"),
-    (("cat",), "whiztap: Missing argument 'PATH'. (see 'whiztap cat --help')"),
-    (("info", "."), "whiztap: Invalid value for 'PATH': File '.' is a directory. (see 'whiztap info --help')"),
+    (("cat",), "whiztap: Missing argument 'RECORDING'. (see 'whiztap cat --help')"),
+    (("info", "samples"), "whiztap: samples: names 5 recordings (samples/clean-winsock.mcap, "
+                          "samples/failed-password.mcap, ...); give one (a split recording's parts count as one) "
+                          "(see 'whiztap info --help')"),
 ])
 def test_usage_errors_are_one_line_that_names_the_help(args, says):
     result = run(*args)
