@@ -35,7 +35,8 @@ from analyzer.recording import (
     encode_read,
     event_message,
 )
-from analyzer.recording_info import recording_info
+from analyzer.recording_info import set_info
+from analyzer.recording_set import find_one
 from analyzer.session import Direction
 from sniffer.recorder import Recorder
 from sniffer.replay_plan import Selection, dry_run_lines, plan
@@ -104,7 +105,8 @@ def traffic(draw, any_order: bool):
 
 def _record(ops, path: Path, keep_secrets: bool, split_size: int | None) -> None:
     """Through the real Recorder, as the proxy drives it."""
-    file = RecordingFile(str(path), {}, split_size=split_size)
+    metadata = {"session_id": path.stem, "split_size": str(split_size)} if split_size else {}
+    file = RecordingFile(str(path), metadata, split_size=split_size)
     recorder = Recorder(file, keep_secrets=keep_secrets)
     recorder.start(T0)
     t = T0
@@ -163,7 +165,7 @@ def _run(*args: str):
     return result
 
 
-def _read_everything(path: Path) -> None:
+def _read_everything(path: Path) -> dict:
     """Every reader over one file; their totals must agree."""
     report = _run("analyze", str(path), "--format", "json", "--severity-threshold", "info")
     facts = json.loads(report.stdout)
@@ -173,7 +175,7 @@ def _read_everything(path: Path) -> None:
     cat_violations = Counter(rule for line in lines for rule in line["violations"])
 
     model = TrafficModel(str(path))
-    source = FileSource(str(path))
+    source = FileSource(find_one([str(path)]))
     source.feed(model, threading.Event())
     assert not source.note, source.note
     store = model.store
@@ -184,11 +186,12 @@ def _read_everything(path: Path) -> None:
     for fmt in ("text", "markdown", "junit", "html"):
         _run("analyze", str(path), "--format", fmt)
 
-    sessions = load_exchanges(str(path))
+    sessions = load_exchanges(find_one([str(path)]))
     for segments in (False, True):
         plans = plan(sessions, Selection(), segments)
         dry_run_lines(plans, sessions.start_ns)
-    recording_info(path)
+    set_info(list(find_one([str(path)]).parts))
+    return facts
 
 
 settings_ = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow,
@@ -201,6 +204,19 @@ def test_recorded_traffic_reads_the_same_everywhere(tmp_path_factory, ops, keep_
     path = tmp_path_factory.mktemp("rec") / "r.mcap"
     _record(ops, path, keep_secrets, None)
     _read_everything(path)
+
+
+@settings_
+@given(ops=traffic(any_order=False), keep_secrets=st.booleans(), split_size=st.sampled_from([1, 600, 3000]))
+def test_a_recording_split_anywhere_reads_as_the_whole(tmp_path_factory, ops, keep_secrets, split_size):
+    """Parts split at any point read as one recording: the same report as unsplit."""
+    whole, parts = tmp_path_factory.mktemp("whole") / "r.mcap", tmp_path_factory.mktemp("parts") / "r.mcap"
+    _record(ops, whole, keep_secrets, None)
+    _record(ops, parts, keep_secrets, split_size)
+    one, split = _read_everything(whole), _read_everything(Path(f"{parts.parent}/r-0001.mcap"))
+    assert split["summary"]["frames"] == one["summary"]["frames"]
+    assert split["rule_counts"] == one["rule_counts"]
+    assert len(split["connections"]) == len(one["connections"])
 
 
 @settings_

@@ -170,3 +170,22 @@ async def test_info_and_cat_say_a_recording_is_being_written_not_a_crash_leftove
     assert "recover" not in info.stdout
     assert cat.returncode == 2 and "is being written by a running recorder" in cat.stderr
     assert "cut short" not in cat.stderr
+
+
+async def test_a_camera_image_of_several_megabytes_is_one_frame_end_to_end(tmp_path):
+    from tests.streams import big_jpeg
+
+    picture = big_jpeg(5_000_000)
+    config = b"sr1-\x01200-ss1"
+    path = await record_dialogue(
+        tmp_path / "camera.mcap",
+        [("recv", 16), ("send", config), ("recv", 16), ("send", picture)],
+        [("send", b"rr1-24--0--0-ss1"), ("recv", len(config)), ("send", b"rr1-29--0--0-ss1"),
+         ("recv", len(picture))])
+    report, items = judged(path)
+    assert report["rule_counts"] == {} and report["passed"], report["rule_counts"]
+    [image] = [i for i in items if i["kind"] == "image"]
+    assert image["fields"]["data"] == len(picture)
+    assert {r["request"] for r in report["latency"]} >= {"Fetch Camera Image"}
+    small = run("analyze", path, "--max-image", "1M", "--format", "json")  # the bound is the user's to set
+    assert "PW-FRAME-OVERSIZE" in json.loads(small.stdout)["rule_counts"]
