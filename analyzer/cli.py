@@ -74,6 +74,15 @@ def output_stream(output: str | None) -> Iterator[IO[str]]:
         yield f
 
 
+def recording_output(output: str | None) -> None:
+    """A recording (MCAP) is written as NAME.part and renamed when finished, so
+    a crash leaves something 'whiztap recover' can save: standard output cannot
+    be one.  Refuse '-' in one line rather than make a file named '-'."""
+    if output == "-":
+        fail("-o -: a recording is written to a file (as NAME.part until it is finished), "
+             "not to standard output; give a file name")
+
+
 def _pipe_closed() -> NoReturn:
     """Standard output's reader left: stop writing, say nothing, succeed."""
     devnull = os.open(os.devnull, os.O_WRONLY)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from analyzer.cli import ByteSize, fail, limits_from, limits_options
+from analyzer.cli import ByteSize, fail, limits_from, limits_options, recording_output
 
 def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, int]:
     """HOST:PORT, [V6]:PORT, or PORT alone when a default host is given."""
@@ -93,6 +93,7 @@ def check_output_free(output: str, split: bool, force: bool) -> None:
     left (which 'whiztap recover' could still save), unless --force."""
     from analyzer.recording_set import part_path
 
+    recording_output(output)
     if force:
         return
     first = part_path(output, 1 if split else None)
@@ -171,6 +172,7 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
     """
     from sniffer.recover import RecoverError, recover
 
+    recording_output(output)
     try:
         result = recover(path, output, force=force)
     except RecoverError as e:

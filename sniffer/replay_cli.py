@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from analyzer.cli import fail
+from analyzer.cli import fail, recording_output
 
 PACES = ["recorded", "lockstep", "max"]
 
@@ -116,6 +116,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     from sniffer.replay import Pace, ReplayError, ReplayOptions
     from sniffer.replay_plan import KINDS, Selection, dry_run_lines, plan
 
+    recording_output(output)
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         fail(f"--kind: unknown kind {unknown[0]!r}; kinds are {', '.join(KINDS)}")

@@ -123,6 +123,14 @@ def test_dash_is_standard_output_and_a_closed_pipe_is_quiet():
     assert code.returncode == 0 and code.stderr == ""
 
 
+@pytest.mark.parametrize("args", [("record", "--upstream", "127.0.0.1:1"), ("capture", "--pcap", "x", "--port", "1"),
+                                  ("recover", "x.part"), ("replay", "missing.mcap", "--target", "127.0.0.1:1")])
+def test_a_recording_cannot_go_to_standard_output_and_no_file_named_dash_appears(tmp_path, args):
+    result = subprocess.run([WHIZTAP, *args, "-o", "-"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert result.returncode == 2 and "-o -: a recording is written to a file" in result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_cat_takes_the_filter_bars_words():
     from tests.test_analyze import CLEAN
 
