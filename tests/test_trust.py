@@ -197,3 +197,57 @@ async def test_a_camera_image_of_several_megabytes_is_one_frame_end_to_end(tmp_p
     assert {r["request"] for r in report["latency"]} >= {"Fetch Camera Image"}
     small = run("analyze", path, "--max-image", "1M", "--format", "json")  # the bound is the user's to set
     assert "PW-FRAME-OVERSIZE" in json.loads(small.stdout)["rule_counts"]
+
+
+def test_the_progress_bar_moves_with_several_processes(tmp_path, monkeypatch):
+    """analyze -j 2: each file done in a worker advances the bar by its size."""
+    import shutil
+    import sys
+    from pathlib import Path
+
+    from analyzer import analyze_cli
+    from analyzer.recording_set import find_recordings
+    from analyzer.session import Limits
+    from tests.test_analyze import CLEAN, VPN
+
+    for i, sample in enumerate((CLEAN, VPN, CLEAN, VPN)):
+        shutil.copy(sample, tmp_path / f"{i}.mcap")
+    monkeypatch.setattr(analyze_cli.ByteProgress, "THRESHOLD", 0)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: the bar shows
+    found = find_recordings([str(tmp_path)])
+    total = sum(p.stat().st_size for r in found for p in r.parts)
+    with analyze_cli.ByteProgress([p for r in found for p in r.parts], enabled=True) as progress:
+        analysis, unreadable = analyze_cli._analyse_all(found, "dev-sum", Limits(), 2, progress)
+        done = progress.bar.tasks[0].completed
+    assert unreadable == [] and len(analysis.files) == 4
+    assert done == total
+
+
+def test_columns_is_honoured_on_a_terminal():
+    import os
+    import pty
+
+    from tests.test_analyze import VIOLATIONS
+
+    widths = {}
+    for columns in ("60", "200"):
+        leader, follower = pty.openpty()
+        proc = subprocess.Popen([WHIZTAP, "analyze", str(VIOLATIONS)], stdout=follower, stderr=follower,
+                                env={**os.environ, "COLUMNS": columns, "TERM": "xterm"})
+        os.close(follower)
+        out = b""
+        while True:
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            out += chunk
+        proc.wait(timeout=60)
+        os.close(leader)
+        import re
+
+        text = re.sub(rb"\x1b\[[0-9;]*m", b"", out).decode(errors="replace")
+        widths[columns] = max(len(line.rstrip("\r")) for line in text.splitlines())
+    assert widths["60"] <= 60 < widths["200"] <= 200
