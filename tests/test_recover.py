@@ -74,7 +74,7 @@ async def test_recover_refuses_clearly(tmp_path):
     code, _, err = await _run("recover", str(junk))
     assert code == 2 and err.count("\n") == 1 and err.startswith("whiztap: ") and "not an MCAP file" in err
     code, _, err = await _run("recover", str(tmp_path / "missing.part"))
-    assert code == 2 and "cannot read" in err and "No such file" in err
+    assert code == 2 and err == f"whiztap: {tmp_path / 'missing.part'}: no such file\n"
     (tmp_path / "junk.mcap").write_bytes(b"")
     code, _, err = await _run("recover", str(junk))
     assert code == 2 and "exists; use --force" in err
@@ -93,3 +93,9 @@ async def test_recover_of_a_finished_file_copies_it_whole(tmp_path):
     assert result.complete
     original, copy = read_all(str(out)), read_all(result.output)
     assert copy == original and result.messages == sum(len(m) for m in original.values())
+
+
+async def test_a_missing_input_is_said_before_an_existing_output(tmp_path):
+    (tmp_path / "gone.mcap").write_bytes(b"a recording already there")
+    code, _, err = await _run("recover", str(tmp_path / "gone.mcap.part"))
+    assert code == 2 and err == f"whiztap: {tmp_path / 'gone.mcap.part'}: no such file\n"
