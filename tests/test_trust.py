@@ -251,3 +251,21 @@ def test_columns_is_honoured_on_a_terminal():
         text = re.sub(rb"\x1b\[[0-9;]*m", b"", out).decode(errors="replace")
         widths[columns] = max(len(line.rstrip("\r")) for line in text.splitlines())
     assert widths["60"] <= 60 < widths["200"] <= 200
+
+
+def test_the_answer_deadline_is_set_from_the_command_line():
+    from tests.test_analyze import CLEAN
+
+    default = json.loads(run("analyze", CLEAN, "--format", "json").stdout)
+    impatient = json.loads(run("analyze", CLEAN, "--format", "json", "--answer-timeout", "0.000001").stdout)
+    assert "PW-PAIR-UNANSWERED" not in default["rule_counts"]
+    assert impatient["rule_counts"].get("PW-PAIR-UNANSWERED", 0) > 0
+    assert "PW-PAIR-UNSOLICITED" not in impatient["rule_counts"]  # late answers still pair
+    lines = run("cat", CLEAN, "--format", "jsonl", "--answer-timeout", "0.000001").stdout
+    assert "PW-PAIR-UNANSWERED" in lines
+
+
+def test_capture_on_an_interface_that_does_not_exist_is_one_line(tmp_path):
+    result = run("capture", "--iface", "nosuch0", "--port", "5000", "-o", tmp_path / "x.mcap")
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert "cannot capture on nosuch0: no such interface" in result.stderr
