@@ -9,10 +9,23 @@ other core and the event loop does nothing per read but copy it into a batch.
 
 Parent side (``WriterProcess``): each event becomes one binary record appended
 to a batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
-through an asyncio write-pipe transport.  If the writer falls behind, the
-transport's buffer grows to ``HIGH_WATER`` and then ``on_pause`` tells the proxy
-to stop reading until it drains (so memory stays bounded, at the cost of
-slowing traffic only when the writer is overloaded for seconds).
+through an asyncio write-pipe transport.
+
+When the writer falls behind, only the connections that cause it wait.  The
+backlog is what the proxy holds for the writer (the batch and the pipe
+transport's buffer); each connection's part of it is counted (the bytes of its
+reads in each batch, until the kernel pipe has taken the whole batch).  Above
+``BEHIND`` bytes the writer is behind, until the backlog is down to
+``CAUGHT_UP``.  While it is behind, the connections with bytes in the backlog
+share ``BEHIND`` equally, and a connection over its share is "over"; above
+``LIMIT`` every open connection is, new ones from the moment they open.  What
+happens to a connection that is over is the user's choice (``when_behind``):
+"pause" (the default) stops reading it (``on_hold``: TCP pushes back on its
+sender; the recording stays complete); "gap" keeps it flowing but leaves its
+bytes out of the recording, recorded instead as a gap event with their count.
+Either way the bytes read for the recording are bounded (``LIMIT`` plus one
+batch), and a light connection keeps going while a heavy one waits.  The
+decision is made again at each batch sent, and every ``BATCH_S`` while behind.
 
 Child side (``python -m sniffer.feed CONFIG``): one thread reads the pipe,
 drives a ``Recorder`` and reports on its stdout as JSON lines (ready,
@@ -38,19 +51,24 @@ import struct
 import subprocess
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
 from analyzer.session import Direction, Limits
 
-REC_DATA, REC_OPENED, REC_UPSTREAM_CONNECTED, REC_UPSTREAM_FAILED, REC_HALF_CLOSED, REC_CLOSED, REC_STOP = range(1, 8)
+(REC_DATA, REC_OPENED, REC_UPSTREAM_CONNECTED, REC_UPSTREAM_FAILED, REC_HALF_CLOSED, REC_CLOSED, REC_STOP,
+ REC_GAP) = range(1, 9)
 _HEAD = struct.Struct("<BIBQI")
 _DIRS = (Direction.C2S, Direction.S2C)
 _DIR_CODE = {Direction.C2S: 0, Direction.S2C: 1}
 BATCH_S = 0.005
 BATCH_MAX = 256 << 10
-HIGH_WATER = 32 << 20
-LOW_WATER = 8 << 20
+BEHIND = 8 << 20  # backlog bytes above which the writer is behind
+CAUGHT_UP = 2 << 20  # ... until it is down to this
+LIMIT = 2 * BEHIND  # above this, every connection with bytes in the backlog is over
+GAP_DETAIL = ("bytes forwarded but not recorded: the writer was behind (--when-behind gap); "
+              "the session model restarts after them")
 _PIPE_SIZE = 1 << 20
 _F_SETPIPE_SZ = 1031
 TICK_S = 0.1
@@ -77,12 +95,6 @@ class _Pipe(asyncio.Protocol):
     def __init__(self, owner: WriterProcess) -> None:
         self.owner = owner
 
-    def pause_writing(self) -> None:
-        self.owner._set_paused(True)
-
-    def resume_writing(self) -> None:
-        self.owner._set_paused(False)
-
     def connection_lost(self, exc: Exception | None) -> None:
         self.owner._pipe_lost(exc)
 
@@ -105,19 +117,31 @@ class _Status(asyncio.Protocol):
 
 class WriterProcess:
     """The proxy's handle on the writer process.  Methods named after events
-    never block and never raise: recording must not get in the way of traffic."""
+    never block and never raise: recording must not get in the way of traffic.
 
-    def __init__(self, config: dict[str, Any]) -> None:
+    ``when_behind`` is what happens to a connection over its share of the
+    backlog (see the module docstring); in "pause" mode ``on_hold(conn, held)``
+    is told when to stop and start reading it."""
+
+    def __init__(self, config: dict[str, Any], when_behind: str = "pause") -> None:
         self.config = config
-        self.on_pause: Callable[[], None] | None = None
-        self.on_resume: Callable[[], None] | None = None
+        self.when_behind = when_behind
+        self.on_hold: Callable[[int, bool], None] | None = None
         self.on_violation: Callable[[dict], None] | None = None
         self.on_file: Callable[[str], None] | None = None
         self.on_error: Callable[[str], None] | None = None
-        self.paused = False
+        self._behind = False
         self.error: str | None = None
         self.summary: dict | None = None
         self._batch = bytearray()
+        self._batch_bytes: dict[int, int] = {}  # connection -> bytes of its reads in the batch
+        self._in_pipe: deque[tuple[int, dict[int, int]]] = deque()  # (end in _written, _batch_bytes) per batch
+        self._written = 0  # bytes handed to the pipe transport
+        self._waiting: dict[int, int] = {}  # connection -> bytes of its reads in the backlog
+        self._open: set[int] = set()
+        self._over: frozenset[int] = frozenset()
+        self._unrecorded: frozenset[int] = frozenset()  # over, in "gap" mode
+        self._gaps: dict[tuple[int, int], list[int]] = {}  # (connection, direction) -> [t_ns, bytes] left out
         self._timer: asyncio.TimerHandle | None = None
         self._pipe: asyncio.WriteTransport | None = None
         self._proc: subprocess.Popen | None = None
@@ -140,7 +164,6 @@ class WriterProcess:
         self._done = loop.create_future()
         await loop.connect_read_pipe(lambda: _Status(self), os.fdopen(status_r, "rb", buffering=0))
         self._pipe, _ = await loop.connect_write_pipe(lambda: _Pipe(self), os.fdopen(data_w, "wb", buffering=0))
-        self._pipe.set_write_buffer_limits(high=HIGH_WATER, low=LOW_WATER)
         await asyncio.wait([self._ready, self._done], return_when=asyncio.FIRST_COMPLETED)
         if not self._ready.done():
             await self._reap()
@@ -149,13 +172,21 @@ class WriterProcess:
     # -- events from the proxy --------------------------------------------------------------
 
     def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
+        if conn in self._unrecorded:
+            self._leave_out(conn, _DIR_CODE[direction], t_ns, len(data))
+            return
         batch = self._batch
         batch += _HEAD.pack(REC_DATA, conn, _DIR_CODE[direction], t_ns, len(data))
         batch += data
+        counts = self._batch_bytes
+        counts[conn] = counts.get(conn, 0) + len(data)
         self._queued()
 
     def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
+        self._open.add(conn)
         self._event(REC_OPENED, conn, 0, t_ns, {"client": client, "upstream": upstream})
+        if self._behind:
+            self._rebalance()  # over the limit, a new connection is over at once
 
     def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None:
         self._event(REC_UPSTREAM_CONNECTED, conn, 0, t_ns, {"detail": detail})
@@ -164,9 +195,12 @@ class WriterProcess:
         self._event(REC_UPSTREAM_FAILED, conn, 0, t_ns, {"detail": detail})
 
     def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
+        self._end_gaps(conn)
         self._event(REC_HALF_CLOSED, conn, _DIR_CODE[direction], t_ns, None)
 
     def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None:
+        self._open.discard(conn)
+        self._end_gaps(conn)
         self._event(REC_CLOSED, conn, 0, t_ns, {"by": by, "detail": detail})
 
     async def stop(self, t_ns: int, detail: str = "") -> dict | None:
@@ -195,15 +229,78 @@ class WriterProcess:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        if self._batch and self._pipe is not None and not self._pipe.is_closing():
-            self._pipe.write(bytes(self._batch))
+        pipe = self._pipe
+        if self._batch and pipe is not None and not pipe.is_closing():
+            pipe.write(bytes(self._batch))
+            self._written += len(self._batch)
+            if self._batch_bytes:
+                self._in_pipe.append((self._written, self._batch_bytes))
+                waiting = self._waiting
+                for conn, n in self._batch_bytes.items():
+                    waiting[conn] = waiting.get(conn, 0) + n
         self._batch.clear()
+        self._batch_bytes = {}
+        self._rebalance()
 
-    def _set_paused(self, paused: bool) -> None:
-        self.paused = paused
-        hook = self.on_pause if paused else self.on_resume
-        if hook is not None:
-            hook()
+    def _rebalance(self) -> None:
+        """Count what the kernel pipe has taken, and decide again who is over
+        (see the module docstring); while behind, again every ``BATCH_S``:
+        nothing else notices the pipe draining while every heavy connection waits."""
+        pipe = self._pipe
+        buffered = pipe.get_write_buffer_size() if pipe is not None else 0
+        taken = self._written - buffered
+        in_pipe, waiting = self._in_pipe, self._waiting
+        while in_pipe and in_pipe[0][0] <= taken:
+            for conn, n in in_pipe.popleft()[1].items():
+                left = waiting[conn] - n
+                if left:
+                    waiting[conn] = left
+                else:
+                    del waiting[conn]
+        backlog = buffered + len(self._batch)
+        if backlog > BEHIND:
+            self._behind = True
+        elif backlog <= CAUGHT_UP:
+            self._behind = False
+        over = self._over_share(backlog) if self._behind else frozenset()
+        if over != self._over:
+            self._set_over(over)
+        if self._behind and self._timer is None and pipe is not None and not pipe.is_closing():
+            self._timer = self._loop.call_later(BATCH_S, self._send)
+
+    def _over_share(self, backlog: int) -> frozenset[int]:
+        if backlog > LIMIT:
+            return frozenset(self._open)
+        waiting = self._waiting
+        share = BEHIND // max(len(waiting), 1)
+        return frozenset(conn for conn, n in waiting.items() if n > share)
+
+    def _set_over(self, over: frozenset[int]) -> None:
+        before, self._over = self._over, over
+        if self.when_behind == "gap":
+            self._unrecorded = over
+            for conn in before - over:
+                self._end_gaps(conn)
+        elif self.on_hold is not None:
+            for conn in over - before:
+                self.on_hold(conn, True)
+            for conn in before - over:
+                self.on_hold(conn, False)
+
+    def _leave_out(self, conn: int, direction: int, t_ns: int, length: int) -> None:
+        """A read of a connection that is over, in "gap" mode: only counted."""
+        gap = self._gaps.get((conn, direction))
+        if gap is None:
+            self._gaps[(conn, direction)] = [t_ns, length]
+        else:
+            gap[1] += length
+
+    def _end_gaps(self, conn: int) -> None:
+        """The gap records of what was left out, before anything else of ``conn``."""
+        for direction in (0, 1):
+            gap = self._gaps.pop((conn, direction), None)
+            if gap is not None:
+                self._event(REC_GAP, conn, direction, gap[0], {"length": gap[1]})
 
     def _pipe_lost(self, exc: Exception | None) -> None:
         if exc is not None and self.error is None:
@@ -273,6 +370,8 @@ def _dispatch(recorder, kind: int, conn: int, direction: int, t: int, payload: b
         recorder.upstream_failed(conn, t, args["detail"])
     elif kind == REC_CLOSED:
         recorder.closed(conn, t, args["by"], args["detail"])
+    elif kind == REC_GAP:
+        recorder.gap(conn, _DIRS[direction], t, args["length"], GAP_DETAIL)
     elif kind == REC_STOP:
         return args["detail"]
     return None

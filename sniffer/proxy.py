@@ -8,11 +8,19 @@ the chunk handed to the sink (the recorder's pipe), which copies it into a
 batch.  ``asyncio.Protocol`` rather than streams: streams add a task switch and
 a buffer copy per read, which halves round trips (see docs/benchmarks.md).
 
-Flow control is end to end: when one side stops reading, its transport's
-buffer fills, ``pause_writing`` stops reading from the other side, and TCP
-pushes back on the sender; the proxy never buffers more than a transport's
-high-water mark per direction.  When the recorder falls behind it can pause
-every connection the same way.
+Flow control is end to end, and derived, not remembered: a side is read
+exactly while there is somewhere to send its bytes (the upstream is connected
+and the client's early bytes are passed on), the other side's transport buffer
+is at most its high-water mark, the side has not sent its FIN, and the
+recorder does not hold the connection (``RecordingProxy.hold``: the writer is
+behind and this connection has more than its share of the backlog).
+``_Leg.sync`` makes the transport match that rule and is called whenever one
+of those facts changes; it is asserted again on every read and just after
+``connection_made`` (uvloop starts reading only after ``connection_made``
+returns, so a pause made there would be lost).  A side that should not be
+read stops after at most one read, and TCP pushes back on its sender: the
+proxy never buffers more than a transport's high-water mark and one read per
+direction, however slowly a client reads.
 
 Half-close passes through (a FIN from one side becomes ``write_eof()`` on the
 other); a reset or close on one side closes the other once its buffered bytes
@@ -72,23 +80,25 @@ class _Leg(asyncio.Protocol):
         self.direction = direction
         self.transport: asyncio.Transport | None = None
         self.peer: _Leg | None = None
+        self.target: asyncio.Transport | None = None  # where its bytes go, once they may
         self.eof = False  # this side sent FIN
         self.received = 0  # bytes read from this side
-        self.early: list[bytes] = []  # read before the peer was connected
+        self.early: list[bytes] = []  # read before the upstream was connected
         self.lost = False
-        self._pauses: set[str] = set()
 
-    # reading is paused while any reason holds
-    def pause(self, reason: str) -> None:
-        if not self._pauses and self.transport is not None and not self.lost:
-            self.transport.pause_reading()
-        self._pauses.add(reason)
+    def may_read(self) -> bool:
+        """The rule for reading this side (see the module docstring)."""
+        target = self.target
+        return (target is not None and target.get_write_buffer_size() <= TRANSPORT_HIGH_WATER
+                and not self.conn.held and not self.eof)
 
-    def resume(self, reason: str) -> None:
-        if reason in self._pauses:
-            self._pauses.discard(reason)
-            if not self._pauses and self.transport is not None and not self.lost:
+    def sync(self) -> None:
+        """Read, or not, as the rule says now (both calls are no-ops when already so)."""
+        if self.transport is not None and not self.lost:
+            if self.may_read():
                 self.transport.resume_reading()
+            else:
+                self.transport.pause_reading()
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
@@ -99,23 +109,23 @@ class _Leg(asyncio.Protocol):
             except OSError:
                 pass
         transport.set_write_buffer_limits(high=TRANSPORT_HIGH_WATER)  # type: ignore[attr-defined]
-        if self._pauses:
-            transport.pause_reading()  # type: ignore[attr-defined]
-        if self.direction is C2S:
+        if self.direction is S2C:  # the client is connected before its upstream
+            self.target = self.peer.transport  # type: ignore[union-attr]
+        else:
             self.conn.client_made(transport)  # type: ignore[arg-type]
+        asyncio.get_running_loop().call_soon(self.sync)  # once reading has started
 
     def data_received(self, data: bytes) -> None:
         t = self.conn.proxy.clock()
-        target = self.peer.transport  # type: ignore[union-attr]
+        target = self.target
         if target is not None:
             target.write(data)
         else:
-            # uvloop may deliver a read before a pause made in connection_made
-            # takes effect: keep it for the upstream, and pause again
-            self.early.append(data)
-            self.transport.pause_reading()  # type: ignore[union-attr]
+            self.early.append(data)  # the upstream is not connected yet
         self.received += len(data)
         self.conn.proxy.sink.data(self.conn.id, self.direction, t, data)
+        if not self.may_read():  # whatever pause was missed, this read is the last
+            self.transport.pause_reading()  # type: ignore[union-attr]
 
     def eof_received(self) -> bool:
         self.eof = True
@@ -123,12 +133,10 @@ class _Leg(asyncio.Protocol):
         return True  # keep the other direction open
 
     def pause_writing(self) -> None:
-        if self.peer is not None:
-            self.peer.pause("peer")
+        self.peer.sync()  # type: ignore[union-attr]
 
     def resume_writing(self) -> None:
-        if self.peer is not None:
-            self.peer.resume("peer")
+        self.peer.sync()  # type: ignore[union-attr]
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.lost = True
@@ -145,6 +153,7 @@ class Connection:
         self.upstream = _Leg(self, S2C)
         self.client.peer, self.upstream.peer = self.upstream, self.client
         self.client_addr = "?"
+        self.held = False  # by the recorder: see RecordingProxy.hold
         self.closed_by: str | None = None
         self.detail = ""
         self.opened_ns = 0
@@ -155,7 +164,6 @@ class Connection:
 
     def client_made(self, transport: asyncio.Transport) -> None:
         proxy = self.proxy
-        self.client.pause("connecting")  # until there is somewhere to send
         self.client_addr = address(transport.get_extra_info("peername"))
         self.opened_ns = proxy.clock()
         proxy.sink.opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text)
@@ -189,7 +197,8 @@ class Connection:
         self.client.early.clear()
         if self.client.eof:  # the client's FIN came while connecting: pass it on now
             self.upstream.transport.write_eof()  # type: ignore[union-attr]
-        self.client.resume("connecting")
+        self.client.target = self.upstream.transport
+        self.client.sync()
 
     # -- teardown -------------------------------------------------------------------------
 
@@ -257,7 +266,6 @@ class RecordingProxy:
         self.connections: dict[int, Connection] = {}
         self._ids = itertools.count(1)
         self._server: asyncio.AbstractServer | None = None
-        self._paused = False
 
     @property
     def port(self) -> int:
@@ -279,9 +287,6 @@ class RecordingProxy:
     def _accept(self) -> _Leg:
         conn = Connection(self, next(self._ids))
         self.connections[conn.id] = conn
-        if self._paused:
-            conn.client.pause("recorder")
-            conn.upstream.pause("recorder")
         return conn.client
 
     def notify(self, event: str, conn: Connection) -> None:
@@ -292,18 +297,14 @@ class RecordingProxy:
         self.connections.pop(conn.id, None)
         self.notify("closed", conn)
 
-    def pause_all(self) -> None:
-        """The recorder is behind: stop reading everywhere until it catches up."""
-        self._paused = True
-        for conn in self.connections.values():
-            conn.client.pause("recorder")
-            conn.upstream.pause("recorder")
-
-    def resume_all(self) -> None:
-        self._paused = False
-        for conn in self.connections.values():
-            conn.client.resume("recorder")
-            conn.upstream.resume("recorder")
+    def hold(self, conn_id: int, held: bool) -> None:
+        """The recorder's verdict on one connection: stop reading both of its
+        sides (its bytes are the writer's backlog), or read them again."""
+        conn = self.connections.get(conn_id)
+        if conn is not None:
+            conn.held = held
+            conn.client.sync()
+            conn.upstream.sync()
 
     async def close(self, detail: str = "recording stopped") -> None:
         """Stop accepting, close every connection (sending what is buffered), wait."""

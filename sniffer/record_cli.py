@@ -136,10 +136,15 @@ def _with_options(options: list) -> Callable:
 @click.option("--analyze", is_flag=True, help="Print each violation as it happens.")
 @click.option("--connect-timeout", type=click.FloatRange(min=0.01), default=5.0, show_default=True,
               metavar="SECONDS", help="How long to try the upstream for each client.")
+@click.option("--when-behind", type=click.Choice(["pause", "gap"]), default="pause", show_default=True,
+              help="When the recording falls behind the traffic, the connections causing it: pause them "
+                   "(the recording stays complete), or keep them flowing and record a gap event "
+                   "with the count of bytes left out.")
 @limits_options
 def record_command(listen: str, upstream: str, output: str, split_size: int | None, split_duration: float | None,
                    keep_secrets: bool, checksum_rule: str | None, quiet: bool, force: bool, analyze: bool,
-                   connect_timeout: float, answer_timeout: float, max_frame: int, max_image: int) -> None:
+                   connect_timeout: float, when_behind: str, answer_timeout: float, max_frame: int,
+                   max_image: int) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -153,7 +158,8 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
     from sniffer.record_run import RecordSettings, run_record
 
     settings = RecordSettings(listen_addr, upstream_addr, output, split_size, split_duration, keep_secrets, rule,
-                              quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image))
+                              quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
+                              when_behind=when_behind)
     error = _run_loop(lambda: run_record(settings))
     if error:
         fail(str(error))

@@ -30,6 +30,7 @@ class RecordSettings:
     analyze: bool = False
     connect_timeout: float = 5.0
     limits: Limits = Limits()
+    when_behind: str = "pause"  # what happens to the connections that put the writer behind: "pause" or "gap"
 
 
 class Recording:
@@ -73,8 +74,8 @@ class Recording:
                   "split_size": s.split_size,
                   "split_duration_ns": int(s.split_duration * 1e9) if s.split_duration else None,
                   "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}}
-        self.writer = writer = WriterProcess(config)
-        writer.on_pause, writer.on_resume = proxy.pause_all, proxy.resume_all
+        self.writer = writer = WriterProcess(config, s.when_behind)
+        writer.on_hold = proxy.hold
         writer.on_violation = self._violation
         writer.on_error = lambda message: self.stopped.set()
         writer.on_file = lambda path: self.echo(f"finished {path}")

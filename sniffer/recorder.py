@@ -205,15 +205,16 @@ class Recorder:
         # reads held for a password: the file keeps each stream's order
         self._event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
 
-    def gap(self, conn: int, direction: Direction, t_ns: int, length: int) -> None:
-        """``length`` bytes of one direction were never seen (capture only)."""
+    def gap(self, conn: int, direction: Direction, t_ns: int, length: int,
+            detail: str = "bytes missing from the capture; the session model restarts after them") -> None:
+        """``length`` bytes of one direction are not in the recording (a capture
+        missed them, or the proxy left them out: ``--when-behind gap``)."""
         t = self._clock(t_ns)
         c = self._conns[conn]
         offset = c.received[direction]
         c.received[direction] += length
         self._bytes[direction] -= length  # counted as received at close; never seen
-        self._event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length,
-                    detail="bytes missing from the capture; the session model restarts after them")
+        self._event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length, detail=detail)
         # The framer cannot know what the missing bytes were: it finishes what it
         # has and starts a fresh session model after the hole.
         self._observe_all(conn, c, c.session.close(t))
