@@ -7,7 +7,7 @@ it took.  Recorder, reports, replayer and TUI all read traffic through it.
 
 from __future__ import annotations
 
-from collections import Counter, defaultdict, deque
+from collections import Counter, defaultdict
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import NamedTuple
@@ -30,6 +30,7 @@ from analyzer.messages import (
     SetConfiguration,
     UnitType,
 )
+from analyzer.pairing import Book, Pending
 from analyzer.rules import Violation
 from analyzer.stats import LatencyStats
 
@@ -153,7 +154,8 @@ class Observation(NamedTuple):
     latency_ns: int | None = None
 
 
-EXPIRED_KEPT = 1024  # requests past their deadline that a late answer may still pair with
+PENDING_KEPT = 10_000  # requests awaited at once per connection; the oldest is given up beyond
+EXPIRED_KEPT = 1024  # requests given up (deadline or cap) that a late answer may still pair with
 EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'
 
 
@@ -166,14 +168,6 @@ class LateViolation(NamedTuple):
 
 
 Event = Observation | LateViolation
-
-
-class _Pending(NamedTuple):
-    request: Observation
-    answer_kind: ItemKind
-    channel: int | None
-    certain: bool  # False for an ambiguous frame that may be a Sensor Request
-    t_ns: int
 
 
 class _Plan(NamedTuple):
@@ -223,18 +217,19 @@ class Session:
         self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
-        self._pending: deque[_Pending] = deque()
-        # Requests reported unanswered at their deadline: an answer that comes later
-        # still answers one of them, and is not unsolicited.
-        self._expired: deque[_Pending] = deque(maxlen=EXPIRED_KEPT)
+        # Requests awaiting their answer, at most ``pending_kept``: past that, the
+        # oldest is given up as at its deadline (reported unanswered).
+        self._pending = Book()
+        self.pending_kept = PENDING_KEPT
+        # Requests given up: an answer that comes later still answers one of them,
+        # and is not unsolicited.  The oldest are forgotten past ``expired_kept``.
+        self._expired = Book()
+        self.expired_kept = EXPIRED_KEPT
         # Client items that may be a password sent before the server asked for it
         # (an eager client): held until the server's first item says which.
         self._early: list[Item] | None = None
         self._may_hold_early = True  # until the server speaks or the handshake moves on
         self._asked_t_ns: int | None = None  # when 'sendchkpass' arrived
-        # How many of them certainly expect an answer: with none, pairing takes the
-        # oldest match at once instead of rescanning thousands of ambiguous ones.
-        self._certain = 0
         self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
         self._index = 0
         self._commands = 0
@@ -272,7 +267,6 @@ class Session:
             if pending.certain:
                 events.append(self._unanswered(pending, t_ns, self._ended_why))
         self._pending.clear()
-        self._certain = 0
         return events
 
     # -- state ------------------------------------------------------------------------
@@ -320,7 +314,8 @@ class Session:
     def _observe_commands(self, items: list[Item]) -> list[Event]:
         events: list[Event] = []
         append = events.append
-        pending = self._pending
+        book = self._pending
+        pending = book.order
         plans = self._plans
         timeout = self.answer_timeout_ns
         command = ItemKind.COMMAND
@@ -354,8 +349,9 @@ class Session:
                 continue  # nobody will see it
             obs = _new(Observation, (index - 1, direction, item, message, candidates, violations, None, None))
             if answer_kind is not None:
-                pending.append(_new(_Pending, (obs, answer_kind, channel, certain, t)))
-                self._certain += certain
+                if book.live >= self.pending_kept:
+                    self._give_up_oldest(t, events)
+                book.add(_new(Pending, (obs, answer_kind, channel, certain, t)))
             if every or violations:
                 append(obs)
         if fast:
@@ -369,7 +365,8 @@ class Session:
     def _observe_responses(self, items: list[Item]) -> list[Event]:
         events: list[Event] = []
         append = events.append
-        pending = self._pending
+        book = self._pending
+        pending = book.order
         timeout = self.answer_timeout_ns
         response = ItemKind.RESPONSE
         direction = Direction.S2C
@@ -389,8 +386,7 @@ class Session:
                         and channel == message.channel and t - t_request <= timeout):
                     asked = request.message
                     if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
-                        pending.popleft()
-                        self._certain -= 1
+                        book.pop_oldest()
                         title = asked.title
                         batch = waited.get(title)
                         if batch is None:
@@ -427,7 +423,8 @@ class Session:
         if self.first_t_ns is None:
             self.first_t_ns = item.t_start_ns
         self.last_t_ns = t
-        if self._pending and t - self._pending[0].t_ns > self.answer_timeout_ns:
+        pending = self._pending.order
+        if pending and t - pending[0].t_ns > self.answer_timeout_ns:
             self._expire(t, events)
         decoded = decode(kind, item.raw, item.reason)
         message = decoded.message
@@ -483,8 +480,9 @@ class Session:
         if direction is Direction.C2S and kind is ItemKind.COMMAND:
             answer_kind, channel, certain = _answer_spec(message, candidates)
             if answer_kind is not None:
-                self._pending.append(_Pending(observation, answer_kind, channel, certain, t))
-                self._certain += certain
+                if self._pending.live >= self.pending_kept:
+                    self._give_up_oldest(t, events)
+                self._pending.add(Pending(observation, answer_kind, channel, certain, t))
             if state_before is _S.READY and self.state is _S.READY and self._commands > 1:
                 # from now on these bytes mean the same until the channel map changes
                 self._plans[item.raw] = _Plan(message, candidates, observation.violations,
@@ -584,23 +582,7 @@ class Session:
     def _answer(self, kind: ItemKind, message: Message | None, t: int,
                 violations: list[Violation]) -> tuple[Observation | None, int | None]:
         channel = message.channel if isinstance(message, ChannelResponse) else None
-        # The oldest request this answers; a frame that only may be a Sensor
-        # Request (no channel map yet) yields to one that certainly asked.
-        found = maybe = None
-        for pending in self._pending:
-            if pending.answer_kind is kind and (channel is None or pending.channel == channel):
-                if pending.certain:
-                    found = pending
-                    break
-                maybe = maybe or pending
-                if not self._certain:
-                    break  # no certain request to prefer: the oldest maybe it is
-        found = found or maybe
-        if found is not None:
-            self._pending.remove(found)
-            self._certain -= found.certain
-        else:
-            found = self._late_request(kind, channel)  # already reported unanswered
+        found = self._match(kind, channel)
         if found is None:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by a {kind}"))
             request = None
@@ -633,23 +615,38 @@ class Session:
         if message.data > limit:
             violations.append(Violation(rule, f"{what} must be 0-{limit}, got {message.data}"))
 
-    def _late_request(self, kind: ItemKind, channel: int | None) -> _Pending | None:
-        """The oldest request past its deadline that this answer fits, taken out."""
-        for pending in self._expired:
-            if pending.answer_kind is kind and (channel is None or pending.channel == channel):
-                self._expired.remove(pending)
-                return pending
-        return None
+    # -- pairing: the only code that touches the books of requests (tests replace it) --
+
+    def _match(self, kind: ItemKind, channel: int | None) -> Pending | None:
+        """The request an answer of ``kind`` on ``channel`` (None: any) answers,
+        taken out: the oldest awaited one it fits, one that certainly asked before
+        a frame that only may be a Sensor Request (no channel map yet); else the
+        oldest given up (already reported unanswered), so a late answer is not
+        unsolicited."""
+        return (self._pending.take(kind, channel, certain_first=True)
+                or self._expired.take(kind, channel, certain_first=False))
+
+    def _give_up_oldest(self, t: int, events: list[Event]) -> None:
+        """A request arrives while ``pending_kept`` are awaited: give up the oldest."""
+        cap = self.pending_kept
+        self._give_up(self._pending.pop_oldest(), t, events,
+                      f"not answered while {cap} later requests were waiting (whiztap awaits at most {cap} at once)")
 
     def _expire(self, t: int, events: list[Event]) -> None:
-        while self._pending and t - self._pending[0].t_ns > self.answer_timeout_ns:
-            pending = self._pending.popleft()
-            self._expired.append(pending)
-            self._certain -= pending.certain
-            if pending.certain:
-                events.append(self._unanswered(pending, t, f"no answer within {self.answer_timeout_ns / 1e9:g} s"))
+        """Give up the requests whose deadline passed, oldest first."""
+        pending = self._pending.order
+        why = f"no answer within {self.answer_timeout_ns / 1e9:g} s"
+        while pending and t - pending[0].t_ns > self.answer_timeout_ns:
+            self._give_up(self._pending.pop_oldest(), t, events, why)
 
-    def _unanswered(self, pending: _Pending, t: int, why: str) -> LateViolation:
+    def _give_up(self, pending: Pending, t: int, events: list[Event], why: str) -> None:
+        self._expired.add(pending)
+        if self._expired.live > self.expired_kept:
+            self._expired.pop_oldest()
+        if pending.certain:
+            events.append(self._unanswered(pending, t, why))
+
+    def _unanswered(self, pending: Pending, t: int, why: str) -> LateViolation:
         self.violation_counts["PW-PAIR-UNANSWERED"] += 1
         title = pending.request.message.title if pending.request.message else "request"
         return LateViolation(Violation("PW-PAIR-UNANSWERED", f"{title}: {why}"), pending.request, t)

@@ -232,31 +232,6 @@ def test_fast_path_matches_the_general_path(exchanges, batch, winsock):
         {k: (v.count, v.total, v.histogram()) for k, v in b.latencies.items()}
 
 
-def test_pairing_stays_linear_when_a_client_pipelines_before_the_channel_map():
-    """Thousands of ambiguous requests outstanding: each answer must not rescan
-    them all (it did, and a 200k-frame pipeline took the recorder hours)."""
-    from collections import deque
-
-    scanned = 0
-
-    class Counting(deque):  # counts how much pairing looks at
-        def __iter__(self):
-            nonlocal scanned
-            for pending in super().__iter__():
-                scanned += 1
-                yield pending
-
-    n = 3000
-    s = Session()
-    s._pending = Counting()  # noqa: SLF001
-    requests = b"rr1-24--0--0-ss1" + b"".join(b"rr1-%d--0--0-ss1" % (12 + i % 12) for i in range(n))
-    answers = b"sr1-\x18" + b"200" * 24 + b"-ss1" + b"".join(b"cr1-%d--5--0-ss1" % (12 + i % 12) for i in range(n))
-    s.receive(C, requests, 1)
-    events = s.receive(S, answers, 2)
-    assert sum(1 for e in events if getattr(e, "answers", None) is not None) == n + 1
-    assert scanned < 20 * n
-
-
 def test_bytes_after_a_half_close_are_framed_not_refused():
     """A file written out of order (another writer, an older whiztap) can hold a
     direction's bytes after its half-close: they are still framed and checked."""

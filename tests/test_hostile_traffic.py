@@ -1,0 +1,263 @@
+"""Bounded work on hostile traffic: requests never answered, answers that match
+nothing, SYN floods, and junk bytes cost memory and time in proportion to what
+is kept, never to how long the abuse goes on."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections import deque
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from analyzer import pairing
+from analyzer.examples import CONFIG, VPN_OPEN
+from analyzer.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
+from tests.streams import TINY_JPEG
+from tests.test_session import SlowSession, _shape
+
+C, S = Direction.C2S, Direction.S2C
+
+
+def verdicts(events: list) -> tuple[int, int]:
+    """(PW-PAIR-UNANSWERED, PW-PAIR-UNSOLICITED) among the events."""
+    unanswered = unsolicited = 0
+    for e in events:
+        if isinstance(e, LateViolation):
+            unanswered += e.violation.rule_id == "PW-PAIR-UNANSWERED"
+        else:
+            unsolicited += sum(v.rule_id == "PW-PAIR-UNSOLICITED" for v in e.violations)
+    return unanswered, unsolicited
+
+
+# -- requests never answered: memory ------------------------------------------------------
+
+_FEED = """
+import json, resource, sys
+from analyzer.examples import VPN_OPEN
+from analyzer.session import Direction, LateViolation, Session
+
+def feed(n, step_ns):
+    s = Session(clean_commands=False)
+    late = 0
+    t = 1
+    for d, data in VPN_OPEN:
+        s.receive(d, data, t)
+        t += 1
+    block = 1000
+    for _ in range(n // block):
+        late += sum(isinstance(e, LateViolation) for e in s.receive(Direction.C2S, b"rr1-3--0--0-ss1" * block, t))
+        t += step_ns * block
+    late += sum(isinstance(e, LateViolation) for e in s.close(t))
+    return late, s.violation_counts["PW-PAIR-UNANSWERED"]
+
+inside = feed(500_000, 1)  # all within one answer deadline (5 s)
+across = feed(500_000, 100_000)  # 50 s of requests: each deadline passes
+print(json.dumps({"inside": inside, "across": across,
+                  "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def test_unanswered_requests_cost_bounded_memory_and_are_each_reported_once():
+    """500k requests nobody answers, within one deadline and across many: every
+    one is reported unanswered exactly once, and the session keeps at most
+    PENDING_KEPT of them (it kept them all: 312 MB for 500k, 841 MB for 2.1M)."""
+    out = subprocess.run([sys.executable, "-c", _FEED], capture_output=True, text=True, timeout=300, check=True)
+    result = json.loads(out.stdout)
+    assert result["inside"] == [500_000, 500_000]
+    assert result["across"] == [500_000, 500_000]
+    assert result["maxrss_mb"] < 100
+
+
+# -- answers that match nothing: work -------------------------------------------------------
+
+
+class CountingDeque(deque):
+    """Counts the entries the pairing books look at: a measure of their work
+    that does not depend on the machine."""
+
+    looked = 0
+
+    def __getitem__(self, i):
+        CountingDeque.looked += 1
+        return super().__getitem__(i)
+
+    def popleft(self):
+        CountingDeque.looked += 1
+        return super().popleft()
+
+    def __iter__(self):
+        for entry in super().__iter__():
+            CountingDeque.looked += 1
+            yield entry
+
+
+def _mismatched(n: int, interleaved: bool) -> tuple[tuple[int, int], int]:
+    """n Sensor Requests on channel 3 answered on channel 4: (verdicts, work)."""
+    CountingDeque.looked = 0
+    s = Session(clean_commands=False)
+    events = []
+    t = 1
+    for d, data in VPN_OPEN:
+        events += s.receive(d, data, t)
+        t += 1
+    if interleaved:
+        steps = [(C, b"rr1-3--0--0-ss1"), (S, b"cr1-4--7--0-ss1")] * n
+    else:
+        steps = [(C, b"rr1-3--0--0-ss1")] * n + [(S, b"cr1-4--7--0-ss1")] * n
+    for d, data in steps:
+        events += s.receive(d, data, t)
+        t += 1
+    events += s.close(t)
+    return verdicts(events), CountingDeque.looked
+
+
+def test_answers_that_match_nothing_cost_linear_work(monkeypatch):
+    """Every answer used to scan every waiting request (20,000 such pairs: 15 s)."""
+    monkeypatch.setattr(pairing, "deque", CountingDeque)
+    n = 20_000
+    for interleaved in (False, True):
+        found, work = _mismatched(n, interleaved)
+        assert found == (n, n)  # each request unanswered, each answer unsolicited
+        assert work < 20 * n
+
+
+def test_pairing_stays_linear_when_a_client_pipelines_before_the_channel_map(monkeypatch):
+    """Thousands of ambiguous requests outstanding: each answer must not rescan
+    them all (it did, and a 200k-frame pipeline took the recorder hours)."""
+    monkeypatch.setattr(pairing, "deque", CountingDeque)
+    CountingDeque.looked = 0
+    n = 3000
+    s = Session()
+    requests = b"rr1-24--0--0-ss1" + b"".join(b"rr1-%d--0--0-ss1" % (12 + i % 12) for i in range(n))
+    answers = b"sr1-\x18" + b"200" * 24 + b"-ss1" + b"".join(b"cr1-%d--5--0-ss1" % (12 + i % 12) for i in range(n))
+    s.receive(C, requests, 1)
+    events = s.receive(S, answers, 2)
+    assert sum(1 for e in events if getattr(e, "answers", None) is not None) == n + 1
+    assert CountingDeque.looked < 20 * n
+
+
+def test_requests_past_the_cap_are_reported_unanswered_and_still_pair_late():
+    s = Session()
+    s.pending_kept = 3
+    events = []
+    for t, (d, data) in enumerate(VPN_OPEN + [(C, b"rr1-3--0--0-ss1")] * 4 + [(S, b"cr1-3--1--0-ss1")] * 5,
+                                  start=1):
+        events += s.receive(d, data, t)
+    events += s.close(100)
+    [dropped] = [e for e in events if isinstance(e, LateViolation)]
+    assert dropped.violation.detail == ("Sensor Request: not answered while 3 later requests were waiting "
+                                        "(whiztap awaits at most 3 at once)")
+    answers = [e for e in events if isinstance(e, Observation) and e.direction is S][1:]
+    # the four awaited or given-up requests are answered; the fifth answer is unsolicited
+    assert [a.answers is not None for a in answers] == [True] * 4 + [False]
+    assert dropped.about in [a.answers for a in answers]
+    assert PENDING_KEPT == 10_000  # the documented cap
+
+
+def test_an_answer_takes_a_request_that_certainly_asked_and_a_late_one_the_oldest():
+    """Before the channel map, rr1-1--0--0 may be a Sensor Request; a Servo
+    Position Request certainly asked, so it is answered first.  Once both are
+    given up, a late answer takes the oldest, certain or not."""
+    ambiguous, servo = b"rr1-1--0--0-ss1", b"rr1-1--0--2-ss1"
+    s = Session(answer_timeout_ns=1000)
+    events = s.receive(C, ambiguous + servo, 1) + s.receive(S, b"cr1-1--40--0-ss1cr1-1--41--0-ss1", 2)
+    assert [e.answers.item.raw for e in events if e.direction is S] == [servo, ambiguous]
+    s = Session(answer_timeout_ns=1000)
+    events = s.receive(C, ambiguous + servo, 1) + s.receive(S, b"cr1-1--40--0-ss1cr1-1--41--0-ss1", 5000)
+    assert [e.answers.item.raw for e in events if isinstance(e, Observation) and e.direction is S] == [
+        ambiguous, servo]
+
+
+# -- the indexed books give the verdicts of a plain scan --------------------------------------
+
+
+class ListBook:
+    """The reference: waiting requests in a list, scanned for each answer."""
+
+    def __init__(self) -> None:
+        self.order: list = []
+
+    @property
+    def live(self) -> int:
+        return len(self.order)
+
+    def __iter__(self):
+        return iter(list(self.order))
+
+    def add(self, pending) -> None:
+        self.order.append(pending)
+
+    def pop_oldest(self):
+        return self.order.pop(0)
+
+    def take(self, kind, channel, certain_first):
+        maybe = None
+        for pending in self.order:
+            if pending.answer_kind is kind and (channel is None or pending.channel == channel):
+                if pending.certain or not certain_first:
+                    self.order.remove(pending)
+                    return pending
+                maybe = maybe or pending
+        if maybe is not None:
+            self.order.remove(maybe)
+        return maybe
+
+    def clear(self) -> None:
+        self.order.clear()
+
+
+class ReferenceSession(SlowSession):
+    """Every item through the general path, with list-scanning books."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._pending = ListBook()
+        self._expired = ListBook()
+
+
+# Without a channel map, rr1-N--0--0 may be a Sensor Request (not certain); with
+# one, channel 5 is still unknown.  Servo Position Requests are always certain.
+REQUESTS = [b"rr1-3--0--0-ss1", b"rr1-2--0--0-ss1", b"rr1-1--0--2-ss1", b"rr1-0--0--2-ss1",
+            b"rr1-24--0--0-ss1", b"rr1-29--0--0-ss1", b"rr1-5--0--0-ss1", b"rr1-1--0--0-ss1"]
+ANSWERS = [b"cr1-3--7--0-ss1", b"cr1-2--0--0-ss1", b"cr1-1--40--0-ss1", b"cr1-0--9000--0-ss1",
+           b"cr1-5--1--0-ss1", b"cr1-x--1--0-ss1", CONFIG, TINY_JPEG]
+# gaps: none, short, and past any deadline, so that requests often expire
+step = st.tuples(st.booleans(), st.integers(0, len(REQUESTS) - 1), st.sampled_from([0, 400_000, 1_500_000, 9_000_000]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(step, min_size=8, max_size=60), st.booleans(), st.integers(1, 6), st.integers(1, 6),
+       st.integers(1_000_000, 8_000_000), st.sampled_from([0, 2, pairing.REBUILD_SLACK]))
+def test_indexed_pairing_gives_the_verdicts_of_a_plain_scan(steps, configured, kept, expired_kept, timeout, slack):
+    """Random requests and answers (certain and ambiguous ones, undecodable
+    answers that fit any channel, configurations, images) at random times, with
+    small caps so that deadlines, the cap, late answers and the books' rebuilds
+    all come into play."""
+    script = list(VPN_OPEN) if configured else []
+    for is_request, i, _ in steps:
+        script.append((C, REQUESTS[i]) if is_request else (S, ANSWERS[i]))
+    times = [1_000_000 * (k + 1) for k in range(len(script) - len(steps))]
+    for _, _, gap in steps:
+        times.append((times[-1] if times else 0) + gap)
+
+    def run(session):
+        session.pending_kept, session.expired_kept = kept, expired_kept
+        events = []
+        for (d, data), t in zip(script, times):
+            events += session.receive(d, data, t)
+        events += session.close((times[-1] if times else 0) + 1)
+        return session, _shape(events)
+
+    default_slack, pairing.REBUILD_SLACK = pairing.REBUILD_SLACK, slack
+    try:
+        fast, fast_events = run(Session(answer_timeout_ns=timeout))
+    finally:
+        pairing.REBUILD_SLACK = default_slack
+    reference, reference_events = run(ReferenceSession(answer_timeout_ns=timeout))
+    assert fast_events == reference_events
+    assert fast.violation_counts == reference.violation_counts
+    assert {k: (v.count, v.total) for k, v in fast.latencies.items()} == \
+        {k: (v.count, v.total) for k, v in reference.latencies.items()}
