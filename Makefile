@@ -15,10 +15,11 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 # The whole tool on an embedded robot: simulator, recording proxy and a scripted
-# client, live in the TUI, recorded to demo.mcap.  Without a terminal (CI) it
-# runs headless for a few seconds and prints the conformance report.
+# client, live in the TUI, recorded to demo.mcap (--force: each run replaces the
+# last).  Without a terminal (CI) it runs headless for a few seconds and prints
+# the conformance report.
 demo: $(STAMP)
-	$(BIN)/whiztap demo
+	$(BIN)/whiztap demo --force
 
 test: $(STAMP) test-deps
 	$(BIN)/pytest -q

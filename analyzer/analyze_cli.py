@@ -15,7 +15,16 @@ from typing import IO, Any
 
 import click
 
-from analyzer.cli import EXIT_USAGE, fail, limits_from, limits_options, output_stream
+from analyzer.cli import (
+    EXIT_USAGE,
+    check_output,
+    fail,
+    force_option,
+    limits_from,
+    limits_options,
+    output_stream,
+    warn,
+)
 from analyzer.report.formats import FORMATS
 
 _SEVERITIES = ["info", "warning", "error"]
@@ -38,7 +47,7 @@ def recordings(inputs: tuple[str, ...]):  # noqa: ANN201 - list[RecordingSet], i
         fail(str(e))
     for recording in found:
         if recording.warning():
-            click.echo(f"whiztap: {recording.warning()}", err=True)
+            warn(recording.warning())
     return found
 
 
@@ -173,6 +182,7 @@ def _analyse_in_worker(args: tuple):
               show_default=True, help="Report format; text is coloured on a terminal.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
               help="Write the report to this file ('-': standard output, the default).")
+@force_option
 @click.option("--rules", "list_rules", is_flag=True, help="List every rule (id, severity, spec section) and exit.")
 @click.option("--ignore", multiple=True, metavar="RULE", help="Leave this rule out of the report; repeatable.")
 @click.option("--severity-threshold", type=click.Choice(_SEVERITIES), default="error", show_default=True,
@@ -184,7 +194,7 @@ def _analyse_in_worker(args: tuple):
 @click.option("--allow-empty", is_flag=True,
               help="Pass a report on no traffic (no connection, or no server ever reached) instead of exit 3.")
 @limits_options
-def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_rules: bool,
+def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, list_rules: bool,
                     ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str | None,
                     jobs: int | None, quiet: bool, allow_empty: bool, answer_timeout: float, max_frame: int,
                     max_image: int) -> None:
@@ -219,11 +229,12 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
         fail(str(e))
     limits = limits_from(answer_timeout, max_frame, max_image)
     found = recordings(inputs)
+    check_output(output, [p for r in found for p in r.parts], force=force)
     tune_gc()
     with ByteProgress([p for r in found for p in r.parts], enabled=not quiet) as progress:
         analysis, unreadable = _analyse_all(found, rule_name, limits, jobs, progress)
     for u in unreadable:
-        click.echo(f"whiztap: {u['error']}", err=True)
+        warn(u["error"])
     if analysis is None:
         sys.exit(EXIT_USAGE)
     from analyzer.report.content import build
@@ -231,10 +242,10 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, list_
     report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore), unreadable, allow_empty)
     to_stdout = output is None or output == "-"
     report_text = render(report, analysis, fmt, to_terminal=to_stdout and sys.stdout.isatty())
-    with output_stream(output) as out:
+    with output_stream(output, force) as out:
         out.write(report_text)
     if report.get("nothing_judged") and not allow_empty:
-        click.echo(f"whiztap: nothing to judge: {report['nothing_judged']} (--allow-empty to pass anyway)", err=True)
+        warn(f"nothing to judge: {report['nothing_judged']} (--allow-empty to pass anyway)")
         sys.exit(EXIT_USAGE if unreadable else EXIT_NOTHING)
     sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
@@ -316,7 +327,7 @@ def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, im
     except RecordingInputError as e:
         fail(f"{e} (see '{click.get_current_context().command_path} --help')")
     if found.warning():
-        click.echo(f"whiztap: {found.warning()}", err=True)
+        warn(found.warning())
     return found
 
 
@@ -325,6 +336,7 @@ def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, im
 @click.option("--format", "fmt", type=click.Choice(["text", "jsonl"]), default="text", show_default=True)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
               help="Write to this file ('-': standard output, the default).")
+@force_option
 @click.option("--filter", "filter_text", default="", metavar="WORDS",
               help="The TUI filter bar's words, e.g. \"kind:response ch:12 violations\" (docs/tui.md).")
 @click.option("--conn", "conns", type=int, multiple=True, help="Only this connection; repeatable.")
@@ -340,10 +352,10 @@ def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, im
               help="Tail a recording being written (its .mcap.part, then each later part) until it is finished.")
 @click.option("--checksum-rule", default=None, help="Set Configuration checksum rule.")
 @limits_options
-def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, filter_text: str, conns: tuple[int, ...],
-                direction: str | None, kinds: tuple[str, ...], channels: tuple[int, ...], since: float | None,
-                until: float | None, violations_only: bool, follow: bool, checksum_rule: str | None,
-                answer_timeout: float, max_frame: int, max_image: int) -> None:
+def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, filter_text: str,
+                conns: tuple[int, ...], direction: str | None, kinds: tuple[str, ...], channels: tuple[int, ...],
+                since: float | None, until: float | None, violations_only: bool, follow: bool,
+                checksum_rule: str | None, answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Print every item of a recording in time order, decoded and checked.
 
     RECORDING is a file, a split recording (its first part, its folder or a
@@ -361,14 +373,18 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, filter_te
             fail(f"--follow takes one file being written (NAME.mcap.part), got {' '.join(inputs) or 'none'}")
         records = _followed(inputs[0])
         name = inputs[0]
+        # the part it starts from, and the name the recorder renames it to
+        read: list[str] = [inputs[0], inputs[0].removesuffix(".part")]
     else:
         recording = one_recording(inputs)
         records, name = scan_recording(recording), str(recording.name)
+        read = list(map(str, recording.parts))
+    check_output(output, read, force=force)
     try:
         analyzer = Analyzer(name, checksum_rule or DEFAULT_CHECKSUM_RULE, limits)
     except ValueError as e:
         fail(str(e))
-    with output_stream(output) as out:
+    with output_stream(output, force) as out:
         printer = _CatPrinter(fmt, item_filter, out)
         for record in records:
             if type(record) is Read:
@@ -420,12 +436,13 @@ def _followed(path: str) -> Iterator[Any]:
 class _CatPrinter:
     def __init__(self, fmt: str, item_filter, out: IO[str]) -> None:  # noqa: ANN001
         from analyzer.describe import fields, meaning
-        from analyzer.text import escape, shorten
+        from analyzer.text import escape, printable, shorten
 
         self.fmt = fmt
         self.filter = item_filter
         self.start: int | None = None
         self._meaning, self._fields, self._escape, self._shorten = meaning, fields, escape, shorten
+        self._printable = printable  # a line says what files and peers said: shown, never obeyed
         self._out = out
         self._colour = out.isatty()
 
@@ -462,7 +479,7 @@ class _CatPrinter:
         rel = (item.t_end_ns - (self.start or 0)) / 1e9
         mark = f"  ! {' '.join(rules)}" if rules else ""
         text = self._shorten(self._escape(item.raw), TEXT_SHOWN)  # the JSON lines keep it whole
-        line = f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {text}  {self._meaning(e)}{mark}"
+        line = self._printable(f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {text}  {self._meaning(e)}{mark}")
         if self._colour and rules:
             line = click.style(line, fg="red" if max(v.severity for v in e.violations) >= 3 else "yellow")
         self._out.write(line + "\n")
@@ -478,7 +495,7 @@ class _CatPrinter:
                 "violations": [v.rule_id]}) + "\n")
             return
         rel = (e.t_ns - (self.start or 0)) / 1e9
-        self._out.write(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}\n")
+        self._out.write(self._printable(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}") + "\n")
 
 
 # -- info -------------------------------------------------------------------------------
@@ -493,6 +510,7 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     A split recording (its first part, folder or a glob) is shown as one, with
     its parts listed."""
     from analyzer.recording_info import set_info
+    from analyzer.text import printable
 
     recording = one_recording(inputs)
     path_ = recording.parts[-1]
@@ -507,18 +525,21 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
 
         click.echo(json.dumps(info, indent=2))
         return
-    click.echo(f"file            {info['path']}")
+    # names and metadata come from the file: a terminal must show them, never obey them
+    click.echo(f"file            {printable(info['path'])}")
     for part in info.get("parts", []):
-        click.echo(f"  part          {part['path']} ({part['size_bytes']:,} bytes, {part['state']})")
+        click.echo(f"  part          {printable(part['path'])} ({part['size_bytes']:,} bytes, "
+                   f"{printable(part['state'])})")
     click.echo(f"size            {info['size_bytes']:,} bytes")
-    click.echo(f"complete        {'yes (indexed)' if info['complete'] else 'NO: ' + info['state']}")
-    click.echo(f"format version  {info['format_version'] or 'unknown (not written by whiztap?)'}")
+    click.echo(f"complete        {'yes (indexed)' if info['complete'] else 'NO: ' + printable(info['state'])}")
+    version = info["format_version"]
+    click.echo(f"format version  {printable(version) if version else 'unknown (not written by whiztap?)'}")
     for key, value in info["metadata"].items():
-        click.echo(f"  {key:14} {value}")
+        click.echo(f"  {printable(key):14} {printable(value)}")
     click.echo(f"time span       {info['start']} .. {info['end']} ({info['duration_s']:.3f} s)")
     click.echo(f"connections     {info['connections']}")
     click.echo("messages per topic")
     for topic, n in info["topics"].items():
         click.echo(f"  {topic:14} {n:,}")
     if not info["complete"] and not info["state"].startswith("being written"):
-        click.echo(f"Run 'whiztap recover {path_}' to make a complete, indexed copy.")
+        click.echo(f"Run 'whiztap recover {printable(str(path_))}' to make a complete, indexed copy.")

@@ -13,8 +13,9 @@ import functools
 import os
 import re
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 from typing import IO, NoReturn
 
 import click
@@ -30,7 +31,15 @@ class WhiztapError(click.ClickException):
     exit_code = EXIT_USAGE
 
     def show(self, file=None) -> None:  # noqa: ANN001 - click's signature
-        click.echo(f"whiztap: {self.format_message()}", err=True)
+        warn(self.format_message())
+
+
+def warn(message: str) -> None:
+    """A line for the user on stderr.  Messages name files and quote what
+    files and peers said, so control characters are shown, never obeyed."""
+    from analyzer.text import printable
+
+    click.echo(f"whiztap: {printable(message)}", err=True)
 
 
 def fail(message: str) -> NoReturn:
@@ -56,9 +65,11 @@ class ByteSize(click.ParamType):
 
 
 @contextlib.contextmanager
-def output_stream(output: str | None) -> Iterator[IO[str]]:
+def output_stream(output: str | None, force: bool = False) -> Iterator[IO[str]]:
     """Where a command writes its text: a file, or standard output for None or
-    '-'.  A reader that goes away (``| head``) ends the command quietly, status 0."""
+    '-'.  A reader that goes away (``| head``) ends the command quietly, status 0.
+    The file is created new unless ``force`` (``check_output`` said why it may be
+    written; a file that appeared since is still not written over)."""
     if output is None or output == "-":
         try:
             yield sys.stdout
@@ -66,12 +77,40 @@ def output_stream(output: str | None) -> Iterator[IO[str]]:
         except BrokenPipeError:
             _pipe_closed()
         return
+    from analyzer.output_rule import create_mode
+
     try:
-        f = open(output, "w", encoding="utf-8")  # noqa: SIM115 - closed below
+        f = open(output, create_mode(output, force), encoding="utf-8")  # noqa: SIM115 - closed below
+    except FileExistsError:
+        fail(f"{output} exists; use --force to overwrite it or -o to choose another name")
     except OSError as e:
         fail(f"cannot write {output}: {e.strerror}")
     with f:
         yield f
+
+
+def check_output(output: str | None, inputs: Iterable[str | Path] = (), *, force: bool,
+                 recording: bool = False, split: bool = False) -> None:
+    """The rule for every file a command writes (analyzer.output_rule): never
+    one of its inputs, never an existing file unless --force; one line and exit
+    status 2 otherwise.  Standard output (no -o, or '-') is always fine for
+    text, never for a recording."""
+    from analyzer.output_rule import OutputRefused
+    from analyzer.output_rule import check_output as check
+
+    if recording:
+        recording_output(output)
+    if output is None or output == "-":
+        return
+    try:
+        check(output, inputs, force=force, recording=recording, split=split)
+    except OutputRefused as e:
+        fail(str(e))
+
+
+force_option = click.option(
+    "--force", is_flag=True,
+    help="Write over an existing output file (never over an input of the command: that is refused even so).")
 
 
 def recording_output(output: str | None) -> None:
@@ -149,7 +188,7 @@ def main() -> None:
         sys.exit(e.exit_code)
     except click.UsageError as e:  # one line, like every other error, rather than click's three
         command = e.ctx.command_path if e.ctx is not None else "whiztap"
-        click.echo(f"whiztap: {e.format_message()} (see '{command} --help')", err=True)
+        warn(f"{e.format_message()} (see '{command} --help')")
         sys.exit(e.exit_code)
     except click.ClickException as e:
         e.show()
@@ -159,8 +198,7 @@ def main() -> None:
     except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
         if os.environ.get("WHIZTAP_DEBUG"):
             raise
-        click.echo(f"whiztap: unexpected error: {type(e).__name__}: {e} "
-                   "(set WHIZTAP_DEBUG=1 to see where; please report it)", err=True)
+        warn(f"unexpected error: {type(e).__name__}: {e} (set WHIZTAP_DEBUG=1 to see where; please report it)")
         sys.exit(EXIT_USAGE)
 
 
@@ -253,11 +291,13 @@ def _print_event(event, meaning, escape) -> int:  # noqa: ANN001 - helpers impor
     """Print one event; return the highest severity among its violations (0 if none)."""
     from analyzer.session import LateViolation
 
+    from analyzer.text import printable
+
     if isinstance(event, LateViolation):
         violations = (event.violation,)
     else:
-        click.echo(f"{event.direction} {event.item.kind:10} {escape(event.item.raw)}  ->  {meaning(event)}")
+        click.echo(printable(f"{event.direction} {event.item.kind:10} {escape(event.item.raw)}  ->  {meaning(event)}"))
         violations = event.violations
     for v in violations:
-        click.echo(f"  ! {v.rule_id} ({v.severity}): {v.detail}")
+        click.echo(printable(f"  ! {v.rule_id} ({v.severity}): {v.detail}"))
     return max((v.severity for v in violations), default=0)

@@ -15,6 +15,25 @@ def escape(data: bytes) -> str:
     return "".join([_ESCAPES[b] for b in data])
 
 
+def printable(text: str) -> str:
+    """Text from a file or the wire made safe to show: every character Python
+    does not call printable (control characters such as ESC, C1 controls, bidi
+    and other format characters, line separators, surrogates) as an escape in
+    the notation of ``escape`` (\\x1b, \\r, \\n, \\t, \\x85, \\u202e).  A terminal
+    then shows it and never obeys it.  Backslashes are left as they are, so the
+    result is unchanged when escaped again (escaped frames, paths)."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else _char_escape(c) for c in text)
+
+
+def _char_escape(c: str) -> str:
+    n = ord(c)
+    if n < 0x80:
+        return _ESCAPES[n]
+    return f"\\x{n:02x}" if n < 0x100 else f"\\u{n:04x}" if n < 0x10000 else f"\\U{n:08x}"
+
+
 def unescape(text: str) -> bytes:
     """The inverse of ``escape``; also accepts unescaped non-ASCII as UTF-8."""
     out = bytearray()

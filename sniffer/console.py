@@ -13,6 +13,7 @@ from pathlib import Path
 from analyzer.codec import EXTERNAL_SCRIPTS, decode
 from analyzer.framing import Item
 from analyzer.messages import SetConfigEntry
+from analyzer.output_rule import OutputRefused, check_output, create_mode
 from analyzer.text import escape, unescape
 from sniffer.channels import ChannelSpecError, format_channels, parse_channels
 from sniffer.client import Client
@@ -22,7 +23,7 @@ RAW_WAIT = 0.5  # seconds to collect whatever a raw frame brings back
 
 HELP = """commands:
   config                     Fetch Configuration Settings
-  camera [-o FILE]           Fetch Camera Image (saved to FILE)
+  camera [-o FILE [--force]] Fetch Camera Image (saved to FILE; --force: over an existing one)
   sensor CH                  Sensor Request
   servo CH                   Servo Position Request
   servo CH VALUE             Normal Send (move a servo to VALUE, 0-2000)
@@ -124,18 +125,27 @@ async def run(client: Client, words: list[str]) -> str:
 
 
 async def _camera(client: Client, words: list[str]) -> str:
-    if len(words) == 3 and words[1] in ("-o", "--output"):
-        target: Path | None = Path(words[2])
-    elif len(words) == 1:
+    rest = [w for w in words[1:] if w != "--force"]
+    force = len(rest) < len(words) - 1
+    if len(rest) == 2 and rest[0] in ("-o", "--output"):
+        target: Path | None = Path(rest[1])
+        try:  # before asking: the image is not fetched to be thrown away
+            check_output(str(target), force=force)
+        except OutputRefused as e:
+            raise CommandError(str(e)) from None
+    elif not rest and not force:
         target = None
     else:
-        raise CommandError("usage: camera [-o FILE]")
+        raise CommandError("usage: camera [-o FILE [--force]]")
     image = await client.fetch_camera_image()
     kind = "jpeg" if image.startswith(b"\xff\xd8") else "png" if image.startswith(b"\x89PNG") else "image"
     if target is None:
         return f"camera: {len(image)} bytes {kind}"
     try:
-        target.write_bytes(image)
+        with open(target, create_mode(str(target), force) + "b") as f:
+            f.write(image)
+    except FileExistsError:
+        raise CommandError(f"{target} exists; use --force to overwrite it or -o to choose another name") from None
     except OSError as e:
         raise CommandError(f"cannot write {target}: {e.strerror}") from None
     return f"camera: {len(image)} bytes {kind}, saved to {target}"

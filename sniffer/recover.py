@@ -21,6 +21,7 @@ from mcap.stream_reader import StreamReader
 from mcap.records import Message as McapMessage
 from mcap.writer import Writer
 
+from analyzer.output_rule import OutputRefused, check_output
 from analyzer.recording import PROFILE
 
 
@@ -47,10 +48,10 @@ def recover(path: str, output: str | None = None, *, force: bool = False) -> Rec
     if not os.path.isfile(path):
         raise RecoverError(f"{path}: no such file" if not os.path.exists(path) else f"{path}: not a file")
     output = output or default_output(path)
-    if os.path.abspath(output) == os.path.abspath(path):
-        raise RecoverError(f"{output}: the output must differ from the input")
-    if os.path.exists(output) and not force:
-        raise RecoverError(f"{output} exists; use --force to overwrite it or -o to choose another name")
+    try:
+        check_output(output, [path], force=force)
+    except OutputRefused as e:
+        raise RecoverError(str(e)) from None
     try:
         source = open(path, "rb")  # noqa: SIM115 - closed below
     except OSError as e:

@@ -13,7 +13,7 @@ from typing import Any
 
 import click
 
-from analyzer.cli import fail, recording_output
+from analyzer.cli import check_output, fail, force_option, recording_output, warn
 
 PACES = ["recorded", "lockstep", "max"]
 
@@ -29,10 +29,8 @@ def _run(main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
         return runner.run(main())
 
 
-def _load(path: str):  # noqa: ANN202 - RecordedSessions, imported lazily
-    """The recording's exchanges, or a one-line error (exit status 2)."""
-    from analyzer.exchanges import load_exchanges
-    from analyzer.recording import RecordingError
+def _find(path: str):  # noqa: ANN202 - a RecordingSet, imported lazily
+    """The recording a path names (a split one's parts together), or a one-line error."""
     from analyzer.recording_set import RecordingInputError, find_one
 
     try:
@@ -40,13 +38,30 @@ def _load(path: str):  # noqa: ANN202 - RecordedSessions, imported lazily
     except RecordingInputError as e:
         fail(str(e))
     if recording.warning():
-        click.echo(f"whiztap: {recording.warning()}", err=True)
+        warn(recording.warning())
+    return recording
+
+
+def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions, imported lazily
+    """The recording's exchanges (``recording``: what ``_find`` found for
+    ``path``), or a one-line error (exit status 2)."""
+    from analyzer.exchanges import load_exchanges
+    from analyzer.recording import RecordingError
+
     try:
-        return load_exchanges(recording)
+        return load_exchanges(recording or _find(path))
     except OSError as e:
         fail(f"{path}: cannot read ({e.strerror or e})")
     except (RecordingError, KeyError) as e:  # KeyError: a message without a field the format requires
         fail(f"{path}: not a readable recording ({e})")
+
+
+def _echo(text: str) -> None:
+    """Print lines that quote the recording and the server: control characters
+    are shown escaped, never obeyed by the terminal."""
+    from analyzer.text import printable
+
+    click.echo("\n".join(printable(line) for line in text.split("\n")))
 
 
 def _address(text: str, what: str) -> tuple[str, int]:
@@ -98,6 +113,7 @@ def _password(text: str | None) -> bytes | None:
 @click.option("--dry-run", is_flag=True, help="Print what would be sent, and send nothing.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the replayed session as a recording.")
+@force_option
 @click.option("-v", "--verbose", is_flag=True, help="Print every write and every answer, not only differences.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the summary.")
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
@@ -106,7 +122,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
                    rate: float, segments: str, mode: str, tolerances: tuple[str, ...], ignore_fields: tuple[str, ...],
                    ignore_kinds: tuple[str, ...], timeout: float, connect_timeout: float, loop: int,
                    start_s: float | None, end_s: float | None, kinds: tuple[str, ...], dry_run: bool,
-                   output: str | None, verbose: bool, quiet: bool, fmt: str) -> None:
+                   output: str | None, force: bool, verbose: bool, quiet: bool, fmt: str) -> None:
     """Replay a recording's client side against a server and compare its answers.
 
     Exit status 0 when every answer matched, 1 on any difference, 2 when the
@@ -116,7 +132,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     from sniffer.replay import Pace, ReplayError, ReplayOptions
     from sniffer.replay_plan import KINDS, Selection, dry_run_lines, plan
 
-    recording_output(output)
+    recording_output(output)  # before anything is read: '-' is no place for a recording
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
         fail(f"--kind: unknown kind {unknown[0]!r}; kinds are {', '.join(KINDS)}")
@@ -127,13 +143,15 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     except CompareError as e:
         fail(str(e))
     selection = Selection(frozenset(conns), start_s, end_s, frozenset(kinds))
-    recording = _load(path)
+    found = _find(path)
+    check_output(output, found.parts, force=force, recording=True)
+    recording = _load(path, found)
     if dry_run:
         plans = plan(recording, selection, segments == "exact")
         if not plans:
             fail("nothing to replay: no connection is selected")
         for line in dry_run_lines(plans, recording.start_ns):
-            click.echo(line)
+            _echo(line)
         return
     if target is None:
         fail("--target HOST:PORT is required (or --dry-run)")
@@ -160,7 +178,7 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
     replay.check()
     if not (quiet or as_json):
         target = f"{options.target[0]}:{options.target[1]}"
-        click.echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
+        _echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
                    + f", {options.rules.describe()}")
     import asyncio
@@ -186,14 +204,14 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
                                    "ignore_kinds": sorted(options.rules.ignore_kinds)},
                                "output": options.output, **result.as_dict()}, indent=2))
         return result
-    click.echo(result.summary())
+    _echo(result.summary())
     if result.drift is not None:
-        click.echo(result.drift.text())
+        _echo(result.drift.text())
     elif options.pace != "recorded":
-        click.echo(f"drift: none measured (pace {options.pace} keeps no schedule)")
+        _echo(f"drift: none measured (pace {options.pace} keeps no schedule)")
     if options.output:
-        click.echo(f"wrote {options.output}")
-    click.echo("result: " + ("all answers matched" if result.ok else "DIFFERENCES (exit status 1)"))
+        _echo(f"wrote {options.output}")
+    _echo("result: " + ("all answers matched" if result.ok else "DIFFERENCES (exit status 1)"))
     return result
 
 
@@ -211,20 +229,20 @@ class _Printer:
             return
         if isinstance(event, ResponseCompared):
             if not event.match:
-                click.echo(event.diff)
+                _echo(event.diff)
             elif self.verbose:
                 shown = escape(event.replayed)[:72] if event.replayed is not None else "(no answer)"
-                click.echo(f"{event.at_s:10.6f} c{event.conn} < {shown}  {event.status}")
+                _echo(f"{event.at_s:10.6f} c{event.conn} < {shown}  {event.status}")
         elif not self.verbose:
             return
         elif isinstance(event, RequestSent):
             drift = f"  (+{event.drift_ns / 1e6:.3f} ms)" if event.drift_ns is not None else ""
-            click.echo(f"{event.at_s:10.6f} c{event.conn} > {escape(event.data)[:72]}  {event.text}{drift}")
+            _echo(f"{event.at_s:10.6f} c{event.conn} > {escape(event.data)[:72]}  {event.text}{drift}")
         elif isinstance(event, ConnectionOpened):
-            click.echo(f"{event.at_s:10.6f} c{event.conn} opened from {event.local} "
+            _echo(f"{event.at_s:10.6f} c{event.conn} opened from {event.local} "
                        f"(recorded connection {event.recorded_conn}, loop {event.loop})")
         elif isinstance(event, ConnectionClosed):
-            click.echo(f"{event.at_s:10.6f} c{event.conn} closed by {event.by}")
+            _echo(f"{event.at_s:10.6f} c{event.conn} closed by {event.by}")
 
 
 # -- stub -------------------------------------------------------------------------------------
@@ -269,7 +287,7 @@ def stub_command(path: str, listen: str, password: str | None, conn: int | None,
 
     def log(line: str) -> None:
         if not quiet or line.startswith("!"):
-            click.echo(line)
+            _echo(line)
 
     reaction: str | bytes = unmatched
     if unmatched not in ("close", "ignore"):
@@ -285,7 +303,7 @@ def stub_command(path: str, listen: str, password: str | None, conn: int | None,
     if error:
         fail(error)
     missing = len(stub.unanswered)
-    click.echo(f"served {stub.connections} connection(s), {stub.answers} answers; "
+    _echo(f"served {stub.connections} connection(s), {stub.answers} answers; "
                f"{missing} request(s) without a recorded answer")
     sys.exit(1 if strict and missing else 0)
 
@@ -296,7 +314,7 @@ async def _serve(stub, once: bool) -> str | None:  # noqa: ANN001 - Stub, import
     except OSError as e:
         return f"cannot listen on {stub.host}:{stub.requested_port}: {e.strerror or e}"
     where = ", ".join(f"{h}:{p}" for h, p in stub.addresses)
-    click.echo(f"whiztap stub: serving {stub.recording.path} on {where} "
+    _echo(f"whiztap stub: serving {stub.recording.path} on {where} "
                f"({len(stub.recording.connections)} recorded connection(s))")
     import asyncio
 

@@ -11,7 +11,7 @@ import sys
 
 import click
 
-from analyzer.cli import fail, limits_from, limits_options
+from analyzer.cli import check_output, fail, force_option, limits_from, limits_options
 
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
@@ -87,7 +87,7 @@ def _command_name() -> str:
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Live: the recording to write [default: whiztap-DATE-TIME.mcap].")
 @click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
-@click.option("--force", is_flag=True, help="Live: write over a recording of the same name.")
+@click.option("--force", is_flag=True, help="Live: write over a recording of the same name (never over an input).")
 @click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules').")
 @limits_options
 def tui_command(path: str | None, follow: str | None, upstream: str | None, listen: str, output: str | None,
@@ -145,7 +145,8 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
               help=f"Stop after N seconds [headless default: {HEADLESS_SECONDS:g}; the TUI runs until q].")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default="demo.mcap", show_default=True,
               help="The recording to write.")
-def demo_command(headless: bool, seconds: float | None, output: str) -> None:
+@force_option
+def demo_command(headless: bool, seconds: float | None, output: str, force: bool) -> None:
     """The whole tool on an embedded robot: the simulator, the recording proxy in
     front of it, and a scripted client using every command of the spec (with a
     few deliberate violations), shown live in the TUI and recorded.
@@ -154,6 +155,7 @@ def demo_command(headless: bool, seconds: float | None, output: str) -> None:
     the conformance report.  Exit status 0 when the demo ran, whatever the
     report says (its violations are deliberate); 2 when it could not run.
     """
+    check_output(output, force=force, recording=True)
     if not headless and not (sys.stdin.isatty() and sys.stdout.isatty()):
         seconds = seconds or HEADLESS_SECONDS
         click.echo(f"whiztap demo: no terminal, so no TUI: running headless for {seconds:g} s "

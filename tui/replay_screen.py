@@ -21,7 +21,7 @@ from textual.containers import Horizontal, Vertical
 from textual.screen import Screen
 from textual.widgets import Button, Footer, Header, Input, Label, Select, Static
 
-from analyzer.text import escape
+from analyzer.text import escape, printable
 from tui.virtual_list import VirtualList
 
 TICK_S = 0.1
@@ -116,7 +116,7 @@ class ReplayScreen(Screen):
             yield Button("Pause (F6)", id="pause", disabled=True)
             yield Button("Step (F7)", id="step")
             yield Button("Stop (F8)", id="stop", disabled=True)
-        yield Static(f"Replay {self.path}: choose a target and start.", id="replay-status")
+        yield Static(Text(f"Replay {printable(self.path)}: choose a target and start."), id="replay-status")
         with Vertical():
             yield self.comparisons
             yield Static("", id="diff")
@@ -151,10 +151,30 @@ class ReplayScreen(Screen):
             rules = CompareRules.parse(str(self.query_one("#compare", Select).value))
         except CompareError as e:
             raise ValueError(str(e)) from None
+        if output is not None:
+            self._check_output(output)
         password = self.query_one("#password", Input).value
         return ReplayOptions(target=target, password=password.encode() if password else None,
                              pace=Pace(str(self.query_one("#pace", Select).value)), rate=rate, rules=rules,
                              output=output)
+
+    def _check_output(self, output: str) -> None:
+        """The output rule (analyzer.output_rule): never the recording being
+        replayed, and never an existing file (there is no --force here)."""
+        from analyzer.output_rule import OutputRefused, check_output
+        from analyzer.recording_set import RecordingInputError, find_one
+
+        try:
+            parts = find_one((self.path,)).parts
+        except RecordingInputError:
+            parts = (self.path,)
+        try:
+            check_output(output, parts, recording=True)
+        except OutputRefused as e:
+            if e.existing is not None:
+                raise ValueError(f"save as: {e.existing} exists; choose another name "
+                                 "(the TUI never writes over a file)") from None
+            raise ValueError(f"save as: {e}") from None
 
     # -- actions -------------------------------------------------------------------------------
 
@@ -165,7 +185,7 @@ class ReplayScreen(Screen):
         try:
             options = self._options(output)
         except ValueError as e:
-            self.notify(str(e), severity="error", timeout=6)
+            self.notify(str(e), severity="error", timeout=6, markup=False)
             return False
         self.runner = ReplayRunner(self.path, options, start_paused=paused)
         self.comparisons.runner = self.runner
@@ -234,7 +254,7 @@ class ReplayScreen(Screen):
         text = Text()
         text.append(runner.state.upper(), style="bold red" if runner.state == "failed" else "bold")
         if runner.error:
-            text.append(f"  {runner.error}", style="red")
+            text.append(f"  {printable(runner.error)}", style="red")
         counts: dict[str, int] = {}
         for c in runner.comparisons:
             counts[str(c.status)] = counts.get(str(c.status), 0) + 1
@@ -256,7 +276,7 @@ class ReplayScreen(Screen):
             return
         c = self.runner.comparisons[row]
         if c.diff:
-            diff.update(Text(c.diff, style="red" if not c.match else ""))
+            diff.update(Text("\n".join(map(printable, c.diff.split("\n"))), style="red" if not c.match else ""))
             return
         replayed = escape(c.replayed) if c.replayed is not None else "(no answer)"
         diff.update(Text(f"{c.status}: {c.request_text}\n  recorded {escape(c.recorded or b'')}\n"

@@ -11,6 +11,7 @@ from typing import Any
 
 from analyzer.analysis import NS, Analysis
 from analyzer.report.text import duration, headline, verdict
+from analyzer.text import printable
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;max-width:70em;color:#222}
@@ -86,13 +87,20 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
 
 
 def _table(headers: list[str], rows: list[list[str]]) -> str:
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
+    head = "".join(f"<th>{_escaped(h)}</th>" for h in headers)
     body = "".join("<tr>" + "".join(f"<td>{cell}</td>" for cell in row) + "</tr>" for row in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+def _escaped(value: object) -> str:
+    """A value as HTML text: markup characters as entities (a frame may hold
+    '<script>'), control characters shown escaped as in every other output."""
+    return html.escape(printable(str(value)))
+
+
 def render_html(report: dict[str, Any], analysis: Analysis) -> str:
-    e = html.escape
+    """Every value from the report goes through ``_escaped`` (numbers are formatted here)."""
+    e = _escaped
     rule = report["checksum_rule"]
     parts = [
         f"<!doctype html><html><head><meta charset='utf-8'><title>whiztap report</title><style>{_CSS}</style>"
@@ -112,7 +120,7 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
     if report["violations"]:
         parts.append(_table(
             ["rule", "severity", "section", "conn", "t (s)", "frame", "detail"],
-            [[f"<code>{e(v['rule_id'])}</code>", f"<span class='{v['severity']}'>{v['severity']}</span>",
+            [[f"<code>{e(v['rule_id'])}</code>", f"<span class='{e(v['severity'])}'>{e(v['severity'])}</span>",
               e(v["section"]), str(v["conn"]), f"{v['t_rel_s']:.3f}", f"<code>{e(v['frame'][:200])}</code>",
               e(v["detail"])] for v in report["violations"]]))
         if report["violations_not_listed"]:

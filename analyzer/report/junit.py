@@ -18,9 +18,12 @@ from collections import defaultdict
 from typing import Any
 
 from analyzer.rules import RULES, Severity
+from analyzer.text import printable as _x  # XML 1.0 forbids most control characters; terminals obey them
 
 
 def render_junit(report: dict[str, Any]) -> str:
+    """Every value from the report goes through ``_x`` (ElementTree escapes
+    markup, but writes control characters as they are: invalid XML)."""
     listed: dict[tuple[str, str, int], list[dict[str, Any]]] = defaultdict(list)
     for v in report["violations"]:
         listed[(v["rule_id"], v["file"], v["conn"])].append(v)
@@ -36,7 +39,7 @@ def render_junit(report: dict[str, Any]) -> str:
     props = ET.SubElement(suite, "properties")
     for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
                         ("severity_threshold", report["severity_threshold"])):
-        ET.SubElement(props, "property", name=name, value=value)
+        ET.SubElement(props, "property", name=name, value=_x(value))
     tests = failures = skipped = errors = 0
     for rule_id, rule in RULES.items():
         classname = f"whiztap.{rule.section}"
@@ -51,32 +54,32 @@ def render_junit(report: dict[str, Any]) -> str:
         fails = rule.severity >= threshold
         for (file, conn), n in where:
             case = ET.SubElement(suite, "testcase", classname=classname,
-                                 name=f"{rule_id}: {rule.summary} [{file} conn {conn}]")
+                                 name=_x(f"{rule_id}: {rule.summary} [{file} conn {conn}]"))
             tests += 1
             shown = listed.get((rule_id, file, conn), [])
-            texts = [f"{v['file']} conn {v['conn']} {v['dir'] or ''} at +{v['t_rel_s']:.6f}s\n"
-                     f"frame: {v['frame']}\n{v['detail']}" for v in shown]
+            texts = [_x(f"{v['file']} conn {v['conn']} {v['dir'] or ''} at +{v['t_rel_s']:.6f}s") + "\n"
+                     + _x(f"frame: {v['frame']}") + "\n" + _x(v["detail"]) for v in shown]
             if not fails:
                 if texts:
                     ET.SubElement(case, "system-out").text = "\n\n".join(texts)
                 continue
             failures += 1
             for v, text in zip(shown, texts):
-                ET.SubElement(case, "failure", type=v["severity"], message=v["detail"]).text = text
+                ET.SubElement(case, "failure", type=v["severity"], message=_x(v["detail"])).text = text
             if n > len(shown):
                 ET.SubElement(case, "failure", type=str(rule.severity), message=f"{n - len(shown)} more not listed")
     if report.get("nothing_judged"):
         case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="the recordings hold traffic to judge")
         tests += 1
         if not report["passed"]:
-            ET.SubElement(case, "failure", type="nothing_judged", message=report["nothing_judged"])
+            ET.SubElement(case, "failure", type="nothing_judged", message=_x(report["nothing_judged"]))
             failures += 1
     if report.get("unreadable"):
         case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="every recording could be read")
         tests += 1
         errors += 1
         for u in report["unreadable"]:
-            ET.SubElement(case, "error", type="unreadable", message=u["error"]).text = u["file"]
+            ET.SubElement(case, "error", type="unreadable", message=_x(u["error"])).text = _x(u["file"])
     for element in (suites, suite):
         element.set("tests", str(tests))
         element.set("failures", str(failures))

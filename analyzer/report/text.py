@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from analyzer.text import shorten
+from analyzer.text import printable, shorten
 
 _STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
 TEXT_FRAME = 160  # characters of a frame in the text report; longer ones end in …
@@ -61,97 +62,130 @@ def verdict(report: dict[str, Any]) -> str:
     return text
 
 
+def _plain(console: Console, value: object, style: str = "") -> Text:
+    """A value as Rich text: never read as markup or emoji codes (a frame may
+    hold '[bold]'), its control characters shown escaped, never sent to the
+    terminal; highlighted as Rich highlights plain strings."""
+    text = console.render_str(printable(str(value)), markup=False, emoji=False)
+    text.style = style  # under the highlights, as console.print(str, style=...) puts it
+    return text
+
+
+def _table(title: str, columns: list[tuple[str, str]], rows: list[list[object]]) -> Table:
+    """A borderless table of plain cells (as ``_plain``, unhighlighted as
+    Rich leaves table cells); columns: (name, justify)."""
+    table = Table(title=title, title_justify="left", box=None, header_style="bold")
+    for name, justify in columns:
+        table.add_column(name, justify=justify, overflow="fold")  # type: ignore[arg-type]
+    for row in rows:
+        table.add_row(*(Text(printable(str(cell))) for cell in row))
+    return table
+
+
 def render_text(report: dict[str, Any], console: Console) -> None:
+    """Every value reaches the console as ``_plain`` text: values come from
+    recordings and the wire, and the report is often read on a terminal."""
+    def plain(value: object, style: str = "") -> Text:
+        return _plain(console, value, style)
+
     rule = report["checksum_rule"]
-    console.print(Text("whiztap conformance report", style="bold"), f"— {headline(report)}")
-    console.print(f"Spec Rev {report['spec_revision']}; checksum rule: {rule['name']} ({rule['description']})")
+    console.print(Text("whiztap conformance report", style="bold"), plain(f"— {headline(report)}"))
+    console.print(plain(f"Spec Rev {report['spec_revision']}; checksum rule: {rule['name']} ({rule['description']})"))
     if report["ignored_rules"]:
-        console.print(f"Ignored rules: {', '.join(report['ignored_rules'])}")
+        console.print(plain(f"Ignored rules: {', '.join(report['ignored_rules'])}"))
 
     if len(report["per_file"]) > 1:
-        table = Table(title="Files", title_justify="left", box=None, header_style="bold")
-        for col in ("file", "connections", "frames", "violations"):
-            table.add_column(col, justify="left" if col == "file" else "right", overflow="fold")
-        for row in report["per_file"]:
-            table.add_row(row["file"], str(row["connections"]), f"{row['frames']:,}", str(row["violations"]))
-        console.print(table)
+        console.print(_table("Files", [("file", "left"), ("connections", "right"), ("frames", "right"),
+                                       ("violations", "right")],
+                             [[r["file"], r["connections"], f"{r['frames']:,}", r["violations"]]
+                              for r in report["per_file"]]))
 
-    table = Table(title="Connections", title_justify="left", box=None, header_style="bold")
-    for col, justify in (("conn", "right"), ("client", "left"), ("mode", "left"), ("handshake", "left"),
-                         ("items", "right"), ("violations", "right")):
-        table.add_column(col, justify=justify, overflow="fold")
-    for c in report["connections"]:
-        table.add_row(str(c["conn"]), c["client"] or "-", c["mode"], c["handshake"], f"{c['frames']:,}",
-                      str(sum(c["violations"].values())))
-    console.print(table)
+    console.print(_table("Connections", [("conn", "right"), ("client", "left"), ("mode", "left"),
+                                         ("handshake", "left"), ("items", "right"), ("violations", "right")],
+                         [[c["conn"], c["client"] or "-", c["mode"], c["handshake"], f"{c['frames']:,}",
+                           sum(c["violations"].values())] for c in report["connections"]]))
     for c in report["connections"]:
         for note in c["notes"]:
-            console.print(f"  conn {c['conn']}: {note}")
+            console.print(plain(f"  conn {c['conn']}: {note}"))
         if c["channel_map"]:
-            console.print(f"  conn {c['conn']} channels: {channel_ranges(c['channel_map'])}", overflow="fold")
+            console.print(plain(f"  conn {c['conn']} channels: {channel_ranges(c['channel_map'])}"), overflow="fold")
 
     kinds = report["summary"]["frames_by_kind"]
-    table = Table(title="Items by kind", title_justify="left", box=None, header_style="bold")
-    table.add_column("kind")
-    table.add_column("client→server", justify="right")
-    table.add_column("server→client", justify="right")
-    for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"])):
-        table.add_row(kind, f"{kinds['c2s'].get(kind, 0):,}", f"{kinds['s2c'].get(kind, 0):,}")
-    console.print(table)
+    console.print(_table("Items by kind", [("kind", "left"), ("client→server", "right"),
+                                           ("server→client", "right")],
+                         [[kind, f"{kinds['c2s'].get(kind, 0):,}", f"{kinds['s2c'].get(kind, 0):,}"]
+                          for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"]))]))
 
     if report["violations"]:
         console.print(Text("Violations", style="bold"))
         for v in report["violations"]:
-            style = _STYLE[v["severity"]]
             line = Text()
-            line.append(f"{v['rule_id']} ", style=style)
-            line.append(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  ")
-            line.append(v["detail"])
+            line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
+            line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  "))
+            line.append(printable(v["detail"]))
             console.print(line)
             frame = shorten(v["frame"], TEXT_FRAME)
-            console.print(Text(f"    {frame}", style="dim"), f"  ({v['section']})", overflow="fold")
+            console.print(Text(printable(f"    {frame}"), style="dim"), plain(f"  ({v['section']})"), overflow="fold")
         if report["violations_not_listed"]:
-            console.print(f"… and {report['violations_not_listed']} more not listed")
-        counts = Table(title="Violations by rule", title_justify="left", box=None, header_style="bold")
-        counts.add_column("rule")
-        counts.add_column("count", justify="right")
-        for rule_id, n in report["rule_counts"].items():
-            counts.add_row(rule_id, str(n))
-        console.print(counts)
+            console.print(plain(f"… and {report['violations_not_listed']} more not listed"))
+        console.print(_table("Violations by rule", [("rule", "left"), ("count", "right")],
+                             [[rule_id, n] for rule_id, n in report["rule_counts"].items()]))
 
     if report["latency"]:
-        table = Table(title="Latency by request", title_justify="left", box=None, header_style="bold")
-        for col in ("request", "count", "p50", "p95", "p99", "max"):
-            table.add_column(col, justify="left" if col == "request" else "right")
-        for row in report["latency"]:
-            table.add_row(row["request"], f"{row['count']:,}", duration(row["p50_ns"]), duration(row["p95_ns"]),
-                          duration(row["p99_ns"]), duration(row["max_ns"]))
-        console.print(table)
+        console.print(_table("Latency by request", [("request", "left")] + [(c, "right") for c in (
+            "count", "p50", "p95", "p99", "max")],
+                             [[r["request"], f"{r['count']:,}", duration(r["p50_ns"]), duration(r["p95_ns"]),
+                               duration(r["p99_ns"]), duration(r["max_ns"])] for r in report["latency"]]))
     for title, n in report["unanswered"].items():
-        console.print(f"Never answered: {n} × {title}", style="yellow")
+        console.print(plain(f"Never answered: {n} × {title}", "yellow"))
 
     for c in report["set_configurations"]:
         ok = "ok" if c["ok"] else f"expected {c['expected']}"
         fits = ", ".join(c["satisfies"]) or "no candidate rule"
-        console.print(f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); fits: {fits}")
+        console.print(plain(f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); fits: {fits}"))
 
     if report.get("unreadable"):
         console.print(Text("Not in this report (could not be read)", style="bold red"))
         for u in report["unreadable"]:
-            console.print(f"  {u['error']}", overflow="fold")
+            console.print(plain(f"  {u['error']}"), overflow="fold")
     good = report["passed"] and not report.get("unreadable")
-    console.print(Text(verdict(report), style="bold green" if good else "bold red"))
+    console.print(Text(printable(verdict(report)), style="bold green" if good else "bold red"))
+
+
+_MD_INLINE = re.compile(r"([\\`*_\[\]|~])")  # what Markdown (GFM tables too) reads as syntax anywhere
+_MD_LINE_START = re.compile(r"^(\s*\d*)([-+#.)])(?=\s|$)")  # ... and what starts a list or heading
+
+
+def md_text(value: object) -> str:
+    """A value as Markdown text that reads as itself: control characters shown
+    escaped, Markdown syntax backslash-escaped, and <, > and & as entities, so
+    nothing from a recording becomes a link, a table cell or live HTML."""
+    text = _MD_LINE_START.sub(r"\1\\\2", _MD_INLINE.sub(r"\\\1", printable(str(value))))
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def md_code(text: str) -> str:
+    """Text (a frame as escaped bytes) as a Markdown code span in a table cell:
+    shown exactly, backticks and all (the fence is longer than any run of them
+    inside); code spans are never HTML, and a pipe is escaped as GFM tables ask."""
+    text = printable(text)
+    fence = "`" * (max((len(run) for run in re.findall("`+", text)), default=0) + 1)
+    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{pad}{text.replace('|', chr(92) + '|')}{pad}{fence}"
 
 
 def render_markdown(report: dict[str, Any]) -> str:
+    """Every value goes through ``md_text`` or ``md_code``: a report is often
+    rendered where HTML in it would run (a CI page, a wiki)."""
+    t = md_text
     rule = report["checksum_rule"]
     out = [
         "# whiztap conformance report",
         "",
-        f"{headline(report)}. Spec Rev {report['spec_revision']}; checksum rule `{rule['name']}` "
-        f"({rule['description']}).",
+        f"{t(headline(report))}. Spec Rev {t(report['spec_revision'])}; checksum rule {md_code(rule['name'])} "
+        f"({t(rule['description'])}).",
         "",
-        f"**{verdict(report)}**",
+        f"**{t(verdict(report))}**",
         "",
         "## Connections",
         "",
@@ -159,16 +193,14 @@ def render_markdown(report: dict[str, Any]) -> str:
         "|---|---:|---|---|---|---:|---:|",
     ]
     for c in report["connections"]:
-        out.append(f"| {c['file']} | {c['conn']} | {c['client'] or '-'} | {c['mode']} | {c['handshake']} | "
-                   f"{c['frames']} | {sum(c['violations'].values())} |")
+        out.append(f"| {t(c['file'])} | {c['conn']} | {t(c['client'] or '-')} | {t(c['mode'])} | {t(c['handshake'])} "
+                   f"| {c['frames']} | {sum(c['violations'].values())} |")
     out += ["", "## Violations", ""]
     if report["violations"]:
         out += ["| rule | severity | conn | t (s) | frame | detail |", "|---|---|---:|---:|---|---|"]
         for v in report["violations"]:
-            frame = shorten(v["frame"], MD_FRAME)
-            frame = frame.replace("|", "\\|").replace("`", "'")
-            out.append(f"| `{v['rule_id']}` | {v['severity']} | {v['conn']} | {v['t_rel_s']:.3f} | "
-                       f"`{frame}` | {v['detail'].replace('|', '/')} |")
+            out.append(f"| {md_code(v['rule_id'])} | {t(v['severity'])} | {v['conn']} | {v['t_rel_s']:.3f} | "
+                       f"{md_code(shorten(v['frame'], MD_FRAME))} | {t(v['detail'])} |")
         if report["violations_not_listed"]:
             out.append(f"\n… and {report['violations_not_listed']} more not listed.")
     else:
@@ -176,16 +208,16 @@ def render_markdown(report: dict[str, Any]) -> str:
     if report["latency"]:
         out += ["", "## Latency", "", "| request | count | p50 | p95 | p99 | max |", "|---|---:|---:|---:|---:|---:|"]
         for row in report["latency"]:
-            out.append(f"| {row['request']} | {row['count']} | {duration(row['p50_ns'])} | "
+            out.append(f"| {t(row['request'])} | {row['count']} | {duration(row['p50_ns'])} | "
                        f"{duration(row['p95_ns'])} | {duration(row['p99_ns'])} | {duration(row['max_ns'])} |")
     if report["unanswered"]:
-        out += ["", "Never answered: " + ", ".join(f"{n} × {t}" for t, n in report["unanswered"].items())]
+        out += ["", "Never answered: " + ", ".join(f"{n} × {t(title)}" for title, n in report["unanswered"].items())]
     if report["set_configurations"]:
         out += ["", "## Set Configuration checksums", "", "| conn | checksum | expected | fits |",
                 "|---:|---:|---:|---|"]
         for c in report["set_configurations"]:
-            out.append(f"| {c['conn']} | {c['checksum']} | {c['expected']} | {', '.join(c['satisfies']) or '-'} |")
+            out.append(f"| {c['conn']} | {c['checksum']} | {c['expected']} | {t(', '.join(c['satisfies']) or '-')} |")
     if report.get("unreadable"):
         out += ["", "## Not in this report (could not be read)", ""]
-        out += [f"- {u['error']}" for u in report["unreadable"]]
+        out += [f"- {t(u['error'])}" for u in report["unreadable"]]
     return "\n".join(out) + "\n"
