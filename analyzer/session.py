@@ -284,11 +284,6 @@ class Session:
             _S.FAILED: "failed validation",
         }[self.state]
 
-    @property
-    def holding_early(self) -> bool:
-        """Client bytes are held that may be a password sent before 'sendchkpass'."""
-        return self._early is not None
-
     def unit_of(self, channel: int) -> UnitType | None:
         config = self.channel_map.get(channel)
         if config is None or config.unit_type not in (0, 1, 2):

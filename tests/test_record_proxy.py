@@ -57,7 +57,9 @@ class _Background:
     async def start(self) -> None:
         self.server = ScriptedServer()
         await self.server.__aenter__()
-        self.ctx = recording(self.server.port, self.path)
+        # secrets kept: a server that says nothing leaves the client's bytes undecided,
+        # and a redacting recording masks them (tests/test_secrets.py)
+        self.ctx = recording(self.server.port, self.path, keep_secrets=True)
         self.rec = await self.ctx.__aenter__()
 
     async def stop(self) -> None:

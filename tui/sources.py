@@ -13,6 +13,7 @@ import asyncio
 import gc
 import os
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +29,7 @@ from analyzer.recording import (
     RecordingScan,
 )
 from analyzer.recording_set import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
+from analyzer.redaction import Redactor
 from analyzer.session import Direction
 from tui.model import TrafficModel
 
@@ -191,7 +193,8 @@ def _feed_scan(scan: RecordingScan, model: TrafficModel, skip_continued: bool = 
 class Tap:
     """The proxy's sink, teed: the writer process gets every event as before, and
     a copy goes on a queue for the TUI.  Called on the proxy's forwarding path,
-    so it only appends."""
+    so it only appends; the bytes on the queue are as sent, and ``LiveSource``
+    masks them by the recorder's rule before the model sees them."""
 
     def __init__(self, sink, queue: deque) -> None:  # noqa: ANN001 - a sniffer.proxy.Sink
         self.sink = sink
@@ -252,7 +255,11 @@ class ProxyRig:
 
 
 class LiveSource:
-    """Traffic through the recording proxy running inside the app."""
+    """Traffic through the recording proxy running inside the app.
+
+    Unless told to keep secrets, the traffic goes through the redaction the
+    recorder applies (``analyzer.redaction``) before the model sees it: the
+    model and the screen get the bytes the file gets, never the password."""
 
     live = True
     progress = None
@@ -304,25 +311,85 @@ class LiveSource:
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         queue = self.queue
-        read, event = model.read, model.event
+        take = _Redacting(model) if self.redact_passwords else _Plain(model)
         while True:
             while queue:
-                record = queue.popleft()
-                if type(record) is tuple:
-                    read(*record)
-                else:
-                    event(record)
+                take(queue.popleft())
             if self.stopped.is_set() and not queue:
                 break
+            take.idle()
             if stop.wait(DRAIN_S):
                 return
+        take.finish()
         model.finish()
+
+
+class _Plain:
+    """The tap's records into the model as they are (``--keep-secrets``)."""
+
+    def __init__(self, model: TrafficModel) -> None:
+        self.model = model
+
+    def __call__(self, record: tuple | dict) -> None:
+        if type(record) is tuple:
+            self.model.read(*record)
+        else:
+            self.model.event(record)
+
+    def idle(self) -> None:
+        pass
+
+    def finish(self) -> None:
+        pass
+
+
+class _Redacting:
+    """The tap's records into the model through the recorder's redaction: held
+    while undecided (at most ``HOLD_LIMIT_S``, as in the writer), then masked
+    or shown."""
+
+    def __init__(self, model: TrafficModel) -> None:
+        self.model = model
+        self.redactor: Redactor[tuple | dict] = Redactor()
+
+    def __call__(self, record: tuple | dict) -> None:
+        redactor = self.redactor
+        if type(record) is tuple:
+            conn, direction, _t, data = record
+            redactor.read(conn, Direction(direction), data, record, time.monotonic())
+        else:
+            conn, name = record["conn"], record["event"]
+            if name == "opened":
+                redactor.opened(conn)
+            elif name == "closed":
+                redactor.closed(conn)
+            elif name == "half_closed":
+                redactor.ended(conn, Direction(record["dir"]))
+            elif name == "upstream_failed":
+                redactor.ended(conn, Direction.S2C)
+            redactor.event(conn, record)
+        self._release()
+
+    def idle(self) -> None:
+        """Nothing new came: let what was held too long out, masked."""
+        self.redactor.tick(time.monotonic())
+        self._release()
+
+    def finish(self) -> None:
+        self.redactor.finish()
+        self._release()
+
+    def _release(self) -> None:
+        for r in self.redactor.released():
+            if r.direction is None:
+                self.model.event(r.record)  # type: ignore[arg-type]
+            else:
+                conn, direction, t, _ = r.record  # type: ignore[misc]
+                self.model.read(conn, direction, t, r.data)
 
 
 def default_output() -> str:
     """A new recording's name when none is given: whiztap-YYYYmmdd-HHMMSS.mcap."""
-    import time
-
     return time.strftime("whiztap-%Y%m%d-%H%M%S.mcap")
 
 
