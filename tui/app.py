@@ -14,16 +14,19 @@ import threading
 import time
 from collections import deque
 
+from rich.text import Text
 from textual import on, work
 from textual.app import App, ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal
+from textual.content import Content
 from textual.message import Message
 from textual.widgets import Footer, Header, Input, Static, TabbedContent, TabPane
 from textual.worker import get_current_worker
 
 from analyzer.checksum import DEFAULT_CHECKSUM_RULE
 from analyzer.session import Limits
+from analyzer.text import printable
 from analyzer.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
 from tui.connections import ConnectionsPane
 from tui.detail import DetailPane
@@ -118,6 +121,10 @@ class WhiztapApp(App):
         yield self.status
         yield Footer()
 
+    def format_title(self, title: str, sub_title: str) -> Content:
+        """Titles name files (and replay screens, their outputs): shown, never obeyed."""
+        return super().format_title(printable(title), printable(sub_title))
+
     def on_mount(self) -> None:
         self.sub_title = self.source.title
         frames = self.frames
@@ -180,7 +187,7 @@ class WhiztapApp(App):
             time.sleep(JUDGE_IDLE_S)
 
     def _live_failed(self, note: str) -> None:
-        self.notify(note, severity="error", timeout=10)
+        self.notify(note, severity="error", timeout=10, markup=False)  # names files: never markup
 
     # -- ticks -------------------------------------------------------------------------------
 
@@ -228,7 +235,7 @@ class WhiztapApp(App):
         if not view.all:
             where = "" if view.complete else f" (filtering {view.judged / max(store.count, 1):.0%})"
             parts.append(f"filter: {self._filter_label()}{where} → {len(view):,} shown")
-        self.status.update(" · ".join(parts), layout=False)
+        self.status.update(Text(" · ".join(parts)), layout=False)  # the filter's words: never markup
 
     def _filter_label(self) -> str:
         words = [self.filter_text] if self.filter_text else []
@@ -243,7 +250,7 @@ class WhiztapApp(App):
         self.fed = True
         self.sub_title = self.source.title
         if message.note:
-            self.notify(message.note, severity="warning", timeout=8)
+            self.notify(message.note, severity="warning", timeout=8, markup=False)
         self._tick()
         self.refresh_summaries()
 
@@ -277,7 +284,7 @@ class WhiztapApp(App):
         try:
             item_filter = parse_filter(self.filter_text)
         except FilterSyntaxError as e:
-            self.notify(f"filter: {e}", severity="error", timeout=6)
+            self.notify(f"filter: {e}", severity="error", timeout=6, markup=False)
             return False
         item_filter = with_connection(item_filter, self.chosen_conn)
         view = FrameView(self.model.store, item_filter)

@@ -12,6 +12,7 @@ from textual.binding import Binding
 from textual.message import Message
 from textual.widgets import DataTable
 
+from analyzer.text import printable
 from tui.model import ConnectionRow
 
 ALL = "all"
@@ -65,8 +66,9 @@ class ConnectionsPane(DataTable):
         return Text(f"{n:,}", style="bold red" if n else "")
 
     def _put(self, key: str, values: tuple) -> None:
-        """Cells are Text, never markup: an IPv6 peer is written in brackets."""
-        cells = tuple(v if isinstance(v, Text) else Text(v) for v in values)
+        """Cells are Text, never markup (an IPv6 peer is written in brackets), and
+        addresses come from the recording: control characters are shown escaped."""
+        cells = tuple(v if isinstance(v, Text) else Text(printable(v)) for v in values)
         before = self._shown.get(key)
         if before == cells:
             return

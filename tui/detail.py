@@ -30,7 +30,7 @@ from analyzer.codec import (
 from analyzer.describe import response_meaning
 from analyzer.messages import CameraImage
 from analyzer.rules import RULES
-from analyzer.text import escape
+from analyzer.text import escape, printable
 from tui.store import NS, FrameStore
 
 HEX_WIDTH = 8  # bytes per hex line: fits the side pane
@@ -116,7 +116,8 @@ def hex_dump(data: bytes, lines: int = HEX_LINES, width: int = HEX_WIDTH) -> str
 
 
 def describe_frame(store: FrameStore, n: int) -> RenderableType:
-    """Everything about frame ``n`` as one renderable."""
+    """Everything about frame ``n`` as one renderable: Text and plain cells,
+    never markup (a detail may quote the wire), control characters escaped."""
     with store.lock:
         obs = store.observation(n)
         values = store.fields(n)
@@ -130,17 +131,18 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
     item = obs.item
     parts: list[RenderableType] = []
     head = Text()
-    head.append(meaning, style="bold")
-    head.append(f"\nconn #{conn}, item {obs.index} of the session, {obs.direction.sender} → "
-                f"{'server' if obs.direction.sender == 'client' else 'client'}, {item.kind}"
-                + (f" ({item.reason})" if item.reason else ""), style="dim")
+    head.append(printable(meaning), style="bold")
+    head.append("\n" + printable(f"conn #{conn}, item {obs.index} of the session, {obs.direction.sender} → "
+                                 f"{'server' if obs.direction.sender == 'client' else 'client'}, {item.kind}"
+                                 + (f" ({item.reason})" if item.reason else "")), style="dim")
     head.append(f"\nat {relative:.6f} s  ({clock(item.t_end_ns)})", style="dim")
     if item.t_start_ns != item.t_end_ns:
         head.append(f"\nfirst byte {(item.t_end_ns - item.t_start_ns) / 1e6:.3f} ms earlier", style="dim")
     parts.append(head)
 
     if obs.message is None and obs.candidates:
-        parts.append(Text("may mean: " + " / ".join(c.describe() for c in obs.candidates), style="yellow"))
+        parts.append(Text(printable("may mean: " + " / ".join(c.describe() for c in obs.candidates)),
+                          style="yellow"))
     rows = _field_rows(values, response_meaning(obs))
     if rows:
         table = Table(title="Fields", title_justify="left", expand=True, show_edge=False, pad_edge=False)
@@ -148,7 +150,7 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
         table.add_column("value")
         table.add_column("spec allows", style="dim")
         for row in rows:
-            table.add_row(*row)
+            table.add_row(*(Text(printable(cell)) for cell in row))
         parts.append(table)
 
     if obs.violations:
@@ -157,13 +159,14 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
             rule = RULES[v.rule_id]
             violations.append(f"● {v.rule_id}", style=SEVERITY_STYLE[rule.severity])
             violations.append(f" ({rule.severity}, {rule.section})\n", style="dim")
-            violations.append(f"  {rule.summary}\n  {v.detail}\n")
+            violations.append(f"  {rule.summary}\n  {printable(v.detail)}\n")
         parts.append(violations)
 
     if paired >= 0:
         pairing = Text("Pairing\n", style="bold")
         what = "answers" if obs.direction.sender == "server" else "answered by"
-        pairing.append(f"{what}: {paired_meaning}\nlatency {latency_text(paired_latency)}  (p jumps there)")
+        pairing.append(f"{what}: {printable(paired_meaning)}\n"
+                       f"latency {latency_text(paired_latency)}  (p jumps there)")
         parts.append(pairing)
 
     kept = store.raw(n)
