@@ -42,10 +42,12 @@ def check_output(output: str, inputs: Iterable[str | Path] = (), *, force: bool 
     checked here (later parts are checked by the writer as it creates them)."""
     first = _first_file(output, split) if recording else output
     targets = [first, first + ".part"] if recording else [first]
-    identities = {_identity(p): str(p) for p in inputs}
+    inputs = [str(p) for p in inputs]
+    identities = {_identity(p): p for p in inputs}
     identities.pop(None, None)
+    names = {os.path.abspath(p): p for p in inputs}  # an input not there yet: read once it is
     for target in targets:
-        found = identities.get(_identity(target))
+        found = identities.get(_identity(target)) or names.get(os.path.abspath(target))
         if found is None:
             continue
         if target != first:

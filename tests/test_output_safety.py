@@ -112,6 +112,14 @@ def test_no_part_of_a_split_input_is_written_over(tmp_path, command):
     assert [p.read_bytes() for p in parts] == before
 
 
+def test_cat_follow_never_writes_where_the_recording_it_follows_will_be(tmp_path):
+    part = tmp_path / "live.mcap.part"
+    shutil.copy(SAMPLE, part)  # as a recorder leaves it: the name it will be renamed to is free
+    for output in (part, tmp_path / "live.mcap"):
+        refused(run("cat", "--follow", part, "-o", output, "--force"), "input")
+    assert not (tmp_path / "live.mcap").exists() and part.read_bytes() == SAMPLE.read_bytes()
+
+
 # -- never over an existing file unless --force ---------------------------------------------------
 
 
