@@ -24,6 +24,8 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from markdown_it import MarkdownIt
 from rich.console import Console
 
@@ -408,3 +410,42 @@ def _html_cells(page: str) -> dict[str, list]:
     parser = _Cells()
     parser.feed(page)
     return parser.cells
+
+
+# -- the escaping helpers, on any text -------------------------------------------------------------
+
+ANY_TEXT = st.text(st.characters(codec=None, exclude_categories=()), max_size=60) | st.text(
+    st.sampled_from(list("\x1b\x00\x07\x85\x9b\u202e\n\r\t<>&|`*_[]\\#-+.!~ a1")), max_size=40)
+
+
+@settings(max_examples=300, deadline=None)
+@given(ANY_TEXT)
+def test_printable_shows_every_character_and_is_stable(text):
+    from analyzer.text import printable
+
+    shown_text = printable(text)
+    assert shown_text.isprintable()
+    element = ET.Element("v", a=shown_text)
+    element.text = shown_text
+    back = ET.fromstring(ET.tostring(element, encoding="unicode"))  # legal XML 1.0, read back whole
+    assert back.text == shown_text or (not shown_text and back.text is None)
+    assert printable(shown_text) == shown_text  # escaping what is shown changes nothing
+    if text.isprintable():
+        assert shown_text == text
+
+
+@settings(max_examples=300, deadline=None)
+@given(ANY_TEXT, ANY_TEXT)
+def test_a_markdown_cell_reads_as_the_value_and_never_as_html(value, frame):
+    from analyzer.report.text import md_code, md_text
+    from analyzer.text import printable
+
+    table = f"| a | b |\n|---|---|\n| {md_text(value)} | {md_code(frame)} |\n"
+    page = MarkdownIt("commonmark").enable("table").render(table)
+    cells = _html_cells(page)
+    assert len(cells["rows"][-1]) == 2  # no cell split or merged
+    assert cells["td"][-2] == printable(value).strip()
+    if frame:
+        assert cells["code"][-1] == printable(frame)
+    tags = re.findall(r"</?([a-z]+)", page)
+    assert set(tags) <= {"table", "thead", "tbody", "tr", "th", "td", "code"}

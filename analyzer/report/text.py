@@ -169,8 +169,12 @@ def md_code(text: str) -> str:
     shown exactly, backticks and all (the fence is longer than any run of them
     inside); code spans are never HTML, and a pipe is escaped as GFM tables ask."""
     text = printable(text)
+    if not text.strip():
+        return text and f"`{text}`"  # an empty span is no span; spaces alone are kept as they are
     fence = "`" * (max((len(run) for run in re.findall("`+", text)), default=0) + 1)
-    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    # one space each side is taken off a span that begins and ends with one: pad
+    # a span that would lose a space or whose backticks would touch the fence
+    pad = " " if text[0] == "`" or text[-1] == "`" or (text[0] == " " and text[-1] == " ") else ""
     return f"{fence}{pad}{text.replace('|', chr(92) + '|')}{pad}{fence}"
 
 
