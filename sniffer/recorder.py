@@ -259,6 +259,7 @@ class Recorder:
         self._observe_all(conn, c, c.session.receive(direction, data, t))
 
     def _write_event(self, conn: int, event: str, t: int, **details: object) -> None:
+        self._now = t
         self.file.write(TOPIC_EVENTS, t, encode(event_message(conn, event, t, **details)))
 
     def _opened(self, conn: int, c: _Conn, t: int) -> None:
@@ -267,7 +268,6 @@ class Recorder:
         self._write_event(conn, EV_OPENED, t, client=c.client, upstream=c.upstream)
 
     def _upstream_failed(self, conn: int, c: _Conn, t: int, detail: str) -> None:
-        self._now = t
         c.session.server_unreachable(detail)
         self._write_event(conn, EV_UPSTREAM_FAILED, t, by="server", detail=detail)
 
@@ -279,7 +279,6 @@ class Recorder:
 
     def _gap(self, conn: int, c: _Conn, direction: Direction, t: int, offset: int, length: int,
              detail: str) -> None:
-        self._now = t
         self._write_event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length, detail=detail)
         c.written[direction] = offset + length
         # The framer cannot know what the missing bytes were: it finishes what it

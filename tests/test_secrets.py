@@ -20,6 +20,7 @@ import base64
 import contextlib
 import json
 import os
+import re
 import threading
 from pathlib import Path
 
@@ -34,6 +35,7 @@ from analyzer.exchanges import load_exchanges
 from analyzer.recording import STREAM_TOPICS, Read, RecordingScan, metadata_record
 from analyzer.recording_info import set_info
 from analyzer.recording_set import find_one
+from analyzer.redaction import Redactor
 from analyzer.session import Direction
 from sniffer.record_run import RecordSettings
 from sniffer.recorder import Recorder
@@ -47,6 +49,7 @@ from tui.model import TrafficModel
 from tui.sources import FileSource, LiveSource, ProxyRig
 
 SECRET = b"Kx9hunter2Tq4"
+C2S, S2C = Direction.C2S, Direction.S2C
 WINDOW = 8  # any 8 bytes of the password in a row count as a leak
 COMMAND = b"rr1-24--0--0-ss1"
 SENSOR, SENSOR_ANSWER = b"rr1-3--0--0-ss1", b"cr1-3--5--0-ss1"
@@ -468,3 +471,77 @@ def test_no_sequence_of_events_puts_the_password_in_a_recording(tmp_path_factory
     recorded = streams(str(path))
     for conn in _undisturbed_vpn(kinds, ops):
         assert recorded.get((conn, "c2s"), b"") == sent.get(conn, b""), f"#{conn}: VPN bytes were masked"
+
+
+# -- the rule does not depend on how the bytes were cut into reads ----------------------------------
+
+GREETINGS = [b"sendchkpass", b"\r\nsendchkpass", b"sendch", b"", b"sr1-\x02000200-ss1", b"cr1-3--5--0-ss1"]
+
+
+@st.composite
+def arrivals(draw):
+    """A client's and a server's bytes in one arrival order, byte by byte:
+    (client bytes, server bytes, for each byte in order whether it is the client's)."""
+    client = draw(stream)
+    at = draw(st.integers(0, len(client)))
+    client = client[:at] + SECRET + client[at:]
+    server = draw(st.sampled_from(GREETINGS)) + b"".join(draw(st.lists(st.sampled_from(
+        [b"readytogo", b"Failed Validation", b"\r\n", b"cr1-0--7--0-ss1", b"sendchkpass"]), max_size=3)))
+    # how many client bytes arrived before each server byte
+    before = sorted(draw(st.lists(st.integers(0, len(client)), min_size=len(server), max_size=len(server))))
+    order: list[bool] = []
+    for n in [*before, len(client)]:
+        order += [True] * (n - order.count(True)) + [False]
+    return client, server, order[:-1]
+
+
+def _masked(client: bytes, server: bytes, order: list[bool], cuts: set[int]) -> bytes:
+    """What a Redactor lets out of the client's bytes, the arrival order cut into
+    reads at each direction change and at ``cuts``."""
+    redactor: Redactor[int] = Redactor(hold_s=1e9)
+    redactor.opened(1)
+    out = bytearray()
+    streams_ = {True: client, False: server}
+    done = {True: 0, False: 0}
+    i = 0
+    while i < len(order):
+        j = i + 1
+        while j < len(order) and order[j] == order[i] and j not in cuts:
+            j += 1
+        side = order[i]
+        data = streams_[side][done[side]:done[side] + j - i]
+        done[side] += j - i
+        redactor.read(1, C2S if side else S2C, data, 0, 0.0)
+        i = j
+        out += b"".join(r.data for r in redactor.released() if r.direction is C2S)
+    redactor.closed(1)
+    redactor.event(1, 0)
+    out += b"".join(r.data for r in redactor.released() if r.direction is C2S)
+    return bytes(out)
+
+
+@settings(max_examples=300, deadline=None)
+@given(drawn=arrivals(), cuts=st.sets(st.integers(0, 200), max_size=30))
+def test_what_is_masked_does_not_depend_on_how_reads_were_cut(drawn, cuts):
+    """Given the order in which the bytes arrived, any cutting into reads masks
+    the same client bytes as one read per byte; lengths and line breaks stay; a
+    password before the verdict of a server that asked for one is masked."""
+    client, server, order = drawn
+    one_per_byte = _masked(client, server, order, set(range(len(order))))
+    assert _masked(client, server, order, cuts) == one_per_byte
+    assert len(one_per_byte) == len(client)
+    assert all(a == b or (a == ord("*") and b not in b"\r\n") for a, b in zip(one_per_byte, client))
+    greeted = server.lstrip(b"\r\n").startswith(b"sendchkpass")
+    if greeted or not server.lstrip(b"\r\n"):
+        end = client.index(SECRET) + len(SECRET)
+        seen = 0
+        verdict = None
+        for i, is_client in enumerate(order):  # the server byte that completes the verdict
+            if not is_client:
+                seen += 1
+                if re.search(rb"readytogo|Failed Validation", server[:seen]):
+                    verdict = i
+                    break
+        before = sum(order[:verdict]) if verdict is not None else len(client)
+        if end <= before and not (not greeted and client.lstrip(b"\r\n")[:4] in (b"rr1-", b"cr1-", b"sr1-")):
+            assert SECRET not in one_per_byte
