@@ -40,9 +40,9 @@ from collections.abc import Iterator
 from enum import Enum
 from typing import Generic, NamedTuple, TypeVar
 
+from analyzer.recording import MASK_BYTE
 from analyzer.session import Direction
 
-MASK = b"*"
 HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than this
 UNDECIDED_CAP = 16 * 1024  # ... or once a connection has this many
 QUEUE_CAP = 8 << 20  # ... or once this much traffic waits behind them
@@ -153,7 +153,7 @@ class LoginMask:
         spans = []
         for m in _MASKABLE.finditer(data, 0, end):
             start, stop = m.span()
-            out[start:stop] = MASK * (stop - start)
+            out[start:stop] = MASK_BYTE * (stop - start)
             spans.append((start, stop - start))
         return bytes(out), spans
 
