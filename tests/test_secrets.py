@@ -545,3 +545,31 @@ def test_what_is_masked_does_not_depend_on_how_reads_were_cut(drawn, cuts):
         before = sum(order[:verdict]) if verdict is not None else len(client)
         if end <= before and not (not greeted and client.lstrip(b"\r\n")[:4] in (b"rr1-", b"cr1-", b"sr1-")):
             assert SECRET not in one_per_byte
+
+
+def _out(redactor: Redactor) -> list[tuple[str, bytes]]:
+    return [(r.record, r.data) for r in redactor.released()]
+
+
+def test_bytes_held_too_long_or_too_many_are_masked_never_shown():
+    """The clock and the bounds only mask: what they let out early is masked,
+    and what comes once the server has spoken follows the rule."""
+    redactor: Redactor[str] = Redactor(hold_s=2.0, queue_cap=1000)
+    redactor.opened(1)
+    redactor.read(1, C2S, COMMAND, "first", now=0.0)
+    redactor.tick(1.0)
+    assert _out(redactor) == []  # undecided, within the limit: held
+    redactor.tick(2.5)
+    assert _out(redactor) == [("first", b"*" * len(COMMAND))]
+    redactor.read(1, S2C, CONFIG, "answer", now=3.0)  # VPN: from here on nothing is masked
+    redactor.read(1, C2S, SENSOR, "second", now=3.0)
+    assert _out(redactor) == [("answer", CONFIG), ("second", SENSOR)]
+
+    redactor.opened(2)
+    redactor.read(2, C2S, b"x" * 20_000, "many", now=4.0)  # beyond the undecided cap
+    assert _out(redactor) == [("many", b"*" * 20_000)]
+    redactor.read(2, C2S, b"pw", "held", now=4.0)
+    redactor.opened(3)
+    redactor.read(3, C2S, COMMAND, "behind", now=4.0)
+    redactor.read(3, S2C, b"cr1-24--1--0-ss1" * 70, "flood", now=4.0)  # too much waits behind #2
+    assert _out(redactor) == [("held", b"**"), ("behind", COMMAND), ("flood", b"cr1-24--1--0-ss1" * 70)]
