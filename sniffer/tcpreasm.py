@@ -11,6 +11,13 @@ sender's FIN comes after them, and they still have not shown up
 after the ACK that answered it); when the connection resets or the capture
 ends; or when too much waits behind it.
 
+At most ``MAX_OPEN`` connections are followed at once, so a SYN flood costs
+bounded memory: a new one evicts a connection that has carried no byte yet
+(a half-open one), else the one idle longest.  An eviction is recorded as the
+connection closing by the recorder (detail ``EVICTED``), never silently; an
+evicted connection that sends bytes again is followed again, as a new
+connection joined mid-stream.
+
 Also here: decoding the link, IP and TCP headers of a captured frame by hand,
 which is many times faster than dissecting it with Scapy.
 """
@@ -29,6 +36,8 @@ C2S, S2C = Direction.C2S, Direction.S2C
 MAX_PENDING = 4 << 20  # bytes waiting behind a hole before it is declared a gap
 ACK_GRACE_NS = 200_000_000  # capture time an acknowledged hole waits for its bytes
 MAX_ENDED = 4096  # closed connections remembered
+MAX_OPEN = 10_000  # connections followed at once (about 6 KB each, with the recorder's session)
+EVICTED = f"evicted: too many open connections (whiztap follows at most {MAX_OPEN} at once)"
 FIN, SYN, RST, ACK = 0x01, 0x02, 0x04, 0x10
 
 # Link types (pcap LINKTYPE_* values).
@@ -157,14 +166,17 @@ class _Conn:
 class Reassembler:
     """Turns the TCP segments to and from ``port`` into stream events on ``sink``."""
 
-    def __init__(self, port: int, sink: StreamSink) -> None:
+    def __init__(self, port: int, sink: StreamSink, max_open: int = MAX_OPEN) -> None:
         self.port = port
         self.sink = sink
+        self.max_open = max_open
         self.gaps = 0
-        self._conns: dict[frozenset, _Conn] = {}
+        self._conns: OrderedDict[frozenset, _Conn] = OrderedDict()  # the one idle longest first
+        self._quiet: OrderedDict[frozenset, None] = OrderedDict()  # those that carried no byte yet, same order
         # connections closed lately (their last ACKs, and loopback's duplicate
-        # copies, still arrive); a SYN reuses the address pair for a new one
-        self._ended: OrderedDict[frozenset, None] = OrderedDict()
+        # copies, still arrive; a SYN reuses the address pair for a new one),
+        # True for those evicted (bytes from them are followed again)
+        self._ended: OrderedDict[frozenset, bool] = OrderedDict()
         self._ids = itertools.count(1)
 
     def segment(self, s: Segment) -> None:
@@ -173,10 +185,17 @@ class Reassembler:
         key = frozenset((s.src, s.dst))
         conn = self._conns.get(key)
         if conn is None:
-            if s.flags & RST or (key in self._ended and not s.flags & SYN):
+            ended = self._ended.get(key)
+            if s.flags & RST or (ended is not None and s.flags & (SYN | ACK) != SYN and not (ended and s.payload)):
                 return  # the tail of a connection already closed, or of one never seen
             self._ended.pop(key, None)
             conn = self._open(key, s)
+        else:
+            self._conns.move_to_end(key)
+            if key in self._quiet:
+                self._quiet.move_to_end(key)
+        if s.payload:
+            self._quiet.pop(key, None)
         direction = C2S if s.src == conn.client else S2C
         half = conn.halves[direction]
         if s.flags & SYN:
@@ -218,13 +237,27 @@ class Reassembler:
 
     # -- internals ---------------------------------------------------------------------
 
-    def _end(self, key: frozenset) -> None:
+    def _end(self, key: frozenset, evicted: bool = False) -> None:
         del self._conns[key]
-        self._ended[key] = None
+        self._quiet.pop(key, None)
+        self._ended[key] = evicted
         if len(self._ended) > MAX_ENDED:
             self._ended.popitem(last=False)
 
+    def _evict(self, t: int) -> None:
+        """Make room for a new connection: close the oldest half-open one, else the
+        one idle longest, giving up on any bytes it still waits for."""
+        key = next(iter(self._quiet or self._conns))
+        conn = self._conns[key]
+        for direction, half in conn.halves.items():
+            self._settle(conn, direction, t, force=True)
+            self._flush_pending(conn, direction, half, t)
+        self._end(key, evicted=True)
+        self.sink.closed(conn.id, t, "recorder", EVICTED)
+
     def _open(self, key: frozenset, s: Segment) -> _Conn:
+        if len(self._conns) >= self.max_open:
+            self._evict(s.t_ns)
         if s.flags & SYN and not s.flags & ACK:
             client, server = s.src, s.dst
         elif s.src[1] == self.port and s.dst[1] != self.port:
@@ -235,6 +268,7 @@ class Reassembler:
         if not s.flags & SYN:
             conn.established = True  # joined mid-stream
         self._conns[key] = conn
+        self._quiet[key] = None
         self.sink.opened(conn.id, s.t_ns, endpoint_text(client), endpoint_text(server))
         return conn
 

@@ -5,16 +5,22 @@ is kept, never to how long the abuse goes on."""
 from __future__ import annotations
 
 import json
+import struct
 import subprocess
 import sys
-from collections import deque
+from collections import Counter, deque
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from analyzer import pairing
 from analyzer.examples import CONFIG, VPN_OPEN
+from analyzer.recording import TOPIC_EVENTS, RecordingScan
 from analyzer.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
+from sniffer.recorder import Recorder
+from sniffer.tcpreasm import ACK, DLT_EN10MB, EVICTED, FIN, MAX_OPEN, SYN, Reassembler, parse_frame
+from sniffer.writer import RecordingFile
+from tests.record_support import WHIZTAP, streams
 from tests.streams import TINY_JPEG
 from tests.test_session import SlowSession, _shape
 
@@ -261,3 +267,145 @@ def test_indexed_pairing_gives_the_verdicts_of_a_plain_scan(steps, configured, k
     assert fast.violation_counts == reference.violation_counts
     assert {k: (v.count, v.total) for k, v in fast.latencies.items()} == \
         {k: (v.count, v.total) for k, v in reference.latencies.items()}
+
+
+# -- SYN floods ------------------------------------------------------------------------------
+
+PSH = 0x08
+SERVER = ("10.0.0.9", 5000)
+REAL = ("10.0.0.2", 40000)
+REAL_C2S, REAL_S2C = b"rr1-24--0--0-ss1", b"sr1-\x01200-ss1"
+
+
+def _frame(src: tuple[str, int], dst: tuple[str, int], seq: int, ack: int, flags: int, payload: bytes = b"") -> bytes:
+    """An Ethernet/IPv4/TCP frame, by hand: Scapy takes a minute for 100k of them."""
+    tcp = struct.pack("!HHIIBBHHH", src[1], dst[1], seq & 0xFFFFFFFF, ack, 5 << 4, flags, 65535, 0, 0)
+    ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(tcp) + len(payload), 0, 0, 64, 6, 0,
+                     bytes(map(int, src[0].split("."))), bytes(map(int, dst[0].split("."))))
+    return b"\x00" * 12 + b"\x08\x00" + ip + tcp + payload
+
+
+def _flood(syns: int, syn_acks: bool = False) -> list[bytes]:
+    """``syns`` SYNs from distinct clients to SERVER, never completed (each
+    answered by a SYN-ACK if asked), and one real connection in the middle:
+    handshake, a request and its answer, then (after the flood) FINs."""
+    ic, is_ = 1000, 9000
+    frames = []
+    for i in range(syns):
+        if i == syns // 2:
+            frames += [_frame(REAL, SERVER, ic, 0, SYN), _frame(SERVER, REAL, is_, ic + 1, SYN | ACK),
+                       _frame(REAL, SERVER, ic + 1, is_ + 1, ACK),
+                       _frame(REAL, SERVER, ic + 1, is_ + 1, PSH | ACK, REAL_C2S),
+                       _frame(SERVER, REAL, is_ + 1, ic + 17, PSH | ACK, REAL_S2C)]
+        client = ("10.%d.%d.%d" % (1 + i // 60_000, i // 250 % 240, 1 + i % 250), 1024 + i % 60_000)
+        frames.append(_frame(client, SERVER, i * 7919, 0, SYN))
+        if syn_acks:
+            frames.append(_frame(SERVER, client, i, i * 7919 + 1, SYN | ACK))
+    c_end, s_end = ic + 1 + len(REAL_C2S), is_ + 1 + len(REAL_S2C)
+    frames += [_frame(REAL, SERVER, c_end, s_end, FIN | ACK), _frame(SERVER, REAL, s_end, c_end + 1, FIN | ACK),
+               _frame(REAL, SERVER, c_end + 1, s_end + 1, ACK)]
+    return frames
+
+
+def _write_pcap(path, frames: list[bytes]) -> None:  # noqa: ANN001
+    with open(path, "wb") as f:
+        f.write(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, DLT_EN10MB))
+        for i, frame in enumerate(frames):
+            f.write(struct.pack("<IIII", 1_700_000_000 + i // 1_000_000, i % 1_000_000, len(frame), len(frame)))
+            f.write(frame)
+
+
+class CountingRecorder(Recorder):
+    """A real recorder that also counts the connections it is told are open."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.open_now = self.most_open = 0
+
+    def opened(self, conn, t_ns, client, upstream):  # noqa: ANN001
+        super().opened(conn, t_ns, client, upstream)
+        self.open_now += 1
+        self.most_open = max(self.most_open, self.open_now)
+
+    def closed(self, conn, t_ns, by, detail=""):  # noqa: ANN001
+        super().closed(conn, t_ns, by, detail)
+        self.open_now -= 1
+
+
+def _reassemble(path, frames: list[bytes], max_open: int) -> CountingRecorder:  # noqa: ANN001
+    recorder = CountingRecorder(RecordingFile(str(path), {"source": "pcap"}), keep_secrets=True)
+    recorder.start(1)
+    reassembler = Reassembler(SERVER[1], recorder, max_open)
+    t = 1
+    for t, frame in enumerate(frames, start=2):
+        reassembler.segment(parse_frame(DLT_EN10MB, frame, t))
+    reassembler.finish(t)
+    recorder.stop(t)
+    return recorder
+
+
+def _events(path) -> list[dict]:  # noqa: ANN001
+    with open(path, "rb") as f:
+        return [m for _, _, m in RecordingScan(f, (TOPIC_EVENTS,)).messages()]
+
+
+def _closes(events: list[dict]) -> Counter:
+    return Counter(e["detail"] for e in events if e["event"] == "closed")
+
+
+def test_a_syn_flood_keeps_at_most_max_open_connections_each_closed_on_record(tmp_path):
+    """Half-open connections are evicted first, each recorded as closed with a
+    reason; their SYN-ACKs do not bring them back; the real connection, which
+    carried bytes, is recorded whole."""
+    syns, cap = 3000, 100
+    recorder = _reassemble(tmp_path / "flood.mcap", _flood(syns, syn_acks=True), cap)
+    assert recorder.most_open == cap
+    events = _events(tmp_path / "flood.mcap")
+    opened = [e for e in events if e["event"] == "opened"]
+    assert len(opened) == syns + 1
+    assert _closes(events) == {EVICTED: syns + 1 - cap, "the capture ended": cap - 1, "closed": 1}
+    [real] = [e["conn"] for e in opened if e["client"] == "%s:%d" % REAL]
+    recorded = streams(str(tmp_path / "flood.mcap"))
+    assert (recorded[(real, "c2s")], recorded[(real, "s2c")]) == (REAL_C2S, REAL_S2C)
+
+
+def test_an_evicted_connection_that_sends_again_is_followed_again(tmp_path):
+    a, b, c = ("10.0.0.3", 41000), ("10.0.0.4", 41000), ("10.0.0.5", 41000)
+    frames = [_frame(a, SERVER, 0, 0, PSH | ACK, b"rr1-24"), _frame(b, SERVER, 0, 0, PSH | ACK, b"rr1-24--0--0-ss1"),
+              _frame(c, SERVER, 0, 0, SYN),  # a, idle longest, makes room
+              _frame(a, SERVER, 6, 0, PSH | ACK, b"--0--0-ss1"),  # and is back: c, half-open, makes room
+              _frame(a, SERVER, 16, 0, ACK)]
+    _reassemble(tmp_path / "evict.mcap", frames, max_open=2)
+    events = _events(tmp_path / "evict.mcap")
+    assert [(e["event"], e["conn"], e.get("detail")) for e in events if e["event"] in ("opened", "closed")] == [
+        ("opened", 1, None), ("opened", 2, None), ("closed", 1, EVICTED), ("opened", 3, None),
+        ("closed", 3, EVICTED), ("opened", 4, None), ("closed", 2, "the capture ended"),
+        ("closed", 4, "the capture ended")]
+    recorded = streams(str(tmp_path / "evict.mcap"))
+    assert (recorded[(1, "c2s")], recorded[(4, "c2s")]) == (b"rr1-24", b"--0--0-ss1")
+
+
+_CAPTURE = """
+import resource, subprocess, sys
+done = subprocess.run(sys.argv[1:], capture_output=True, text=True)
+print(done.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss // 1024, repr(done.stderr))
+"""
+
+
+def test_capture_of_a_syn_flood_stays_within_bounded_memory(tmp_path):
+    """100k half-open connections: ``whiztap capture --pcap`` grew by about
+    7 KB each (878 MB for 120k) and kept them all; it now follows at most MAX_OPEN."""
+    syns = 100_000
+    pcap, out = tmp_path / "flood.pcap", tmp_path / "flood.mcap"
+    _write_pcap(pcap, _flood(syns))
+    command = [WHIZTAP, "capture", "--pcap", str(pcap), "--port", str(SERVER[1]), "-o", str(out), "-q", "--keep-secrets"]
+    done = subprocess.run([sys.executable, "-c", _CAPTURE, *command], capture_output=True, text=True,
+                          timeout=300, check=True)
+    status, maxrss_mb, stderr = done.stdout.split(" ", 2)
+    assert (status, stderr.strip()) == ("0", "''")
+    assert int(maxrss_mb) < 250
+    events = _events(out)
+    assert _closes(events) == {EVICTED: syns + 1 - MAX_OPEN, "the capture ended": MAX_OPEN - 1, "closed": 1}
+    [real] = [e["conn"] for e in events if e["event"] == "opened" and e["client"] == "%s:%d" % REAL]
+    recorded = streams(str(out))
+    assert (recorded[(real, "c2s")], recorded[(real, "s2c")]) == (REAL_C2S, REAL_S2C)
