@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from analyzer.session import Limits
 from sniffer.recorder import Recorder
 from sniffer.tcpreasm import DLT_EN10MB, DLT_RAW, Reassembler, parse_frame
-from sniffer.writer import RecordingFile, RecordingWriteError
+from sniffer.writer import STOP_SIGNALS, RecordingFile, RecordingWriteError
 
 TICK_EVERY = 2048  # packets between flush/rotation checks when importing
 SNAP = 1 << 18  # larger than any frame on a 64 KiB-MTU loopback
@@ -40,6 +40,7 @@ class CaptureSettings:
     keep_secrets: bool = False
     checksum_rule: str = "dev-sum"
     limits: Limits = Limits()
+    overwrite: bool = True  # as RecordSettings.overwrite
 
 
 def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: object) -> Recorder:
@@ -49,7 +50,8 @@ def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: ob
                              server_port=settings.port, split_size=settings.split_size,
                              split_duration=settings.split_duration, **extra)
     split_ns = int(settings.split_duration * 1e9) if settings.split_duration else None
-    file = RecordingFile(settings.output, metadata, split_size=settings.split_size, split_duration_ns=split_ns)
+    file = RecordingFile(settings.output, metadata, split_size=settings.split_size, split_duration_ns=split_ns,
+                         overwrite=settings.overwrite)
     return Recorder(file, keep_secrets=settings.keep_secrets, checksum_rule=settings.checksum_rule,
                     limits=settings.limits)
 
@@ -156,11 +158,12 @@ def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
 
 def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = None,
                  timeout: float | None = None, announce: Callable[[str], None] | None = None) -> dict:
-    """Record traffic to ``settings.port`` seen on ``iface`` until Ctrl-C, SIGTERM,
+    """Record traffic to ``settings.port`` seen on ``iface`` until Ctrl-C, SIGTERM, SIGHUP,
     ``count`` packets or ``timeout`` seconds; the summary.
 
-    Ctrl-C and SIGTERM only set a flag, so a packet is never half processed; the
-    packets the kernel has already queued for the socket are still recorded."""
+    The signals (a closed terminal sends SIGHUP) only set a flag, so a packet is
+    never half processed; the packets the kernel has already queued for the
+    socket are still recorded."""
     sock = _open_live(iface, settings.port)
     start = time.time_ns()
     recorder = _recorder(settings, "live", start, iface=iface)
@@ -170,7 +173,7 @@ def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = N
         nonlocal stop
         stop = True
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
     t = start
     try:
         recorder.start(start, detail=f"live capture on {iface}, port {settings.port}")

@@ -343,7 +343,15 @@ class WriterProcess:
 
 
 def _say(message: dict) -> None:
-    os.write(1, json.dumps(message).encode() + b"\n")
+    """One status line to the proxy.  A proxy that is gone (killed on its own)
+    hears nothing more, but the recording must still be finished: the first
+    failed write points stdout at /dev/null and later ones go nowhere."""
+    try:
+        os.write(1, json.dumps(message).encode() + b"\n")
+    except OSError:  # EPIPE: nobody reads the other end any more
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
 
 
 def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
@@ -390,11 +398,15 @@ def _run(config: dict[str, Any]) -> int:
         stop_requested = True
 
     os.nice(WRITER_NICE)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Ctrl-C and a closed terminal reach the whole process group: the proxy
+    # decides when to stop and says so with a stop record (or dies, and the pipe
+    # closes).  A broken status pipe is an error to survive, not a death.
+    for ignored in (signal.SIGINT, signal.SIGHUP, signal.SIGPIPE):
+        signal.signal(ignored, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a file size limit is an error to report, not a death
     file = RecordingFile(config["path"], config["metadata"], split_size=config.get("split_size"),
-                         split_duration_ns=config.get("split_duration_ns"))
+                         split_duration_ns=config.get("split_duration_ns"), overwrite=config.get("overwrite", True))
     recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
                         checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
                         on_violation=_violation_report if config.get("analyze") else None)

@@ -105,6 +105,7 @@ class McapWriter:
         self._slots: dict[int, tuple[bytearray, list[int], _OpenChunk]] = {}
         self._chunk_indexes: list[bytes] = []
         self._metadata_indexes: list[bytes] = []
+        self.index_size = 0  # bytes of chunk indexes so far: finish() writes them in the summary
         self._start = self._end = None  # message times over the file
         self.message_count = 0
 
@@ -203,6 +204,7 @@ class McapWriter:
                                            + struct.pack("<I", len(offsets)) + offsets
                                            + struct.pack("<Q", len(indexes)) + _str(self.compression)
                                            + struct.pack("<QQ", len(compressed), len(records))))
+        self.index_size += len(self._chunk_indexes[-1])
         self._start = start if self._start is None else min(self._start, start)
         self._end = end if self._end is None else max(self._end, end)
         open_chunk.records.clear()

@@ -9,13 +9,14 @@ from __future__ import annotations
 import datetime
 import os
 import socket
+import sys
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import click
 
-from analyzer.cli import ByteSize, fail, limits_from, limits_options, recording_output
+from analyzer.cli import ByteSize, check_output, fail, force_option, limits_from, limits_options, recording_output
 
 def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, int]:
     """HOST:PORT, [V6]:PORT, or PORT alone when a default host is given."""
@@ -30,6 +31,20 @@ def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, 
     if not port.isdigit() or int(port) > 65535:
         fail(f"{what} needs a port number 0-65535, got {text!r}")
     return host, int(port)
+
+
+def say(line: str) -> None:
+    """Print a line for the user.  Once standard output is gone (a closed
+    terminal gives EIO, a closed pipe EPIPE) print nothing more: the recording
+    still has to be finished, and the interpreter's last flush must not fail."""
+    from analyzer.text import printable  # lines quote clients and servers: shown, never obeyed
+
+    try:
+        click.echo(printable(line))
+    except OSError:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
 
 
 def human_bytes(n: int) -> str:
@@ -88,23 +103,33 @@ def check_checksum_rule(name: str | None) -> str:
         fail(str(e))
 
 
-def check_output_free(output: str, split: bool, force: bool) -> None:
-    """Refuse to write over a recording, or over the ``.part`` a crashed one
-    left (which 'whiztap recover' could still save), unless --force."""
-    from analyzer.recording_set import part_path
-
-    recording_output(output)
-    if force:
-        return
-    first = part_path(output, 1 if split else None)
-    if os.path.exists(first):
-        fail(f"{first} exists; use --force to overwrite it or -o to choose another name")
-    if os.path.exists(first + ".part"):
-        fail(f"{first}.part exists (a recording cut short?): run 'whiztap recover {first}.part' to save it, "
-             f"or use --force to overwrite it")
+def check_output_free(output: str, split: bool, force: bool, inputs: Iterable[str] = ()) -> None:
+    """The output rule (analyzer.output_rule) for a recording: never over an
+    input; not over a recording, or the ``.part`` a crashed one left (which
+    'whiztap recover' could still save), unless --force."""
+    check_output(output, inputs, force=force, recording=True, split=split)
+    if split and not force:
+        later = existing_parts(output)
+        if later:
+            fail(f"{later[0]} exists (a part of another recording?); "
+                 f"use --force to overwrite it or -o to choose another name")
 
 
-_FORCE = click.option("--force", is_flag=True, help="Write over a recording of the same name.")
+def existing_parts(output: str) -> list[str]:
+    """The numbered parts of ``output`` already there (``NAME-0002.mcap``, its
+    ``.part``; a link counts, even dangling): a split recording refuses them all
+    at start, rather than stop when it reaches one hours later."""
+    import glob
+    import re
+
+    stem, ext = os.path.splitext(output)
+    ext = ext or ".mcap"
+    name = re.compile(re.escape(stem) + r"-\d{4,}" + re.escape(ext) + r"(\.part)?")
+    pattern = glob.escape(stem) + "-[0-9][0-9][0-9][0-9]*" + glob.escape(ext) + "*"
+    return sorted(p for p in glob.glob(pattern) if name.fullmatch(p))
+
+
+_FORCE = force_option
 
 _split_options = [
     click.option("--split-size", type=ByteSize(), default=None,
@@ -114,7 +139,6 @@ _split_options = [
     click.option("--keep-secrets", is_flag=True,
                  help="Record the password as sent (default: '*' bytes and <redacted>)."),
     click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules')."),
-    click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors."),
     _FORCE,
 ]
 
@@ -133,6 +157,8 @@ def _with_options(options: list) -> Callable:
 @click.option("--upstream", required=True, metavar="HOST:PORT", help="The real server.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
 @_with_options(_split_options)
+@click.option("-q", "--quiet", is_flag=True,
+              help="Print only the first line (it names the listening address) and errors.")
 @click.option("--analyze", is_flag=True, help="Print each violation as it happens.")
 @click.option("--connect-timeout", type=click.FloatRange(min=0.01), default=5.0, show_default=True,
               metavar="SECONDS", help="How long to try the upstream for each client.")
@@ -159,7 +185,7 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
 
     settings = RecordSettings(listen_addr, upstream_addr, output, split_size, split_duration, keep_secrets, rule,
                               quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
-                              when_behind=when_behind)
+                              overwrite=force, when_behind=when_behind)
     error = _run_loop(lambda: run_record(settings))
     if error:
         fail(str(error))
@@ -169,7 +195,7 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
 @click.argument("path", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Where to write (default: PATH without .part, or NAME.recovered.mcap).")
-@click.option("--force", is_flag=True, help="Overwrite the output if it exists.")
+@force_option
 def recover_command(path: str, output: str | None, force: bool) -> None:
     """Turn a .mcap.part left by a crash into a valid, indexed MCAP file.
 
@@ -183,8 +209,7 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
         result = recover(path, output, force=force)
     except RecoverError as e:
         fail(str(e))
-    tail = "" if result.complete else " (the rest of the file was cut off mid-write)"
-    click.echo(f"recovered {result.messages} messages into {result.output}{tail}")
+    click.echo(result.summary())
 
 
 @click.command("capture")
@@ -194,6 +219,7 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
 @click.option("--port", type=click.IntRange(1, 65535), required=True, help="The server's TCP port.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
 @_with_options(_split_options)
+@click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
 @click.option("--count", type=click.IntRange(min=1), default=None, help="Live: stop after this many packets.")
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=None, metavar="SECONDS",
               help="Live: stop after this long.")
@@ -212,11 +238,12 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
     if (pcap is None) == (iface is None):
         fail("give exactly one of --pcap FILE or --iface NAME")
     rule = check_checksum_rule(checksum_rule)
-    check_output_free(output, split_size is not None or split_duration is not None, force)
+    check_output_free(output, split_size is not None or split_duration is not None, force,
+                      inputs=[pcap] if pcap is not None else [])
     from sniffer.capture import CaptureError, CaptureSettings, capture_live, import_pcap
 
     settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule,
-                               limits_from(answer_timeout, max_frame, max_image))
+                               limits_from(answer_timeout, max_frame, max_image), overwrite=force)
     try:
         if pcap is not None:
             from analyzer.analyze_cli import ByteProgress
@@ -226,9 +253,9 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
                 summary = import_pcap(pcap, settings, progress=bar.update)
         else:
             summary = capture_live(iface, settings, count=count, timeout=timeout,  # type: ignore[arg-type]
-                                   announce=None if quiet else click.echo)
+                                   announce=None if quiet else say)
     except CaptureError as e:
         fail(str(e))
     if not quiet:
         for line in summary_lines(summary, "captured"):
-            click.echo(line)
+            say(line)

@@ -7,14 +7,12 @@ event loop, and so the command module stays cheap to import.
 from __future__ import annotations
 
 import asyncio
-import signal
 from dataclasses import dataclass
-
-import click
 
 from analyzer.session import Limits
 from sniffer.feed import WriterError, WriterProcess
 from sniffer.proxy import Connection, RecordingProxy, address
+from sniffer.writer import STOP_SIGNALS
 
 
 @dataclass(frozen=True)
@@ -30,6 +28,9 @@ class RecordSettings:
     analyze: bool = False
     connect_timeout: float = 5.0
     limits: Limits = Limits()
+    # replace files at the recording's names (the command checked them at start,
+    # and refuses unless --force); False: a name taken while recording stops it
+    overwrite: bool = True
     when_behind: str = "pause"  # what happens to the connections that put the writer behind: "pause" or "gap"
 
 
@@ -71,7 +72,7 @@ class Recording:
         config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
                   "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
                   "limits": s.limits.as_dict(),
-                  "split_size": s.split_size,
+                  "split_size": s.split_size, "overwrite": s.overwrite,
                   "split_duration_ns": int(s.split_duration * 1e9) if s.split_duration else None,
                   "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}}
         self.writer = writer = WriterProcess(config, s.when_behind)
@@ -111,9 +112,9 @@ class Recording:
 
 async def run_record(settings: RecordSettings) -> str | None:
     """The whole command: record until Ctrl-C, SIGTERM or a write error; the error."""
-    from sniffer.record_cli import summary_lines
+    from sniffer.record_cli import say, summary_lines
 
-    echo = (lambda line: None) if settings.quiet else (lambda line: click.echo(line))
+    echo = (lambda line: None) if settings.quiet else say
     recording = Recording(settings, echo)
     try:
         await recording.start()
@@ -122,15 +123,16 @@ async def run_record(settings: RecordSettings) -> str | None:
     except OSError as e:
         return f"cannot listen on {address(settings.listen)}: {e.strerror or e}"
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, recording.stopped.set)
     proxy = recording.proxy
-    echo(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output} "  # type: ignore[union-attr]
-         f"(Ctrl-C to stop)")
+    # even with -q: with port 0 this line is the only way to learn the port
+    say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output} "  # type: ignore[union-attr]
+        f"(Ctrl-C to stop)")
     await recording.stopped.wait()
     detail = "write error" if recording.error else "recording stopped"
     summary = await recording.stop(detail)
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in STOP_SIGNALS:
         loop.remove_signal_handler(sig)
     if summary is not None:
         for line in summary_lines(summary, "recorded"):

@@ -24,6 +24,7 @@ from analyzer.recording import (
     SCHEMA_ENCODING,
     TOPIC_FRAMES,
     TOPIC_READS,
+    RecordingScan,
     rebuild_streams,
     stream_bytes,
 )
@@ -139,24 +140,19 @@ class RecordProcess:
     @classmethod
     async def start(cls, upstream: int, output: Path, *args: str, preexec_fn=None,
                     new_session: bool = False) -> RecordProcess:  # noqa: ANN001
-        quiet = "-q" in args
-        port = closed_port() if quiet else 0  # -q prints no port to read back
         proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "record", "--listen", f"127.0.0.1:{port}", "--upstream", f"{LOCAL}:{upstream}",
+            WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{upstream}",
             "-o", str(output), *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
             preexec_fn=preexec_fn, start_new_session=new_session)
         rec = cls(proc)
-        if quiet:
-            rec.port = port
-            return rec
-        first = await asyncio.wait_for(proc.stdout.readline(), WAIT)
+        first = await asyncio.wait_for(proc.stdout.readline(), WAIT)  # printed even with -q
         m = _LISTENING.match(first)
         assert m, first + await proc.stderr.read()
         rec.port = int(m.group(1))
         return rec
 
     async def connect(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-        """Connect through the proxy, waiting for it to listen (with -q nothing says when)."""
+        """Connect through the proxy (its first line said it listens; tries again for a little while)."""
         for _ in range(int(WAIT * 100)):
             try:
                 return await asyncio.open_connection(LOCAL, self.port)
@@ -211,15 +207,48 @@ def streams(path: str, topic: str = TOPIC_READS) -> dict[tuple[int, str], bytes]
 
 
 def both_ways(path: str) -> dict[tuple[int, str], bytes]:
-    """The streams rebuilt from /tcp/reads, checked equal to those from /frames."""
+    """The streams rebuilt from /tcp/reads, checked equal to those from /frames
+    (a run of unframed bytes whose raw /frames leaves out has its bytes taken
+    from the reads: its offset and size must fit them)."""
     from_reads = streams(path, TOPIC_READS)
-    from_frames = streams(path, TOPIC_FRAMES)
-    assert from_reads == from_frames
+    from_frames: dict[tuple[int, str], bytearray] = {}
+    with open(path, "rb") as f:
+        for _, _, m in RecordingScan(f, (TOPIC_FRAMES,)).messages():
+            key = (m["conn"], m["dir"])
+            got = from_frames.setdefault(key, bytearray())
+            assert m["offset"] == len(got)
+            raw = base64.b64decode(m["raw"])
+            if m.get("elided"):
+                assert not raw
+                raw = from_reads[key][m["offset"]:m["offset"] + m["size"]]
+            assert len(raw) == m["size"]
+            got += raw
+    assert from_reads == {key: bytes(got) for key, got in from_frames.items()}
     return from_reads
 
 
 def frame_items(frames: list[dict], conn: int, direction: str) -> list[tuple[str, bytes]]:
     return [(f["kind"], base64.b64decode(f["raw"])) for f in frames if f["conn"] == conn and f["dir"] == direction]
+
+
+def check_frames(frames: list[dict], conn: int, direction: str, data: bytes) -> None:
+    """One direction's /frames messages are the items of framing its whole
+    stream, except that a run of unframed items and line breaks may be one
+    message (with ``items``, and without its raw when ``elided``)."""
+    items = framed(data)
+    i = 0
+    for f in frames:
+        if (f["conn"], f["dir"]) != (conn, direction):
+            continue
+        group = items[i:i + f.get("items", 1)]
+        i += len(group)
+        raw = b"".join(r for _, r in group)
+        if "items" in f:
+            assert len(group) == f["items"] and {k for k, _ in group} <= {"unframed", "eol"}
+            assert f["size"] == len(raw) and (f["elided"] or base64.b64decode(f["raw"]) == raw)
+        else:
+            assert group == [(f["kind"], base64.b64decode(f["raw"]))]
+    assert i == len(items)
 
 
 def framed(data: bytes) -> list[tuple[str, bytes]]:
