@@ -16,6 +16,7 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import os
 import re
 import struct
 import zlib
@@ -368,19 +369,42 @@ def metadata_record(**values: Any) -> dict[str, str]:
 MAGIC = b"\x89MCAP0\r\n"
 _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x03, 0x04, 0x05, 0x06
 _OP_MESSAGE_INDEX, _OP_METADATA, _OP_DATA_END, _OP_FOOTER = 0x07, 0x0C, 0x0F, 0x02
-_MAX_RECORD = 256 << 20  # no record whiztap writes comes near this: a larger length means damage
+_OP_READ = frozenset((_OP_CHUNK, _OP_CHANNEL, _OP_MESSAGE, _OP_METADATA))  # what a scan looks inside
+_OP_NAMES = {_OP_CHUNK: "chunk", _OP_MESSAGE_INDEX: "message index", _OP_METADATA: "metadata record",
+             _OP_CHANNEL: "channel record", _OP_MESSAGE: "message"}
+MAX_CHUNK_ENV = "WHIZTAP_MAX_CHUNK"
+DEFAULT_MAX_CHUNK = 256 << 20
+_MIB = 1 << 20
 _RECORD_HEAD = struct.Struct("<BQ")
 _RECORD_HEAD_CHANNEL = struct.Struct("<BQH")  # opcode, length, then a Message's channel id
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _CHUNK_HEAD = struct.Struct("<QQQI")
-_MESSAGE_DATA_AT = 9 + 2 + 4 + 8 + 8  # record head, channel id, sequence, log and publish time
+_FILE_END = struct.Struct("<BQQQI8s")  # the Footer record and the closing magic
+_MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log and publish time
+_MESSAGE_DATA_AT = 9 + _MESSAGE_FIXED
+_MAX_INT = 10 ** 19  # integers in messages are ids, counts, offsets and times: non-negative, 19 digits at most
 _READ_JSON = re.compile(
-    rb'\{"conn":(\d+),"dir":"(c2s|s2c)","t_ns":(\d+),"offset":(\d+),"size":\d+,'
+    rb'\{"conn":(\d{1,19}),"dir":"(c2s|s2c)","t_ns":(\d{1,19}),"offset":(\d{1,19}),"size":\d+,'
     rb'(?:"redacted":\[[\d,\[\]]*\],)?"data":"([A-Za-z0-9+/=]*)"\}')
 
 
 class RecordingError(Exception):
     """The file is not a recording whiztap can read (message says why, in one line)."""
+
+
+class DamagedRecord(ValueError):
+    """A record whose lengths or contents do not add up.  The message says
+    what, not where: ``RecordingScan`` and ``whiztap recover`` add the offset."""
+
+
+class TooBig(DamagedRecord):
+    """A record, or a chunk's contents, claiming more than ``max_chunk()``."""
+
+    def __init__(self, size: int, limit: int, what: str = "") -> None:
+        advice = (f"; if you trust it, {MAX_CHUNK_ENV}={-(-size // _MIB)}M lets whiztap read it"
+                  if size < 1 << 40 else "")
+        super().__init__(f"claims {size} bytes{what}, more than readers take ({_mib(limit)}): the file is "
+                         f"damaged or a decompression bomb{advice}")
 
 
 class Read(NamedTuple):
@@ -396,38 +420,172 @@ class Segment(NamedTuple):
     data: bytes
 
 
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
+def max_chunk() -> int:
+    """The most bytes a reader takes for one record or one chunk's contents.
+
+    Whiztap's chunks hold about 1 MiB; one 32 MiB camera image (the framer's
+    default --max-image) makes a chunk of about 200 MiB of JSON.  A file that
+    claims more is damaged or a decompression bomb, refused before anything is
+    allocated.  A file you trust that needs more is read with WHIZTAP_MAX_CHUNK
+    set higher (a byte count: 512M, 2G); it is read here, in one place.
+    """
+    value = os.environ.get(MAX_CHUNK_ENV, "")
+    if not value:
+        return DEFAULT_MAX_CHUNK
+    import click
+
+    from analyzer.cli import ByteSize
+
     try:
-        if compression == "":
-            return data
-        if compression == "zstd":
-            import zstandard
+        return ByteSize().convert(value, None, None)
+    except click.BadParameter as e:
+        raise RecordingError(f"{MAX_CHUNK_ENV}: {e.message}") from None
 
-            return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-        if compression == "lz4":
-            import lz4.frame
 
-            return lz4.frame.decompress(data)
+def _mib(n: int) -> str:
+    return f"{n} bytes" if n < _MIB else f"{n / _MIB:g} MiB"
+
+
+def _decompress(compression: str, data: memoryview, size: int) -> bytes:
+    """A compressed chunk's records, which must be exactly ``size`` bytes, as it claims.
+
+    Decompressed as a stream that stops one byte past the claim: memory grows
+    with the real output, never past what the chunk claims (which the caller
+    has checked against ``max_chunk``)."""
+    if compression not in _DECOMPRESSORS:
+        raise DamagedRecord(f"its compression {compression!r} is none whiztap reads (zstd, lz4 or none)")
+    try:
+        out = _DECOMPRESSORS[compression](data, size + 1)
     except Exception as e:  # noqa: BLE001 - each library has its own error types for damaged data
-        raise RecordingError(f"a {compression} chunk does not decompress ({e}): the file is damaged") from None
-    raise RecordingError(f"unsupported chunk compression {compression!r}")
+        raise DamagedRecord(f"its {compression} data does not decompress: {e}") from None
+    if len(out) > size:
+        raise DamagedRecord(f"it holds more than the {size} bytes it claims")
+    if len(out) < size:
+        raise DamagedRecord(f"it holds {len(out)} bytes, not the {size} it claims")
+    return out
 
 
-def _string(buf: bytes, pos: int) -> tuple[str, int]:
+def _zstd(data: memoryview, most: int) -> bytes:
+    import zstandard
+
+    read = zstandard.ZstdDecompressor().stream_reader(data).read
+    pieces: list[bytes] = []
+    got = 0
+    while got < most and (piece := read(most - got)):
+        pieces.append(piece)
+        got += len(piece)
+    return b"".join(pieces)
+
+
+def _lz4(data: memoryview, most: int) -> bytes:
+    import lz4.frame
+
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    pieces = [decompressor.decompress(data, max_length=most)]
+    got = len(pieces[0])
+    while got < most and pieces[-1] and not decompressor.eof:
+        pieces.append(decompressor.decompress(b"", max_length=most - got))
+        got += len(pieces[-1])
+    return b"".join(pieces)
+
+
+_DECOMPRESSORS = {"zstd": _zstd, "lz4": _lz4}
+
+
+def open_chunk(body: bytes, limit: int, validate_crc: bool = True) -> tuple[bytes, int, int]:
+    """The records in a Chunk record (``body``: the record without its 9-byte
+    head) as ``(buffer, start, end)``: they are ``buffer[start:end]``,
+    decompressed within ``limit`` to exactly the size the chunk claims, and CRC
+    checked.  Uncompressed records are not copied out of ``body``: a chunk
+    costs its size once.  ``DamagedRecord`` (``TooBig``) says what is wrong."""
+    try:
+        _start, _end, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
+        compression, pos = _string(body, _CHUNK_HEAD.size, len(body))
+        n = _U64.unpack_from(body, pos)[0]
+    except (struct.error, UnicodeDecodeError) as e:
+        raise DamagedRecord(f"its header does not add up: {e}") from None
+    if pos + 8 + n > len(body):
+        raise DamagedRecord(f"it claims {n} bytes of data in a record of {len(body)}")
+    if size > limit:
+        raise TooBig(size, limit, " uncompressed")
+    if compression == "":
+        if n != size:
+            raise DamagedRecord(f"it holds {n} bytes, not the {size} it claims")
+        records, start = body, pos + 8
+    else:
+        records, start = _decompress(compression, memoryview(body)[pos + 8:pos + 8 + n], size), 0
+    if validate_crc and crc and zlib.crc32(memoryview(records)[start:start + size]) != crc:
+        raise DamagedRecord("its CRC does not match its contents")
+    return records, start, start + size
+
+
+def _skip(f: IO[bytes], n: int) -> bool:
+    """Read past ``n`` bytes of ``f`` a MiB at a time (a stream may not seek);
+    False when it ends first."""
+    while n > 0:
+        got = len(f.read(min(n, _MIB)))
+        if not got:
+            return False
+        n -= got
+    return True
+
+
+def _string(buf: bytes, pos: int, end: int) -> tuple[str, int]:
     n = _U32.unpack_from(buf, pos)[0]
-    return buf[pos + 4:pos + 4 + n].decode(), pos + 4 + n
+    stop = pos + 4 + n
+    if stop > end:
+        raise DamagedRecord(f"a string of {n} bytes runs past the end of its record")
+    return buf[pos + 4:stop].decode(), stop
 
 
-def _metadata(buf: bytes, pos: int) -> tuple[str, dict[str, str]]:
+def _metadata(buf: bytes, pos: int, end: int) -> tuple[str, dict[str, str]]:
     """A Metadata record's name and string map, from its content at pos."""
-    name, pos = _string(buf, pos)
+    name, pos = _string(buf, pos, end)
     limit = pos + 4 + _U32.unpack_from(buf, pos)[0]
+    if limit > end:
+        raise DamagedRecord("its map runs past the end of the record")
     pos += 4
     values: dict[str, str] = {}
     while pos < limit:
-        key, pos = _string(buf, pos)
-        values[key], pos = _string(buf, pos)
+        key, pos = _string(buf, pos, limit)
+        values[key], pos = _string(buf, pos, limit)
     return name, values
+
+
+def _misfit(message: Any, schema: dict) -> str | None:
+    """Why a decoded message does not fit its schema's top-level fields (None
+    when it does): readers then use those fields without checking them."""
+    if type(message) is not dict:
+        return "not a JSON object"
+    for key in schema["required"]:
+        if key not in message:
+            return f"no {key!r}"
+    properties = schema["properties"]
+    for key, value in message.items():
+        spec = properties.get(key)
+        if spec is not None and not _fits(value, spec["type"]):
+            return f"{key!r} is not {spec['type'] if isinstance(spec['type'], str) else ' or '.join(spec['type'])}"
+    if message.get("dir", "c2s") not in ("c2s", "s2c"):
+        return "'dir' is neither c2s nor s2c"
+    if message.get("event") == EV_HALF_CLOSED and "dir" not in message:
+        return "a half_closed event without 'dir'"
+    return None
+
+
+_JSON_TYPES: dict[str, type] = {"string": str, "boolean": bool, "array": list, "object": dict, "null": type(None)}
+
+
+def _fits(value: Any, kinds: str | list[str]) -> bool:
+    for kind in [kinds] if isinstance(kinds, str) else kinds:
+        if kind == "integer":
+            if type(value) is int and 0 <= value < _MAX_INT:
+                return True
+        elif kind == "number":
+            if type(value) in (int, float):
+                return True
+        elif type(value) is _JSON_TYPES[kind]:
+            return True
+    return False
 
 
 class RecordingScan:
@@ -442,6 +600,12 @@ class RecordingScan:
     another writer laid out differently).  It reads files in order, so it also
     reads a ``.part`` left by a crash, up to its last complete chunk; then
     ``truncated`` is true.
+
+    It trusts nothing in the file: no record or chunk may claim more than
+    ``max_chunk()`` bytes, a chunk must decompress to exactly what it claims
+    (and memory grows only with what it really holds), every length must fit
+    inside what contains it, and every message a reader gets fits its schema.
+    Anything else raises ``RecordingError`` naming the record's offset.
     """
 
     def __init__(self, stream: IO[bytes], topics: Iterable[str] = (TOPIC_READS,),
@@ -456,35 +620,63 @@ class RecordingScan:
         self.channels: dict[int, str] = {}  # channel id -> topic
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False
+        self._at = 0  # file offset of the record being read, and its opcode: for messages
+        self._op = 0
 
     # -- records ---------------------------------------------------------------------
 
     def records(self) -> Iterator[tuple[int, str, bytes, int, int]]:
         """(log_time, topic, data, start, end) of each wanted message, file order;
         ``data[start:end]`` is the message (no copy is made)."""
+        limit = max_chunk()
+        try:
+            yield from self._records(limit)
+        except TooBig as e:
+            raise RecordingError(f"{self._where()} {e}") from None
+        except (ValueError, struct.error) as e:  # DamagedRecord, or a field that does not parse
+            raise RecordingError(f"{self._where()} is damaged ({e}); 'whiztap recover' copies what is "
+                                 "readable into a new file") from None
+
+    def _where(self) -> str:
+        return f"the {_OP_NAMES.get(self._op, 'record')} at byte {self._at}"
+
+    def _records(self, limit: int) -> Iterator[tuple[int, str, bytes, int, int]]:
         f = self._stream
         if f.read(8) != MAGIC:
             raise RecordingError("not an MCAP file (bad magic)")
+        at = 8
         head = f.read(9)
         while True:
+            self._at, self._op = at, 0
             if len(head) < 9:
                 self.truncated = True
                 return
             op, length = _RECORD_HEAD.unpack(head)
+            self._op = op
             if op in (_OP_DATA_END, _OP_FOOTER):
                 return
-            if length > _MAX_RECORD:
-                raise RecordingError(f"a record claims {length} bytes: the file is damaged")
+            if op == 0:
+                raise DamagedRecord("opcode 0 starts no MCAP record")
+            if length > limit:
+                raise TooBig(length, limit)
+            if op not in _OP_READ:  # skipped in pieces: a record may be as long as the limit
+                if not _skip(f, length):
+                    self.truncated = True
+                    return
+                at += 9 + length
+                head = f.read(9)
+                continue
             body = f.read(length)
             if len(body) < length:
                 self.truncated = True
                 return
+            at += 9 + length
             if op != _OP_CHUNK:
                 yield from self._record(op, head + body, 0, 9 + length)
                 head = f.read(9)
                 continue
             if self.growing:
-                yield from self._chunk(body, None)
+                yield from self._chunk(body, None, limit)
                 head = f.read(9)
                 continue
             # The chunk's message indexes follow it: with them, only the wanted
@@ -492,19 +684,27 @@ class RecordingScan:
             # frame, of which an analysis wants one per TCP read).  Only in
             # whiztap's own files, whose writer defines every channel before the
             # first chunk, so a chunk skipped this way cannot hide a channel.
+            chunk_at = self._at
             offsets: list[int] | None = [] if METADATA_NAME in self.metadata else None
+            indexed = False
             head = f.read(9)
             while len(head) == 9 and head[0] == _OP_MESSAGE_INDEX:
+                self._at, self._op = at, _OP_MESSAGE_INDEX
                 size = _RECORD_HEAD.unpack(head)[1]
-                index = f.read(size) if size <= _MAX_RECORD else b""
+                if size > limit:
+                    raise TooBig(size, limit)
+                index = f.read(size)
                 if len(index) < size:
                     head = b""  # the file ends inside the index: the chunk itself is whole
                     offsets = None
                     break
+                at += 9 + size
+                indexed = True
                 if offsets is not None:
                     offsets = self._indexed_offsets(index, offsets)
                 head = f.read(9)
-            yield from self._chunk(body, offsets)
+            self._at, self._op = chunk_at, _OP_CHUNK
+            yield from self._chunk(body, offsets if indexed else None, limit)
 
     def _indexed_offsets(self, index: bytes, offsets: list[int]) -> list[int] | None:
         """Add one MessageIndex record's offsets for wanted channels; None when it
@@ -516,39 +716,41 @@ class RecordingScan:
         if topic in self._wanted:
             n = _U32.unpack_from(index, 2)[0]
             if 6 + n > len(index) or n % 16:
-                raise RecordingError("a message index is malformed: the file is damaged")
+                raise DamagedRecord(f"it claims {n} bytes of entries in a record of {len(index)}")
             offsets.extend(struct.unpack_from(f"<{n // 8}Q", index, 6)[1::2])
         return offsets
 
-    def _chunk(self, body: bytes, offsets: list[int] | None) -> Iterator[tuple[int, str, bytes, int, int]]:
+    def _chunk(self, body: bytes, offsets: list[int] | None,
+               limit: int) -> Iterator[tuple[int, str, bytes, int, int]]:
         if offsets is not None and not offsets:
             return  # indexed, and nothing wanted in it: not even decompressed
-        _start, _end, size, crc = _CHUNK_HEAD.unpack_from(body, 0)
-        compression, pos = _string(body, _CHUNK_HEAD.size)
-        n = _U64.unpack_from(body, pos)[0]
-        records = _decompress(compression, body[pos + 8:pos + 8 + n], size)
-        if self.validate_crcs and crc and zlib.crc32(records) != crc:
-            raise RecordingError("chunk CRC mismatch: the file is damaged")
+        records, first, end = open_chunk(body, limit, self.validate_crcs)
         unpack = _RECORD_HEAD_CHANNEL.unpack_from
         log_time = _U64.unpack_from
+        wanted = self._wanted_ids()
         if offsets:
-            wanted = self._wanted_ids()
             offsets.sort()  # file order is arrival order; the index is in log-time order
-            end = len(records)
-            for pos in offsets:
-                if pos + 23 > end:
-                    raise RecordingError("a message index points outside its chunk: the file is damaged")
+            for offset in offsets:
+                pos = first + offset
+                if pos + _MESSAGE_DATA_AT > end:
+                    raise DamagedRecord("a message index points outside it")
                 op, length, channel = unpack(records, pos)
-                if op == _OP_MESSAGE and channel in wanted:
+                if op != _OP_MESSAGE or length < _MESSAGE_FIXED or pos + 9 + length > end:
+                    raise DamagedRecord("a message index points at no message")
+                if channel in wanted:
                     yield log_time(records, pos + 15)[0], wanted[channel], records, pos + _MESSAGE_DATA_AT, \
                         pos + 9 + length
             return
-        pos, end = 0, len(records)
-        wanted = self._wanted_ids()
+        pos = first
         while pos < end:
             op, length, channel = unpack(records, pos)
             stop = pos + 9 + length
+            if stop > end or op == 0:
+                raise DamagedRecord(f"the record at {pos - first} in it is "
+                                    f"{'opcode 0' if op == 0 else 'longer than the chunk'}")
             if op == _OP_MESSAGE:
+                if length < _MESSAGE_FIXED:
+                    raise DamagedRecord(f"the message at {pos - first} in it is too short")
                 if channel in wanted:
                     yield log_time(records, pos + 15)[0], wanted[channel], records, pos + _MESSAGE_DATA_AT, stop
             else:
@@ -559,21 +761,39 @@ class RecordingScan:
     def _record(self, op: int, buf: bytes, pos: int, stop: int) -> Iterator[tuple[int, str, bytes, int, int]]:
         if op == _OP_CHANNEL:
             channel = _U16.unpack_from(buf, pos + 9)[0]
-            topic, _ = _string(buf, pos + 13)
+            topic, _ = _string(buf, pos + 13, stop)
             self.channels[channel] = topic
         elif op == _OP_MESSAGE:
+            if stop - pos < _MESSAGE_DATA_AT:
+                raise DamagedRecord("it is too short for a message")
             channel = _U16.unpack_from(buf, pos + 9)[0]
             topic = self.channels.get(channel)
             if topic in self._wanted:
                 yield _U64.unpack_from(buf, pos + 15)[0], topic, buf, pos + _MESSAGE_DATA_AT, stop
         elif op == _OP_METADATA:
-            name, values = _metadata(buf, pos + 9)
+            name, values = _metadata(buf, pos + 9, stop)
             self.metadata[name] = values
 
     def _wanted_ids(self) -> dict[int, str]:
         return {cid: topic for cid, topic in self.channels.items() if topic in self._wanted}
 
-    # -- reads ------------------------------------------------------------------------
+    # -- messages ---------------------------------------------------------------------
+
+    def decode(self, topic: str, buf: bytes, start: int, stop: int) -> dict:
+        """A wanted message (``records()`` yields where it is) as a dict whose
+        fields fit its topic's schema, or RecordingError."""
+        try:
+            message = json.loads(buf[start:stop])
+        except (ValueError, RecursionError) as e:  # not UTF-8, not JSON, nested past Python's stack
+            raise self._invalid(topic, f"not JSON: {e}") from None
+        problem = _misfit(message, SCHEMAS[TOPICS[topic]]) if topic in TOPICS else None
+        if problem is not None:
+            raise self._invalid(topic, problem)
+        return message
+
+    def _invalid(self, topic: str, why: str) -> RecordingError:
+        return RecordingError(f"a {topic} message in {self._where()} is not valid ({why}): the file is damaged "
+                              "or not a whiztap recording")
 
     def reads(self) -> Iterator[Read]:
         """Every /tcp/reads message as a Read, in file (= arrival) order."""
@@ -584,22 +804,25 @@ class RecordingScan:
         as decoded JSON dicts, interleaved in file (= arrival) order."""
         match = _READ_JSON.match
         b64 = binascii.a2b_base64  # what base64.b64decode calls, without its Python layer
-        for _t, topic, buf, start, stop in self.records():
-            if topic != TOPIC_READS:
-                yield json.loads(buf[start:stop])
-                continue
-            m = match(buf, start, stop)
-            if m is not None and m.end() == stop:
-                conn, direction, t_ns, offset, data = m.groups()
-                yield Read(int(conn), "c2s" if direction == b"c2s" else "s2c", int(t_ns), int(offset), b64(data))
-            else:
-                d = json.loads(buf[start:stop])
-                yield Read(d["conn"], d["dir"], d["t_ns"], d["offset"], b64(d["data"]))
+        try:
+            for _t, topic, buf, start, stop in self.records():
+                if topic != TOPIC_READS:
+                    yield self.decode(topic, buf, start, stop)
+                    continue
+                m = match(buf, start, stop)
+                if m is not None and m.end() == stop:
+                    conn, direction, t_ns, offset, data = m.groups()
+                    yield Read(int(conn), "c2s" if direction == b"c2s" else "s2c", int(t_ns), int(offset), b64(data))
+                else:
+                    d = self.decode(topic, buf, start, stop)
+                    yield Read(d["conn"], d["dir"], d["t_ns"], d["offset"], b64(d["data"]))
+        except ValueError as e:  # binascii.Error: data that is not base64 (or not ASCII)
+            raise self._invalid(TOPIC_READS, f"its data is not base64: {e}") from None
 
     def messages(self) -> Iterator[tuple[str, int, dict]]:
         """(topic, log_time, decoded JSON) of each wanted message, file order."""
         for t, topic, buf, start, stop in self.records():
-            yield topic, t, json.loads(buf[start:stop])
+            yield topic, t, self.decode(topic, buf, start, stop)
 
 
 def rebuild_streams(path: str, topic: str = TOPIC_READS) -> dict[tuple[int, str], list[Segment]]:
@@ -646,19 +869,45 @@ def read_metadata(path: str) -> dict[str, str]:
     """The "whiztap" metadata record of a recording ({} if it has none).
 
     Recorders write it before the first chunk, so this stops at the first
-    metadata record instead of reading the whole file.
+    metadata record instead of reading the whole file.  Raises RecordingError
+    for a file that is no MCAP file or whose records do not add up.
     """
+    limit = max_chunk()
     with open(path, "rb") as f:
         if f.read(8) != MAGIC:
             raise RecordingError("not an MCAP file (bad magic)")
+        at = 8
         while len(head := f.read(9)) == 9:
             op, length = _RECORD_HEAD.unpack(head)
             if op in (_OP_DATA_END, _OP_FOOTER):
                 break
-            if op != _OP_METADATA:
+            if op == 0:
+                raise RecordingError(f"the record at byte {at} is damaged (opcode 0 starts no MCAP record)")
+            if length > limit:
+                raise RecordingError(f"the record at byte {at} {TooBig(length, limit)}")
+            if op == _OP_METADATA:
+                body = f.read(length)
+                if len(body) < length:
+                    break  # cut short: whoever reads on says so
+                try:
+                    name, values = _metadata(body, 0, length)
+                except (ValueError, struct.error) as e:
+                    raise RecordingError(f"the metadata record at byte {at} is damaged ({e})") from None
+                if name == METADATA_NAME:
+                    return values
+            else:
                 f.seek(length, 1)
-                continue
-            name, values = _metadata(f.read(length), 0)
-            if name == METADATA_NAME:
-                return values
+            at += 9 + length
     return {}
+
+
+def is_finished(path: str) -> bool:
+    """Whether the file ends as a finished MCAP file does: a footer that points
+    at a summary section (the index), then the magic.  Reads the last bytes only."""
+    with open(path, "rb") as f:
+        size = f.seek(0, os.SEEK_END)
+        if size < len(MAGIC) + _FILE_END.size:
+            return False
+        f.seek(size - _FILE_END.size)
+        op, length, summary_start, _summary_offsets, _crc, magic = _FILE_END.unpack(f.read(_FILE_END.size))
+    return op == _OP_FOOTER and length == 20 and magic == MAGIC and len(MAGIC) < summary_start < size

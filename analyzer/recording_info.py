@@ -7,7 +7,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from analyzer.recording import METADATA_NAME, TOPIC_EVENTS, TOPICS, RecordingError, RecordingScan
+from analyzer.recording import METADATA_NAME, TOPIC_EVENTS, TOPICS, RecordingError, RecordingScan, is_finished
 from analyzer.recording_set import being_written
 
 
@@ -17,25 +17,11 @@ def _iso(t_ns: int | None) -> str:
     return dt.datetime.fromtimestamp(t_ns / 1e9, dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
-def _indexed(path: Path) -> bool:
-    """True when the file ends with a footer and a summary section (it was finished)."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    with open(path, "rb") as f:
-        try:
-            return make_reader(f).get_summary() is not None
-        except (McapError, ValueError, EOFError, OSError):
-            return False
-        except Exception:  # noqa: BLE001 - the mcap reader raises struct.error etc. on damaged files
-            return False
-
-
 def recording_info(path: Path) -> dict[str, Any]:
     """One pass over the file: counts per topic, time span, connections, metadata."""
     topics: Counter[str] = Counter()
     first = last = None
-    connections: set[int] = set()
+    connections = 0
     with open(path, "rb") as f:
         scan = RecordingScan(f, TOPICS, validate_crcs=True)
         try:
@@ -44,12 +30,10 @@ def recording_info(path: Path) -> dict[str, Any]:
                 first = t if first is None or t < first else first
                 last = t if last is None or t > last else last
                 if topic == TOPIC_EVENTS and b'"event":"opened"' in buf[start:stop]:
-                    import json
-
-                    connections.add(json.loads(buf[start:stop])["conn"])
+                    connections += 1  # counted, not decoded: info reads no message's contents
         except RecordingError as e:
             raise ValueError(str(e)) from None
-    complete = not scan.truncated and _indexed(path)
+    complete = not scan.truncated and is_finished(str(path))
     if complete:
         state = "complete"
     elif being_written(path):
@@ -71,7 +55,7 @@ def recording_info(path: Path) -> dict[str, Any]:
         "start": _iso(first),
         "end": _iso(last),
         "duration_s": ((last - first) / 1e9) if first is not None and last is not None else 0.0,
-        "connections": len(connections),
+        "connections": connections,
         "topics": {topic: topics.get(topic, 0) for topic in TOPICS},
     }
 

@@ -34,6 +34,7 @@ from analyzer.recording import (
 )
 
 _PART_NAME = re.compile(r"^(?P<stem>.+)-(?P<n>\d{4,})(?P<ext>\.mcap)$")
+_PART_NUMBER = re.compile(r"[0-9]{1,9}")
 _GLOB_CHARS = frozenset("*?[")
 POLL_S = 0.1  # a growing file is looked at this often; the recorder flushes every 0.5 s
 
@@ -103,6 +104,15 @@ def being_written(path: Path | str) -> bool:
     return False
 
 
+def _part_number(metadata: dict[str, str]) -> int | None:
+    """The part number a split recording's metadata gives this file, else None
+    (unsplit, or a value that is no part number)."""
+    if not (metadata.get("split_size") or metadata.get("split_duration")):
+        return None
+    part = metadata.get("part", "")
+    return int(part) if _PART_NUMBER.fullmatch(part) else None
+
+
 def _part_key(path: Path) -> tuple[str, int] | None:
     """(session id, part number) of a part of a split recording, else None."""
     if _PART_NAME.match(path.name) is None:
@@ -111,10 +121,10 @@ def _part_key(path: Path) -> tuple[str, int] | None:
         meta = read_metadata(str(path))
     except (OSError, RecordingError):
         return None
-    split = meta.get("split_size") or meta.get("split_duration")
-    if not split or not meta.get("session_id") or not meta.get("part", "").isdigit():
+    part = _part_number(meta)
+    if part is None or not meta.get("session_id"):
         return None
-    return meta["session_id"], int(meta["part"])
+    return meta["session_id"], part
 
 
 def group(paths: Iterable[Path]) -> list[RecordingSet]:
@@ -206,10 +216,8 @@ def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Read |
             scan = RecordingScan(f, STREAM_TOPICS)
             try:
                 yield from _part_records(scan, seen, hole)
-            except RecordingError as e:
+            except RecordingError as e:  # the reader checks every length and every field it yields
                 raise PartError(path, str(e)) from None
-            except (KeyError, ValueError, TypeError, IndexError) as e:  # damage the reader does not name
-                raise PartError(path, f"the file is damaged ({str(e) or type(e).__name__})") from None
             if scan.truncated:
                 raise PartError(path, "the file is truncated (no footer)")
             topics = sorted(set(scan.channels.values()))
@@ -270,9 +278,9 @@ class GrowingFile:
 
 def next_part(path: str, metadata: dict[str, str]) -> str | None:
     """The final name of the part after ``path`` in a split recording, else None."""
-    if not (metadata.get("split_size") or metadata.get("split_duration")) or not metadata.get("part", "").isdigit():
+    part = _part_number(metadata)
+    if part is None:
         return None
-    part = int(metadata["part"])
     final = path.removesuffix(".part")
     stem, ext = os.path.splitext(final)
     suffix = f"-{part:04d}"

@@ -277,8 +277,8 @@ def test_stream_topics_have_chunks_of_their_own_that_readers_of_streams_alone_de
     # (the first flush, at the start, has only the start event; the next has both)
     assert [g <= set(STREAM_TOPICS) for g in groups[:3]] == [True, True, False]
     decompressed = []
-    real = recording_module._decompress
-    monkeypatch.setattr(recording_module, "_decompress",
+    real = recording_module.open_chunk
+    monkeypatch.setattr(recording_module, "open_chunk",
                         lambda *a: decompressed.append(a) or real(*a))
     with open(path, "rb") as f:
         reads = list(RecordingScan(f, STREAM_TOPICS).reads())

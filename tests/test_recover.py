@@ -4,15 +4,22 @@ not flushed, and recovery gets back everything it had."""
 from __future__ import annotations
 
 import asyncio
+import io
 import os
 import signal
+import struct
+import zlib
+from pathlib import Path
+
+import pytest
 
 from mcap.stream_reader import StreamReader
 from mcap.records import Message
 
-from analyzer.recording import RecordingScan
+from analyzer.recording import MAGIC, RecordingScan
 from sniffer.recover import recover
 from tests.record_support import WAIT, WHIZTAP, EchoServer, RecordProcess, read_all, streams
+from tests.test_hostile_files import MIB, corrupt_data, flip_crc, read_chunks, run_measured, write_recording
 
 
 def _flushed_reads(part: str) -> bytes:
@@ -61,7 +68,7 @@ async def test_sigkill_mid_session_then_recover_gets_back_everything_flushed(tmp
     code, stdout, stderr = await _run("recover", part)
     assert (code, stderr) == (0, ""), stderr
     assert stdout == f"recovered {on_disk} messages into {out}\n" or \
-        stdout == f"recovered {on_disk} messages into {out} (the rest of the file was cut off mid-write)\n"
+        stdout.startswith(f"recovered {on_disk} messages into {out}; the file ended mid-write at byte ")
     by_topic = read_all(str(out))  # indexed, CRCs checked, schemas valid
     assert sum(len(m) for m in by_topic.values()) == on_disk
     assert streams(str(out))[(1, "c2s")].startswith(sent)
@@ -99,3 +106,156 @@ async def test_a_missing_input_is_said_before_an_existing_output(tmp_path):
     (tmp_path / "gone.mcap").write_bytes(b"a recording already there")
     code, _, err = await _run("recover", str(tmp_path / "gone.mcap.part"))
     assert code == 2 and err == f"whiztap: {tmp_path / 'gone.mcap.part'}: no such file\n"
+
+
+# -- damaged files: skip the damage, salvage the rest, say what was lost and where --------------------
+
+
+def _messages(path: Path) -> list[tuple[int, int, bytes]]:
+    """(channel id, log time, data) of every message of a finished file, sorted."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        return sorted((m.channel_id, m.log_time, m.data) for _, _, m in reader.iter_messages(log_time_order=False))
+
+
+def _chunk_messages(data: bytes, at: int) -> list[tuple[int, int, bytes]]:
+    """(channel id, log time, data) of the messages in the chunk at ``at``."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk
+    from mcap.stream_reader import breakup_chunk
+
+    length = struct.unpack_from("<Q", data, at + 1)[0]
+    chunk = Chunk.read(ReadDataStream(io.BytesIO(data[at + 9:at + 9 + length])))
+    return [(m.channel_id, m.log_time, m.data) for m in breakup_chunk(chunk) if isinstance(m, Message)]
+
+
+def _without(messages: list, lost: list) -> list:
+    left = list(messages)
+    for m in lost:
+        left.remove(m)
+    return left
+
+
+def _bad_record_length(buf: bytearray, at: int) -> bytearray:
+    """The chunk at ``at`` rebuilt with its first record's length past its end
+    (its CRC and compression intact: only walking its records finds it)."""
+    import zstandard
+
+    length = struct.unpack_from("<Q", buf, at + 1)[0]
+    body = bytes(buf[at + 9:at + 9 + length])
+    n = struct.unpack_from("<I", body, 28)[0]
+    records = bytearray(zstandard.ZstdDecompressor().decompress(body[32 + n + 8:], max_output_size=1 << 24))
+    struct.pack_into("<Q", records, 1, len(records))
+    compressed = zstandard.ZstdCompressor().compress(bytes(records))
+    new = body[:16] + struct.pack("<QI", len(records), zlib.crc32(records)) + body[28:32 + n] + \
+        struct.pack("<Q", len(compressed)) + compressed
+    return buf[:at] + struct.pack("<BQ", 0x06, len(new)) + new + buf[at + 9 + length:]
+
+
+def _junk_length(buf: bytearray, at: int) -> bytearray:
+    struct.pack_into("<Q", buf, at + 1, 1 << 40)  # the chunk's own length: now past the end of the file
+    return buf
+
+
+DAMAGE = {
+    "bad CRC": lambda buf, at: flip_crc(buf, at + 9) or buf,
+    "corrupt zstd": lambda buf, at: corrupt_data(buf, at + 9) or buf,
+    "bad record length": _bad_record_length,
+    "junk in the chunk's length": _junk_length,
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_a_damaged_chunk_is_skipped_and_every_chunk_after_it_recovered(tmp_path, damage):
+    original = write_recording(tmp_path / "r.mcap")
+    data = original.read_bytes()
+    at = read_chunks(data)[3]  # a chunk of TCP reads with others before and after it
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(bytes(DAMAGE[damage](bytearray(data), at)))
+    out = tmp_path / "out.mcap"
+    code, stdout, stderr, _, _ = run_measured([WHIZTAP, "recover", str(broken), "-o", str(out)])
+    assert (code, stderr) == (0, ""), stderr
+    lost = _chunk_messages(data, at)
+    expected = _without(_messages(original), lost)
+    assert stdout.startswith(f"recovered {len(expected)} messages into {out}; skipped 1 damaged region "
+                             f"(at byte {at}: ") and stdout.count("\n") == 1, stdout
+    assert lost and _messages(out) == sorted(expected)
+
+
+def test_junk_between_chunks_costs_the_junk_only(tmp_path):
+    original = write_recording(tmp_path / "r.mcap")
+    data = original.read_bytes()
+    at = read_chunks(data)[3]
+    junk = bytes(range(7, 256)) * 400  # no chunk header adds up in it
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(data[:at] + junk + data[at:])
+    result = recover(str(broken), str(tmp_path / "out.mcap"))
+    assert [(s.offset, s.length) for s in result.skipped] == [(at, len(junk))] and result.cut_at is None
+    assert _messages(result.output) == _messages(original)
+
+
+def test_damage_and_a_cut_are_both_said(tmp_path):
+    original = write_recording(tmp_path / "r.mcap")
+    data = bytearray(original.read_bytes())
+    chunks = read_chunks(bytes(data))
+    flip_crc(data, chunks[2] + 9)
+    cut = chunks[-1] + 100
+    broken = tmp_path / "broken.mcap.part"
+    broken.write_bytes(bytes(data[:cut]))
+    code, stdout, stderr, _, _ = run_measured([WHIZTAP, "recover", str(broken)])
+    assert (code, stderr) == (0, "")
+    assert f"; skipped 1 damaged region (at byte {chunks[2]}: " in stdout
+    assert stdout.endswith(f"; the file ended mid-write at byte {chunks[-1]} (the 100 B after it could not be "
+                           "read)\n"), stdout
+    assert (tmp_path / "broken.mcap").exists()
+
+
+def test_a_file_named_like_the_old_temporary_is_left_alone(tmp_path):
+    original = write_recording(tmp_path / "r.mcap")
+    out = tmp_path / "out.mcap"
+    bystander = tmp_path / "out.mcap.recovering"
+    bystander.write_bytes(b"somebody's file")
+    before = set(tmp_path.iterdir())
+    result = recover(str(original), str(out))
+    assert bystander.read_bytes() == b"somebody's file"
+    assert set(tmp_path.iterdir()) == before | {out}  # and no temporary file left behind
+    assert result.complete and _messages(out) == _messages(original)
+    assert oct(out.stat().st_mode & 0o777) == oct(original.stat().st_mode & 0o777)  # not mkstemp's 0600
+
+
+def test_a_failed_recovery_leaves_no_temporary_file(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(MAGIC + bytes(range(256)) * 16)
+    code, _, err, _, _ = run_measured([WHIZTAP, "recover", str(junk), "-o", str(tmp_path / "out.mcap")])
+    assert code == 2 and err == f"whiztap: {junk} holds nothing to recover: no schema, channel, message or " \
+                                "metadata could be read\n"
+    assert list(tmp_path.iterdir()) == [junk]
+
+
+def test_200_mb_of_junk_inside_a_recording_is_crossed_in_bounded_memory(tmp_path):
+    original = write_recording(tmp_path / "r.mcap")
+    data = original.read_bytes()
+    at = read_chunks(data)[3]
+    broken = tmp_path / "broken.mcap"
+    junk = 200 * 1000 * 1000
+    with open(broken, "wb") as f:
+        f.write(data[:at])
+        for _ in range(junk // MIB):
+            f.write(os.urandom(MIB))
+        f.write(os.urandom(junk % MIB))
+        f.write(data[at:])
+    code, stdout, stderr, peak, _ = run_measured([WHIZTAP, "recover", str(broken), "-o", str(tmp_path / "out.mcap")])
+    assert (code, stderr) == (0, "") and f"; skipped 1 damaged region (at byte {at}: 200.0 MB)" in stdout, stdout
+    assert peak < 100 * MIB, peak >> 20  # it is read a window at a time, never whole
+    assert _messages(tmp_path / "out.mcap") == _messages(original)
+
+
+def test_zeros_after_the_magic_end_at_once(tmp_path):
+    zeros = tmp_path / "zeros.mcap.part"
+    with open(zeros, "wb") as f:
+        f.write(MAGIC)
+        f.truncate(len(MAGIC) + 100 * MIB)  # a file system that zero-filled what was never written
+    code, _, err, _, took = run_measured([WHIZTAP, "recover", str(zeros)])
+    assert code == 2 and "holds nothing to recover" in err and took < 30, (err, took)
