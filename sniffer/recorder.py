@@ -38,6 +38,7 @@ from analyzer.recording import (
     EV_RECORDING_STOPPED,
     EV_UPSTREAM_CONNECTED,
     EV_UPSTREAM_FAILED,
+    RUN_INLINE_MAX,
     TOPIC_EVENTS,
     TOPIC_FRAMES,
     TOPIC_READS,
@@ -47,6 +48,7 @@ from analyzer.recording import (
     encode_plots,
     encode_read,
     event_message,
+    run_message,
     violation_message,
 )
 from analyzer.redaction import HOLD_LIMIT_S, Redactor
@@ -55,7 +57,7 @@ from analyzer.session import Direction, Event, LateViolation, Limits, Observatio
 from sniffer.writer import RecordingFile
 
 C2S, S2C = Direction.C2S, Direction.S2C
-_NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})
+_NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})  # not protocol: written in runs
 _DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
 
 ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
@@ -299,7 +301,9 @@ class Recorder:
         """Write what the session made of a read: the hot loop of recording.
         Its messages go to the file in one call, in the order they were made,
         logged at the time of what is being written (an item the session held,
-        like a password sent before 'sendchkpass', comes out after later ones)."""
+        like a password sent before 'sendchkpass', comes out after later ones).
+        Unframed items and line breaks in a row are written together
+        (``_write_run``)."""
         now = self._now
         ids = self.file.channel_ids
         frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
@@ -309,31 +313,79 @@ class Recorder:
         redact = not self.keep_secrets
         framed = c.framed
         frames = self._frame_counts
+        run: list[Observation] = []
         for obs in events:
             if type(obs) is LateViolation:
+                if run:
+                    self._write_run(conn, c, run, out)
+                    run = []
                 add((violations_id, now, self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)))
                 continue
             _, direction, item, message, _, violations, _, _ = obs
             kind, raw, _, t, _ = item
+            if kind in _NOT_FRAMES:
+                if run and run[0].direction is not direction:
+                    self._write_run(conn, c, run, out)
+                    run = []
+                run.append(obs)
+                continue
+            if run:
+                self._write_run(conn, c, run, out)
+                run = []
             offset = framed[direction]
             framed[direction] = offset + len(raw)
             add((frames_id, now, encode_frame(conn, obs, offset, redact)))
             if message is not None:
                 for topic, plot in encode_plots(conn, obs):
                     add((ids[topic], now, plot))
-            if kind not in _NOT_FRAMES:
-                frames[direction] += 1
+            frames[direction] += 1
             for v in violations:
                 add((violations_id, now, self._violation(conn, v, obs, t, late=False)))
+        if run:
+            self._write_run(conn, c, run, out)
         if out:
             self.file.write_all(out)
 
-    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool) -> bytes:
-        """Count and report a violation; its /violations message."""
-        self.summary.violations[str(v.severity)] += 1
+    def _write_run(self, conn: int, c: _Conn, run: list[Observation], out: list[tuple[int, int, bytes]]) -> None:
+        """Unframed items and line breaks in a row, from one read: a lone one of
+        at most ``RUN_INLINE_MAX`` bytes as the item it is; any other run as one
+        /frames message (``run_message``), and one /violations message per rule
+        its items break, with how many times (the totals count every break)."""
+        now = self._now
+        ids = self.file.channel_ids
+        frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
+        direction = run[0].direction
+        offset = c.framed[direction]
+        size = sum(len(o.item.raw) for o in run)
+        c.framed[direction] = offset + size
+        t = run[-1].item.t_end_ns
+        if len(run) == 1 and size <= RUN_INLINE_MAX:
+            out.append((frames_id, now, self._frames.encode(conn, run[0], offset, not self.keep_secrets)))
+            for v in run[0].violations:
+                out.append((violations_id, now, self._violation(conn, v, run[0], t, late=False)))
+            return
+        out.append((frames_id, now, encode(run_message(conn, run, offset))))
+        broken: dict[str, list] = {}  # rule id -> [first violation, its item, how many]
+        for o in run:
+            for v in o.violations:
+                seen = broken.get(v.rule_id)
+                if seen is None:
+                    broken[v.rule_id] = [v, o, 1]
+                else:
+                    seen[2] += 1
+        for v, about, count in broken.values():
+            if count > 1:
+                v = Violation(v.rule_id, f"{v.detail} (the first of {count} in {size} bytes of unframed data)")
+            out.append((violations_id, now, self._violation(conn, v, about, t, late=False, count=count)))
+
+    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool,
+                   count: int = 1) -> bytes:
+        """Count and report a violation (``count`` breaks of its rule: see
+        ``_write_run``); its /violations message."""
+        self.summary.violations[str(v.severity)] += count
         if self.on_violation is not None:
             self.on_violation(conn, t, v, about, late)
-        return encode(violation_message(conn, v, about, t, late, not self.keep_secrets))
+        return encode(violation_message(conn, v, about, t, late, not self.keep_secrets, count))
 
     def _continued(self, part: int) -> None:
         """A new file began: say which connections are open and where their streams are."""

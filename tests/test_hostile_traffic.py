@@ -4,7 +4,9 @@ is kept, never to how long the abuse goes on."""
 
 from __future__ import annotations
 
+import asyncio
 import json
+import random
 import struct
 import subprocess
 import sys
@@ -18,9 +20,10 @@ from analyzer.examples import CONFIG, VPN_OPEN
 from analyzer.recording import TOPIC_EVENTS, RecordingScan
 from analyzer.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
 from sniffer.recorder import Recorder
+from sniffer.tcp_server import TcpServer
 from sniffer.tcpreasm import ACK, DLT_EN10MB, EVICTED, FIN, MAX_OPEN, SYN, Reassembler, parse_frame
 from sniffer.writer import RecordingFile
-from tests.record_support import WHIZTAP, streams
+from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, both_ways, read_all, streams
 from tests.streams import TINY_JPEG
 from tests.test_session import SlowSession, _shape
 
@@ -409,3 +412,84 @@ def test_capture_of_a_syn_flood_stays_within_bounded_memory(tmp_path):
     [real] = [e["conn"] for e in events if e["event"] == "opened" and e["client"] == "%s:%d" % REAL]
     recorded = streams(str(out))
     assert (recorded[(real, "c2s")], recorded[(real, "s2c")]) == (REAL_C2S, REAL_S2C)
+
+
+# -- junk --------------------------------------------------------------------------------------
+
+
+class ConfigThenSink(TcpServer):
+    """Answers the client's first frame with a configuration (the session is
+    VPN: no password to hold back), then takes whatever comes."""
+
+    def __init__(self) -> None:
+        super().__init__(LOCAL, 0)
+
+    async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            await reader.readexactly(16)
+            writer.write(CONFIG)
+            while await reader.read(65536):
+                pass
+        except (ConnectionError, asyncio.IncompleteReadError):
+            pass
+        finally:
+            writer.close()
+
+
+async def test_a_recording_of_junk_is_about_the_size_of_the_junk(tmp_path):
+    """1 MiB of random bytes from a client through ``whiztap record``: the file
+    was 4.7 times the traffic (a /frames and a /violations message, with the
+    bytes in base64 and as escaped text, for every few dozen bytes).  Now the
+    junk is in the file once, in /tcp/reads (whose base64 zstd takes back to
+    about 1.0), with a /frames message per read, so the bound is 1.3."""
+    out = tmp_path / "junk.mcap"
+    junk = random.Random(14).randbytes(1 << 20)
+    async with ConfigThenSink() as server:
+        rec = await RecordProcess.start(server.port, out)
+        reader, writer = await rec.connect()
+        writer.write(b"rr1-24--0--0-ss1")
+        await asyncio.wait_for(reader.readexactly(len(CONFIG)), WAIT)
+        for i in range(0, len(junk), 8192):
+            writer.write(junk[i:i + 8192])
+            await writer.drain()
+        writer.write_eof()
+        await asyncio.wait_for(reader.read(), WAIT)
+        writer.close()
+        code, _, stderr = await rec.finish()
+    assert (code, stderr) == (0, "")
+    traffic = 16 + len(CONFIG) + len(junk)
+    assert out.stat().st_size <= 1.3 * traffic
+    assert both_ways(str(out))[(1, "c2s")] == b"rr1-24--0--0-ss1" + junk
+    by_topic = read_all(str(out))
+    reads, frames = by_topic["/tcp/reads"], by_topic["/frames"]
+    assert len(frames) <= len(reads) + 2  # the request, the configuration, and a message per read
+    # every break of a rule is counted, as analyze counts them
+    recorded = Counter()
+    for v in by_topic["/violations"]:
+        recorded[v["rule_id"]] += v.get("count", 1)
+    analyzed = subprocess.run([WHIZTAP, "analyze", str(out), "--format", "json"], capture_output=True, text=True,
+                              timeout=120)
+    assert recorded == json.loads(analyzed.stdout)["rule_counts"]
+
+
+def test_a_flood_of_line_breaks_is_a_message_per_read(tmp_path):
+    """Each line break is an item; 100 in a read were 100 /frames and 100
+    /violations messages."""
+    path = tmp_path / "breaks.mcap"
+    recorder = Recorder(RecordingFile(str(path), {"source": "test"}))
+    recorder.start(1)
+    recorder.opened(1, 2, "client", "server")
+    recorder.data(1, C, 3, b"rr1-24--0--0-ss1")
+    recorder.data(1, S, 4, CONFIG)
+    for t in range(5, 505):
+        recorder.data(1, C, t, b"\n" * 100)
+    recorder.closed(1, 505, "client")
+    summary = recorder.stop(506)
+    by_topic = read_all(str(path))
+    c2s = [f for f in by_topic["/frames"] if f["dir"] == "c2s"]
+    assert len(c2s) == 1 + 500
+    assert [(f["kind"], f["items"], f["size"], f["elided"]) for f in c2s[1:]] == [("eol", 100, 100, False)] * 500
+    # a /violations message per read, each line break counted
+    assert [(v["rule_id"], v["count"]) for v in by_topic["/violations"]] == [("PW-FRAME-EOL", 100)] * 500
+    assert summary.violations["info"] == 500 * 100
+    assert both_ways(str(path))[(1, "c2s")] == b"rr1-24--0--0-ss1" + b"\n" * 50_000

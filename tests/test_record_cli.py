@@ -174,9 +174,9 @@ async def test_a_full_disk_stops_recording_cleanly_and_keeps_what_was_written(tm
     async with EchoServer() as server:
         rec = await RecordProcess.start(server.port, out, preexec_fn=small_files)
         reader, writer = await asyncio.open_connection(LOCAL, rec.port)
-        chunk = os.urandom(2 << 10)  # incompressible: the file grows as fast as traffic
         try:
             for _ in range(2000):  # a few flushes fit under the limit before one does not
+                chunk = os.urandom(2 << 10)  # incompressible: the file grows as fast as traffic
                 writer.write(chunk)
                 await asyncio.wait_for(reader.readexactly(len(chunk)), WAIT)
                 await asyncio.sleep(0.01)
