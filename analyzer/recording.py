@@ -772,11 +772,9 @@ class RecordingScan:
             offsets.sort()  # file order is arrival order; the index is in log-time order
             for offset in offsets:
                 pos = first + offset
-                if pos + _MESSAGE_DATA_AT > end:
-                    raise DamagedRecord("a message index points outside it")
-                op, length, channel = unpack(records, pos)
+                op, length, channel = unpack(records, pos)  # struct.error past the buffer
                 if op != _OP_MESSAGE or length < _MESSAGE_FIXED or pos + 9 + length > end:
-                    raise DamagedRecord("a message index points at no message")
+                    raise DamagedRecord("a message index points at no message in it")
                 if channel in wanted:
                     yield log_time(records, pos + 15)[0], wanted[channel], records, pos + _MESSAGE_DATA_AT, \
                         pos + 9 + length
