@@ -49,7 +49,7 @@ from analyzer.recording import (
     open_chunk,
 )
 
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
+OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
 OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
 _KNOWN = frozenset(range(0x01, 0x10))  # MCAP's opcodes; 0x80 and up are for private records
 _COPIED = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_ATTACHMENT, OP_METADATA))
