@@ -199,8 +199,10 @@ class Analyzer:
         events: list[Event] = []
         if name == "gap":
             length = message.get("length")
-            summary.notes.append(f"capture gap of {length} bytes in {message.get('dir')}" if length is not None
-                                 else message.get("detail") or f"gap in {message.get('dir')}")
+            # a capture's hole, or bytes the proxy forwarded unrecorded (--when-behind gap): the detail says which
+            why = message.get("detail") or "bytes missing from the recording"
+            summary.notes.append(f"gap of {length} bytes in {message.get('dir')}: {why}" if length is not None
+                                 else f"gap in {message.get('dir')}: {why}")
             if conn in self.sessions:
                 # what follows the hole cannot be framed with what came before:
                 # judge each side of it on its own, as the recorder does

@@ -197,10 +197,12 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
               help="Where to write (default: PATH without .part, or NAME.recovered.mcap).")
 @force_option
 def recover_command(path: str, output: str | None, force: bool) -> None:
-    """Turn a .mcap.part left by a crash into a valid, indexed MCAP file.
+    """Turn a .mcap.part left by a crash, or a damaged recording, into a valid,
+    indexed MCAP file.
 
     Everything the recorder had flushed (all but about the last second) is
-    copied into the new file; the original is left as it was.
+    copied into the new file; damaged chunks are skipped and said (where, how
+    much), and the rest after them is kept.  The original is left as it was.
     """
     from sniffer.recover import RecoverError, recover
 

@@ -56,6 +56,8 @@ as the server reads.  In both, connections run one after another.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
 import socket
 import time
 from collections import Counter, deque
@@ -622,7 +624,7 @@ class Replay:
             if ticker is not None:
                 ticker.cancel()
             try:
-                self._close_output()
+                self._close_output(discard_if_empty=error is not None)
             except ReplayError as e:
                 error = error or str(e)
         t = self._tally
@@ -845,16 +847,24 @@ class Replay:
                 self._output_error = str(e)
                 self.stop()
 
-    def _close_output(self) -> None:
+    def _close_output(self, discard_if_empty: bool = False) -> None:
+        """Finish the output recording.  A replay that failed before any
+        connection (the target unreachable) leaves no file: an empty recording
+        would only make the next try refuse to overwrite it."""
         from sniffer.writer import RecordingWriteError
 
         error = self._output_error
         if self._recorder is not None:
+            recorder, self._recorder = self._recorder, None
             try:
-                self._recorder.stop(self._wall(), "replay finished")  # type: ignore[misc]
+                summary = recorder.stop(self._wall(), "replay finished")  # type: ignore[misc]
             except RecordingWriteError as e:
                 error = str(e)
-            self._recorder = None
+            else:
+                if discard_if_empty and summary.connections == 0:
+                    for path in summary.files:
+                        with contextlib.suppress(OSError):
+                            os.unlink(path)
         if error:
             raise ReplayError(error)
 

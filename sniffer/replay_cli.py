@@ -53,7 +53,7 @@ def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions
     except OSError as e:
         fail(f"{path}: cannot read ({e.strerror or e})")
     except (RecordingError, KeyError) as e:  # KeyError: a message without a field the format requires
-        fail(f"{path}: not a readable recording ({e})")
+        fail(str(e) if path in str(e) else f"{path}: not a readable recording ({e})")
 
 
 def _echo(text: str) -> None:
@@ -222,7 +222,7 @@ class _Printer:
         self.verbose, self.quiet = verbose, quiet
 
     def __call__(self, event) -> None:  # noqa: ANN001 - a replay event
-        from analyzer.text import escape
+        from analyzer.text import escape, shorten
         from sniffer.replay import ConnectionClosed, ConnectionOpened, RequestSent, ResponseCompared
 
         if self.quiet:
@@ -231,13 +231,13 @@ class _Printer:
             if not event.match:
                 _echo(event.diff)
             elif self.verbose:
-                shown = escape(event.replayed)[:72] if event.replayed is not None else "(no answer)"
+                shown = shorten(escape(event.replayed), 72) if event.replayed is not None else "(no answer)"
                 _echo(f"{event.at_s:10.6f} c{event.conn} < {shown}  {event.status}")
         elif not self.verbose:
             return
         elif isinstance(event, RequestSent):
             drift = f"  (+{event.drift_ns / 1e6:.3f} ms)" if event.drift_ns is not None else ""
-            _echo(f"{event.at_s:10.6f} c{event.conn} > {escape(event.data)[:72]}  {event.text}{drift}")
+            _echo(f"{event.at_s:10.6f} c{event.conn} > {shorten(escape(event.data), 72)}  {event.text}{drift}")
         elif isinstance(event, ConnectionOpened):
             _echo(f"{event.at_s:10.6f} c{event.conn} opened from {event.local} "
                        f"(recorded connection {event.recorded_conn}, loop {event.loop})")

@@ -32,7 +32,7 @@ from analyzer.messages import (
     UnknownCommand,
 )
 from analyzer.session import Mode
-from analyzer.text import escape
+from analyzer.text import escape, shorten
 
 NS = 1_000_000_000
 
@@ -217,8 +217,8 @@ def dry_run_lines(plans: list[ConnectionPlan], origin_ns: int) -> list[str]:
             lines.append(f"  {(p.password_t_ns - origin_ns) / NS:12.6f} handshake: {words} "
                          f"(the password is sent after sendchkpass)")
         for send in p.sends:
-            lines.append(f"  {(send.t_ns - origin_ns) / NS:12.6f} send {escape(send.data)[:72]}  {send.describe()}")
+            lines.append(f"  {(send.t_ns - origin_ns) / NS:12.6f} send {shorten(escape(send.data), 72)}  {send.describe()}")
             for item in send.items:
                 if item.answer is not None:
-                    lines.append(f"  {'':12} expect {escape(item.answer.item.raw)[:64]}  {meaning(item.answer)}")
+                    lines.append(f"  {'':12} expect {shorten(escape(item.answer.item.raw), 64)}  {meaning(item.answer)}")
     return lines

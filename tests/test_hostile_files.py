@@ -452,25 +452,46 @@ def bombs() -> dict[str, Callable[[], bytes]]:
     }
 
 
+# Runs the command as its child and writes the child's peak RSS (KiB) to the file
+# named first.  Why a middle process: Linux keeps a process's peak RSS across
+# exec, counting the memory of the process it was forked (or vforked) from, so a
+# command started straight from pytest "peaks" at pytest's own size (180 MB
+# late in a full run).  Forked from this small process, it starts from ~10 MB.
+_MEASURE = """
+import os, signal, sys
+pid = os.fork()
+if pid == 0:
+    os.execvp(sys.argv[2], sys.argv[2:])
+_, status, usage = os.wait4(pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(str(usage.ru_maxrss))
+code = os.waitstatus_to_exitcode(status)
+if code < 0:
+    signal.signal(-code, signal.SIG_DFL)
+    os.kill(os.getpid(), -code)
+sys.exit(code)
+"""
+
+
 def run_measured(argv: list[str], env: dict[str, str] | None = None) -> tuple[int, str, str, int, float]:
     """Run a command to its end (killed after TIME_BOUND_S): exit status,
-    stdout, stderr, peak RSS in bytes (from the kernel, through wait4) and
-    seconds taken."""
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+    stdout, stderr, peak RSS in bytes (from the kernel, through wait4 in a
+    small middle process) and seconds taken."""
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+            tempfile.NamedTemporaryFile("r") as peak:
         start = time.monotonic()
-        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=out, stderr=err, start_new_session=True,
-                                env=env)
+        proc = subprocess.Popen([sys.executable, "-c", _MEASURE, peak.name, *argv], stdin=subprocess.DEVNULL,
+                                stdout=out, stderr=err, start_new_session=True, env=env)
         timer = threading.Timer(TIME_BOUND_S, os.killpg, (proc.pid, signal.SIGKILL))
         timer.start()
         try:
-            _, status, usage = os.wait4(proc.pid, 0)
+            proc.wait()
         finally:
             timer.cancel()
-        proc.returncode = os.waitstatus_to_exitcode(status)
         took = time.monotonic() - start
         out.seek(0)
         err.seek(0)
-        return proc.returncode, out.read().decode(), err.read().decode(), usage.ru_maxrss * 1024, took
+        return (proc.returncode, out.read().decode(), err.read().decode(), int(peak.read() or 0) * 1024, took)
 
 
 @pytest.fixture(scope="module")

@@ -449,3 +449,13 @@ def test_a_markdown_cell_reads_as_the_value_and_never_as_html(value, frame):
         assert cells["code"][-1] == printable(frame)
     tags = re.findall(r"</?([a-z]+)", page)
     assert set(tags) <= {"table", "thead", "tbody", "tr", "th", "td", "code"}
+
+
+def test_a_replay_that_reached_no_server_leaves_no_output(tmp_path):
+    """An unreachable target left an empty recording at -o, and the retry was
+    then refused because the output existed."""
+    out = tmp_path / "replayed.mcap"
+    for _ in range(2):  # the retry is not refused
+        result = run("replay", SAMPLE, "--target", f"{LOCAL}:{closed_port()}", "-o", out)
+        assert result.returncode == 2 and "cannot connect" in result.stderr
+        assert list(tmp_path.iterdir()) == []
