@@ -154,7 +154,7 @@ class Observation(NamedTuple):
     latency_ns: int | None = None
 
 
-PENDING_KEPT = 10_000  # requests awaited at once per connection; the oldest is given up beyond
+PENDING_KEPT = 250_000  # requests awaited at once per connection; the oldest is given up beyond
 EXPIRED_KEPT = 1024  # requests given up (deadline or cap) that a late answer may still pair with
 EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'
 
