@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
-import re
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from importlib.metadata import EntryPoint, entry_points
@@ -46,8 +45,6 @@ def fail(message: str) -> NoReturn:
     raise WhiztapError(message)
 
 
-_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
-_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
 
 
 class ByteSize(click.ParamType):
@@ -58,10 +55,12 @@ class ByteSize(click.ParamType):
     def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
         if isinstance(value, int):
             return value
-        m = _SIZE.match(str(value))
-        if m is None or float(m.group(1)) <= 0:
-            self.fail(f"{value!r} is not a size such as 1000000, 500k or 64M", param, ctx)
-        return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
+        from analyzer.text import parse_size
+
+        try:
+            return parse_size(str(value))
+        except ValueError as e:
+            self.fail(str(e), param, ctx)
 
 
 @contextlib.contextmanager

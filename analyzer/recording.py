@@ -472,14 +472,12 @@ def max_chunk() -> int:
     value = os.environ.get(MAX_CHUNK_ENV, "")
     if not value:
         return DEFAULT_MAX_CHUNK
-    import click
-
-    from analyzer.cli import ByteSize
+    from analyzer.text import parse_size
 
     try:
-        return ByteSize().convert(value, None, None)
-    except click.BadParameter as e:
-        raise RecordingError(f"{MAX_CHUNK_ENV}: {e.message}") from None
+        return parse_size(value)
+    except ValueError as e:
+        raise RecordingError(f"{MAX_CHUNK_ENV}: {e}") from None
 
 
 def _mib(n: int) -> str:

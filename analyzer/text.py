@@ -59,3 +59,18 @@ def shorten(text: str, width: int) -> str:
         if end > len(cut):
             cut = cut[:tail]
     return cut + "…"
+
+
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
+_UNITS = {"": 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30, "t": 1 << 40}
+
+
+def parse_size(text: str) -> int:
+    """A byte count as people write it: 500000, 100k, 64M, 2G (powers of 1024).
+    ValueError for anything else.  Here rather than with the command line's
+    parameter type, so a library setting (WHIZTAP_MAX_CHUNK) reads sizes the
+    same way without importing the command line."""
+    m = _SIZE.match(text)
+    if m is None or float(m.group(1)) <= 0:
+        raise ValueError(f"{text!r} is not a size such as 1000000, 500k or 64M")
+    return int(float(m.group(1)) * _UNITS[m.group(2).lower()])
