@@ -119,7 +119,26 @@ class EchoOrDrop(_ThreadedServer):
             self.uploads.append(got)
 
 
-class Flood:
+class _SocketThread:
+    """A client socket served by a thread of its own until ``finish()``."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection((LOCAL, port))
+        self.sock.settimeout(0.1)
+        self.stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def finish(self) -> None:
+        self.stop.set()
+        self._thread.join(WAIT)
+        self.sock.close()
+
+
+class Flood(_SocketThread):
     """A client sending binary junk as fast as the proxy takes it, from a thread.
 
     Bytes 0x80-0xff, nothing a frame can begin with: the writer records them
@@ -129,12 +148,8 @@ class Flood:
     DATA = random.Random(3).randbytes(1 << 20).translate(bytes(0x80 | b for b in range(256)))
 
     def __init__(self, port: int) -> None:
-        self.sock = socket.create_connection((LOCAL, port))
-        self.sock.settimeout(0.1)
         self.sent = 0
-        self.stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(port)
 
     def _run(self) -> None:
         self.sock.sendall(FLOOD_MARK)
@@ -158,31 +173,22 @@ class Flood:
 
     def finish(self) -> None:
         self.stop.set()
-        self._thread.join(WAIT)
+        self._thread.join(WAIT)  # no send after the FIN
         self.sock.shutdown(socket.SHUT_WR)
-        self.sock.close()
+        super().finish()
 
 
-class FastReader:
+class FastReader(_SocketThread):
     """Reads and drops everything, from a thread: makes recorded traffic."""
 
     def __init__(self, port: int) -> None:
-        self.sock = socket.create_connection((LOCAL, port))
-        self.sock.settimeout(0.1)
         self.received = 0
-        self.stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(port)
 
     def _run(self) -> None:
         while not self.stop.is_set():
             with contextlib.suppress(TimeoutError):
                 self.received += len(self.sock.recv(1 << 20))
-
-    def finish(self) -> None:
-        self.stop.set()
-        self._thread.join(WAIT)
-        self.sock.close()
 
 
 # -- the processes -----------------------------------------------------------------------------
