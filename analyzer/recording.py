@@ -768,6 +768,8 @@ class RecordingScan:
         wanted = self._wanted_ids()
         if offsets:
             offsets.sort()  # file order is arrival order; the index is in log-time order
+            if first + offsets[-1] + 9 > end:  # checked once: the largest is the last
+                raise DamagedRecord("a message index points past the end of its chunk")
             for offset in offsets:
                 pos = first + offset
                 op, length, channel = unpack(records, pos)  # struct.error past the buffer

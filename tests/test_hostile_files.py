@@ -584,3 +584,21 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
     else:
         assert_indexed_mcap(Path(result.output), result.messages)
         assert "\n" not in result.summary()
+
+
+def test_a_message_index_pointing_past_any_buffer_is_one_line(tmp_path):
+    """Found by the property test above: an index entry with an offset of 2**63
+    ended in OverflowError (not struct.error), an 'unexpected error'."""
+    from analyzer.recording import STREAM_TOPICS, RecordingError, RecordingScan
+
+    raw = bytearray(base())
+    indexes = [(pos, length) for pos, op, length in layout(bytes(raw)) if op == 0x07]
+    assert indexes
+    for pos, length in indexes:  # every entry's offset: (log_time u64, offset u64) after channel u16, size u32
+        for entry in range(pos + 9 + 6, pos + length, 16):
+            struct.pack_into("<Q", raw, entry + 8, 1 << 63)
+    path = tmp_path / "far.mcap"
+    path.write_bytes(bytes(raw))
+    with open(path, "rb") as f, pytest.raises(RecordingError, match="points past the end"):
+        for _ in RecordingScan(f, STREAM_TOPICS).stream():
+            pass
