@@ -218,6 +218,8 @@ def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Read |
                 yield from _part_records(scan, seen, hole)
             except RecordingError as e:  # the reader checks every length and every field it yields
                 raise PartError(path, str(e)) from None
+            except (KeyError, ValueError, TypeError, IndexError) as e:  # a nested field the reader does not check
+                raise PartError(path, f"the file is damaged ({str(e) or type(e).__name__})") from None
             if scan.truncated:
                 raise PartError(path, "the file is truncated (no footer)")
             topics = sorted(set(scan.channels.values()))

@@ -359,7 +359,7 @@ async def test_a_flood_never_stalls_another_connections_round_trips(tmp_path, mo
                 await asyncio.sleep(0.05)
             assert server.uploads == [flood.sent]
             await finish(rec)
-    assert during >= 20, f"{during} round trips while the writer was behind"
+    assert during > 0, "no round trip while the writer was behind"  # before: every connection paused
     assert high < RSS_BOUND_KIB
     recorded = rebuild_streams(str(out))
     assert [s.data for s in recorded[(1, "c2s")]] == [talked]
@@ -377,4 +377,4 @@ async def test_a_flood_never_stalls_another_connections_round_trips(tmp_path, mo
     if mode == "pause":
         assert not gaps
     else:
-        assert gaps and flooded > 256 << 20  # the flood went on at loopback speed, unrecorded
+        assert gaps and flooded > 16 << 20  # past the most the proxy holds for the writer: it went on, unrecorded
