@@ -215,8 +215,12 @@ class _Salvage:
             pos += 9 + length
 
     def _read(self, pos: int, n: int) -> bytes:
-        self.f.seek(pos)
-        return self.f.read(n)
+        """The input's bytes; a failing read (a bad sector) names the input, not the output."""
+        try:
+            self.f.seek(pos)
+            return self.f.read(n)
+        except OSError as e:
+            raise RecoverError(f"cannot read {self.f.name} at byte {pos}: {e.strerror or e}") from None
 
     def _plausible(self, pos: int, op: int, length: int) -> bool:
         """Whether a record header at ``pos`` can be taken at its word: a known
