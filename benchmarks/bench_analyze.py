@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from analyzer.session import Direction
+from whiztap.analyzer.protocol.session import Direction
 from benchmarks.bench_core import mixed_session
 
 FRAMES = int(os.environ.get("WHIZTAP_BENCH_FRAMES", 1_000_000))
@@ -30,9 +30,9 @@ READ = 16 * 1024  # bytes per read in the pipelined recording
 
 
 def _write(path: Path, blocks: list[tuple[bytes, bytes]], read_size: int | None) -> None:
-    from analyzer.recording import metadata_record
-    from sniffer.recorder import Recorder
-    from sniffer.writer import RecordingFile
+    from whiztap.analyzer.recording.format import metadata_record
+    from whiztap.sniffer.record.recorder import Recorder
+    from whiztap.sniffer.record.writer import RecordingFile
 
     part = Path(str(path) + ".tmp")
     recording = RecordingFile(str(part), metadata_record(source="benchmark"))
@@ -60,13 +60,13 @@ def _writer_digest() -> str:
     """Changes whenever the code that lays out a recording does."""
     import hashlib
 
-    import analyzer.recording
-    import sniffer.mcapwriter
-    import sniffer.recorder
-    import sniffer.writer
+    import whiztap.analyzer.recording.format
+    import whiztap.analyzer.recording.mcap
+    import whiztap.sniffer.record.recorder
+    import whiztap.sniffer.record.writer
 
     digest = hashlib.sha256()
-    for module in (analyzer.recording, sniffer.mcapwriter, sniffer.recorder, sniffer.writer):
+    for module in (whiztap.analyzer.recording.format, whiztap.analyzer.recording.mcap, whiztap.sniffer.record.recorder, whiztap.sniffer.record.writer):
         digest.update(Path(module.__file__).read_bytes())
     return digest.hexdigest()[:10]
 
@@ -103,7 +103,7 @@ def _reference_file() -> Path:
 
 
 def _analyse_seconds(path: Path) -> tuple[float, int]:
-    from analyzer.analyze_cli import analyse_file
+    from whiztap.analyzer.cli.analyze import analyse_file
 
     start = time.process_time()
     analysis = analyse_file(path, "dev-sum")
@@ -123,7 +123,7 @@ def _reader_seconds(path: Path) -> float:
 def _side_by_side(path: Path) -> tuple[float, int, float]:
     """Best of three, analysis and the mcap reader taking turns, so both see the
     same machine (its speed drifts by up to 2x here)."""
-    from analyzer.throughput import tune_gc
+    from whiztap.analyzer.analysis.throughput import tune_gc
 
     tune_gc()
     reference = _reference_file()
@@ -137,7 +137,7 @@ def _side_by_side(path: Path) -> tuple[float, int, float]:
 
 
 def _peak_rss_mib(path: Path) -> float:
-    code = ("import resource,sys; from pathlib import Path; from analyzer.analyze_cli import analyse_file;"
+    code = ("import resource,sys; from pathlib import Path; from whiztap.analyzer.cli.analyze import analyse_file;"
             "analyse_file(Path(sys.argv[1]), 'dev-sum');"
             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)

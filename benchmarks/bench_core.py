@@ -14,11 +14,11 @@ import sys
 import time
 from pathlib import Path
 
-from analyzer.codec import encode
-from analyzer.framing import Framer
-from analyzer import messages as m
-from analyzer.session import Direction, Session
-from analyzer.throughput import tune_gc
+from whiztap.analyzer.protocol.codec import encode
+from whiztap.analyzer.protocol.framing import Framer
+from whiztap.analyzer.protocol import messages as m
+from whiztap.analyzer.protocol.session import Direction, Session
+from whiztap.analyzer.analysis.throughput import tune_gc
 
 FRAMES = int(os.environ.get("WHIZTAP_BENCH_FRAMES", 1_000_000))
 CHUNK = 64 * 1024

@@ -196,7 +196,7 @@ def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
 
 
 def pipelined(tmp: Path) -> dict[str, float]:
-    from analyzer.recording import rebuild_streams, stream_bytes
+    from whiztap.analyzer.recording.format import rebuild_streams, stream_bytes
 
     upstream_port, port = _free_port(), _free_port()
     upstream = subprocess.Popen([sys.executable, "-c", RESPONDER, str(upstream_port)])

@@ -31,7 +31,7 @@ _LISTENING = re.compile(r"listening on 127\.0\.0\.1:(\d+)")
 
 
 async def _control_loop(port: int) -> None:
-    from sniffer.client import Client
+    from whiztap.sniffer.sim.client import Client
 
     loop = asyncio.get_running_loop()
     start = loop.time()
@@ -49,8 +49,8 @@ async def _control_loop(port: int) -> None:
 
 
 async def _record(path: Path) -> None:
-    from sniffer.record_run import Recording, RecordSettings
-    from sniffer.simulator import Simulator
+    from whiztap.sniffer.record.record_run import Recording, RecordSettings
+    from whiztap.sniffer.sim.simulator import Simulator
 
     async with Simulator(port=0, mode="winsock", password=PASSWORD) as sim:
         recording = Recording(RecordSettings(("127.0.0.1", 0), ("127.0.0.1", sim.port), str(path), quiet=True))

@@ -38,7 +38,7 @@ _CURSOR: dict[int, float] = {}  # frame id -> when it was first painted under th
 def _instrument() -> None:
     """Note when rows are painted (benchmark only: wraps the list's render_line,
     which runs for every line drawn, cached strip or not)."""
-    from tui.frame_list import FrameList
+    from whiztap.tui.frame_list import FrameList
 
     render_line = FrameList.render_line
 
@@ -87,8 +87,8 @@ async def _key(app, key: str, painted: dict, frame: int, or_later: bool = False)
 async def _browse(path: str, started: float) -> dict:
     """In the fresh process: open the recording headless and time what a user sees."""
     _instrument()
-    from tui.app import WhiztapApp
-    from tui.sources import FileSource
+    from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.sources import FileSource
 
     app = WhiztapApp(FileSource(path))
     out: dict = {}
@@ -162,9 +162,9 @@ async def _drive(port: int, rate: int, seconds: float) -> None:
 
 
 async def _live(tmp: str) -> dict:
-    from sniffer.record_run import RecordSettings
-    from tui.app import WhiztapApp
-    from tui.sources import LiveSource, ProxyRig
+    from whiztap.sniffer.record.record_run import RecordSettings
+    from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.sources import LiveSource, ProxyRig
 
     whiztap = str(Path(sys.executable).with_name("whiztap"))
     sim = subprocess.Popen([whiztap, "sim", "--mode", "vpn", "--port", "0", "-q"], stdout=subprocess.PIPE, text=True)

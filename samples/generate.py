@@ -10,12 +10,12 @@ import asyncio
 import sys
 from pathlib import Path
 
-from analyzer.examples import SCENARIOS
-from sniffer.client import Client, HandshakeError
-from sniffer.dialogue import Dialogue
-from sniffer.record_run import Recording, RecordSettings
-from sniffer.simulator import Simulator
-from sniffer.tour import every_command
+from whiztap.analyzer.protocol.examples import SCENARIOS
+from whiztap.sniffer.sim.client import Client, HandshakeError
+from whiztap.sniffer.sim.dialogue import Dialogue
+from whiztap.sniffer.record.record_run import Recording, RecordSettings
+from whiztap.sniffer.sim.simulator import Simulator
+from whiztap.sniffer.sim.tour import every_command
 
 HERE = Path(__file__).parent
 LOCAL = "127.0.0.1"

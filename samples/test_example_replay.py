@@ -13,10 +13,10 @@ import asyncio
 
 import pytest
 
-from analyzer.messages import UnitType
-from sniffer.client import Client
-from sniffer.pytest_plugin import BackgroundLoop
-from sniffer.simulator import Simulator
+from whiztap.analyzer.protocol.messages import UnitType
+from whiztap.sniffer.sim.client import Client
+from whiztap.sniffer.pytest_plugin import BackgroundLoop
+from whiztap.sniffer.sim.simulator import Simulator
 
 PASSWORD = "progwhiz"  # the samples' password
 

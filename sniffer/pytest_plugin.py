@@ -166,7 +166,7 @@ class WhiztapServer:
 
     @property
     def unanswered(self) -> list:
-        """Requests the stub had no recorded answer for (``sniffer.stub.Unanswered``)."""
+        """Requests the stub had no recorded answer for (``whiztap.sniffer.replay.stub.Unanswered``)."""
         return list(self._stub.unanswered) if self._stub is not None else []
 
     def check(self) -> None:
@@ -201,8 +201,8 @@ def whiztap_server(request: pytest.FixtureRequest) -> Iterator[WhiztapServer]:
 
 def _load(path: Path) -> Any:
     """The recording's exchanges, or the test fails saying why."""
-    from analyzer.exchanges import load_exchanges
-    from analyzer.recording import RecordingError
+    from whiztap.analyzer.analysis.exchanges import load_exchanges
+    from whiztap.analyzer.recording.format import RecordingError
 
     try:
         return load_exchanges(str(path))
@@ -211,7 +211,7 @@ def _load(path: Path) -> Any:
 
 
 def _stubbed(background: BackgroundLoop, path: Path) -> Iterator[WhiztapServer]:
-    from sniffer.stub import Stub
+    from whiztap.sniffer.replay.stub import Stub
 
     recording = _load(path)
 
@@ -228,7 +228,7 @@ def _stubbed(background: BackgroundLoop, path: Path) -> Iterator[WhiztapServer]:
 
 
 def _recorded(background: BackgroundLoop, path: Path, target: tuple[str, int]) -> Iterator[WhiztapServer]:
-    from sniffer.record_run import Recording, RecordSettings
+    from whiztap.sniffer.record.record_run import Recording, RecordSettings
 
     path.parent.mkdir(parents=True, exist_ok=True)
     recording = Recording(RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True))
@@ -268,8 +268,8 @@ class ReplayCheck:
         """Options: pace, rate, segments ("frames"/"exact"), compare, tolerance
         ({"sensor_value": 20}), ignore_fields, ignore_kinds, timeout, loop,
         conns, start, end, kinds, output; and password.  The result
-        (``sniffer.replay.ReplayResult``) when every answer matched."""
-        from sniffer.replay import Replay, ReplayError
+        (``whiztap.sniffer.replay.engine.ReplayResult``) when every answer matched."""
+        from whiztap.sniffer.replay.engine import Replay, ReplayError
 
         settings = _settings(self._request)
         path = Path(recording) if recording is not None else settings.recording
@@ -297,9 +297,9 @@ class ReplayCheck:
 
 
 def _replay_options(options: dict[str, Any], target: tuple[str, int], password: str | None) -> Any:
-    from analyzer.compare import CompareError, CompareRules
-    from sniffer.replay import Pace, ReplayOptions
-    from sniffer.replay_plan import Selection
+    from whiztap.analyzer.analysis.compare import CompareError, CompareRules
+    from whiztap.sniffer.replay.engine import Pace, ReplayOptions
+    from whiztap.sniffer.replay.plan import Selection
 
     tolerance = options.pop("tolerance", {})
     try:

@@ -19,8 +19,8 @@ from pathlib import Path
 import jsonschema
 from mcap.reader import make_reader
 
-from analyzer.framing import Framer, Item
-from analyzer.recording import (
+from whiztap.analyzer.protocol.framing import Framer, Item
+from whiztap.analyzer.recording.format import (
     SCHEMA_ENCODING,
     TOPIC_FRAMES,
     TOPIC_READS,
@@ -28,8 +28,8 @@ from analyzer.recording import (
     rebuild_streams,
     stream_bytes,
 )
-from sniffer.record_run import Recording, RecordSettings
-from sniffer.tcp_server import TcpServer
+from whiztap.sniffer.record.record_run import Recording, RecordSettings
+from whiztap.sniffer.sim.tcp_server import TcpServer
 
 LOCAL = "127.0.0.1"
 WAIT = 20.0  # generous bound for anything a test waits on; never a timing assertion

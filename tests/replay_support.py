@@ -12,9 +12,9 @@ import asyncio
 import sys
 from pathlib import Path
 
-from sniffer.client import Client
-from sniffer.faults import FaultConfig
-from sniffer.simulator import Simulator
+from whiztap.sniffer.sim.client import Client
+from whiztap.sniffer.sim.faults import FaultConfig
+from whiztap.sniffer.sim.simulator import Simulator
 from tests.record_support import LOCAL, WAIT, recording
 
 PASSWORD = "replay-pw"

@@ -5,7 +5,7 @@ bytes; the spaces the spec prints between Set Configuration triples are layout
 and are not sent.
 """
 
-from analyzer.messages import (
+from whiztap.analyzer.protocol.messages import (
     ActivateSwitch,
     ChannelConfig,
     ChannelResponse,

@@ -2,7 +2,7 @@
 
 from hypothesis import strategies as st
 
-from analyzer.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item
+from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item
 from tests.spec_vectors import ALL_FRAMES, HANDSHAKE_SERVER
 
 # Smallest byte streams the framer accepts as images: structure only.

@@ -11,14 +11,14 @@ import jsonschema
 import pytest
 from junitparser import Error, Failure, JUnitXml, Skipped
 
-from analyzer.analysis import Analyzer
-from analyzer.analyze_cli import scan_recording
-from analyzer.recording import Read, rebuild_streams, stream_bytes
-from analyzer.report.content import build
-from analyzer.report.schema import REPORT_SCHEMA
-from analyzer.report.text import md_text
-from analyzer.rules import RULES
-from analyzer.text import shorten
+from whiztap.analyzer.analysis.analyzer import Analyzer
+from whiztap.analyzer.cli.analyze import scan_recording
+from whiztap.analyzer.recording.format import Read, rebuild_streams, stream_bytes
+from whiztap.analyzer.analysis.report.content import build
+from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
+from whiztap.analyzer.analysis.report.text import md_text
+from whiztap.analyzer.protocol.rules import RULES
+from whiztap.analyzer.protocol.text import shorten
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SAMPLES = Path(__file__).parent.parent / "samples"

@@ -14,10 +14,10 @@ from scapy.layers.inet import IP, TCP
 from scapy.layers.l2 import Ether
 from scapy.utils import PcapNgWriter, PcapWriter
 
-from sniffer.capture import CaptureError, CaptureSettings, import_pcap
-from sniffer.client import Client
-from sniffer.scapy_layer import Progwhiz, bind
-from sniffer.simulator import Simulator
+from whiztap.sniffer.record.capture import CaptureError, CaptureSettings, import_pcap
+from whiztap.sniffer.sim.client import Client
+from whiztap.sniffer.record.scapy_layer import Progwhiz, bind
+from whiztap.sniffer.sim.simulator import Simulator
 from tests.record_support import LOCAL, WAIT, WHIZTAP, frame_items, read_all, recording, streams
 
 CLIENT, SERVER = ("10.1.1.2", 40000), ("10.1.1.9", 5000)
@@ -111,7 +111,7 @@ def test_missing_bytes_are_a_gap_never_zeros(tmp_path):
     pcap = _write(tmp_path / "gap.pcap", pkts)
     out = tmp_path / "gap.mcap"
     import_pcap(pcap, CaptureSettings(5000, str(out)))
-    from analyzer.recording import rebuild_streams
+    from whiztap.analyzer.recording.format import rebuild_streams
 
     segments = rebuild_streams(str(out))[(1, "c2s")]
     assert [(seg.offset, seg.data) for seg in segments] == [(0, C2S[:16]), (32, C2S[32:])]

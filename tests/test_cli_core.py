@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from analyzer.rules import RULES
+from whiztap.analyzer.protocol.rules import RULES
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SAMPLES = Path(__file__).parent.parent / "samples"
@@ -86,9 +86,9 @@ def test_help_loads_no_event_loop_and_no_session_model():
     listing the commands imports neither asyncio nor the analyzer's session
     model, nor any UI or packet library."""
     code = ("import sys; sys.argv = ['whiztap', '--help']\n"
-            "from analyzer.cli import cli\n"
+            "from whiztap.analyzer.cli.root import cli\n"
             "try:\n    cli()\nexcept SystemExit:\n    pass\n"
-            "heavy = ('asyncio', 'analyzer.session', 'analyzer.analysis', 'textual', 'scapy', 'mcap')\n"
+            "heavy = ('asyncio', 'whiztap.analyzer.protocol.session', 'whiztap.analyzer.analysis.analyzer', 'textual', 'scapy', 'mcap')\n"
             "print(sorted(m for m in heavy if m in sys.modules), file=sys.stderr)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "Commands:" in result.stdout, result.stderr

@@ -7,12 +7,12 @@ import socket
 
 import pytest
 
-from analyzer.framing import ItemKind
-from analyzer.messages import ChannelConfig, SetConfigEntry
-from sniffer.camera import render_frame
-from sniffer.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
-from sniffer.faults import FaultConfig
-from sniffer.simulator import Simulator
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.messages import ChannelConfig, SetConfigEntry
+from whiztap.sniffer.sim.camera import render_frame
+from whiztap.sniffer.sim.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
+from whiztap.sniffer.sim.faults import FaultConfig
+from whiztap.sniffer.sim.simulator import Simulator
 
 SEC = 1_000_000_000
 PASSWORD = "progwhiz"
@@ -197,7 +197,7 @@ async def test_a_dropped_answer_costs_one_timeout_only():
 
 
 def test_connection_failures_are_told_in_the_system_s_words():
-    from sniffer.nettext import reason
+    from whiztap.sniffer.nettext import reason
 
     # asyncio's text names the call and the address, which the message already says
     assert reason(ConnectionRefusedError(111, "Connect call failed ('127.0.0.1', 1)")) == "Connection refused"

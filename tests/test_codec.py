@@ -4,11 +4,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analyzer import messages as m
-from analyzer.checksum import CHECKSUM_RULES, DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
-from analyzer.codec import decode, encode, resolve
-from analyzer.framing import ItemKind, Unframed
-from analyzer.messages import UnitType
+from whiztap.analyzer.protocol import messages as m
+from whiztap.analyzer.protocol.checksum import CHECKSUM_RULES, DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
+from whiztap.analyzer.protocol.codec import decode, encode, resolve
+from whiztap.analyzer.protocol.framing import ItemKind, Unframed
+from whiztap.analyzer.protocol.messages import UnitType
 from tests.spec_vectors import COMMANDS, RESPONSES, SET_CONFIG_EXAMPLE
 from tests.streams import frame_all
 

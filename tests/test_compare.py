@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from analyzer.codec import encode
-from analyzer.compare import (
+from whiztap.analyzer.protocol.codec import encode
+from whiztap.analyzer.analysis.compare import (
     CompareError,
     CompareRules,
     ServoMotion,
@@ -15,7 +15,7 @@ from analyzer.compare import (
     headline,
     side_by_side,
 )
-from analyzer.messages import (
+from whiztap.analyzer.protocol.messages import (
     ChannelConfig,
     ChannelResponse,
     ConfigurationSettings,
@@ -26,7 +26,7 @@ from analyzer.messages import (
     ServoPositionRequest,
     StopInternalScript,
 )
-from analyzer.session import Direction, Observation, Session
+from whiztap.analyzer.protocol.session import Direction, Observation, Session
 
 CONFIG = ConfigurationSettings(tuple([ChannelConfig(0)] * 6 + [ChannelConfig(1)] * 6 + [ChannelConfig(2)] * 12))
 EXACT, STRUCTURE, NONE = (CompareRules.parse(m) for m in ("exact", "structure", "none"))

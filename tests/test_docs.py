@@ -7,8 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from analyzer.checksum import CHECKSUM_RULES
-from analyzer.rules import RULES
+from whiztap.analyzer.protocol.checksum import CHECKSUM_RULES
+from whiztap.analyzer.protocol.rules import RULES
 
 PROTOCOL = (Path(__file__).parent.parent / "docs" / "protocol.md").read_text()
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from analyzer.recording import TOPIC_EVENTS, RecordingScan, rebuild_streams
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, RecordingScan, rebuild_streams
 from tests.record_support import LOCAL, WAIT, RecordProcess
 
 RSS_BOUND_KIB = 300 << 10  # the proxy process; it starts at about 30 MB

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analyzer.framing import (
+from whiztap.analyzer.protocol.framing import (
     DEFAULT_MAX_ITEM,
     MIN_MAX_ITEM,
     Framer,

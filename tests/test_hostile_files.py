@@ -9,7 +9,7 @@ readable instead and says what it skipped.
 
 This extends tests/test_bad_input.py (missing, empty, binary, folder, text,
 junk-after-magic and foreign files, and the commands that read other inputs).
-The matrix runs in process (``analyzer.cli.main``, the real entry point, fast);
+The matrix runs in process (``whiztap.analyzer.cli.root.main``, the real entry point, fast);
 the bombs run as subprocesses, whose peak memory the kernel reports.
 """
 
@@ -37,14 +37,14 @@ import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from analyzer.recording import METADATA_NAME, MAGIC, metadata_record
-from analyzer.session import Direction
-from sniffer.recorder import Recorder
-from sniffer.writer import RecordingFile
+from whiztap.analyzer.recording.format import METADATA_NAME, MAGIC, metadata_record
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import WHIZTAP
 
 T0 = 1_700_000_000_000_000_000
-READS, EVENTS = 1, 2  # channel ids in a whiztap recording (the order of analyzer.recording.TOPICS)
+READS, EVENTS = 1, 2  # channel ids in a whiztap recording (the order of whiztap.analyzer.recording.format.TOPICS)
 MIB = 1 << 20
 MEMORY_BOUND = 400 * MIB  # peak RSS allowed to a command reading a hostile file
 TIME_BOUND_S = 60
@@ -362,7 +362,7 @@ def files(tmp_path_factory) -> dict[str, str]:
 
 def whiztap_in_process(args: list[str], capsys) -> tuple[int, str, str]:  # noqa: ANN001 - pytest's capsys
     """``whiztap ARGS`` through its real entry point, in this process."""
-    from analyzer.cli import main
+    from whiztap.analyzer.cli.root import main
 
     argv = sys.argv
     sys.argv = ["whiztap", *args]
@@ -414,9 +414,9 @@ def assert_indexed_mcap(path: Path, messages: int) -> None:
 def test_the_tui_loads_every_file_and_says_what_went_wrong(files, kind):
     """The TUI's loading code (a worker thread, no terminal needed): never an
     exception, and one line for the frame list's footer when the file is bad."""
-    from analyzer.recording_set import find_one
-    from tui.model import TrafficModel
-    from tui.sources import FileSource
+    from whiztap.analyzer.recording.sets import find_one
+    from whiztap.tui.model import TrafficModel
+    from whiztap.tui.sources import FileSource
 
     source = FileSource(find_one([files[kind]]))
     source.feed(TrafficModel(), threading.Event())
@@ -548,9 +548,9 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
     CRCs, so the damage reaches the records and the JSON), cut anywhere: every
     reader either reads it or raises RecordingError with one line, the analysis
     of what it reads never fails, and recover writes a valid file or says why not."""
-    from analyzer.analysis import Analyzer
-    from analyzer.recording import STREAM_TOPICS, TOPICS, Read, RecordingError, RecordingScan, read_metadata
-    from sniffer.recover import RecoverError, recover
+    from whiztap.analyzer.analysis.analyzer import Analyzer
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPICS, Read, RecordingError, RecordingScan, read_metadata
+    from whiztap.analyzer.recording.recover import RecoverError, recover
 
     plain = data.draw(st.booleans(), label="uncompressed, no CRCs")
     raw = bytearray(base("" if plain else "zstd"))
@@ -589,7 +589,7 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
 def test_a_message_index_pointing_past_any_buffer_is_one_line(tmp_path):
     """Found by the property test above: an index entry with an offset of 2**63
     ended in OverflowError (not struct.error), an 'unexpected error'."""
-    from analyzer.recording import STREAM_TOPICS, RecordingError, RecordingScan
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, RecordingError, RecordingScan
 
     raw = bytearray(base())
     indexes = [(pos, length) for pos, op, length in layout(bytes(raw)) if op == 0x07]

@@ -15,14 +15,14 @@ from collections import Counter, deque
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analyzer import pairing
-from analyzer.examples import CONFIG, VPN_OPEN
-from analyzer.recording import TOPIC_EVENTS, RecordingScan
-from analyzer.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
-from sniffer.recorder import Recorder
-from sniffer.tcp_server import TcpServer
-from sniffer.tcpreasm import ACK, DLT_EN10MB, EVICTED, FIN, MAX_OPEN, SYN, Reassembler, parse_frame
-from sniffer.writer import RecordingFile
+from whiztap.analyzer.protocol import pairing
+from whiztap.analyzer.protocol.examples import CONFIG, VPN_OPEN
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, RecordingScan
+from whiztap.analyzer.protocol.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.sim.tcp_server import TcpServer
+from whiztap.sniffer.record.tcpreasm import ACK, DLT_EN10MB, EVICTED, FIN, MAX_OPEN, SYN, Reassembler, parse_frame
+from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, both_ways, read_all, streams
 from tests.streams import TINY_JPEG
 from tests.test_session import SlowSession, _shape
@@ -45,8 +45,8 @@ def verdicts(events: list) -> tuple[int, int]:
 
 _FEED = """
 import json, sys
-from analyzer.examples import VPN_OPEN
-from analyzer.session import Direction, LateViolation, Session
+from whiztap.analyzer.protocol.examples import VPN_OPEN
+from whiztap.analyzer.protocol.session import Direction, LateViolation, Session
 
 def peak_kib():
     # this process's own peak (VmHWM): ru_maxrss would count pytest's memory,

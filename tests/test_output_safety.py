@@ -29,20 +29,20 @@ from hypothesis import strategies as st
 from markdown_it import MarkdownIt
 from rich.console import Console
 
-from analyzer.session import Direction
-from analyzer.text import escape
-from sniffer.record_cli import base_metadata
-from sniffer.recorder import Recorder
-from sniffer.simulator import Simulator
-from sniffer.writer import RecordingFile
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.text import escape
+from whiztap.sniffer.cli.record import base_metadata
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.sim.simulator import Simulator
+from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, RecordProcess, closed_port, read_all
 from tests.test_capture import C2S, S2C, _session, _write
 from tests.test_split_recordings import split_vpn_session
 from tests.tui_support import SIZE, loaded, settled, until
-from tui.app import WhiztapApp
-from tui.detail import describe_frame
-from tui.replay_screen import ReplayScreen
-from tui.sources import FileSource
+from whiztap.tui.app import WhiztapApp
+from whiztap.tui.detail import describe_frame
+from whiztap.tui.replay_screen import ReplayScreen
+from whiztap.tui.sources import FileSource
 
 SAMPLE = Path(__file__).parent.parent / "samples" / "vpn.mcap"
 
@@ -421,7 +421,7 @@ ANY_TEXT = st.text(st.characters(codec=None, exclude_categories=()), max_size=60
 @settings(max_examples=300, deadline=None)
 @given(ANY_TEXT)
 def test_printable_shows_every_character_and_is_stable(text):
-    from analyzer.text import printable
+    from whiztap.analyzer.protocol.text import printable
 
     shown_text = printable(text)
     assert shown_text.isprintable()
@@ -437,8 +437,8 @@ def test_printable_shows_every_character_and_is_stable(text):
 @settings(max_examples=300, deadline=None)
 @given(ANY_TEXT, ANY_TEXT)
 def test_a_markdown_cell_reads_as_the_value_and_never_as_html(value, frame):
-    from analyzer.report.text import md_code, md_text
-    from analyzer.text import printable
+    from whiztap.analyzer.analysis.report.text import md_code, md_text
+    from whiztap.analyzer.protocol.text import printable
 
     table = f"| a | b |\n|---|---|\n| {md_text(value)} | {md_code(frame)} |\n"
     page = MarkdownIt("commonmark").enable("table").render(table)

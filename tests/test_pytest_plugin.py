@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from analyzer.recording import read_metadata
+from whiztap.analyzer.recording.format import read_metadata
 
 pytest_plugins = ["pytester"]
 
@@ -16,8 +16,8 @@ import os
 
 import pytest
 
-from sniffer.pytest_plugin import BackgroundLoop
-from sniffer.simulator import Simulator
+from whiztap.sniffer.pytest_plugin import BackgroundLoop
+from whiztap.sniffer.sim.simulator import Simulator
 
 
 @pytest.fixture
@@ -38,7 +38,7 @@ import os
 
 import pytest
 
-from sniffer.client import Client
+from whiztap.sniffer.sim.client import Client
 
 
 async def read_sensors(address):

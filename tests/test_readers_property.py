@@ -21,9 +21,9 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from analyzer.cli import cli
-from analyzer.exchanges import load_exchanges
-from analyzer.recording import (
+from whiztap.analyzer.cli.root import cli
+from whiztap.analyzer.analysis.exchanges import load_exchanges
+from whiztap.analyzer.recording.format import (
     EV_CLOSED,
     EV_GAP,
     EV_HALF_CLOSED,
@@ -35,14 +35,14 @@ from analyzer.recording import (
     encode_read,
     event_message,
 )
-from analyzer.recording_info import set_info
-from analyzer.recording_set import find_one
-from analyzer.session import Direction
-from sniffer.recorder import Recorder
-from sniffer.replay_plan import Selection, dry_run_lines, plan
-from sniffer.writer import RecordingFile
-from tui.model import TrafficModel
-from tui.sources import FileSource
+from whiztap.analyzer.recording.info import set_info
+from whiztap.analyzer.recording.sets import find_one
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
+from whiztap.sniffer.record.writer import RecordingFile
+from whiztap.tui.model import TrafficModel
+from whiztap.tui.sources import FileSource
 
 # Pieces that reach the interesting states of the session model: frames of
 # every kind (valid and not), handshake words, line breaks, image markers.

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from mcap.stream_reader import StreamReader
 
-from analyzer.recording import TOPIC_READS, RecordingScan, rebuild_streams
+from whiztap.analyzer.recording.format import TOPIC_READS, RecordingScan, rebuild_streams
 from tests.record_support import (
     LOCAL,
     WAIT,

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sniffer.proxy import TRANSPORT_HIGH_WATER
+from whiztap.sniffer.record.proxy import TRANSPORT_HIGH_WATER
 from tests.record_support import (
     LOCAL,
     WAIT,

@@ -7,9 +7,9 @@ import base64
 
 import pytest
 
-from sniffer.client import Client, ResponseTimeout
-from sniffer.faults import FaultConfig
-from sniffer.simulator import Simulator
+from whiztap.sniffer.sim.client import Client, ResponseTimeout
+from whiztap.sniffer.sim.faults import FaultConfig
+from whiztap.sniffer.sim.simulator import Simulator
 from tests.record_support import LOCAL, both_ways, events, frame_items, read_all, recording
 
 PASSWORD = "s3cret-pw"

@@ -19,10 +19,10 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-import analyzer.recording as recording_module
-import sniffer.recorder as recorder_module
-import sniffer.writer as writer_module
-from analyzer.recording import (
+import whiztap.analyzer.recording.format as recording_module
+import whiztap.sniffer.record.recorder as recorder_module
+import whiztap.sniffer.record.writer as writer_module
+from whiztap.analyzer.recording.format import (
     SCHEMAS,
     STREAM_TOPICS,
     TOPIC_FRAMES,
@@ -44,9 +44,9 @@ from analyzer.recording import (
     schema_bytes,
     stream_bytes,
 )
-from analyzer.session import Direction, Session
-from sniffer.recorder import Recorder
-from sniffer.writer import RecordingFile, RecordingWriteError
+from whiztap.analyzer.protocol.session import Direction, Session
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
 from tests.record_support import read_all
 from tests.streams import chunked, stream_pieces
 
@@ -120,8 +120,8 @@ def test_a_request_to_a_server_never_reached_is_reported_as_such_live_and_in_the
     why = ("Fetch Configuration Settings: the server was never reached "
            "(cannot connect to 127.0.0.1:5000: Connection refused)")
     assert [(v["rule_id"], v["detail"]) for v in read_all(str(path))["/violations"]] == [("PW-PAIR-UNANSWERED", why)]
-    from analyzer.analyze_cli import analyse_file
-    from analyzer.report.content import build
+    from whiztap.analyzer.cli.analyze import analyse_file
+    from whiztap.analyzer.analysis.report.content import build
 
     report = build(analyse_file(path, "dev-sum"))
     assert [(v["rule_id"], v["detail"]) for v in report["violations"]] == [("PW-PAIR-UNANSWERED", why)]
@@ -289,7 +289,7 @@ def test_stream_topics_have_chunks_of_their_own_that_readers_of_streams_alone_de
 def test_mask_and_stream_bytes():
     assert mask(b"abcdef", [(1, 2), (5, 1)]) == b"a**de*"
     with pytest.raises(RecordingError, match="not contiguous"):
-        from analyzer.recording import Segment
+        from whiztap.analyzer.recording.format import Segment
 
         stream_bytes([Segment(0, b"ab"), Segment(5, b"cd")])
 
@@ -377,7 +377,7 @@ def test_the_typescript_mcap_reader_reads_our_recordings_as_foxglove_would(tmp_p
 
 
 def test_the_format_page_shows_every_topic_and_schema_as_they_are():
-    from analyzer.recording import FORMAT_VERSION
+    from whiztap.analyzer.recording.format import FORMAT_VERSION
 
     page = (Path(__file__).parent.parent / "docs" / "recording-format.md").read_text()
     assert f'The format version is the string `"{FORMAT_VERSION}"`' in page

@@ -16,8 +16,8 @@ import pytest
 from mcap.stream_reader import StreamReader
 from mcap.records import Message
 
-from analyzer.recording import MAGIC, RecordingScan
-from sniffer.recover import recover
+from whiztap.analyzer.recording.format import MAGIC, RecordingScan
+from whiztap.analyzer.recording.recover import recover
 from tests.record_support import WAIT, WHIZTAP, EchoServer, RecordProcess, read_all, streams
 from tests.test_hostile_files import MIB, corrupt_data, flip_crc, read_chunks, run_measured, write_recording
 

@@ -14,11 +14,11 @@ import signal
 
 import pytest
 
-from analyzer.compare import CompareRules, Status
-from analyzer.exchanges import load_exchanges
-from analyzer.framing import ItemKind
-from sniffer.faults import FaultConfig
-from sniffer.replay import (
+from whiztap.analyzer.analysis.compare import CompareRules, Status
+from whiztap.analyzer.analysis.exchanges import load_exchanges
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.sniffer.sim.faults import FaultConfig
+from whiztap.sniffer.replay.engine import (
     ConnectionClosed,
     ConnectionOpened,
     Finished,
@@ -29,8 +29,8 @@ from sniffer.replay import (
     RequestSent,
     ResponseCompared,
 )
-from sniffer.replay_plan import Selection, kinds_of, plan
-from sniffer.client import Client, HandshakeError
+from whiztap.sniffer.replay.plan import Selection, kinds_of, plan
+from whiztap.sniffer.sim.client import Client, HandshakeError
 from tests.record_support import LOCAL, WAIT, both_ways, closed_port, recording
 from tests.replay_support import PASSWORD, WHIZTAP, record, simulator, until_closed, whiztap
 
@@ -143,7 +143,7 @@ async def test_recorded_pacing_keeps_writing_on_schedule_and_reports_its_drift(e
 
 
 def test_the_schedule_divides_recorded_gaps_by_the_rate():
-    from sniffer.replay import _Pacer
+    from whiztap.sniffer.replay.engine import _Pacer
 
     pacer = _Pacer(rate=2.0)
     pacer.anchor(1_000_000_000)

@@ -11,9 +11,9 @@ import re
 
 import pytest
 
-from analyzer.codec import UNIT_OF_COMMAND, encode
-from analyzer.framing import Framer, ItemKind
-from analyzer.messages import (
+from whiztap.analyzer.protocol.codec import UNIT_OF_COMMAND, encode
+from whiztap.analyzer.protocol.framing import Framer, ItemKind
+from whiztap.analyzer.protocol.messages import (
     ActivateSwitch,
     ChannelConfig,
     DeactivateSwitch,
@@ -30,11 +30,11 @@ from analyzer.messages import (
     StopExternalScript,
     StopInternalScript,
 )
-from analyzer.session import Direction, Session
-from sniffer.camera import render_frame
-from sniffer.channels import DEFAULT_CHANNELS, ChannelSpecError, format_channels, parse_channels
-from sniffer.robot import Output, Robot, ServerMode
-from sniffer.signals import SHAPES, Noise, Ramp, Sine, make_signal
+from whiztap.analyzer.protocol.session import Direction, Session
+from whiztap.sniffer.sim.camera import render_frame
+from whiztap.sniffer.sim.channels import DEFAULT_CHANNELS, ChannelSpecError, format_channels, parse_channels
+from whiztap.sniffer.sim.robot import Output, Robot, ServerMode
+from whiztap.sniffer.sim.waveforms import SHAPES, Noise, Ramp, Sine, make_signal
 from tests.spec_vectors import COMMANDS, HANDSHAKE_SERVER, RESPONSES, SET_CONFIG_EXAMPLE
 
 SEC = 1_000_000_000

@@ -28,25 +28,25 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import sniffer.recorder as recorder_module
-from analyzer.cli import cli
-from analyzer.examples import CONFIG
-from analyzer.exchanges import load_exchanges
-from analyzer.recording import STREAM_TOPICS, Read, RecordingScan, metadata_record
-from analyzer.recording_info import set_info
-from analyzer.recording_set import find_one
-from analyzer.redaction import Redactor
-from analyzer.session import Direction
-from sniffer.record_run import RecordSettings
-from sniffer.recorder import Recorder
-from sniffer.replay_plan import Selection, dry_run_lines, plan
-from sniffer.simulator import Simulator
-from sniffer.tcp_server import TcpServer
-from sniffer.writer import RecordingFile
+import whiztap.sniffer.record.recorder as recorder_module
+from whiztap.analyzer.cli.root import cli
+from whiztap.analyzer.protocol.examples import CONFIG
+from whiztap.analyzer.analysis.exchanges import load_exchanges
+from whiztap.analyzer.recording.format import STREAM_TOPICS, Read, RecordingScan, metadata_record
+from whiztap.analyzer.recording.info import set_info
+from whiztap.analyzer.recording.sets import find_one
+from whiztap.analyzer.protocol.redaction import Redactor
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.record.record_run import RecordSettings
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
+from whiztap.sniffer.sim.simulator import Simulator
+from whiztap.sniffer.sim.tcp_server import TcpServer
+from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, read_all, streams
 from tests.test_readers_property import TOKENS, stream
-from tui.model import TrafficModel
-from tui.sources import FileSource, LiveSource, ProxyRig
+from whiztap.tui.model import TrafficModel
+from whiztap.tui.sources import FileSource, LiveSource, ProxyRig
 
 SECRET = b"Kx9hunter2Tq4"
 C2S, S2C = Direction.C2S, Direction.S2C

@@ -4,12 +4,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from analyzer import messages as m
-from analyzer.codec import encode
-from analyzer.examples import CONFIG, SCENARIOS, VPN_OPEN, WINSOCK_OPEN
-from analyzer.framing import ItemKind
-from analyzer.rules import RULES
-from analyzer.session import Direction, HandshakeState, LateViolation, Mode, Observation, Session
+from whiztap.analyzer.protocol import messages as m
+from whiztap.analyzer.protocol.codec import encode
+from whiztap.analyzer.protocol.examples import CONFIG, SCENARIOS, VPN_OPEN, WINSOCK_OPEN
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.rules import RULES
+from whiztap.analyzer.protocol.session import Direction, HandshakeState, LateViolation, Mode, Observation, Session
 from tests.streams import TINY_JPEG, chunked
 
 C, S = Direction.C2S, Direction.S2C

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from analyzer.framing import Framer, ItemKind
-from sniffer.client import Client, ResponseTimeout
-from sniffer.console import CommandError, run, split_line
-from sniffer.simulator import Simulator
+from whiztap.analyzer.protocol.framing import Framer, ItemKind
+from whiztap.sniffer.sim.client import Client, ResponseTimeout
+from whiztap.sniffer.sim.console import CommandError, run, split_line
+from whiztap.sniffer.sim.simulator import Simulator
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 LISTENING = re.compile(r"listening on 127\.0\.0\.1:(\d+)")
@@ -171,8 +171,8 @@ def test_client_reads_commands_from_stdin(sim_port):
 
 
 def test_help_is_fast_to_load():
-    code = ("import sys, sniffer.sim_cli; "
-            "print(sorted(m for m in ('PIL', 'textual', 'scapy', 'sniffer.simulator') if m in sys.modules))")
+    code = ("import sys, whiztap.sniffer.cli.sim; "
+            "print(sorted(m for m in ('PIL', 'textual', 'scapy', 'whiztap.sniffer.sim.simulator') if m in sys.modules))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
     assert result.stdout == "[]\n", result.stderr
     listing = whiztap("--help").stdout

@@ -8,12 +8,12 @@ import random
 
 import pytest
 
-from analyzer.codec import encode
-from analyzer.framing import Framer, Item, ItemKind
-from analyzer.messages import FetchConfiguration
-from sniffer.client import Client
-from sniffer.faults import GARBAGE_ALPHABET, FaultConfig, FaultPlanner
-from sniffer.simulator import Simulator
+from whiztap.analyzer.protocol.codec import encode
+from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
+from whiztap.analyzer.protocol.messages import FetchConfiguration
+from whiztap.sniffer.sim.client import Client
+from whiztap.sniffer.sim.faults import GARBAGE_ALPHABET, FaultConfig, FaultPlanner
+from whiztap.sniffer.sim.simulator import Simulator
 from tests.test_robot import EXAMPLES, check_effect, example_robot
 
 SEC = 1_000_000_000

@@ -7,10 +7,10 @@ import json
 import subprocess
 from pathlib import Path
 
-from analyzer.recording_set import find_recordings
-from analyzer.session import Direction
-from sniffer.recorder import Recorder
-from sniffer.writer import RecordingFile
+from whiztap.analyzer.recording.sets import find_recordings
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import WHIZTAP
 
 T0 = 1_700_000_000_000_000_000

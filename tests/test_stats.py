@@ -5,7 +5,7 @@ import random
 from hypothesis import given
 from hypothesis import strategies as st
 
-from analyzer.stats import LatencyStats
+from whiztap.analyzer.protocol.stats import LatencyStats
 
 
 def exact_percentile(values, p):

@@ -8,11 +8,11 @@ import signal
 
 import pytest
 
-from analyzer.exchanges import load_exchanges
-from analyzer.session import Direction
-from sniffer.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
-from sniffer.dialogue import Dialogue
-from sniffer.stub import Stub
+from whiztap.analyzer.analysis.exchanges import load_exchanges
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.sim.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
+from whiztap.sniffer.sim.dialogue import Dialogue
+from whiztap.sniffer.replay.stub import Stub
 from tests.record_support import LOCAL, WAIT, both_ways, recording
 from tests.replay_support import (
     PASSWORD,

@@ -51,7 +51,7 @@ async def test_a_login_abandoned_mid_password_is_judged_not_a_crash(tmp_path):
     assert conn["mode"] == "winsock"
     assert b"prog" not in json.dumps(items).encode()
     # the file is in stream order: the held (masked) password read comes before its side's half-close
-    from analyzer.recording import STREAM_TOPICS, Read, RecordingScan
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, Read, RecordingScan
 
     with open(path, "rb") as f:
         order = [("read", r.dir) if type(r) is Read else (r["event"], r.get("dir"))
@@ -144,7 +144,7 @@ def test_cat_takes_the_filter_bars_words():
 async def test_cat_follow_tails_a_recording_being_written(tmp_path):
     import asyncio
 
-    from sniffer.simulator import Simulator
+    from whiztap.sniffer.sim.simulator import Simulator
     from tests.record_support import RecordProcess, play_client
 
     out = tmp_path / "live.mcap"
@@ -162,7 +162,7 @@ async def test_cat_follow_tails_a_recording_being_written(tmp_path):
 
 
 async def test_info_and_cat_say_a_recording_is_being_written_not_a_crash_leftover(tmp_path):
-    from sniffer.simulator import Simulator
+    from whiztap.sniffer.sim.simulator import Simulator
     from tests.record_support import RecordProcess, play_client
 
     out = tmp_path / "live.mcap"
@@ -205,9 +205,9 @@ def test_the_progress_bar_moves_with_several_processes(tmp_path, monkeypatch):
     import sys
     from pathlib import Path
 
-    from analyzer import analyze_cli
-    from analyzer.recording_set import find_recordings
-    from analyzer.session import Limits
+    from whiztap.analyzer.cli import analyze
+    from whiztap.analyzer.recording.sets import find_recordings
+    from whiztap.analyzer.protocol.session import Limits
     from tests.test_analyze import CLEAN, VPN
 
     for i, sample in enumerate((CLEAN, VPN, CLEAN, VPN)):

@@ -1,11 +1,11 @@
 """The TUI on sample recordings, driven by key presses as a user would."""
 
-from analyzer.framing import ItemKind
-from analyzer.session import Direction
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.session import Direction
 from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
-from tui.app import WhiztapApp
-from tui.help import HelpScreen
-from tui.sources import FileSource
+from whiztap.tui.app import WhiztapApp
+from whiztap.tui.help import HelpScreen
+from whiztap.tui.sources import FileSource
 
 
 def app_on(name: str) -> WhiztapApp:

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from analyzer.analyze_cli import analyse_file
+from whiztap.analyzer.cli.analyze import analyse_file
 from tests.tui_support import ROOT, SAMPLES
-from tui.demo import DELIBERATE_RULES
+from whiztap.tui.demo import DELIBERATE_RULES
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 
@@ -68,8 +68,8 @@ def test_tui_without_a_terminal_says_what_to_use_instead():
 def test_both_commands_are_registered_and_load_no_textual():
     import click
 
-    from analyzer.cli import cli
+    from whiztap.analyzer.cli.root import cli
 
     assert {"tui", "demo"} <= set(cli.list_commands(click.Context(cli)))
-    code = "import sys, tui.cli; sys.exit('textual' in sys.modules)"
+    code = "import sys, whiztap.tui.cli; sys.exit('textual' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0

@@ -4,19 +4,19 @@ the app in front of the simulator, and the demo."""
 import time
 from pathlib import Path
 
-from analyzer.analyze_cli import analyse_file
-from analyzer.examples import CONFIG
-from analyzer.recording import metadata_record, read_metadata
-from analyzer.session import Direction
-from sniffer.client import Client
-from sniffer.record_run import RecordSettings
-from sniffer.recorder import Recorder
-from sniffer.simulator import Simulator
-from sniffer.writer import RecordingFile
+from whiztap.analyzer.cli.analyze import analyse_file
+from whiztap.analyzer.protocol.examples import CONFIG
+from whiztap.analyzer.recording.format import metadata_record, read_metadata
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.sim.client import Client
+from whiztap.sniffer.record.record_run import RecordSettings
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.sim.simulator import Simulator
+from whiztap.sniffer.record.writer import RecordingFile
 from tests.tui_support import SIZE, until
-from tui.app import WhiztapApp
-from tui.demo import PASSWORD, DemoRig
-from tui.sources import FollowSource, LiveSource, ProxyRig
+from whiztap.tui.app import WhiztapApp
+from whiztap.tui.demo import PASSWORD, DemoRig
+from whiztap.tui.sources import FollowSource, LiveSource, ProxyRig
 
 LOCAL = "127.0.0.1"
 C2S, S2C = Direction.C2S, Direction.S2C

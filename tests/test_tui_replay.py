@@ -3,12 +3,12 @@
 import asyncio
 import socket
 
-from analyzer.analyze_cli import analyse_file
-from sniffer.simulator import Simulator
+from whiztap.analyzer.cli.analyze import analyse_file
+from whiztap.sniffer.sim.simulator import Simulator
 from tests.tui_support import SAMPLES, SIZE, WAIT, loaded, until
-from tui.app import WhiztapApp
-from tui.replay_screen import ReplayScreen
-from tui.sources import FileSource, FollowSource
+from whiztap.tui.app import WhiztapApp
+from whiztap.tui.replay_screen import ReplayScreen
+from whiztap.tui.sources import FileSource, FollowSource
 
 # samples/clean-winsock.mcap was recorded from this simulator (samples/generate.py)
 PASSWORD, SEED = "progwhiz", 1

@@ -10,8 +10,8 @@ import pytest
 
 from tests.test_tui_live import GrowingRecording
 from tests.tui_support import ROOT, loaded, settled, until
-from tui.app import WhiztapApp
-from tui.sources import FileSource, FollowSource
+from whiztap.tui.app import WhiztapApp
+from whiztap.tui.sources import FileSource, FollowSource
 
 SIZE = (120, 36)
 

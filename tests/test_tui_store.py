@@ -5,17 +5,17 @@ from pathlib import Path
 
 import pytest
 
-from analyzer.analysis import Analyzer
-from analyzer.describe import fields, meaning
-from analyzer.framing import ItemKind
-from analyzer.item_filter import ItemFilter
-from analyzer.recording import TOPIC_EVENTS, TOPIC_READS, Read, RecordingScan
-from analyzer.session import Direction, LateViolation, Observation
-from tui.model import TrafficModel
-from tui.sources import FileSource
-from tui.store import FrameStore
-from analyzer.item_filter import FilterSyntaxError, parse_filter
-from tui.view import FrameView, with_connection
+from whiztap.analyzer.analysis.analyzer import Analyzer
+from whiztap.analyzer.protocol.describe import fields, meaning
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.analysis.item_filter import ItemFilter
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS, Read, RecordingScan
+from whiztap.analyzer.protocol.session import Direction, LateViolation, Observation
+from whiztap.tui.model import TrafficModel
+from whiztap.tui.sources import FileSource
+from whiztap.tui.store import FrameStore
+from whiztap.analyzer.analysis.item_filter import FilterSyntaxError, parse_filter
+from whiztap.tui.view import FrameView, with_connection
 
 SAMPLES = Path(__file__).parent.parent / "samples"
 ALL_SAMPLES = sorted(SAMPLES.glob("*.mcap"))
@@ -104,7 +104,7 @@ def test_a_camera_image_keeps_its_head_its_size_and_its_meaning():
 
 def test_live_passwords_are_masked_in_the_store():
     store = FrameStore(redact_passwords=True)
-    from analyzer.session import Session
+    from whiztap.analyzer.protocol.session import Session
 
     session = Session()
     events = session.receive(Direction.S2C, b"sendchkpass", 1)
@@ -170,7 +170,7 @@ def test_a_filtered_view_holds_exactly_what_cat_would_print(text):
 
 
 def test_a_late_violation_lets_a_judged_frame_into_a_violations_view():
-    from analyzer.session import Session
+    from whiztap.analyzer.protocol.session import Session
 
     session = Session()
     store = FrameStore()
@@ -186,9 +186,9 @@ def test_a_late_violation_lets_a_judged_frame_into_a_violations_view():
 def test_the_detail_of_a_camera_image_shows_its_size_not_sensor_ranges():
     from rich.console import Console
 
-    from analyzer.session import Session
+    from whiztap.analyzer.protocol.session import Session
     from tests.streams import TINY_JPEG
-    from tui.detail import describe_frame
+    from whiztap.tui.detail import describe_frame
 
     session = Session()
     store = FrameStore()

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from analyzer.recording import TOPIC_READS, rebuild_streams
+from whiztap.analyzer.recording.format import TOPIC_READS, rebuild_streams
 from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, RecordProcess
 
 BAD_REQUEST = b"rr1-99--5--0-ss1"  # channel 99: a violation each time it is sent (and echoed)
@@ -289,7 +289,7 @@ async def test_rotation_never_writes_through_a_link(tmp_path, force):
 
 
 def test_a_part_name_taken_while_recording_stops_the_recording_and_is_kept(tmp_path):
-    from sniffer.writer import RecordingFile, RecordingWriteError
+    from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
 
     file = RecordingFile(str(tmp_path / "s.mcap"), {"session_id": "x"}, split_size=16 << 10, overwrite=False)
     file.open(1)
@@ -305,7 +305,7 @@ def test_a_part_name_taken_while_recording_stops_the_recording_and_is_kept(tmp_p
 
 
 def test_a_finished_name_taken_while_recording_is_not_replaced(tmp_path):
-    from sniffer.writer import RecordingFile, RecordingWriteError
+    from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
 
     out = tmp_path / "s.mcap"
     file = RecordingFile(str(out), {"session_id": "x"}, overwrite=False)
@@ -327,7 +327,7 @@ def test_every_flush_and_the_finish_reach_the_disk(tmp_path, monkeypatch):
     synced (fdatasync) and the names synced in their folder (fsync).  Each
     flush syncs the file; finishing syncs all of it before it takes its final
     name, and the folder after."""
-    from sniffer.writer import RecordingFile
+    from whiztap.sniffer.record.writer import RecordingFile
 
     calls: list[tuple[str, str]] = []
 

@@ -24,19 +24,19 @@ from textual.message import Message
 from textual.widgets import Footer, Header, Input, Static, TabbedContent, TabPane
 from textual.worker import get_current_worker
 
-from analyzer.checksum import DEFAULT_CHECKSUM_RULE
-from analyzer.session import Limits
-from analyzer.text import printable
-from analyzer.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
-from tui.connections import ConnectionsPane
-from tui.detail import DetailPane
-from tui.frame_list import FrameList
-from tui.help import HelpScreen
-from tui.model import TrafficModel
-from tui.sources import LiveSource, Source, SourceError
-from tui.stats import StatsPane
-from tui.virtual_list import VirtualList
-from tui.view import FrameView, with_connection
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
+from whiztap.analyzer.protocol.session import Limits
+from whiztap.analyzer.protocol.text import printable
+from whiztap.analyzer.analysis.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
+from whiztap.tui.connections import ConnectionsPane
+from whiztap.tui.detail import DetailPane
+from whiztap.tui.frame_list import FrameList
+from whiztap.tui.help import HelpScreen
+from whiztap.tui.model import TrafficModel
+from whiztap.tui.sources import LiveSource, Source, SourceError
+from whiztap.tui.stats import StatsPane
+from whiztap.tui.virtual_list import VirtualList
+from whiztap.tui.view import FrameView, with_connection
 
 TICK_S = 0.1  # new frames show within this (plus the time to decode them)
 LOADING_TICK_S = 0.5  # while a recording loads: each look repaints the screen, which slows the loading
@@ -140,7 +140,7 @@ class WhiztapApp(App):
         # Move what the app holds at start into the collector's permanent
         # generation: while traffic streams, full collections then walk only
         # what came since, not every widget and style (as batch commands do,
-        # see analyzer.throughput).
+        # see whiztap.analyzer.analysis.throughput).
         self.call_after_refresh(gc.freeze)
         self.set_interval(TICK_S, self._tick)
         self.set_interval(SLOW_TICK_S, self.refresh_summaries)
@@ -336,7 +336,7 @@ class WhiztapApp(App):
             self.stats.update_stats()
 
     def action_replay(self) -> None:
-        from tui.replay_screen import open_replay
+        from whiztap.tui.replay_screen import open_replay
 
         open_replay(self)
 

@@ -11,13 +11,13 @@ import sys
 
 import click
 
-from analyzer.cli import check_output, fail, force_option, limits_from, limits_options
+from whiztap.analyzer.cli.root import check_output, fail, force_option, limits_from, limits_options
 
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
 
 def _check_recording(path: str) -> None:
-    from analyzer.recording import RecordingError, read_metadata
+    from whiztap.analyzer.recording.format import RecordingError, read_metadata
 
     try:
         read_metadata(path)
@@ -30,7 +30,7 @@ def _check_recording(path: str) -> None:
 def _one_recording(path: str):  # noqa: ANN202 - a RecordingSet
     """The recording to browse: a file, or a split one named by any of its parts,
     its folder or a glob; checked readable before the app starts."""
-    from analyzer.recording_set import RecordingInputError, find_one
+    from whiztap.analyzer.recording.sets import RecordingInputError, find_one
 
     try:
         recording = find_one((path,))
@@ -104,13 +104,13 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
 
     Press ? in the app for its keys.
     """
-    from sniffer.record_cli import check_checksum_rule, check_output_free, parse_address
+    from whiztap.sniffer.cli.record import check_checksum_rule, check_output_free, parse_address
 
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
     rule = check_checksum_rule(checksum_rule)
     limits = limits_from(answer_timeout, max_frame, max_image)
-    from tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
+    from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
     if path is not None:
         source = FileSource(_one_recording(path))
@@ -119,7 +119,7 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
         _check_recording(follow)
         source = FollowSource(follow)
     else:
-        from sniffer.record_run import RecordSettings
+        from whiztap.sniffer.record.record_run import RecordSettings
 
         output = output or default_output()
         check_output_free(output, split=False, force=force)
@@ -128,7 +128,7 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
                                   keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")
-    from tui.app import WhiztapApp
+    from whiztap.tui.app import WhiztapApp
 
     app = WhiztapApp(source, checksum_rule=rule, limits=limits)
     app.run()
@@ -164,9 +164,9 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
     if headless:
         _headless(output, seconds or HEADLESS_SECONDS)
         return
-    from tui.app import WhiztapApp
-    from tui.demo import PASSWORD, DemoRig
-    from tui.sources import LiveSource
+    from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.demo import PASSWORD, DemoRig
+    from whiztap.tui.sources import LiveSource
 
     app = WhiztapApp(LiveSource(DemoRig(output), "demo", redact_passwords=True), quit_after=seconds)
     app.run()
@@ -180,10 +180,10 @@ def _headless(output: str, seconds: float) -> None:
     import asyncio
     from pathlib import Path
 
-    from analyzer.analyze_cli import analyse_file, render
-    from analyzer.report.content import build
-    from sniffer.feed import WriterError
-    from tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
+    from whiztap.analyzer.cli.analyze import analyse_file, render
+    from whiztap.analyzer.analysis.report.content import build
+    from whiztap.sniffer.record.feed import WriterError
+    from whiztap.tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
 
     try:
         client_error = asyncio.run(run_headless(output, seconds))

@@ -12,8 +12,8 @@ from textual.binding import Binding
 from textual.message import Message
 from textual.widgets import DataTable
 
-from analyzer.text import printable
-from tui.model import ConnectionRow
+from whiztap.analyzer.protocol.text import printable
+from whiztap.tui.model import ConnectionRow
 
 ALL = "all"
 COLUMNS = (("conn", "#"), ("client", "client"), ("upstream", "upstream"), ("mode", "mode"),

@@ -15,8 +15,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from sniffer.client import Client, ClientError
-from sniffer.tour import SPEC_EXAMPLE_ENTRIES, every_command
+from whiztap.sniffer.sim.client import Client, ClientError
+from whiztap.sniffer.sim.tour import SPEC_EXAMPLE_ENTRIES, every_command
 
 LOCAL = "127.0.0.1"
 PASSWORD = "progwhiz"
@@ -102,9 +102,9 @@ class DemoRig:
         self.client_error: str | None = None
         self._stop_client = asyncio.Event()
 
-    async def start(self, tap):  # noqa: ANN001, ANN201 - a sink wrapper; a sniffer.record_run.Recording
-        from sniffer.record_run import Recording, RecordSettings
-        from sniffer.simulator import Simulator
+    async def start(self, tap):  # noqa: ANN001, ANN201 - a sink wrapper; a whiztap.sniffer.record.record_run.Recording
+        from whiztap.sniffer.record.record_run import Recording, RecordSettings
+        from whiztap.sniffer.sim.simulator import Simulator
 
         self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
         await self.simulator.start()

@@ -17,7 +17,7 @@ from rich.text import Text
 from textual.containers import VerticalScroll
 from textual.widgets import Static
 
-from analyzer.codec import (
+from whiztap.analyzer.protocol.codec import (
     EXTERNAL_SCRIPTS,
     INTERNAL_SCRIPTS,
     MAX_CHANNEL,
@@ -27,11 +27,11 @@ from analyzer.codec import (
     MAX_SENSOR_DATA,
     MAX_SERVO_DATA,
 )
-from analyzer.describe import response_meaning
-from analyzer.messages import CameraImage
-from analyzer.rules import RULES
-from analyzer.text import escape, printable
-from tui.store import NS, FrameStore
+from whiztap.analyzer.protocol.describe import response_meaning
+from whiztap.analyzer.protocol.messages import CameraImage
+from whiztap.analyzer.protocol.rules import RULES
+from whiztap.analyzer.protocol.text import escape, printable
+from whiztap.tui.store import NS, FrameStore
 
 HEX_WIDTH = 8  # bytes per hex line: fits the side pane
 HEX_LINES = 128  # 1 KiB of hex; an image shows its head

@@ -15,11 +15,11 @@ from __future__ import annotations
 from rich.style import Style
 from textual.binding import Binding
 
-from analyzer.session import Direction
-from analyzer.text import escape
-from tui.store import FrameStore
-from tui.view import FrameView
-from tui.virtual_list import VirtualList
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.text import escape
+from whiztap.tui.store import FrameStore
+from whiztap.tui.view import FrameView
+from whiztap.tui.virtual_list import VirtualList
 
 BYTES_WIDTH = 22
 MARKS = {0: " ", 1: "·", 2: "▲", 3: "●"}

@@ -9,7 +9,7 @@ from textual.containers import VerticalScroll
 from textual.screen import ModalScreen
 from textual.widgets import Static
 
-from analyzer.item_filter import FILTER_HELP
+from whiztap.analyzer.analysis.item_filter import FILTER_HELP
 
 HELP = f"""\
 # whiztap tui

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from analyzer.analysis import Analyzer, Series
-from analyzer.checksum import DEFAULT_CHECKSUM_RULE
-from analyzer.session import Limits
-from analyzer.stats import LatencyStats
-from tui.store import FrameStore
+from whiztap.analyzer.analysis.analyzer import Analyzer, Series
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
+from whiztap.analyzer.protocol.session import Limits
+from whiztap.analyzer.protocol.stats import LatencyStats
+from whiztap.tui.store import FrameStore
 
 
 @dataclass(frozen=True, slots=True)

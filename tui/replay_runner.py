@@ -1,4 +1,4 @@
-"""A replay (``sniffer.replay``) on its own event loop, in a worker thread.
+"""A replay (``whiztap.sniffer.replay.engine``) on its own event loop, in a worker thread.
 
 The screen must never wait on the target, and the replay engine paces writes
 by spinning its loop for the last couple of milliseconds before each one, so
@@ -13,8 +13,8 @@ from __future__ import annotations
 import asyncio
 import threading
 
-from analyzer.recording import RecordingError
-from sniffer.replay import (
+from whiztap.analyzer.recording.format import RecordingError
+from whiztap.sniffer.replay.engine import (
     ConnectionOpened,
     Event,
     Finished,
@@ -59,7 +59,7 @@ class ReplayRunner:
 
     def run(self) -> None:
         """The worker thread's body: load the recording, replay it, keep the result."""
-        from analyzer.exchanges import load_exchanges
+        from whiztap.analyzer.analysis.exchanges import load_exchanges
 
         try:
             recording = load_exchanges(self.path)

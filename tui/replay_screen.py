@@ -21,8 +21,8 @@ from textual.containers import Horizontal, Vertical
 from textual.screen import Screen
 from textual.widgets import Button, Footer, Header, Input, Label, Select, Static
 
-from analyzer.text import escape, printable
-from tui.virtual_list import VirtualList
+from whiztap.analyzer.protocol.text import escape, printable
+from whiztap.tui.virtual_list import VirtualList
 
 TICK_S = 0.1
 DEFAULT_TARGET = "127.0.0.1:5000"  # where `whiztap sim` listens by default
@@ -129,13 +129,13 @@ class ReplayScreen(Screen):
 
     # -- options -------------------------------------------------------------------------------
 
-    def _options(self, output: str | None):  # noqa: ANN202 - a sniffer.replay.ReplayOptions
+    def _options(self, output: str | None):  # noqa: ANN202 - a whiztap.sniffer.replay.engine.ReplayOptions
         """The form as ReplayOptions; raises ValueError with a line for the user."""
         import click
 
-        from analyzer.compare import CompareError, CompareRules
-        from sniffer.record_cli import parse_address
-        from sniffer.replay import Pace, ReplayOptions
+        from whiztap.analyzer.analysis.compare import CompareError, CompareRules
+        from whiztap.sniffer.cli.record import parse_address
+        from whiztap.sniffer.replay.engine import Pace, ReplayOptions
 
         try:
             target = parse_address(self.query_one("#target", Input).value.strip(), None, "target")
@@ -159,10 +159,10 @@ class ReplayScreen(Screen):
                              output=output)
 
     def _check_output(self, output: str) -> None:
-        """The output rule (analyzer.output_rule): never the recording being
+        """The output rule (whiztap.analyzer.recording.output_rule): never the recording being
         replayed, and never an existing file (there is no --force here)."""
-        from analyzer.output_rule import OutputRefused, check_output
-        from analyzer.recording_set import RecordingInputError, find_one
+        from whiztap.analyzer.recording.output_rule import OutputRefused, check_output
+        from whiztap.analyzer.recording.sets import RecordingInputError, find_one
 
         try:
             parts = find_one((self.path,)).parts
@@ -179,7 +179,7 @@ class ReplayScreen(Screen):
     # -- actions -------------------------------------------------------------------------------
 
     def _start(self, paused: bool) -> bool:
-        from tui.replay_runner import ReplayRunner
+        from whiztap.tui.replay_runner import ReplayRunner
 
         output = self.query_one("#output", Input).value.strip() or None
         try:
@@ -285,7 +285,7 @@ class ReplayScreen(Screen):
 
 def open_replay(app: App) -> None:
     """The replay screen for the open recording; live traffic has no finished file yet."""
-    from tui.sources import FileSource
+    from whiztap.tui.sources import FileSource
 
     source = getattr(app, "source", None)
     if not isinstance(source, FileSource):

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
-from analyzer.recording import (
+from whiztap.analyzer.recording.format import (
     EV_CONTINUED,
     EV_RECORDING_STOPPED,
     METADATA_NAME,
@@ -28,10 +28,10 @@ from analyzer.recording import (
     RecordingError,
     RecordingScan,
 )
-from analyzer.recording_set import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
-from analyzer.redaction import Redactor
-from analyzer.session import Direction
-from tui.model import TrafficModel
+from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
+from whiztap.analyzer.protocol.redaction import Redactor
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.tui.model import TrafficModel
 
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
 LOADING_GC_THRESHOLD = 100_000
@@ -70,7 +70,7 @@ class FileSource:
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         # Loading makes millions of short-lived tuples; the collector's default
-        # threshold would run it every 700 of them (see analyzer.throughput).
+        # threshold would run it every 700 of them (see whiztap.analyzer.analysis.throughput).
         threshold = gc.get_threshold()
         gc.set_threshold(LOADING_GC_THRESHOLD, *threshold[1:])
         try:
@@ -196,7 +196,7 @@ class Tap:
     so it only appends; the bytes on the queue are as sent, and ``LiveSource``
     masks them by the recorder's rule before the model sees them."""
 
-    def __init__(self, sink, queue: deque) -> None:  # noqa: ANN001 - a sniffer.proxy.Sink
+    def __init__(self, sink, queue: deque) -> None:  # noqa: ANN001 - a whiztap.sniffer.record.proxy.Sink
         self.sink = sink
         self.queue = queue
 
@@ -230,20 +230,20 @@ class Rig(Protocol):
 
     output: str
 
-    async def start(self, tap): ...  # noqa: ANN001, ANN201 - a sink wrapper; a sniffer.record_run.Recording
+    async def start(self, tap): ...  # noqa: ANN001, ANN201 - a sink wrapper; a whiztap.sniffer.record.record_run.Recording
     async def stop(self) -> None: ...
 
 
 class ProxyRig:
     """The recording proxy alone, in front of an upstream server."""
 
-    def __init__(self, settings) -> None:  # noqa: ANN001 - sniffer.record_run.RecordSettings
+    def __init__(self, settings) -> None:  # noqa: ANN001 - whiztap.sniffer.record.record_run.RecordSettings
         self.settings = settings
         self.output = settings.output
         self.recording = None
 
     async def start(self, tap):  # noqa: ANN001, ANN201
-        from sniffer.record_run import Recording
+        from whiztap.sniffer.record.record_run import Recording
 
         self.recording = Recording(self.settings, tap=tap)
         await self.recording.start()
@@ -258,7 +258,7 @@ class LiveSource:
     """Traffic through the recording proxy running inside the app.
 
     Unless told to keep secrets, the traffic goes through the redaction the
-    recorder applies (``analyzer.redaction``) before the model sees it: the
+    recorder applies (``whiztap.analyzer.protocol.redaction``) before the model sees it: the
     model and the screen get the bytes the file gets, never the password."""
 
     live = True
@@ -282,7 +282,7 @@ class LiveSource:
 
     async def start(self) -> None:
         """Start the proxy (and whatever the rig runs with it); raises SourceError."""
-        from sniffer.feed import WriterError
+        from whiztap.sniffer.record.feed import WriterError
 
         try:
             self.recording = await self.rig.start(lambda sink: Tap(sink, self.queue))

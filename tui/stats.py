@@ -14,8 +14,8 @@ from textual.app import ComposeResult
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Label, Sparkline, Static
 
-from tui.detail import latency_text
-from tui.model import TrafficModel
+from whiztap.tui.detail import latency_text
+from whiztap.tui.model import TrafficModel
 
 LIVE_WINDOW_S = 60  # live: the last minute of frames per second
 PERCENTILES = (50, 95, 99)

@@ -21,11 +21,11 @@ from bisect import bisect_left, insort
 from collections.abc import Iterable
 from typing import Any
 
-from analyzer.codec import decode
-from analyzer.describe import fields, meaning
-from analyzer.framing import Item, ItemKind, Unframed
-from analyzer.rules import Violation
-from analyzer.session import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.codec import decode
+from whiztap.analyzer.protocol.describe import fields, meaning
+from whiztap.analyzer.protocol.framing import Item, ItemKind, Unframed
+from whiztap.analyzer.protocol.rules import Violation
+from whiztap.analyzer.protocol.session import Direction, Event, LateViolation, Observation
 
 NS = 1_000_000_000
 KINDS: tuple[ItemKind, ...] = tuple(ItemKind)

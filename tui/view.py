@@ -1,6 +1,6 @@
 """Which frames the list shows: all of them, or those the filter accepts.
 
-The filter is ``analyzer.item_filter.ItemFilter``, the one ``whiztap cat`` uses,
+The filter is ``whiztap.analyzer.analysis.item_filter.ItemFilter``, the one ``whiztap cat`` uses,
 written in the filter bar as words (``conn:2 dir:c2s kind:response ch:12
 since:1.5 until:9 violations`` and free text).  A filtered view is an index:
 the sorted ids of accepted frames, built by a worker thread in slices so the
@@ -13,8 +13,8 @@ from array import array
 from bisect import bisect_left, insort
 from dataclasses import replace
 
-from analyzer.item_filter import ItemFilter
-from tui.store import FrameStore
+from whiztap.analyzer.analysis.item_filter import ItemFilter
+from whiztap.tui.store import FrameStore
 
 SLICE = 4096  # frames judged between looks at whether the filter was replaced
 

@@ -1,0 +1,185 @@
+"""A recording as exchanges: what each client sent, and what its server answered.
+
+Replaying a client's side, serving a server's side and showing either in the
+TUI all start from the same facts: each connection's client items in stream
+order with their offsets and times, the recorded answer paired to each request
+by the session model, the server's handshake, and the client's raw reads (for
+replays that re-send the original read boundaries).  This module rebuilds them
+from a recording's raw reads, as every reader of recordings does.
+"""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
+from whiztap.analyzer.analysis.compare import ServoMotion
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.messages import FailedValidation
+from whiztap.analyzer.recording.format import (
+    EV_CLOSED,
+    EV_HALF_CLOSED,
+    EV_OPENED,
+    METADATA_NAME,
+    Read,
+    read_metadata,
+)
+from whiztap.analyzer.recording.sets import RecordingSet, scan_set
+from whiztap.analyzer.protocol.session import Direction, Mode, Observation, Session
+
+C2S, S2C = Direction.C2S, Direction.S2C
+
+
+@dataclass(frozen=True, slots=True)
+class ClientItem:
+    """One item the client sent, and the answer the recording paired with it."""
+
+    obs: Observation
+    offset: int  # stream offset of its first byte
+    t_ns: int  # when the read holding its last byte arrived
+    answer: Observation | None = None
+    at_rest: bool = False  # the answer is a servo position reached and held
+
+    @property
+    def end(self) -> int:
+        return self.offset + len(self.obs.item.raw)
+
+
+@dataclass(slots=True)
+class RecordedConnection:
+    conn: int
+    opened_ns: int
+    client: str = ""
+    mode: Mode = Mode.UNKNOWN
+    handshake: list[Observation] = field(default_factory=list)  # the server's handshake items
+    items: list[ClientItem] = field(default_factory=list)  # every client item, stream order
+    reads: list[Read] = field(default_factory=list)  # the client's reads
+
+    @property
+    def password(self) -> ClientItem | None:
+        return next((i for i in self.items if i.obs.item.kind is ItemKind.PASSWORD), None)
+
+    @property
+    def refused(self) -> bool:
+        """Whether the server answered the password with Failed Validation."""
+        return len(self.handshake) >= 2 and isinstance(self.handshake[1].message, FailedValidation)
+
+    @property
+    def requests(self) -> list[ClientItem]:
+        return [i for i in self.items if i.obs.item.kind is ItemKind.COMMAND]
+
+
+@dataclass(slots=True)
+class RecordedSessions:
+    path: str
+    metadata: dict[str, str]
+    start_ns: int  # the first read: time 0 of ``whiztap cat``, --start and --end
+    connections: list[RecordedConnection]
+
+    @property
+    def secrets_kept(self) -> bool:
+        return self.metadata.get("secrets") == "kept"
+
+    @property
+    def checksum_rule(self) -> str:
+        """The Set Configuration checksum rule the recording was judged by."""
+        return _checksum_rule({METADATA_NAME: self.metadata})
+
+
+class _Builder:
+    """One connection's session, run over its reads while the file is scanned."""
+
+    def __init__(self, conn: int, opened_ns: int, checksum_rule: str) -> None:
+        self.rec = RecordedConnection(conn, opened_ns)
+        self.session = Session(checksum_rule)
+        self.framed = {C2S: 0, S2C: 0}
+        self.received = {C2S: 0, S2C: 0}
+        self.read_ends: list[int] = []  # end offset of each client read
+        self.read_times: list[int] = []
+        self.pending: list[tuple[Observation, int]] = []  # client items: (obs, offset)
+        self.answers: dict[int, tuple[Observation, bool]] = {}  # request index -> (answer, at rest)
+        self.motion = ServoMotion()
+
+    def read(self, r: Read) -> None:
+        direction = Direction(r.dir)
+        if direction is C2S:
+            self.rec.reads.append(r)
+            self.read_ends.append(r.offset + len(r.data))
+            self.read_times.append(r.t_ns)
+        self.received[direction] = r.offset + len(r.data)
+        self.observe(self.session.receive(direction, r.data, r.t_ns))
+
+    def observe(self, events: list) -> None:
+        for obs in events:
+            if not isinstance(obs, Observation):
+                continue  # a late violation: replays judge unanswered requests themselves
+            offset = self.framed[obs.direction]
+            self.framed[obs.direction] = offset + len(obs.item.raw)
+            if obs.direction is C2S:
+                self.pending.append((obs, offset))
+                self.motion.observe(obs)
+            elif obs.item.kind is ItemKind.HANDSHAKE:
+                self.rec.handshake.append(obs)
+            elif obs.answers is not None:
+                self.answers[obs.answers.index] = (obs, self.motion.at_rest(obs))
+
+    def finish(self, t_ns: int) -> RecordedConnection:
+        self.observe(self.session.close(t_ns))
+        rec = self.rec
+        rec.mode = self.session.mode
+        for obs, offset in self.pending:
+            end = offset + len(obs.item.raw)
+            i = bisect.bisect_left(self.read_ends, end)
+            t = self.read_times[min(i, len(self.read_times) - 1)] if self.read_times else obs.item.t_end_ns
+            answer, at_rest = self.answers.get(obs.index, (None, False))
+            rec.items.append(ClientItem(obs, offset, t, answer, at_rest))
+        return rec
+
+
+def _checksum_rule(metadata: dict[str, dict[str, str]]) -> str:
+    name = metadata.get(METADATA_NAME, {}).get("checksum_rule") or DEFAULT_CHECKSUM_RULE
+    try:
+        return get_rule(name).name
+    except ValueError:
+        return DEFAULT_CHECKSUM_RULE
+
+
+def load_exchanges(recording) -> RecordedSessions:  # noqa: ANN001 - a RecordingSet or a path
+    """Read a recording (all parts of a split one, as one); raises OSError, or
+    RecordingError for a file that is no complete recording (one line)."""
+    if not isinstance(recording, RecordingSet):
+        recording = RecordingSet((Path(recording),))
+    metadata = read_metadata(str(recording.name))
+    rule = _checksum_rule({METADATA_NAME: metadata})
+    builders: dict[int, _Builder] = {}
+    done: list[RecordedConnection] = []
+    clients: dict[int, str] = {}
+    start_ns: int | None = None
+    last_ns = 0
+    for record in scan_set(recording):
+        if isinstance(record, Read):
+            if start_ns is None:
+                start_ns = record.t_ns
+            last_ns = record.t_ns
+            builder = builders.get(record.conn)
+            if builder is None:  # a connection continued from a part not given
+                builder = builders[record.conn] = _Builder(record.conn, record.t_ns, rule)
+                builder.rec.client = clients.get(record.conn, "")
+            builder.read(record)
+            continue
+        conn, event, t = record["conn"], record["event"], record["t_ns"]
+        if event == EV_OPENED:
+            clients[conn] = record.get("client", "")
+            builders[conn] = _Builder(conn, t, rule)
+            builders[conn].rec.client = clients[conn]
+        elif conn in builders:
+            builder = builders[conn]
+            if event == EV_HALF_CLOSED:
+                builder.observe(builder.session.end(Direction(record["dir"]), t))
+            elif event == EV_CLOSED:
+                done.append(builders.pop(conn).finish(t))
+    done += [b.finish(last_ns) for b in builders.values()]
+    connections = sorted((c for c in done if c.reads or c.handshake), key=lambda c: c.conn)
+    return RecordedSessions(str(recording.name), metadata, start_ns or 0, connections)

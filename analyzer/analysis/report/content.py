@@ -1,0 +1,110 @@
+"""The report as plain data: what every format renders, and the JSON report."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from whiztap.analyzer import __version__
+from whiztap.analyzer.analysis.analyzer import NS, Analysis
+from whiztap.analyzer.protocol.checksum import get_rule
+from whiztap.analyzer.protocol.rules import RULES, Severity
+from whiztap.analyzer.protocol.text import escape
+
+REPORT_SCHEMA_ID = "whiztap.report"
+REPORT_VERSION = 1
+
+
+def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
+          unreadable: list[dict[str, str]] | None = None, allow_empty: bool = False) -> dict[str, Any]:
+    """The report as plain data (the JSON format, documented in docs/analyze.md).
+    ``unreadable``: {"file", "error"} of the inputs left out because they could
+    not be read (the key is there only when there are some).  A report on no
+    traffic (``nothing_judged`` says why) does not pass unless ``allow_empty``."""
+    counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
+    by_severity = {str(s): 0 for s in (Severity.ERROR, Severity.WARNING, Severity.INFO)}
+    for rule_id, n in counts.items():
+        by_severity[str(RULES[rule_id].severity)] += n
+    failing = any(RULES[r].severity >= threshold for r, n in counts.items() if n)
+    nothing = nothing_judged(analysis)
+    start = analysis.first_ns or 0
+    frames_by_kind: dict[str, dict[str, int]] = {"c2s": {}, "s2c": {}}
+    for c in analysis.connections:
+        for (direction, kind), n in c.frames.items():
+            frames_by_kind[direction][kind] = frames_by_kind[direction].get(kind, 0) + n
+    listed = [v for v in analysis.violations if v.rule_id not in ignore]
+    rule = get_rule(analysis.checksum_rule)
+    report: dict[str, Any] = {
+        "schema": REPORT_SCHEMA_ID,
+        "version": REPORT_VERSION,
+        "whiztap_version": __version__,
+        "spec_revision": "1.8",
+        "files": list(analysis.files),
+        "checksum_rule": {"name": rule.name, "description": rule.description},
+        "severity_threshold": str(threshold),
+        "ignored_rules": sorted(ignore),
+        "passed": not failing and (nothing is None or allow_empty),
+        "summary": {
+            "connections": len(analysis.connections),
+            "frames": analysis.frames,
+            "first_ns": analysis.first_ns,
+            "last_ns": analysis.last_ns,
+            "duration_s": round(analysis.duration_s, 6),
+            "frames_by_kind": frames_by_kind,
+            "violations_by_severity": by_severity,
+        },
+        "connections": [{
+            "file": c.file, "conn": c.conn, "client": c.client, "upstream": c.upstream,
+            "mode": c.mode, "handshake": c.handshake, "first_ns": c.first_ns, "last_ns": c.last_ns,
+            "frames": sum(c.frames.values()),
+            "violations": {r: n for r, n in sorted(c.violations.items()) if r not in ignore},
+            "channel_map": {str(ch): {"unit_type": cfg.unit_type, "unused": cfg.unused,
+                                      "switch_type": cfg.switch_type}
+                            for ch, cfg in sorted(c.channel_map.items())},
+            "closed_by": c.closed_by, "notes": list(c.notes),
+        } for c in analysis.connections],
+        "rule_counts": {r: counts[r] for r in RULES if counts.get(r)},
+        "violations": [{
+            "rule_id": v.rule_id, "severity": str(v.severity), "section": RULES[v.rule_id].section,
+            "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
+            "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
+            "detail": v.detail,
+            "late": v.late,
+        } for v in listed],
+        "violations_not_listed": sum(counts.values()) - len(listed),
+        "latency": [{
+            "request": title, "count": s.count, "mean_ns": round(s.mean), "p50_ns": s.percentile(50),
+            "p95_ns": s.percentile(95), "p99_ns": s.percentile(99), "max_ns": s.max,
+        } for title, s in sorted(analysis.latencies.items())],
+        "unanswered": dict(sorted(analysis.unanswered.items())),
+        "set_configurations": [{
+            "file": c.file, "conn": c.conn, "t_ns": c.t_ns, "checksum": c.checksum,
+            "expected": c.expected, "ok": c.checksum == c.expected, "satisfies": list(c.satisfies),
+        } for c in analysis.set_configs],
+        "per_file": _per_file(analysis, ignore),
+    }
+    if unreadable:
+        report["unreadable"] = list(unreadable)
+    if nothing is not None:
+        report["nothing_judged"] = nothing
+    return report
+
+
+def nothing_judged(analysis: Analysis) -> str | None:
+    """Why the recordings give nothing to judge (None when they do): a gate
+    must not go green on a recording of nothing."""
+    if not analysis.connections:
+        return "no connection in the recording (is it a whiztap recording of traffic?)"
+    if all(any(n.startswith("upstream failed") for n in c.notes) for c in analysis.connections):
+        return "the server was never reached on any connection"
+    return None
+
+
+def _per_file(analysis: Analysis, ignore: frozenset[str]) -> list[dict[str, Any]]:
+    rows: dict[str, dict[str, Any]] = {f: {"file": f, "connections": 0, "frames": 0, "violations": 0}
+                                       for f in analysis.files}
+    for c in analysis.connections:
+        row = rows.setdefault(c.file, {"file": c.file, "connections": 0, "frames": 0, "violations": 0})
+        row["connections"] += 1
+        row["frames"] += sum(c.frames.values())
+        row["violations"] += sum(n for r, n in c.violations.items() if r not in ignore)
+    return list(rows.values())

@@ -1,0 +1,227 @@
+"""The report for people: a terminal rendering (rich) and Markdown."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from whiztap.analyzer.protocol.text import printable, shorten
+
+_STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
+TEXT_FRAME = 160  # characters of a frame in the text report; longer ones end in …
+MD_FRAME = 120  # characters of a frame in a Markdown table; longer ones end in … (the JSON has them whole)
+
+
+def duration(ns: int | float) -> str:
+    if ns >= 1_000_000_000:
+        return f"{ns / 1e9:.2f} s"
+    if ns >= 1_000_000:
+        return f"{ns / 1e6:.2f} ms"
+    if ns >= 1_000:
+        return f"{ns / 1e3:.1f} µs"
+    return f"{ns:.0f} ns"
+
+
+def channel_ranges(channel_map: dict[str, dict[str, int]]) -> str:
+    """'servo 0-5, switch 6-11, sensor 12-23': runs of channels with one unit type."""
+    names = {0: "servo", 1: "switch", 2: "sensor"}
+    runs: list[list] = []  # [unit, first, last]
+    for ch, cfg in sorted(((int(k), v) for k, v in channel_map.items())):
+        unit = names.get(cfg["unit_type"], f"type {cfg['unit_type']}")
+        if runs and runs[-1][0] == unit and runs[-1][2] == ch - 1:
+            runs[-1][2] = ch
+        else:
+            runs.append([unit, ch, ch])
+    return ", ".join(f"{u} {a}" if a == b else f"{u} {a}-{b}" for u, a, b in runs)
+
+
+def headline(report: dict[str, Any]) -> str:
+    s = report["summary"]
+    files = len(report["files"])
+    return (f"{files} file{'s' * (files != 1)}, {s['connections']} connection{'s' * (s['connections'] != 1)}, "
+            f"{s['frames']:,} items over {s['duration_s']:.1f} s")
+
+
+def verdict(report: dict[str, Any]) -> str:
+    sev = report["summary"]["violations_by_severity"]
+    counts = f"{sev['error']} errors, {sev['warning']} warnings, {sev['info']} info"
+    if report["passed"]:
+        text = f"PASS: no violation at or above {report['severity_threshold']} ({counts})"
+    else:
+        text = f"FAIL: violations at or above {report['severity_threshold']} ({counts})"
+    if report.get("nothing_judged"):
+        allowed = " (allowed by --allow-empty)" if report["passed"] else ""
+        text = f"NOTHING TO JUDGE: {report['nothing_judged']}{allowed}"
+    unreadable = len(report.get("unreadable", ()))
+    if unreadable:
+        text = f"INCOMPLETE: {unreadable} input{'s' * (unreadable != 1)} could not be read. {text}"
+    return text
+
+
+def _plain(console: Console, value: object, style: str = "") -> Text:
+    """A value as Rich text: never read as markup or emoji codes (a frame may
+    hold '[bold]'), its control characters shown escaped, never sent to the
+    terminal; highlighted as Rich highlights plain strings."""
+    text = console.render_str(printable(str(value)), markup=False, emoji=False)
+    text.style = style  # under the highlights, as console.print(str, style=...) puts it
+    return text
+
+
+def _table(title: str, columns: list[tuple[str, str]], rows: list[list[object]]) -> Table:
+    """A borderless table of plain cells (as ``_plain``, unhighlighted as
+    Rich leaves table cells); columns: (name, justify)."""
+    table = Table(title=title, title_justify="left", box=None, header_style="bold")
+    for name, justify in columns:
+        table.add_column(name, justify=justify, overflow="fold")  # type: ignore[arg-type]
+    for row in rows:
+        table.add_row(*(Text(printable(str(cell))) for cell in row))
+    return table
+
+
+def render_text(report: dict[str, Any], console: Console) -> None:
+    """Every value reaches the console as ``_plain`` text: values come from
+    recordings and the wire, and the report is often read on a terminal."""
+    def plain(value: object, style: str = "") -> Text:
+        return _plain(console, value, style)
+
+    rule = report["checksum_rule"]
+    console.print(Text("whiztap conformance report", style="bold"), plain(f"— {headline(report)}"))
+    console.print(plain(f"Spec Rev {report['spec_revision']}; checksum rule: {rule['name']} ({rule['description']})"))
+    if report["ignored_rules"]:
+        console.print(plain(f"Ignored rules: {', '.join(report['ignored_rules'])}"))
+
+    if len(report["per_file"]) > 1:
+        console.print(_table("Files", [("file", "left"), ("connections", "right"), ("frames", "right"),
+                                       ("violations", "right")],
+                             [[r["file"], r["connections"], f"{r['frames']:,}", r["violations"]]
+                              for r in report["per_file"]]))
+
+    console.print(_table("Connections", [("conn", "right"), ("client", "left"), ("mode", "left"),
+                                         ("handshake", "left"), ("items", "right"), ("violations", "right")],
+                         [[c["conn"], c["client"] or "-", c["mode"], c["handshake"], f"{c['frames']:,}",
+                           sum(c["violations"].values())] for c in report["connections"]]))
+    for c in report["connections"]:
+        for note in c["notes"]:
+            console.print(plain(f"  conn {c['conn']}: {note}"))
+        if c["channel_map"]:
+            console.print(plain(f"  conn {c['conn']} channels: {channel_ranges(c['channel_map'])}"), overflow="fold")
+
+    kinds = report["summary"]["frames_by_kind"]
+    console.print(_table("Items by kind", [("kind", "left"), ("client→server", "right"),
+                                           ("server→client", "right")],
+                         [[kind, f"{kinds['c2s'].get(kind, 0):,}", f"{kinds['s2c'].get(kind, 0):,}"]
+                          for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"]))]))
+
+    if report["violations"]:
+        console.print(Text("Violations", style="bold"))
+        for v in report["violations"]:
+            line = Text()
+            line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
+            line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  "))
+            line.append(printable(v["detail"]))
+            console.print(line)
+            frame = shorten(v["frame"], TEXT_FRAME)
+            console.print(Text(printable(f"    {frame}"), style="dim"), plain(f"  ({v['section']})"), overflow="fold")
+        if report["violations_not_listed"]:
+            console.print(plain(f"… and {report['violations_not_listed']} more not listed"))
+        console.print(_table("Violations by rule", [("rule", "left"), ("count", "right")],
+                             [[rule_id, n] for rule_id, n in report["rule_counts"].items()]))
+
+    if report["latency"]:
+        console.print(_table("Latency by request", [("request", "left")] + [(c, "right") for c in (
+            "count", "p50", "p95", "p99", "max")],
+                             [[r["request"], f"{r['count']:,}", duration(r["p50_ns"]), duration(r["p95_ns"]),
+                               duration(r["p99_ns"]), duration(r["max_ns"])] for r in report["latency"]]))
+    for title, n in report["unanswered"].items():
+        console.print(plain(f"Never answered: {n} × {title}", "yellow"))
+
+    for c in report["set_configurations"]:
+        ok = "ok" if c["ok"] else f"expected {c['expected']}"
+        fits = ", ".join(c["satisfies"]) or "no candidate rule"
+        console.print(plain(f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); fits: {fits}"))
+
+    if report.get("unreadable"):
+        console.print(Text("Not in this report (could not be read)", style="bold red"))
+        for u in report["unreadable"]:
+            console.print(plain(f"  {u['error']}"), overflow="fold")
+    good = report["passed"] and not report.get("unreadable")
+    console.print(Text(printable(verdict(report)), style="bold green" if good else "bold red"))
+
+
+_MD_INLINE = re.compile(r"([\\`*_\[\]|~])")  # what Markdown (GFM tables too) reads as syntax anywhere
+_MD_LINE_START = re.compile(r"^(\s*\d*)([-+#.)])(?=\s|$)")  # ... and what starts a list or heading
+
+
+def md_text(value: object) -> str:
+    """A value as Markdown text that reads as itself: control characters shown
+    escaped, Markdown syntax backslash-escaped, and <, > and & as entities, so
+    nothing from a recording becomes a link, a table cell or live HTML."""
+    text = _MD_LINE_START.sub(r"\1\\\2", _MD_INLINE.sub(r"\\\1", printable(str(value))))
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def md_code(text: str) -> str:
+    """Text (a frame as escaped bytes) as a Markdown code span in a table cell:
+    shown exactly, backticks and all (the fence is longer than any run of them
+    inside); code spans are never HTML, and a pipe is escaped as GFM tables ask."""
+    text = printable(text)
+    if not text.strip():
+        return text and f"`{text}`"  # an empty span is no span; spaces alone are kept as they are
+    fence = "`" * (max((len(run) for run in re.findall("`+", text)), default=0) + 1)
+    # one space each side is taken off a span that begins and ends with one: pad
+    # a span that would lose a space or whose backticks would touch the fence
+    pad = " " if text[0] == "`" or text[-1] == "`" or (text[0] == " " and text[-1] == " ") else ""
+    return f"{fence}{pad}{text.replace('|', chr(92) + '|')}{pad}{fence}"
+
+
+def render_markdown(report: dict[str, Any]) -> str:
+    """Every value goes through ``md_text`` or ``md_code``: a report is often
+    rendered where HTML in it would run (a CI page, a wiki)."""
+    t = md_text
+    rule = report["checksum_rule"]
+    out = [
+        "# whiztap conformance report",
+        "",
+        f"{t(headline(report))}. Spec Rev {t(report['spec_revision'])}; checksum rule {md_code(rule['name'])} "
+        f"({t(rule['description'])}).",
+        "",
+        f"**{t(verdict(report))}**",
+        "",
+        "## Connections",
+        "",
+        "| file | conn | client | mode | handshake | items | violations |",
+        "|---|---:|---|---|---|---:|---:|",
+    ]
+    for c in report["connections"]:
+        out.append(f"| {t(c['file'])} | {c['conn']} | {t(c['client'] or '-')} | {t(c['mode'])} | {t(c['handshake'])} "
+                   f"| {c['frames']} | {sum(c['violations'].values())} |")
+    out += ["", "## Violations", ""]
+    if report["violations"]:
+        out += ["| rule | severity | conn | t (s) | frame | detail |", "|---|---|---:|---:|---|---|"]
+        for v in report["violations"]:
+            out.append(f"| {md_code(v['rule_id'])} | {t(v['severity'])} | {v['conn']} | {v['t_rel_s']:.3f} | "
+                       f"{md_code(shorten(v['frame'], MD_FRAME))} | {t(v['detail'])} |")
+        if report["violations_not_listed"]:
+            out.append(f"\n… and {report['violations_not_listed']} more not listed.")
+    else:
+        out.append("None.")
+    if report["latency"]:
+        out += ["", "## Latency", "", "| request | count | p50 | p95 | p99 | max |", "|---|---:|---:|---:|---:|---:|"]
+        for row in report["latency"]:
+            out.append(f"| {t(row['request'])} | {row['count']} | {duration(row['p50_ns'])} | "
+                       f"{duration(row['p95_ns'])} | {duration(row['p99_ns'])} | {duration(row['max_ns'])} |")
+    if report["unanswered"]:
+        out += ["", "Never answered: " + ", ".join(f"{n} × {t(title)}" for title, n in report["unanswered"].items())]
+    if report["set_configurations"]:
+        out += ["", "## Set Configuration checksums", "", "| conn | checksum | expected | fits |",
+                "|---:|---:|---:|---|"]
+        for c in report["set_configurations"]:
+            out.append(f"| {c['conn']} | {c['checksum']} | {c['expected']} | {t(', '.join(c['satisfies']) or '-')} |")
+    if report.get("unreadable"):
+        out += ["", "## Not in this report (could not be read)", ""]
+        out += [f"- {t(u['error'])}" for u in report["unreadable"]]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,162 @@
+"""Requests waiting for their answers, found by what answers them.
+
+The session pairs each answer with the oldest waiting request it fits: the
+same item kind, the same channel (an answer without a channel fits any), and a
+request that certainly expects an answer before one that only may (a frame that
+may be a Sensor Request before the channel map says).  Scanning every waiting
+request for each answer made a client that is never answered, or a server that
+answers what nobody asked, cost quadratic time (20,000 unmatched pairs took
+15 s); a ``Book`` finds the oldest fit in amortized constant time.
+
+Each entry is queued once in arrival order and once under each key it can be
+found by.  Taking one from the middle of a queue only marks it taken; a queue
+drops taken entries when they reach its front, and when taken entries outnumber
+the live ones every queue is rebuilt, so memory stays proportional to the
+entries still waiting.  Entries join the keyed queues only when an answer
+first has to look past the oldest: established traffic, answered in order,
+never pays for them.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, NamedTuple
+
+from whiztap.analyzer.protocol.framing import ItemKind
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.protocol.session import Observation
+
+REBUILD_SLACK = 1024  # taken entries tolerated in the queues beyond the live ones
+
+
+class Pending(NamedTuple):
+    """A request waiting for its answer."""
+
+    request: Observation
+    answer_kind: ItemKind
+    channel: int | None
+    certain: bool  # False for an ambiguous frame that may be a Sensor Request
+    t_ns: int
+
+
+_Key = tuple[ItemKind, int | None, bool]
+
+
+class Book:
+    """Waiting requests: the oldest overall, and the oldest by what answers them.
+
+    ``order`` is every entry still waiting, oldest first, and its first entry is
+    always one still waiting (the session's fast paths read it directly).
+    """
+
+    def __init__(self) -> None:
+        self.order: deque[Pending] = deque()
+        self.live = 0  # entries still waiting
+        # (kind, channel, certain): channel None queues every entry of the kind
+        self._queues: dict[_Key, deque[Pending]] = {}
+        self._unqueued = 0  # the last entries of ``order``, not in ``_queues`` yet
+        self._taken: set[int] = set()  # request indexes taken out but maybe still queued
+
+    def __len__(self) -> int:
+        return self.live
+
+    def __iter__(self) -> Iterator[Pending]:
+        """The entries still waiting, oldest first."""
+        taken = self._taken
+        return (p for p in self.order if p.request.index not in taken)
+
+    def add(self, pending: Pending) -> None:
+        self.order.append(pending)
+        self.live += 1
+        self._unqueued += 1
+
+    def pop_oldest(self) -> Pending:
+        order = self.order
+        pending = order.popleft()
+        self.live -= 1
+        if self._unqueued > len(order):
+            self._unqueued -= 1  # it was in no keyed queue
+        else:
+            self._taken.add(pending.request.index)
+            self._settle()
+        return pending
+
+    def take(self, kind: ItemKind, channel: int | None, certain_first: bool) -> Pending | None:
+        """The oldest entry an answer of ``kind`` on ``channel`` (None: any) fits,
+        taken out.  ``certain_first``: one that certainly expects an answer, if
+        any does, before the oldest."""
+        if self._unqueued:
+            self._queue_new()
+        sure = self._head((kind, channel, True))
+        if sure is None or not certain_first:
+            maybe = self._head((kind, channel, False))
+            if sure is None or (maybe is not None and maybe.request.index < sure.request.index):
+                sure = maybe
+        if sure is not None:
+            self._take(sure)
+        return sure
+
+    def clear(self) -> None:
+        self.order.clear()
+        self._queues.clear()
+        self._taken.clear()
+        self.live = self._unqueued = 0
+
+    # -- internals ----------------------------------------------------------------------
+
+    def _queue_new(self) -> None:
+        """Put the entries not yet in keyed queues in them, in arrival order."""
+        queues = self._queues
+        tail = reversed(self.order)
+        new = [next(tail) for _ in range(self._unqueued)]
+        self._unqueued = 0
+        for pending in reversed(new):
+            kind, channel, certain = pending.answer_kind, pending.channel, pending.certain
+            keys = ((kind, None, certain),) if channel is None else ((kind, None, certain), (kind, channel, certain))
+            for key in keys:
+                queue = queues.get(key)
+                if queue is None:
+                    queue = queues[key] = deque()
+                queue.append(pending)
+
+    def _head(self, key: _Key) -> Pending | None:
+        queue = self._queues.get(key)
+        if queue is None:
+            return None
+        taken = self._taken
+        while queue and queue[0].request.index in taken:
+            queue.popleft()
+        if not queue:
+            del self._queues[key]
+            return None
+        return queue[0]
+
+    def _take(self, pending: Pending) -> None:
+        self._taken.add(pending.request.index)
+        self.live -= 1
+        self._settle()
+
+    def _settle(self) -> None:
+        """Keep ``order``'s first entry a waiting one, and the taken ones few."""
+        order, taken = self.order, self._taken
+        while order and order[0].request.index in taken:
+            order.popleft()
+        if len(taken) > self.live + REBUILD_SLACK:
+            self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Drop every taken entry from every queue (in place: the session's
+        fast paths hold ``order``)."""
+        taken = self._taken
+        waiting = [p for p in self.order if p.request.index not in taken]
+        self.order.clear()
+        self.order.extend(waiting)
+        for key, queue in list(self._queues.items()):
+            kept = [p for p in queue if p.request.index not in taken]
+            if kept:
+                self._queues[key] = deque(kept)
+            else:
+                del self._queues[key]
+        taken.clear()

@@ -1,0 +1,647 @@
+"""The session model: both directions of one connection, turned into meaning.
+
+Everything that needs context lives here: the handshake state machine, the
+channel map the server announced, which request a response answers and how long
+it took.  Recorder, reports, replayer and TUI all read traffic through it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import NamedTuple
+
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
+from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, UNIT_OF_COMMAND, decode, decode_cache, resolve
+from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, Unframed
+from whiztap.analyzer.protocol.messages import (
+    ChannelConfig,
+    ChannelResponse,
+    ConfigurationSettings,
+    FailedValidation,
+    FetchCameraImage,
+    FetchConfiguration,
+    Message,
+    ReadyToGo,
+    SendCheckPassword,
+    SensorRequest,
+    ServoPositionRequest,
+    SetConfiguration,
+    UnitType,
+)
+from whiztap.analyzer.protocol.pairing import Book, Pending
+from whiztap.analyzer.protocol.rules import Violation
+from whiztap.analyzer.protocol.stats import LatencyStats
+
+
+class Direction(StrEnum):
+    C2S = "c2s"  # client to server
+    S2C = "s2c"  # server to client
+
+    @property
+    def sender(self) -> str:
+        return "client" if self is Direction.C2S else "server"
+
+
+class Mode(StrEnum):
+    UNKNOWN = "unknown"
+    WINSOCK = "winsock"  # password handshake
+    VPN = "vpn"  # no handshake: the first command is Fetch Configuration Settings
+
+
+class HandshakeState(StrEnum):
+    START = "start"
+    EARLY_PASSWORD = "early_password"  # the client answered before it was asked
+    AWAIT_PASSWORD = "await_password"
+    AWAIT_VERDICT = "await_verdict"
+    READY = "ready"
+    FAILED = "failed"
+
+
+class Step(StrEnum):
+    """What the handshake state machine is fed."""
+
+    SENDCHKPASS = "sendchkpass"
+    PASSWORD = "password"
+    READYTOGO = "readytogo"
+    FAILED = "failed_validation"
+    CLIENT_FRAME = "client_frame"
+    SERVER_FRAME = "server_frame"
+
+
+_S, _St = HandshakeState, Step
+# (state, step) -> (next state, rule broken or None).  Pairs not listed keep the
+# state and break PW-HS-ORDER (or PW-HS-AFTER-FAILED once validation failed).
+HANDSHAKE_TABLE: dict[tuple[HandshakeState, Step], tuple[HandshakeState, str | None]] = {
+    (_S.START, _St.SENDCHKPASS): (_S.AWAIT_PASSWORD, None),
+    (_S.START, _St.CLIENT_FRAME): (_S.READY, None),  # VPN: no handshake
+    (_S.START, _St.SERVER_FRAME): (_S.START, None),  # unsolicited: pairing reports it
+    (_S.START, _St.PASSWORD): (_S.EARLY_PASSWORD, "PW-HS-ORDER"),  # an eager client
+    (_S.EARLY_PASSWORD, _St.SENDCHKPASS): (_S.AWAIT_VERDICT, None),
+    (_S.EARLY_PASSWORD, _St.CLIENT_FRAME): (_S.EARLY_PASSWORD, "PW-HS-COMMAND-BEFORE-READY"),
+    (_S.AWAIT_PASSWORD, _St.PASSWORD): (_S.AWAIT_VERDICT, None),
+    (_S.AWAIT_PASSWORD, _St.CLIENT_FRAME): (_S.AWAIT_PASSWORD, "PW-HS-COMMAND-BEFORE-READY"),
+    (_S.AWAIT_PASSWORD, _St.READYTOGO): (_S.READY, "PW-HS-ORDER"),
+    (_S.AWAIT_PASSWORD, _St.FAILED): (_S.FAILED, None),
+    (_S.AWAIT_VERDICT, _St.READYTOGO): (_S.READY, None),
+    (_S.AWAIT_VERDICT, _St.FAILED): (_S.FAILED, None),
+    (_S.AWAIT_VERDICT, _St.CLIENT_FRAME): (_S.AWAIT_VERDICT, "PW-HS-COMMAND-BEFORE-READY"),
+    (_S.READY, _St.CLIENT_FRAME): (_S.READY, None),
+    (_S.READY, _St.SERVER_FRAME): (_S.READY, None),
+}
+EXPECTED_IN_STATE = {
+    _S.START: "'sendchkpass' from the server or a first command from the client",
+    _S.EARLY_PASSWORD: "'sendchkpass' from the server before the client's password",
+    _S.AWAIT_PASSWORD: "the client's password",
+    _S.AWAIT_VERDICT: "'readytogo' or 'Failed Validation' from the server",
+    _S.READY: "commands and responses",
+    _S.FAILED: "the connection to close",
+}
+_HANDSHAKE_STEPS = {SendCheckPassword: _St.SENDCHKPASS, ReadyToGo: _St.READYTOGO, FailedValidation: _St.FAILED}
+_CLIENT_KINDS = frozenset({ItemKind.COMMAND, ItemKind.SET_CONFIG, ItemKind.PASSWORD})
+_SERVER_KINDS = frozenset({ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
+_FRAME_KINDS = frozenset({ItemKind.COMMAND, ItemKind.SET_CONFIG, ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
+# The item kind that answers each request.
+_ANSWER_KIND = {
+    FetchConfiguration: ItemKind.CONFIG,
+    FetchCameraImage: ItemKind.IMAGE,
+    SensorRequest: ItemKind.RESPONSE,
+    ServoPositionRequest: ItemKind.RESPONSE,
+}
+
+
+def _answer_spec(message: Message | None,
+                 candidates: tuple[Message, ...]) -> tuple[ItemKind | None, int | None, bool]:
+    """What answer a command waits for: (item kind, channel, certain)."""
+    if message is not None:
+        return _ANSWER_KIND.get(type(message)), getattr(message, "channel", None), True
+    if any(isinstance(c, SensorRequest) for c in candidates):
+        # may be a Sensor Request: pair an answer if one comes, forgive it if none does
+        return ItemKind.RESPONSE, candidates[0].channel, False
+    return None, None, False
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """How long a request may wait for its answer, and how large an item may
+    grow, for every command that judges traffic (``--answer-timeout``,
+    ``--max-frame``, ``--max-image``; docs/protocol.md)."""
+
+    answer_timeout_ns: int = 5_000_000_000
+    max_frame: int = DEFAULT_MAX_ITEM
+    max_image: int = DEFAULT_MAX_IMAGE
+
+    def session(self, checksum_rule: str = DEFAULT_CHECKSUM_RULE, clean_commands: bool = True) -> Session:
+        return Session(checksum_rule, self.answer_timeout_ns, self.max_frame, clean_commands, self.max_image)
+
+    def as_dict(self) -> dict[str, int]:
+        """For the writer process's configuration."""
+        return {"answer_timeout_ns": self.answer_timeout_ns, "max_frame": self.max_frame,
+                "max_image": self.max_image}
+
+
+class Observation(NamedTuple):
+    """One item of the session with everything known about it when it arrived."""
+
+    index: int  # position in the session, both directions together
+    direction: Direction
+    item: Item
+    message: Message | None  # the meaning, when there is exactly one
+    candidates: tuple[Message, ...]  # every meaning the bytes allow
+    violations: tuple[Violation, ...]
+    answers: Observation | None = None  # for a response: the request it answers
+    latency_ns: int | None = None
+
+
+PENDING_KEPT = 250_000  # requests awaited at once per connection; the oldest is given up beyond
+EXPIRED_KEPT = 1024  # requests given up (deadline or cap) that a late answer may still pair with
+EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'
+
+
+class LateViolation(NamedTuple):
+    """A violation found after the item it concerns (a request never answered)."""
+
+    violation: Violation
+    about: Observation
+    t_ns: int
+
+
+Event = Observation | LateViolation
+
+
+class _Plan(NamedTuple):
+    """What a command's bytes mean in the current channel map, once worked out."""
+
+    message: Message | None
+    candidates: tuple[Message, ...]
+    violations: tuple[Violation, ...]
+    answer_kind: ItemKind | None
+    channel: int | None
+    certain: bool
+
+
+_new = tuple.__new__  # NamedTuples without their Python-level __new__, on the hot path
+
+
+class Session:
+    """Feed it both directions of one connection; it yields events.
+
+    ``receive()`` takes a chunk as it arrived on one direction; ``end()`` says one
+    direction closed; ``close()`` ends the session and reports requests left
+    unanswered.
+    """
+
+    def __init__(
+        self,
+        checksum_rule: str = DEFAULT_CHECKSUM_RULE,
+        answer_timeout_ns: int = 5_000_000_000,
+        max_item: int = DEFAULT_MAX_ITEM,
+        clean_commands: bool = True,
+        max_image: int = DEFAULT_MAX_IMAGE,
+    ) -> None:
+        """``clean_commands=False`` leaves out of the events the commands of
+        established traffic that broke no rule: they are counted and paired all
+        the same (a response's ``answers`` still names them).  For consumers
+        that only aggregate, like ``whiztap analyze``: most frames are such
+        commands, and not handing them over saves a pass over them."""
+        self.checksum_rule = get_rule(checksum_rule)
+        self.clean_commands = clean_commands
+        self.answer_timeout_ns = answer_timeout_ns
+        self.framers = {Direction.C2S: Framer(max_item, max_image), Direction.S2C: Framer(max_item, max_image)}
+        self.state = HandshakeState.START
+        self.mode = Mode.UNKNOWN
+        self.channel_map: dict[int, ChannelConfig] = {}
+        self.counts: Counter[tuple[Direction, ItemKind]] = Counter()
+        self.violation_counts: Counter[str] = Counter()
+        self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
+        self.first_t_ns: int | None = None
+        self.last_t_ns: int | None = None
+        # Requests awaiting their answer, at most ``pending_kept``: past that, the
+        # oldest is given up as at its deadline (reported unanswered).
+        self._pending = Book()
+        self.pending_kept = PENDING_KEPT
+        # Requests given up: an answer that comes later still answers one of them,
+        # and is not unsolicited.  The oldest are forgotten past ``expired_kept``.
+        self._expired = Book()
+        self.expired_kept = EXPIRED_KEPT
+        # Client items that may be a password sent before the server asked for it
+        # (an eager client): held until the server's first item says which.
+        self._early: list[Item] | None = None
+        self._may_hold_early = True  # until the server speaks or the handshake moves on
+        self._asked_t_ns: int | None = None  # when 'sendchkpass' arrived
+        self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
+        self._index = 0
+        self._commands = 0
+        self._last_kind = {Direction.C2S: None, Direction.S2C: None}
+        self._ended: set[Direction] = set()
+        self._closed = False
+        self._ended_why = "the session ended first"  # of requests still unanswered at close
+
+    # -- input ------------------------------------------------------------------------
+
+    def receive(self, direction: Direction, data: bytes, t_ns: int) -> list[Event]:
+        return self._observe_all(direction, self.framers[direction].feed(data, t_ns), t_ns)
+
+    def end(self, direction: Direction, t_ns: int) -> list[Event]:
+        if direction in self._ended:
+            return []
+        self._ended.add(direction)
+        events = self._observe_all(direction, self.framers[direction].end(t_ns), t_ns)
+        if direction is Direction.C2S:
+            self._release_early(events, None)
+        return events
+
+    def server_unreachable(self, detail: str) -> None:
+        """The proxy could not reach the server (``detail`` says why): requests
+        left unanswered at close are still reported, as no server reached."""
+        self._ended_why = f"the server was never reached ({detail})"
+
+    def close(self, t_ns: int) -> list[Event]:
+        if self._closed:
+            return []
+        events = self.end(Direction.S2C, t_ns) + self.end(Direction.C2S, t_ns)
+        self._release_early(events, None)
+        self._closed = True
+        for pending in self._pending:
+            if pending.certain:
+                events.append(self._unanswered(pending, t_ns, self._ended_why))
+        self._pending.clear()
+        return events
+
+    # -- state ------------------------------------------------------------------------
+
+    @property
+    def handshake_outcome(self) -> str:
+        if self.mode is Mode.VPN:
+            return "none (vpn)"
+        return {
+            _S.START: "not started",
+            _S.EARLY_PASSWORD: "password sent before 'sendchkpass'",
+            _S.AWAIT_PASSWORD: "no password sent",
+            _S.AWAIT_VERDICT: "no verdict",
+            _S.READY: "readytogo",
+            _S.FAILED: "failed validation",
+        }[self.state]
+
+    def unit_of(self, channel: int) -> UnitType | None:
+        config = self.channel_map.get(channel)
+        if config is None or config.unit_type not in (0, 1, 2):
+            return None
+        return UnitType(config.unit_type)
+
+    # -- internals ----------------------------------------------------------------------
+
+    def _observe_all(self, direction: Direction, items: list[Item], t_ns: int) -> list[Event]:
+        """Observe items in order.
+
+        Established traffic takes a fast path that builds the same observations
+        with far less work: commands whose meaning in the current channel map was
+        already worked out (a plan), and responses that answer the oldest request.
+        Anything else, or anything with a violation, goes through ``_observe``.
+        The loops keep counters in locals and hand them back to ``self`` before
+        every slow step, which reads them.
+        """
+        if direction is Direction.C2S:
+            return self._observe_commands(items)
+        return self._observe_responses(items)
+
+    def _observe_commands(self, items: list[Item]) -> list[Event]:
+        events: list[Event] = []
+        append = events.append
+        book = self._pending
+        pending = book.order
+        plans = self._plans
+        timeout = self.answer_timeout_ns
+        command = ItemKind.COMMAND
+        direction = Direction.C2S
+        ready = self.state is _S.READY
+        every = self.clean_commands
+        index = self._index
+        fast = 0
+        t = None
+        for item in items:
+            kind, raw, _, t, _ = item
+            plan = plans.get(raw) if ready and kind is command else None
+            if plan is None:
+                self._index = index
+                self._commands += fast
+                self.counts[(direction, command)] += fast
+                fast = 0
+                self._observe(direction, item, events)
+                index = self._index
+                ready = self.state is _S.READY
+                continue
+            if pending and t - pending[0][4] > timeout:
+                self._expire(t, events)
+            message, candidates, violations, answer_kind, channel, certain = plan
+            index += 1
+            fast += 1
+            if violations:
+                for v in violations:
+                    self.violation_counts[v.rule_id] += 1
+            elif answer_kind is None and not every:
+                continue  # nobody will see it
+            obs = _new(Observation, (index - 1, direction, item, message, candidates, violations, None, None))
+            if answer_kind is not None:
+                if book.live >= self.pending_kept:
+                    self._give_up_oldest(t, events)
+                book.add(_new(Pending, (obs, answer_kind, channel, certain, t)))
+            if every or violations:
+                append(obs)
+        if fast:
+            self._index = index
+            self._commands += fast
+            self.counts[(direction, command)] += fast
+            self._last_kind[direction] = command
+            self.last_t_ns = t
+        return events
+
+    def _observe_responses(self, items: list[Item]) -> list[Event]:
+        events: list[Event] = []
+        append = events.append
+        book = self._pending
+        pending = book.order
+        timeout = self.answer_timeout_ns
+        response = ItemKind.RESPONSE
+        direction = Direction.S2C
+        waited: dict[str, list[int]] = {}  # latencies by request title, added in bulk at the end
+        known = decode_cache(response)
+        ready = self.state is _S.READY
+        index = self._index
+        fast = 0
+        t = None
+        for item in items:
+            kind, raw, _, t, _ = item
+            if ready and kind is response and pending:
+                message, candidates, violations = known.get(raw) or decode(response, raw)
+                head = pending[0]
+                request, answer_kind, channel, certain, t_request = head
+                if (answer_kind is response and certain and not violations
+                        and channel == message.channel and t - t_request <= timeout):
+                    asked = request.message
+                    if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
+                        book.pop_oldest()
+                        title = asked.title
+                        batch = waited.get(title)
+                        if batch is None:
+                            batch = waited[title] = []
+                        batch.append(t - t_request)
+                        append(_new(Observation, (index, direction, item, message, candidates, (),
+                                                  request, t - t_request)))
+                        index += 1
+                        fast += 1
+                        continue
+            self._index = index
+            self.counts[(direction, response)] += fast
+            fast = 0
+            self._observe(direction, item, events)
+            index = self._index
+            ready = self.state is _S.READY
+        if fast:
+            self._index = index
+            self.counts[(direction, response)] += fast
+            self._last_kind[direction] = response
+            self.last_t_ns = t
+        for title, batch in waited.items():
+            self.latencies[title].add_many(batch)
+        return events
+
+    def _observe(self, direction: Direction, item: Item, events: list[Event]) -> None:
+        if self._may_hold_early:
+            if direction is Direction.S2C:
+                self._release_early(events, item)
+            elif self._hold_early(item, events):
+                return
+        kind = item.kind
+        t = item.t_end_ns
+        if self.first_t_ns is None:
+            self.first_t_ns = item.t_start_ns
+        self.last_t_ns = t
+        pending = self._pending.order
+        if pending and t - pending[0].t_ns > self.answer_timeout_ns:
+            self._expire(t, events)
+        decoded = decode(kind, item.raw, item.reason)
+        message = decoded.message
+        violations = list(decoded.violations)
+        candidates = decoded.candidates
+        state_before = self.state
+
+        if kind is ItemKind.HANDSHAKE and message is not None and direction is Direction.S2C:
+            step = _HANDSHAKE_STEPS[type(message)]
+            if step is not _St.SENDCHKPASS:
+                # the verdict ends the password: observe the password first
+                password_items = self.framers[Direction.C2S].close_password(t)
+                events.extend(self._observe_all(Direction.C2S, password_items, t))
+            early = self.state is _S.EARLY_PASSWORD
+            self._step(step, violations)
+            if step is _St.SENDCHKPASS and (self.state is _S.AWAIT_PASSWORD or early):
+                self.mode = Mode.WINSOCK
+                self._asked_t_ns = item.t_start_ns
+                if not early:
+                    self.framers[Direction.C2S].expect_password()
+        elif kind in _FRAME_KINDS or kind is ItemKind.PASSWORD or kind is ItemKind.HANDSHAKE:
+            own = _CLIENT_KINDS if direction is Direction.C2S else _SERVER_KINDS
+            if kind not in own:
+                violations.append(Violation(
+                    "PW-DIRECTION", f"a {kind} item came from the {direction.sender}"))
+            else:
+                if direction is Direction.S2C:
+                    step = _St.SERVER_FRAME
+                else:
+                    step = _St.PASSWORD if kind is ItemKind.PASSWORD else _St.CLIENT_FRAME
+                if (step is _St.PASSWORD and self._asked_t_ns is not None
+                        and item.t_start_ns < self._asked_t_ns and self.state is _S.AWAIT_PASSWORD):
+                    violations.append(Violation(
+                        "PW-HS-ORDER", "the password began before the server's 'sendchkpass' arrived"))
+                self._step(step, violations)
+                if direction is Direction.C2S and kind is not ItemKind.PASSWORD:
+                    message = self._client_frame(message, candidates, violations)
+        elif kind is ItemKind.EOL:
+            if self._last_kind[direction] not in (ItemKind.HANDSHAKE, ItemKind.PASSWORD):
+                violations.append(Violation("PW-FRAME-EOL", f"line break {item.raw!r} after a {self._last_kind[direction]}"))
+
+        answers = latency = None
+        if direction is Direction.S2C and kind in _SERVER_KINDS:
+            answers, latency = self._answer(kind, message, t, violations)
+
+        observation = Observation(self._index, direction, item, message, candidates,
+                                  tuple(violations), answers, latency)
+        self._index += 1
+        self.counts[(direction, kind)] += 1
+        self._last_kind[direction] = kind
+        for v in violations:
+            self.violation_counts[v.rule_id] += 1
+        if direction is Direction.C2S and kind is ItemKind.COMMAND:
+            answer_kind, channel, certain = _answer_spec(message, candidates)
+            if answer_kind is not None:
+                if self._pending.live >= self.pending_kept:
+                    self._give_up_oldest(t, events)
+                self._pending.add(Pending(observation, answer_kind, channel, certain, t))
+            if state_before is _S.READY and self.state is _S.READY and self._commands > 1:
+                # from now on these bytes mean the same until the channel map changes
+                self._plans[item.raw] = _Plan(message, candidates, observation.violations,
+                                              answer_kind, channel, certain)
+        events.append(observation)
+
+    def _hold_early(self, item: Item, events: list[Event]) -> bool:
+        """Hold a client item that may be (or follow) a password sent before the
+        server asked for one; False when it is to be observed now."""
+        if self._early is None:
+            if self.state is not _S.START:
+                self._may_hold_early = False
+                return False
+            if item.kind is not ItemKind.UNFRAMED or item.reason is not Unframed.GARBAGE:
+                return False
+            self._early = []
+        self._early.append(item)
+        if len(self._early) > EARLY_KEPT:
+            self._release_early(events, None)  # no server in sight: judge them as they are
+        return True
+
+    def _release_early(self, events: list[Event], server_first: Item | None) -> None:
+        """Observe the held client items, before the server's first item.  If that
+        item is 'sendchkpass', the first held item was the password, sent early."""
+        early, self._early = self._early, None
+        self._may_hold_early = False
+        if not early:
+            return
+        if server_first is not None and server_first.raw == b"sendchkpass":
+            first = early[0]
+            early[0] = Item(ItemKind.PASSWORD, first.raw, first.t_start_ns, first.t_end_ns)
+        for held in early:
+            self._observe(Direction.C2S, held, events)
+
+    def _step(self, step: Step, violations: list[Violation]) -> None:
+        state = self.state
+        transition = HANDSHAKE_TABLE.get((state, step))
+        if transition is None:
+            rule = "PW-HS-AFTER-FAILED" if state is _S.FAILED else "PW-HS-ORDER"
+            violations.append(Violation(rule, f"got {step}, expected {EXPECTED_IN_STATE[state]}"))
+            return
+        self.state, rule = transition
+        if rule is not None:
+            violations.append(Violation(rule, f"got {step}, expected {EXPECTED_IN_STATE[state]}"))
+        if state is _S.START and step is _St.CLIENT_FRAME:
+            self.mode = Mode.VPN
+
+    def _client_frame(self, message: Message | None, candidates: tuple[Message, ...],
+                      violations: list[Violation]) -> Message | None:
+        """Resolve a command's meaning from the channel map and check it fits."""
+        self._commands += 1
+        channel = getattr(candidates[0], "channel", None) if candidates else None
+        if channel is not None:
+            unit = self.unit_of(channel)
+            if message is None:
+                message = resolve(candidates, unit)
+                if message is None:
+                    if unit is not None:
+                        names = " or ".join(c.title for c in candidates)
+                        violations.append(Violation(
+                            "PW-UNIT-MISMATCH", f"channel {channel} is a {unit}; the frame means {names}"))
+                    elif self.channel_map:
+                        violations.append(Violation(
+                            "PW-CHANNEL-UNCONFIGURED", f"channel {channel} is not in the server's configuration"))
+                    else:
+                        names = ", ".join(c.title for c in candidates)
+                        violations.append(Violation("PW-AMBIGUOUS", f"may be {names}"))
+            elif type(message) in UNIT_OF_COMMAND:
+                needed = UNIT_OF_COMMAND[type(message)]
+                if unit is not None and unit != needed:
+                    violations.append(Violation(
+                        "PW-UNIT-MISMATCH", f"{message.title} needs a {needed}; channel {channel} is a {unit}"))
+                elif unit is None and self.channel_map:
+                    violations.append(Violation(
+                        "PW-CHANNEL-UNCONFIGURED", f"channel {channel} is not in the server's configuration"))
+        if isinstance(message, SetConfiguration):
+            self._apply_set_config(message, violations)
+        if self._commands == 1 and self.state is _S.READY and not isinstance(message, FetchConfiguration):
+            what = message.title if message else "an ambiguous frame" if candidates else "an undecodable frame"
+            rule = "PW-VPN-CONFIG-FIRST" if self.mode is Mode.VPN else "PW-WINSOCK-CONFIG-FIRST"
+            violations.append(Violation(rule, f"first command was {what}"))
+        return message
+
+    def _apply_set_config(self, message: SetConfiguration, violations: list[Violation]) -> None:
+        expected = self.checksum_rule.compute(message.entries)
+        if expected != message.checksum:
+            violations.append(Violation(
+                "PW-SETCFG-CHECKSUM",
+                f"expected {expected} ({self.checksum_rule.name}), got {message.checksum}"))
+            return
+        if any(v.rule.severity >= 3 for v in violations):
+            return  # a server would not apply a configuration it cannot read
+        for entry in message.entries:
+            self.channel_map[entry.port] = ChannelConfig(entry.unit_type)
+        self._plans.clear()
+
+    def _answer(self, kind: ItemKind, message: Message | None, t: int,
+                violations: list[Violation]) -> tuple[Observation | None, int | None]:
+        channel = message.channel if isinstance(message, ChannelResponse) else None
+        found = self._match(kind, channel)
+        if found is None:
+            violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by a {kind}"))
+            request = None
+        else:
+            request = found.request
+        if isinstance(message, ConfigurationSettings):
+            self.channel_map = dict(enumerate(message.channels))
+            self._plans.clear()
+        if isinstance(message, ChannelResponse):
+            self._check_data(message, request, violations)
+        if request is None:
+            return None, None
+        latency = t - found.t_ns
+        title = request.message.title if request.message is not None else "Sensor Request"
+        self.latencies[title].add(latency)
+        return request, latency
+
+    def _check_data(self, message: ChannelResponse, request: Observation | None,
+                    violations: list[Violation]) -> None:
+        """Sensor data and servo data have different ranges: use what was asked."""
+        if request is not None:
+            servo: bool | None = isinstance(request.message, ServoPositionRequest)
+        else:
+            unit = self.unit_of(message.channel)
+            servo = None if unit is None else unit is UnitType.SERVO
+        if servo is False:
+            limit, rule, what = MAX_SENSOR_DATA, "PW-RANGE-SENSOR", "sensor data"
+        else:
+            limit, rule, what = MAX_SERVO_DATA, "PW-RANGE-SERVO", "servo data" if servo else "sensor or servo data"
+        if message.data > limit:
+            violations.append(Violation(rule, f"{what} must be 0-{limit}, got {message.data}"))
+
+    # -- pairing: the only code that touches the books of requests (tests replace it) --
+
+    def _match(self, kind: ItemKind, channel: int | None) -> Pending | None:
+        """The request an answer of ``kind`` on ``channel`` (None: any) answers,
+        taken out: the oldest awaited one it fits, one that certainly asked before
+        a frame that only may be a Sensor Request (no channel map yet); else the
+        oldest given up (already reported unanswered), so a late answer is not
+        unsolicited."""
+        return (self._pending.take(kind, channel, certain_first=True)
+                or self._expired.take(kind, channel, certain_first=False))
+
+    def _give_up_oldest(self, t: int, events: list[Event]) -> None:
+        """A request arrives while ``pending_kept`` are awaited: give up the oldest."""
+        cap = self.pending_kept
+        self._give_up(self._pending.pop_oldest(), t, events,
+                      f"not answered while {cap} later requests were waiting (whiztap awaits at most {cap} at once)")
+
+    def _expire(self, t: int, events: list[Event]) -> None:
+        """Give up the requests whose deadline passed, oldest first."""
+        pending = self._pending.order
+        why = f"no answer within {self.answer_timeout_ns / 1e9:g} s"
+        while pending and t - pending[0].t_ns > self.answer_timeout_ns:
+            self._give_up(self._pending.pop_oldest(), t, events, why)
+
+    def _give_up(self, pending: Pending, t: int, events: list[Event], why: str) -> None:
+        self._expired.add(pending)
+        if self._expired.live > self.expired_kept:
+            self._expired.pop_oldest()
+        if pending.certain:
+            events.append(self._unanswered(pending, t, why))
+
+    def _unanswered(self, pending: Pending, t: int, why: str) -> LateViolation:
+        self.violation_counts["PW-PAIR-UNANSWERED"] += 1
+        title = pending.request.message.title if pending.request.message else "request"
+        return LateViolation(Violation("PW-PAIR-UNANSWERED", f"{title}: {why}"), pending.request, t)

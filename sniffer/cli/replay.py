@@ -1,0 +1,334 @@
+"""``whiztap replay`` and ``whiztap stub``: a recording against a server, or in place of one.
+
+Imports stay light at module level (``whiztap --help`` loads this module); the
+engines load when a command runs.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+import click
+
+from whiztap.analyzer.cli.root import check_output, fail, force_option, recording_output, warn
+
+PACES = ["recorded", "lockstep", "max"]
+
+
+def _run(main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
+    """Run on uvloop (its timers and sockets cost less, which keeps a recorded
+    schedule tighter)."""
+    import asyncio  # here, not at the top: 'whiztap --help' loads this module
+
+    import uvloop
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        return runner.run(main())
+
+
+def _find(path: str):  # noqa: ANN202 - a RecordingSet, imported lazily
+    """The recording a path names (a split one's parts together), or a one-line error."""
+    from whiztap.analyzer.recording.sets import RecordingInputError, find_one
+
+    try:
+        recording = find_one((path,))
+    except RecordingInputError as e:
+        fail(str(e))
+    if recording.warning():
+        warn(recording.warning())
+    return recording
+
+
+def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions, imported lazily
+    """The recording's exchanges (``recording``: what ``_find`` found for
+    ``path``), or a one-line error (exit status 2)."""
+    from whiztap.analyzer.analysis.exchanges import load_exchanges
+    from whiztap.analyzer.recording.format import RecordingError
+
+    try:
+        return load_exchanges(recording or _find(path))
+    except OSError as e:
+        fail(f"{path}: cannot read ({e.strerror or e})")
+    except (RecordingError, KeyError) as e:  # KeyError: a message without a field the format requires
+        fail(str(e) if path in str(e) else f"{path}: not a readable recording ({e})")
+
+
+def _echo(text: str) -> None:
+    """Print lines that quote the recording and the server: control characters
+    are shown escaped, never obeyed by the terminal."""
+    from whiztap.analyzer.protocol.text import printable
+
+    click.echo("\n".join(printable(line) for line in text.split("\n")))
+
+
+def _address(text: str, what: str) -> tuple[str, int]:
+    from whiztap.sniffer.cli.record import parse_address
+
+    return parse_address(text, "127.0.0.1", what)
+
+
+def _password(text: str | None) -> bytes | None:
+    return text.encode() if text is not None else None
+
+
+# -- replay ---------------------------------------------------------------------------------
+
+
+@click.command("replay")
+@click.argument("path", metavar="RECORDING")
+@click.option("--target", metavar="HOST:PORT", help="The server to replay against (not needed with --dry-run).")
+@click.option("--password", envvar="WHIZTAP_PASSWORD", default=None,
+              help="Winsock password (default: $WHIZTAP_PASSWORD, or each connection's recorded one if "
+                   "it was kept); connections refused in the recording send a wrong one.")
+@click.option("--conn", "conns", type=int, multiple=True, help="Only this recorded connection; repeatable.")
+@click.option("--pace", type=click.Choice(PACES), default="recorded", show_default=True,
+              help="recorded: the original gaps / --rate; lockstep: each request waits for its answer; "
+                   "max: as fast as the server reads.")
+@click.option("--rate", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+              help="Speed factor for --pace recorded (2.0 = twice as fast).")
+@click.option("--segments", type=click.Choice(["frames", "exact"]), default="frames", show_default=True,
+              help="frames: one write per frame; exact: the recorded TCP reads, byte boundaries and all.")
+@click.option("--compare", "mode", type=click.Choice(["exact", "structure", "none"]), default="structure",
+              show_default=True, help="How answers must match the recorded ones.")
+@click.option("--tolerance", "tolerances", multiple=True, metavar="FIELD=N",
+              help="Allow a numeric field to differ by N (e.g. sensor_value=20); repeatable.")
+@click.option("--ignore-field", "ignore_fields", multiple=True, metavar="FIELD",
+              help="Do not compare this field; repeatable.")
+@click.option("--ignore-kind", "ignore_kinds", multiple=True, metavar="KIND",
+              help="Do not compare answers of this kind (response, config, image, handshake, unframed, "
+                   "sensor, servo); repeatable.")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=2.0, show_default=True,
+              metavar="SECONDS", help="How long to wait for each answer (and the handshake).")
+@click.option("--connect-timeout", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True,
+              metavar="SECONDS", help="How long to try to connect.")
+@click.option("--loop", type=click.IntRange(min=1), default=1, show_default=True, help="Replay N times.")
+@click.option("--start", "start_s", type=float, default=None, metavar="S",
+              help="Only what the client sent from S seconds after the recording's start.")
+@click.option("--end", "end_s", type=float, default=None, metavar="S", help="... until S seconds (exclusive).")
+@click.option("--kind", "kinds", multiple=True, metavar="KIND",
+              help="Only client items of this kind; repeatable (see docs/replay.md for the names).")
+@click.option("--dry-run", is_flag=True, help="Print what would be sent, and send nothing.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write the replayed session as a recording.")
+@force_option
+@click.option("-v", "--verbose", is_flag=True, help="Print every write and every answer, not only differences.")
+@click.option("-q", "--quiet", is_flag=True, help="Print only the summary.")
+@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
+              help="json: one object at the end (counts, differences, drift), for scripts.")
+def replay_command(path: str, target: str | None, password: str | None, conns: tuple[int, ...], pace: str,
+                   rate: float, segments: str, mode: str, tolerances: tuple[str, ...], ignore_fields: tuple[str, ...],
+                   ignore_kinds: tuple[str, ...], timeout: float, connect_timeout: float, loop: int,
+                   start_s: float | None, end_s: float | None, kinds: tuple[str, ...], dry_run: bool,
+                   output: str | None, force: bool, verbose: bool, quiet: bool, fmt: str) -> None:
+    """Replay a recording's client side against a server and compare its answers.
+
+    Exit status 0 when every answer matched, 1 on any difference, 2 when the
+    file cannot be read or the target cannot be reached.
+    """
+    from whiztap.analyzer.analysis.compare import CompareError, CompareRules
+    from whiztap.sniffer.replay.engine import Pace, ReplayError, ReplayOptions
+    from whiztap.sniffer.replay.plan import KINDS, Selection, dry_run_lines, plan
+
+    recording_output(output)  # before anything is read: '-' is no place for a recording
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        fail(f"--kind: unknown kind {unknown[0]!r}; kinds are {', '.join(KINDS)}")
+    if start_s is not None and end_s is not None and end_s <= start_s:
+        fail("--end must be after --start")
+    try:
+        rules = CompareRules.parse(mode, tolerances, ignore_fields, ignore_kinds)
+    except CompareError as e:
+        fail(str(e))
+    selection = Selection(frozenset(conns), start_s, end_s, frozenset(kinds))
+    found = _find(path)
+    check_output(output, found.parts, force=force, recording=True)
+    recording = _load(path, found)
+    if dry_run:
+        plans = plan(recording, selection, segments == "exact")
+        if not plans:
+            fail("nothing to replay: no connection is selected")
+        for line in dry_run_lines(plans, recording.start_ns):
+            _echo(line)
+        return
+    if target is None:
+        fail("--target HOST:PORT is required (or --dry-run)")
+    options = ReplayOptions(target=_address(target, "--target"), password=_password(password), pace=Pace(pace),
+                            rate=rate, segments=segments == "exact", rules=rules, timeout=timeout,
+                            connect_timeout=connect_timeout, loop=loop, selection=selection, output=output,
+                            checksum_rule=recording.checksum_rule)
+    try:
+        result = _run(lambda: _replay(recording, options, verbose, quiet, fmt == "json"))
+    except ReplayError as e:
+        fail(e.explained({"password": "give --password or set WHIZTAP_PASSWORD"}))  # --target is checked above
+    if result.error:
+        fail(result.error)
+    if result.stopped:
+        fail("interrupted")
+    sys.exit(result.exit_status)
+
+
+async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool):  # noqa: ANN001, ANN202
+    from whiztap.sniffer.replay.engine import Replay
+
+    printer = _Printer(verbose, quiet or as_json)
+    replay = Replay(recording, options, on_event=printer)
+    replay.check()
+    if not (quiet or as_json):
+        target = f"{options.target[0]}:{options.target[1]}"
+        _echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
+                   f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
+                   + f", {options.rules.describe()}")
+    import asyncio
+
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, replay.stop)
+    try:
+        result = await replay.run()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+    if result.error:
+        return result
+    if as_json:
+        import json
+
+        target = f"{options.target[0]}:{options.target[1]}"
+        click.echo(json.dumps({"recording": recording.path, "target": target, "pace": str(options.pace),
+                               "rate": options.rate, "compare": {
+                                   "mode": str(options.rules.mode), "tolerances": dict(options.rules.tolerances),
+                                   "ignore_fields": sorted(options.rules.ignore_fields),
+                                   "ignore_kinds": sorted(options.rules.ignore_kinds)},
+                               "output": options.output, **result.as_dict()}, indent=2))
+        return result
+    _echo(result.summary())
+    if result.drift is not None:
+        _echo(result.drift.text())
+    elif options.pace != "recorded":
+        _echo(f"drift: none measured (pace {options.pace} keeps no schedule)")
+    if options.output:
+        _echo(f"wrote {options.output}")
+    _echo("result: " + ("all answers matched" if result.ok else "DIFFERENCES (exit status 1)"))
+    return result
+
+
+class _Printer:
+    """Prints events as they come: differences always, the rest with -v."""
+
+    def __init__(self, verbose: bool, quiet: bool) -> None:
+        self.verbose, self.quiet = verbose, quiet
+
+    def __call__(self, event) -> None:  # noqa: ANN001 - a replay event
+        from whiztap.analyzer.protocol.text import escape, shorten
+        from whiztap.sniffer.replay.engine import ConnectionClosed, ConnectionOpened, RequestSent, ResponseCompared
+
+        if self.quiet:
+            return
+        if isinstance(event, ResponseCompared):
+            if not event.match:
+                _echo(event.diff)
+            elif self.verbose:
+                shown = shorten(escape(event.replayed), 72) if event.replayed is not None else "(no answer)"
+                _echo(f"{event.at_s:10.6f} c{event.conn} < {shown}  {event.status}")
+        elif not self.verbose:
+            return
+        elif isinstance(event, RequestSent):
+            drift = f"  (+{event.drift_ns / 1e6:.3f} ms)" if event.drift_ns is not None else ""
+            _echo(f"{event.at_s:10.6f} c{event.conn} > {shorten(escape(event.data), 72)}  {event.text}{drift}")
+        elif isinstance(event, ConnectionOpened):
+            _echo(f"{event.at_s:10.6f} c{event.conn} opened from {event.local} "
+                       f"(recorded connection {event.recorded_conn}, loop {event.loop})")
+        elif isinstance(event, ConnectionClosed):
+            _echo(f"{event.at_s:10.6f} c{event.conn} closed by {event.by}")
+
+
+# -- stub -------------------------------------------------------------------------------------
+
+
+@click.command("stub")
+@click.argument("path", metavar="RECORDING")
+@click.option("--listen", default="127.0.0.1:5000", show_default=True, metavar="[HOST:]PORT",
+              help="Where clients connect (port 0 picks a free one, printed).")
+@click.option("--password", default=None, help="Check the winsock password (default: accept any).")
+@click.option("--conn", type=int, default=None, help="Answer every client from this recorded connection.")
+@click.option("--pace", type=click.Choice(["recorded", "max"]), default="max", show_default=True,
+              help="recorded: answer after the recorded delay (/ --rate); max: at once.")
+@click.option("--rate", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+              help="Speed factor for --pace recorded.")
+@click.option("--when-exhausted", "exhausted", type=click.Choice(["repeat", "fail"]), default="repeat",
+              show_default=True, help="When a kind's recorded answers are used up: repeat the last, or answer "
+                                      "nothing (and count the request as unanswered).")
+@click.option("--unmatched", default="close", show_default=True, metavar="close|ignore|FRAME",
+              help="A request with no recorded answer: close the client's connection, ignore it (send nothing), "
+                   "or send FRAME (escaped text, e.g. 'cr1-0--0--0-ss1').")
+@click.option("--strict", is_flag=True, help="Exit with status 1 if any request had no recorded answer.")
+@click.option("--once", is_flag=True, help="Exit after the first client disconnects.")
+@click.option("-q", "--quiet", is_flag=True, help="Print only the listening line and problems.")
+def stub_command(path: str, listen: str, password: str | None, conn: int | None, pace: str, rate: float,
+                 exhausted: str, unmatched: str, strict: bool, once: bool, quiet: bool) -> None:
+    """Serve a recording's server side to a client under test.
+
+    Each client is answered from one recorded connection: by default the k-th
+    client from the k-th recorded connection that completed its handshake (VPN,
+    or a Winsock login the server let in; later clients from the last such);
+    --conn N answers every client from connection N, a refused login included.
+    Each request gets the recorded answer to the same kind of request on the
+    same channel, in recorded order; one it cannot answer is met as --unmatched
+    says.  Runs until Ctrl-C or SIGTERM (or, with --once, until the first client
+    leaves).
+    """
+    from whiztap.sniffer.replay.stub import Stub
+
+    address = _address(listen, "--listen")
+    recording = _load(path)
+
+    def log(line: str) -> None:
+        if not quiet or line.startswith("!"):
+            _echo(line)
+
+    reaction: str | bytes = unmatched
+    if unmatched not in ("close", "ignore"):
+        from whiztap.analyzer.protocol.text import unescape
+
+        reaction = unescape(unmatched)
+    try:
+        stub = Stub(recording, *address, password=_password(password), pace=pace, rate=rate,
+                    exhausted=exhausted, conn=conn, unmatched=reaction, on_log=log)
+    except ValueError as e:
+        fail(str(e))
+    error = _run(lambda: _serve(stub, once))
+    if error:
+        fail(error)
+    missing = len(stub.unanswered)
+    _echo(f"served {stub.connections} connection(s), {stub.answers} answers; "
+               f"{missing} request(s) without a recorded answer")
+    sys.exit(1 if strict and missing else 0)
+
+
+async def _serve(stub, once: bool) -> str | None:  # noqa: ANN001 - Stub, imported lazily
+    try:
+        await stub.start()
+    except OSError as e:
+        return f"cannot listen on {stub.host}:{stub.requested_port}: {e.strerror or e}"
+    where = ", ".join(f"{h}:{p}" for h, p in stub.addresses)
+    _echo(f"whiztap stub: serving {stub.recording.path} on {where} "
+               f"({len(stub.recording.connections)} recorded connection(s))")
+    import asyncio
+
+    stopped = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stopped.set)
+    waiters = [asyncio.create_task(stopped.wait())]
+    if once:
+        waiters.append(asyncio.create_task(stub.finished.wait()))
+    try:
+        await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in waiters:
+            task.cancel()
+        await stub.close()
+    return None

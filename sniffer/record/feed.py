@@ -1,0 +1,457 @@
+"""The recording pipe: the proxy hands connection events to a writer process.
+
+Why a process and not a thread: the session model, JSON and MCAP encoding cost
+tens of microseconds per frame in Python; in a thread of the proxy's process
+they would hold the GIL the event loop needs to forward the next read (up to the
+5 ms switch interval at a time), and round trips through the proxy would slow
+down whenever traffic is being written.  In a child process they run on the
+other core and the event loop does nothing per read but copy it into a batch.
+
+Parent side (``WriterProcess``): each event becomes one binary record appended
+to a batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
+through an asyncio write-pipe transport.
+
+When the writer falls behind, only the connections that cause it wait.  The
+backlog is what the proxy holds for the writer (the batch and the pipe
+transport's buffer); each connection's part of it is counted (the bytes of its
+reads in each batch, until the kernel pipe has taken the whole batch).  Above
+``BEHIND`` bytes the writer is behind, until the backlog is down to
+``CAUGHT_UP``.  While it is behind, the connections with bytes in the backlog
+share ``BEHIND`` equally, and a connection over its share is "over"; above
+``LIMIT`` every open connection is, new ones from the moment they open.  What
+happens to a connection that is over is the user's choice (``when_behind``):
+"pause" (the default) stops reading it (``on_hold``: TCP pushes back on its
+sender; the recording stays complete); "gap" keeps it flowing but leaves its
+bytes out of the recording, recorded instead as a gap event with their count.
+Either way the bytes read for the recording are bounded (``LIMIT`` plus one
+batch), and a light connection keeps going while a heavy one waits.  The
+decision is made again at each batch sent, and every ``BATCH_S`` while behind.
+
+Child side (``python -m whiztap.sniffer.record.feed CONFIG``): one thread reads the pipe,
+drives a ``Recorder`` and reports on its stdout as JSON lines (ready,
+violations for ``--analyze``, finished files, errors, the summary).  It ignores
+SIGINT (Ctrl-C reaches the whole process group; the parent decides when to
+stop) and finishes the file when the pipe closes, so even a parent killed with
+SIGKILL leaves a finished recording.
+
+Record layout: ``<BIBQI`` = type, connection id, direction (0 c2s, 1 s2c),
+t_ns, payload length; then the payload (the bytes read, or a JSON object).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fcntl
+import json
+import os
+import select
+import signal
+import struct
+import subprocess
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+from whiztap.analyzer.protocol.session import Direction, Limits
+
+(REC_DATA, REC_OPENED, REC_UPSTREAM_CONNECTED, REC_UPSTREAM_FAILED, REC_HALF_CLOSED, REC_CLOSED, REC_STOP,
+ REC_GAP) = range(1, 9)
+_HEAD = struct.Struct("<BIBQI")
+_DIRS = (Direction.C2S, Direction.S2C)
+_DIR_CODE = {Direction.C2S: 0, Direction.S2C: 1}
+BATCH_S = 0.005
+BATCH_MAX = 256 << 10
+BEHIND = 8 << 20  # backlog bytes above which the writer is behind
+CAUGHT_UP = 2 << 20  # ... until it is down to this
+LIMIT = 2 * BEHIND  # above this, every connection with bytes in the backlog is over
+GAP_DETAIL = ("bytes forwarded but not recorded: the writer was behind (--when-behind gap); "
+              "the session model restarts after them")
+_PIPE_SIZE = 1 << 20
+_F_SETPIPE_SZ = 1031
+TICK_S = 0.1
+EXIT_WRITE_ERROR = 3
+# Recording is background work: when the cores are busy, forwarding goes first.
+# Measured here with 4 clients doing round trips (20 s): nice 5 gave about 20%
+# more round trips than 0; at 10 the writer fell clearly behind.
+WRITER_NICE = 5
+
+
+class WriterError(Exception):
+    """The writer could not start or stopped recording; one line for the user."""
+
+
+def _grow_pipe(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(fd, _F_SETPIPE_SZ, _PIPE_SIZE)
+
+
+# -- parent side ----------------------------------------------------------------------------
+
+
+class _Pipe(asyncio.Protocol):
+    def __init__(self, owner: WriterProcess) -> None:
+        self.owner = owner
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.owner._pipe_lost(exc)
+
+
+class _Status(asyncio.Protocol):
+    def __init__(self, owner: WriterProcess) -> None:
+        self.owner = owner
+        self._buf = b""
+
+    def data_received(self, data: bytes) -> None:
+        lines = (self._buf + data).split(b"\n")
+        self._buf = lines.pop()
+        for line in lines:
+            if line:
+                self.owner._status(json.loads(line))
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.owner._status_closed()
+
+
+class WriterProcess:
+    """The proxy's handle on the writer process.  Methods named after events
+    never block and never raise: recording must not get in the way of traffic.
+
+    ``when_behind`` is what happens to a connection over its share of the
+    backlog (see the module docstring); in "pause" mode ``on_hold(conn, held)``
+    is told when to stop and start reading it."""
+
+    def __init__(self, config: dict[str, Any], when_behind: str = "pause") -> None:
+        self.config = config
+        self.when_behind = when_behind
+        self.on_hold: Callable[[int, bool], None] | None = None
+        self.on_violation: Callable[[dict], None] | None = None
+        self.on_file: Callable[[str], None] | None = None
+        self.on_error: Callable[[str], None] | None = None
+        self._behind = False
+        self.error: str | None = None
+        self.summary: dict | None = None
+        self._batch = bytearray()
+        self._batch_bytes: dict[int, int] = {}  # connection -> bytes of its reads in the batch
+        self._in_pipe: deque[tuple[int, dict[int, int]]] = deque()  # (end in _written, _batch_bytes) per batch
+        self._written = 0  # bytes handed to the pipe transport
+        self._waiting: dict[int, int] = {}  # connection -> bytes of its reads in the backlog
+        self._open: set[int] = set()
+        self._over: frozenset[int] = frozenset()
+        self._unrecorded: frozenset[int] = frozenset()  # over, in "gap" mode
+        self._gaps: dict[tuple[int, int], list[int]] = {}  # (connection, direction) -> [t_ns, bytes] left out
+        self._timer: asyncio.TimerHandle | None = None
+        self._pipe: asyncio.WriteTransport | None = None
+        self._proc: subprocess.Popen | None = None
+        self._ready: asyncio.Future[None] | None = None
+        self._done: asyncio.Future[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    async def start(self) -> None:
+        """Spawn the writer and wait until its file is open (raises WriterError)."""
+        loop = self._loop = asyncio.get_running_loop()
+        data_r, data_w = os.pipe()
+        status_r, status_w = os.pipe()
+        _grow_pipe(data_w)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "whiztap.sniffer.record.feed", json.dumps(self.config)],
+            stdin=data_r, stdout=status_w, close_fds=True)
+        os.close(data_r)
+        os.close(status_w)
+        self._ready = loop.create_future()
+        self._done = loop.create_future()
+        await loop.connect_read_pipe(lambda: _Status(self), os.fdopen(status_r, "rb", buffering=0))
+        self._pipe, _ = await loop.connect_write_pipe(lambda: _Pipe(self), os.fdopen(data_w, "wb", buffering=0))
+        await asyncio.wait([self._ready, self._done], return_when=asyncio.FIRST_COMPLETED)
+        if not self._ready.done():
+            await self._reap()
+            raise WriterError(self.error or "the writer process exited before it was ready")
+
+    # -- events from the proxy --------------------------------------------------------------
+
+    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
+        if conn in self._unrecorded:
+            self._leave_out(conn, _DIR_CODE[direction], t_ns, len(data))
+            return
+        batch = self._batch
+        batch += _HEAD.pack(REC_DATA, conn, _DIR_CODE[direction], t_ns, len(data))
+        batch += data
+        counts = self._batch_bytes
+        counts[conn] = counts.get(conn, 0) + len(data)
+        self._queued()
+
+    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
+        self._open.add(conn)
+        self._event(REC_OPENED, conn, 0, t_ns, {"client": client, "upstream": upstream})
+        if self._behind:
+            self._rebalance()  # over the limit, a new connection is over at once
+
+    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None:
+        self._event(REC_UPSTREAM_CONNECTED, conn, 0, t_ns, {"detail": detail})
+
+    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
+        self._event(REC_UPSTREAM_FAILED, conn, 0, t_ns, {"detail": detail})
+
+    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
+        self._end_gaps(conn)
+        self._event(REC_HALF_CLOSED, conn, _DIR_CODE[direction], t_ns, None)
+
+    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None:
+        self._open.discard(conn)
+        self._end_gaps(conn)
+        self._event(REC_CLOSED, conn, 0, t_ns, {"by": by, "detail": detail})
+
+    async def stop(self, t_ns: int, detail: str = "") -> dict | None:
+        """Finish the recording; returns the writer's summary (None if it failed)."""
+        if self._pipe is not None and not self._pipe.is_closing():
+            self._event(REC_STOP, 0, 0, t_ns, {"detail": detail})
+            self._send()
+            self._pipe.close()
+        await self._reap()
+        return self.summary
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _event(self, kind: int, conn: int, direction: int, t_ns: int, payload: dict | None) -> None:
+        body = json.dumps(payload).encode() if payload is not None else b""
+        self._batch += _HEAD.pack(kind, conn, direction, t_ns, len(body)) + body
+        self._queued()
+
+    def _queued(self) -> None:
+        if len(self._batch) >= BATCH_MAX:
+            self._send()
+        elif self._timer is None and self._loop is not None:
+            self._timer = self._loop.call_later(BATCH_S, self._send)
+
+    def _send(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        pipe = self._pipe
+        if self._batch and pipe is not None and not pipe.is_closing():
+            pipe.write(bytes(self._batch))
+            self._written += len(self._batch)
+            if self._batch_bytes:
+                self._in_pipe.append((self._written, self._batch_bytes))
+                waiting = self._waiting
+                for conn, n in self._batch_bytes.items():
+                    waiting[conn] = waiting.get(conn, 0) + n
+        self._batch.clear()
+        self._batch_bytes = {}
+        self._rebalance()
+
+    def _rebalance(self) -> None:
+        """Count what the kernel pipe has taken, and decide again who is over
+        (see the module docstring); while behind, again every ``BATCH_S``:
+        nothing else notices the pipe draining while every heavy connection waits."""
+        pipe = self._pipe
+        buffered = pipe.get_write_buffer_size() if pipe is not None else 0
+        taken = self._written - buffered
+        in_pipe, waiting = self._in_pipe, self._waiting
+        while in_pipe and in_pipe[0][0] <= taken:
+            for conn, n in in_pipe.popleft()[1].items():
+                left = waiting[conn] - n
+                if left:
+                    waiting[conn] = left
+                else:
+                    del waiting[conn]
+        backlog = buffered + len(self._batch)
+        if backlog > BEHIND:
+            self._behind = True
+        elif backlog <= CAUGHT_UP:
+            self._behind = False
+        over = self._over_share(backlog) if self._behind else frozenset()
+        if over != self._over:
+            self._set_over(over)
+        if self._behind and self._timer is None and pipe is not None and not pipe.is_closing():
+            self._timer = self._loop.call_later(BATCH_S, self._send)
+
+    def _over_share(self, backlog: int) -> frozenset[int]:
+        if backlog > LIMIT:
+            return frozenset(self._open)
+        waiting = self._waiting
+        share = BEHIND // max(len(waiting), 1)
+        return frozenset(conn for conn, n in waiting.items() if n > share)
+
+    def _set_over(self, over: frozenset[int]) -> None:
+        before, self._over = self._over, over
+        if self.when_behind == "gap":
+            self._unrecorded = over
+            for conn in before - over:
+                self._end_gaps(conn)
+        elif self.on_hold is not None:
+            for conn in over - before:
+                self.on_hold(conn, True)
+            for conn in before - over:
+                self.on_hold(conn, False)
+
+    def _leave_out(self, conn: int, direction: int, t_ns: int, length: int) -> None:
+        """A read of a connection that is over, in "gap" mode: only counted."""
+        gap = self._gaps.get((conn, direction))
+        if gap is None:
+            self._gaps[(conn, direction)] = [t_ns, length]
+        else:
+            gap[1] += length
+
+    def _end_gaps(self, conn: int) -> None:
+        """The gap records of what was left out, before anything else of ``conn``."""
+        for direction in (0, 1):
+            gap = self._gaps.pop((conn, direction), None)
+            if gap is not None:
+                self._event(REC_GAP, conn, direction, gap[0], {"length": gap[1]})
+
+    def _pipe_lost(self, exc: Exception | None) -> None:
+        if exc is not None and self.error is None:
+            self._fail("the writer process stopped reading")
+
+    def _status(self, message: dict) -> None:
+        kind = message.get("type")
+        if kind == "ready":
+            if self._ready is not None and not self._ready.done():
+                self._ready.set_result(None)
+        elif kind == "violation" and self.on_violation is not None:
+            self.on_violation(message)
+        elif kind == "file" and self.on_file is not None:
+            self.on_file(message["path"])
+        elif kind == "error":
+            self._fail(message["message"])
+        elif kind == "summary":
+            self.summary = message
+
+    def _fail(self, message: str) -> None:
+        if self.error is None:
+            self.error = message
+            if self.on_error is not None:
+                self.on_error(message)
+
+    def _status_closed(self) -> None:
+        if self.summary is None and self._ready is not None and self._ready.done():
+            self._fail("the writer process exited unexpectedly")
+        if self._done is not None and not self._done.done():
+            self._done.set_result(None)
+
+    async def _reap(self) -> None:
+        if self._done is not None:
+            await self._done
+        if self._proc is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self._proc.wait)
+
+
+# -- child side ---------------------------------------------------------------------------------
+
+
+def _say(message: dict) -> None:
+    """One status line to the proxy.  A proxy that is gone (killed on its own)
+    hears nothing more, but the recording must still be finished: the first
+    failed write points stdout at /dev/null and later ones go nowhere."""
+    try:
+        os.write(1, json.dumps(message).encode() + b"\n")
+    except OSError:  # EPIPE: nobody reads the other end any more
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+
+
+def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
+    from whiztap.analyzer.recording.format import violation_message
+
+    message = violation_message(conn, violation, about, t_ns, late=late, redact=True)
+    _say({"type": "violation", **message})
+
+
+def _dispatch(recorder, kind: int, conn: int, direction: int, t: int, payload: bytes) -> str | None:  # noqa: ANN001
+    """Apply one record; for the stop record, its detail (else None)."""
+    if kind == REC_DATA:
+        recorder.data(conn, _DIRS[direction], t, payload)
+        return None
+    if kind == REC_HALF_CLOSED:
+        recorder.half_closed(conn, _DIRS[direction], t)
+        return None
+    args = json.loads(payload)
+    if kind == REC_OPENED:
+        recorder.opened(conn, t, args["client"], args["upstream"])
+    elif kind == REC_UPSTREAM_CONNECTED:
+        recorder.upstream_connected(conn, t, args["detail"])
+    elif kind == REC_UPSTREAM_FAILED:
+        recorder.upstream_failed(conn, t, args["detail"])
+    elif kind == REC_CLOSED:
+        recorder.closed(conn, t, args["by"], args["detail"])
+    elif kind == REC_GAP:
+        recorder.gap(conn, _DIRS[direction], t, args["length"], GAP_DETAIL)
+    elif kind == REC_STOP:
+        return args["detail"]
+    return None
+
+
+def _run(config: dict[str, Any]) -> int:
+    from whiztap.analyzer.analysis.throughput import tune_gc
+    from whiztap.sniffer.record.recorder import Recorder
+    from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
+
+    tune_gc()  # bulk work on millions of short-lived tuples, like the batch commands
+    stop_requested = False
+
+    def on_term(signum: int, frame: object) -> None:
+        nonlocal stop_requested
+        stop_requested = True
+
+    os.nice(WRITER_NICE)
+    # Ctrl-C and a closed terminal reach the whole process group: the proxy
+    # decides when to stop and says so with a stop record (or dies, and the pipe
+    # closes).  A broken status pipe is an error to survive, not a death.
+    for ignored in (signal.SIGINT, signal.SIGHUP, signal.SIGPIPE):
+        signal.signal(ignored, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a file size limit is an error to report, not a death
+    file = RecordingFile(config["path"], config["metadata"], split_size=config.get("split_size"),
+                         split_duration_ns=config.get("split_duration_ns"), overwrite=config.get("overwrite", True))
+    recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
+                        checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
+                        on_violation=_violation_report if config.get("analyze") else None)
+    reported = 0
+    try:
+        recorder.start(config["start_ns"], **config.get("started", {}))
+        _say({"type": "ready", "path": file.current_path})
+        buf = bytearray()
+        head = _HEAD.size
+        stop_detail: str | None = None
+        t = config["start_ns"]
+        while stop_detail is None and not stop_requested:
+            ready, _, _ = select.select([0], [], [], TICK_S)
+            if ready:
+                chunk = os.read(0, 4 << 20)
+                if not chunk:
+                    break
+                buf += chunk
+                pos = 0
+                n = len(buf)
+                while stop_detail is None and n - pos >= head:
+                    kind, conn, direction, t, length = _HEAD.unpack_from(buf, pos)
+                    end = pos + head + length
+                    if end > n:
+                        break
+                    stop_detail = _dispatch(recorder, kind, conn, direction, t, bytes(buf[pos + head:end]))
+                    pos = end
+                del buf[:pos]
+            recorder.tick(time.time_ns())
+            for path in file.finished[reported:]:
+                _say({"type": "file", "path": path})
+            reported = len(file.finished)
+        if stop_detail is None:  # no stop record: the proxy is gone, or SIGTERM came
+            t, stop_detail = time.time_ns(), "writer terminated" if stop_requested else "proxy gone"
+        summary = recorder.stop(t, stop_detail)
+    except RecordingWriteError as e:
+        _say({"type": "error", "message": str(e)})
+        return EXIT_WRITE_ERROR
+    _say({"type": "summary", **summary.as_dict(), "size": sum(os.path.getsize(p) for p in summary.files)})
+    return 0
+
+
+def main() -> None:
+    sys.exit(_run(json.loads(sys.argv[1])))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,324 @@
+"""A transparent TCP proxy that tells a recorder everything it forwards.
+
+Each client connection gets its own upstream connection.  Every chunk read from
+one side is written to the other side's transport at once, inside the same
+``data_received`` call, before anything else happens: no byte is held back,
+reordered or changed, and nothing waits for a frame to complete.  Only then is
+the chunk handed to the sink (the recorder's pipe), which copies it into a
+batch.  ``asyncio.Protocol`` rather than streams: streams add a task switch and
+a buffer copy per read, which halves round trips (see docs/benchmarks.md).
+
+Flow control is end to end, and derived, not remembered: a side is read
+exactly while there is somewhere to send its bytes (the upstream is connected
+and the client's early bytes are passed on), the other side's transport buffer
+is at most its high-water mark, the side has not sent its FIN, and the
+recorder does not hold the connection (``RecordingProxy.hold``: the writer is
+behind and this connection has more than its share of the backlog).
+``_Leg.sync`` makes the transport match that rule and is called whenever one
+of those facts changes; it is asserted again on every read and just after
+``connection_made`` (uvloop starts reading only after ``connection_made``
+returns, so a pause made there would be lost).  A side that should not be
+read stops after at most one read, and TCP pushes back on its sender: the
+proxy never buffers more than a transport's high-water mark and one read per
+direction, however slowly a client reads.
+
+Half-close passes through (a FIN from one side becomes ``write_eof()`` on the
+other); a reset or close on one side closes the other once its buffered bytes
+are sent.  A connection that fails in any way is recorded and closed; it never
+affects another.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import socket
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+from whiztap.analyzer.protocol.session import Direction
+from whiztap.sniffer.nettext import reason, show_address
+
+C2S, S2C = Direction.C2S, Direction.S2C
+TRANSPORT_HIGH_WATER = 256 << 10
+CLOSE_GRACE_S = 2.0
+
+
+class Sink(Protocol):
+    """Where the proxy reports what it sees (``whiztap.sniffer.record.feed.WriterProcess``)."""
+
+    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None: ...
+    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None: ...
+    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None: ...
+    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None: ...
+    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None: ...
+    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None: ...
+
+
+class Clock:
+    """Wall-clock nanoseconds that never go backwards: the wall time at start
+    plus a monotonic counter, so an NTP step cannot reorder a recording."""
+
+    def __init__(self) -> None:
+        self._base = time.time_ns() - time.perf_counter_ns()
+
+    def __call__(self) -> int:
+        return self._base + time.perf_counter_ns()
+
+
+def address(sockname: tuple | None) -> str:
+    """A socket's (host, port, ...) as host:port; "?" when there is none."""
+    return show_address(sockname[0], sockname[1]) if sockname else "?"
+
+
+class _Leg(asyncio.Protocol):
+    """One socket of a connection; ``direction`` is that of the bytes it reads."""
+
+    def __init__(self, conn: Connection, direction: Direction) -> None:
+        self.conn = conn
+        self.direction = direction
+        self.transport: asyncio.Transport | None = None
+        self.peer: _Leg | None = None
+        self.target: asyncio.Transport | None = None  # where its bytes go, once they may
+        self.eof = False  # this side sent FIN
+        self.received = 0  # bytes read from this side
+        self.early: list[bytes] = []  # read before the upstream was connected
+        self.lost = False
+
+    def may_read(self) -> bool:
+        """The rule for reading this side (see the module docstring)."""
+        target = self.target
+        return (target is not None and target.get_write_buffer_size() <= TRANSPORT_HIGH_WATER
+                and not self.conn.held and not self.eof)
+
+    def sync(self) -> None:
+        """Read, or not, as the rule says now (both calls are no-ops when already so)."""
+        if self.transport is not None and not self.lost:
+            if self.may_read():
+                self.transport.resume_reading()
+            else:
+                self.transport.pause_reading()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except OSError:
+                pass
+        transport.set_write_buffer_limits(high=TRANSPORT_HIGH_WATER)  # type: ignore[attr-defined]
+        if self.direction is S2C:  # the client is connected before its upstream
+            self.target = self.peer.transport  # type: ignore[union-attr]
+        else:
+            self.conn.client_made(transport)  # type: ignore[arg-type]
+        asyncio.get_running_loop().call_soon(self.sync)  # once reading has started
+
+    def data_received(self, data: bytes) -> None:
+        t = self.conn.proxy.clock()
+        target = self.target
+        if target is not None:
+            target.write(data)
+        else:
+            self.early.append(data)  # the upstream is not connected yet
+        self.received += len(data)
+        self.conn.proxy.sink.data(self.conn.id, self.direction, t, data)
+        if not self.may_read():  # whatever pause was missed, this read is the last
+            self.transport.pause_reading()  # type: ignore[union-attr]
+
+    def eof_received(self) -> bool:
+        self.eof = True
+        self.conn.half_closed(self)
+        return True  # keep the other direction open
+
+    def pause_writing(self) -> None:
+        self.peer.sync()  # type: ignore[union-attr]
+
+    def resume_writing(self) -> None:
+        self.peer.sync()  # type: ignore[union-attr]
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.lost = True
+        self.conn.leg_lost(self, exc)
+
+
+class Connection:
+    """A client connection and its upstream connection."""
+
+    def __init__(self, proxy: RecordingProxy, conn_id: int) -> None:
+        self.proxy = proxy
+        self.id = conn_id
+        self.client = _Leg(self, C2S)
+        self.upstream = _Leg(self, S2C)
+        self.client.peer, self.upstream.peer = self.upstream, self.client
+        self.client_addr = "?"
+        self.held = False  # by the recorder: see RecordingProxy.hold
+        self.closed_by: str | None = None
+        self.detail = ""
+        self.opened_ns = 0
+        self._connect: asyncio.Task | None = None
+        self._done = asyncio.get_running_loop().create_future()
+
+    # -- setup --------------------------------------------------------------------------
+
+    def client_made(self, transport: asyncio.Transport) -> None:
+        proxy = self.proxy
+        self.client_addr = address(transport.get_extra_info("peername"))
+        self.opened_ns = proxy.clock()
+        proxy.sink.opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text)
+        proxy.notify("opened", self)
+        self._connect = asyncio.get_running_loop().create_task(self._open_upstream())
+
+    async def _open_upstream(self) -> None:
+        proxy = self.proxy
+        loop = asyncio.get_running_loop()
+        try:
+            await asyncio.wait_for(
+                loop.create_connection(lambda: self.upstream, proxy.upstream_host, proxy.upstream_port),
+                proxy.connect_timeout)
+        except asyncio.CancelledError:
+            return
+        except (OSError, asyncio.TimeoutError) as e:
+            why = "timed out" if isinstance(e, asyncio.TimeoutError) else reason(e)
+            detail = f"cannot connect to {proxy.upstream_text}: {why}"
+            proxy.sink.upstream_failed(self.id, proxy.clock(), detail)
+            self.detail = detail
+            self.closed_by = "server"
+            self.client.transport.close()  # type: ignore[union-attr]
+            return
+        if self.client.lost:
+            self.upstream.transport.close()  # type: ignore[union-attr]
+            return
+        local = address(self.upstream.transport.get_extra_info("sockname"))  # type: ignore[union-attr]
+        proxy.sink.upstream_connected(self.id, proxy.clock(), f"from {local}")
+        for data in self.client.early:
+            self.upstream.transport.write(data)  # type: ignore[union-attr]
+        self.client.early.clear()
+        if self.client.eof:  # the client's FIN came while connecting: pass it on now
+            self.upstream.transport.write_eof()  # type: ignore[union-attr]
+        self.client.target = self.upstream.transport
+        self.client.sync()
+
+    # -- teardown -------------------------------------------------------------------------
+
+    def half_closed(self, leg: _Leg) -> None:
+        """A FIN from one side (the client's is only read once upstream is connected)."""
+        self.proxy.sink.half_closed(self.id, leg.direction, self.proxy.clock())
+        if self.closed_by is None:
+            self.closed_by, self.detail = leg.direction.sender, "closed"
+        peer = leg.peer
+        if peer.lost or peer.transport is None:  # type: ignore[union-attr]
+            return  # gone, or still connecting (which passes the FIN on)
+        if peer.eof:  # type: ignore[union-attr]
+            self.close_both()  # both sides are done sending
+        elif peer.transport.can_write_eof():  # type: ignore[union-attr]
+            peer.transport.write_eof()  # type: ignore[union-attr]
+
+    def leg_lost(self, leg: _Leg, exc: Exception | None) -> None:
+        if self.closed_by is None:
+            self.closed_by = "client" if leg is self.client else "server"
+            self.detail = f"reset ({exc})" if exc is not None else "closed"
+        if self._connect is not None and not self._connect.done():
+            self._connect.cancel()
+        peer = leg.peer
+        if peer.transport is not None and not peer.lost:  # type: ignore[union-attr]
+            peer.transport.close()  # type: ignore[union-attr]  # after sending what it holds
+        elif not self._done.done():
+            self.proxy.sink.closed(self.id, self.proxy.clock(), self.closed_by, self.detail)
+            self._done.set_result(None)
+            self.proxy.forget(self)
+
+    def close_both(self, by: str | None = None, detail: str = "") -> None:
+        if by is not None and self.closed_by is None:
+            self.closed_by, self.detail = by, detail
+        if self._connect is not None and not self._connect.done():
+            self._connect.cancel()
+        for leg in (self.client, self.upstream):
+            if leg.transport is not None and not leg.lost:
+                leg.transport.close()
+
+    def abort(self) -> None:
+        for leg in (self.client, self.upstream):
+            if leg.transport is not None and not leg.lost:
+                leg.transport.abort()
+
+    async def wait_closed(self) -> None:
+        await asyncio.shield(self._done)
+
+
+class RecordingProxy:
+    """Listens, and proxies each client to the upstream address, reporting to ``sink``.
+
+    ``on_connection(event, connection)`` is told about "opened" and "closed".
+    """
+
+    def __init__(self, listen_host: str, listen_port: int, upstream_host: str, upstream_port: int,
+                 sink: Sink, *, connect_timeout: float = 5.0,
+                 on_connection: Callable[[str, Connection], None] | None = None) -> None:
+        self.listen_host, self.listen_port = listen_host, listen_port
+        self.upstream_host, self.upstream_port = upstream_host, upstream_port
+        self.upstream_text = address((upstream_host, upstream_port))
+        self.sink = sink
+        self.connect_timeout = connect_timeout
+        self.on_connection = on_connection
+        self.clock = Clock()
+        self.connections: dict[int, Connection] = {}
+        self._ids = itertools.count(1)
+        self._server: asyncio.AbstractServer | None = None
+
+    @property
+    def port(self) -> int:
+        return self._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+
+    @property
+    def listen_text(self) -> str:
+        return address(self._server.sockets[0].getsockname()) if self._server else "?"  # type: ignore[union-attr]
+
+    async def start(self, serving: bool = True) -> None:
+        """Bind (OSError if the address is taken); accept now or at ``serve()``."""
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(self._accept, self.listen_host, self.listen_port,
+                                                reuse_address=True, backlog=512, start_serving=serving)
+
+    async def serve(self) -> None:
+        await self._server.start_serving()  # type: ignore[union-attr]
+
+    def _accept(self) -> _Leg:
+        conn = Connection(self, next(self._ids))
+        self.connections[conn.id] = conn
+        return conn.client
+
+    def notify(self, event: str, conn: Connection) -> None:
+        if self.on_connection is not None:
+            self.on_connection(event, conn)
+
+    def forget(self, conn: Connection) -> None:
+        self.connections.pop(conn.id, None)
+        self.notify("closed", conn)
+
+    def hold(self, conn_id: int, held: bool) -> None:
+        """The recorder's verdict on one connection: stop reading both of its
+        sides (its bytes are the writer's backlog), or read them again."""
+        conn = self.connections.get(conn_id)
+        if conn is not None:
+            conn.held = held
+            conn.client.sync()
+            conn.upstream.sync()
+
+    async def close(self, detail: str = "recording stopped") -> None:
+        """Stop accepting, close every connection (sending what is buffered), wait."""
+        if self._server is not None:
+            self._server.close()
+        conns = list(self.connections.values())
+        for conn in conns:
+            conn.close_both("recorder", detail)
+        if conns:
+            _, pending = await asyncio.wait([asyncio.ensure_future(c.wait_closed()) for c in conns],
+                                            timeout=CLOSE_GRACE_S)
+            if pending:
+                for conn in list(self.connections.values()):
+                    conn.abort()
+                await asyncio.wait(pending, timeout=CLOSE_GRACE_S)
+        if self._server is not None:
+            await self._server.wait_closed()

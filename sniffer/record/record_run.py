@@ -1,0 +1,140 @@
+"""The running ``whiztap record``: proxy and writer process wired together.
+
+Kept apart from the click command so tests can run a recorder in their own
+event loop, and so the command module stays cheap to import.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+from whiztap.analyzer.protocol.session import Limits
+from whiztap.sniffer.record.feed import WriterError, WriterProcess
+from whiztap.sniffer.record.proxy import Connection, RecordingProxy, address
+from whiztap.sniffer.record.writer import STOP_SIGNALS
+
+
+@dataclass(frozen=True)
+class RecordSettings:
+    listen: tuple[str, int]
+    upstream: tuple[str, int]
+    output: str
+    split_size: int | None = None
+    split_duration: float | None = None
+    keep_secrets: bool = False
+    checksum_rule: str = "dev-sum"
+    quiet: bool = False
+    analyze: bool = False
+    connect_timeout: float = 5.0
+    limits: Limits = Limits()
+    # replace files at the recording's names (the command checked them at start,
+    # and refuses unless --force); False: a name taken while recording stops it
+    overwrite: bool = True
+    when_behind: str = "pause"  # what happens to the connections that put the writer behind: "pause" or "gap"
+
+
+class Recording:
+    """A proxy recording into a writer process; ``start()``, then ``stop()``.
+
+    ``echo`` receives each line meant for the user (connections, violations);
+    ``stopped`` is set when the recording has to end on its own (write error).
+    """
+
+    def __init__(self, settings: RecordSettings, echo=None, tap=None) -> None:  # noqa: ANN001 - callables
+        """``tap``, if given, wraps the writer's sink before the first client is
+        accepted (the TUI sees every event the file gets, from the first)."""
+        self.settings = settings
+        self.echo = echo or (lambda line: None)
+        self.tap = tap
+        self.stopped = asyncio.Event()
+        self.writer: WriterProcess | None = None
+        self.proxy: RecordingProxy | None = None
+        self.summary: dict | None = None
+
+    @property
+    def error(self) -> str | None:
+        return self.writer.error if self.writer is not None else None
+
+    async def start(self) -> None:
+        """Bind, start the writer, accept.  Raises WriterError or OSError (bind)."""
+        from whiztap.sniffer.cli.record import base_metadata
+
+        s = self.settings
+        self.proxy = proxy = RecordingProxy(*s.listen, *s.upstream, sink=None,  # type: ignore[arg-type]
+                                            connect_timeout=s.connect_timeout, on_connection=self._connection)
+        await proxy.start(serving=False)
+        start_ns = proxy.clock()
+        listen = proxy.listen_text
+        metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
+                                 upstream=proxy.upstream_text, split_size=s.split_size,
+                                 split_duration=s.split_duration)
+        config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
+                  "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
+                  "limits": s.limits.as_dict(),
+                  "split_size": s.split_size, "overwrite": s.overwrite,
+                  "split_duration_ns": int(s.split_duration * 1e9) if s.split_duration else None,
+                  "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}}
+        self.writer = writer = WriterProcess(config, s.when_behind)
+        writer.on_hold = proxy.hold
+        writer.on_violation = self._violation
+        writer.on_error = lambda message: self.stopped.set()
+        writer.on_file = lambda path: self.echo(f"finished {path}")
+        proxy.sink = self.tap(writer) if self.tap is not None else writer
+        try:
+            await writer.start()
+        except WriterError:
+            await proxy.close()
+            raise
+        await proxy.serve()
+
+    async def stop(self, detail: str = "recording stopped") -> dict | None:
+        """Close every connection, finish the file; the writer's summary."""
+        await self.proxy.close(detail)  # type: ignore[union-attr]
+        self.summary = await self.writer.stop(self.proxy.clock(), detail)  # type: ignore[union-attr]
+        return self.summary
+
+    def _connection(self, event: str, conn: Connection) -> None:
+        if event == "opened":
+            self.echo(f"#{conn.id} opened from {conn.client_addr}")
+            return
+        seconds = (self.proxy.clock() - conn.opened_ns) / 1e9  # type: ignore[union-attr]
+        self.echo(f"#{conn.id} closed by {conn.closed_by} after {seconds:.2f} s ({conn.detail}): "
+                  f"c2s {conn.client.received} B, s2c {conn.upstream.received} B")
+
+    def _violation(self, v: dict) -> None:
+        from whiztap.sniffer.cli.record import clock_text
+
+        where = f" frame #{v['frame_index']} {v['frame_text']!r}" if "frame_index" in v else ""
+        self.echo(f"! {v['rule_id']} ({v['severity']}) conn #{v['conn']} at {clock_text(v['t_ns'])}"
+                  f"{where}: {v['detail']}")
+
+
+async def run_record(settings: RecordSettings) -> str | None:
+    """The whole command: record until Ctrl-C, SIGTERM or a write error; the error."""
+    from whiztap.sniffer.cli.record import say, summary_lines
+
+    echo = (lambda line: None) if settings.quiet else say
+    recording = Recording(settings, echo)
+    try:
+        await recording.start()
+    except WriterError as e:
+        return str(e)
+    except OSError as e:
+        return f"cannot listen on {address(settings.listen)}: {e.strerror or e}"
+    loop = asyncio.get_running_loop()
+    for sig in STOP_SIGNALS:
+        loop.add_signal_handler(sig, recording.stopped.set)
+    proxy = recording.proxy
+    # even with -q: with port 0 this line is the only way to learn the port
+    say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output} "  # type: ignore[union-attr]
+        f"(Ctrl-C to stop)")
+    await recording.stopped.wait()
+    detail = "write error" if recording.error else "recording stopped"
+    summary = await recording.stop(detail)
+    for sig in STOP_SIGNALS:
+        loop.remove_signal_handler(sig)
+    if summary is not None:
+        for line in summary_lines(summary, "recorded"):
+            echo(line)
+    return recording.error

@@ -1,0 +1,397 @@
+"""Connection events in, recording out: the sessions, redaction and channels.
+
+The proxy, the pcap importer and the live capture all describe traffic the same
+way (a connection opened, bytes arrived on one direction at a time, a side shut
+down, the connection closed) and the Recorder turns that into the recording
+layout of ``whiztap.analyzer.recording.format``: every read, every framer item with what the
+live session model made of it, violations, plottable values and lifecycle
+events.  It runs on one thread (the writer's), so messages reach each channel
+in the order they happened and ``log_time`` never goes backwards.
+
+Passwords are redacted unless asked otherwise, by the rule of
+``whiztap.analyzer.protocol.redaction``: what the client sends until the server's verdict on the
+login is masked.  The masking comes first: the session model, and so every
+frame, violation and printed line, sees the bytes as the file has them, never
+the password.  A client read whose fate is still undecided (the server has not
+said yet whether it asks for a password) waits, and every read and event after
+it waits behind it, so the file stays in arrival order; the wait is bounded
+(``HOLD_LIMIT_S``, and a cap on the bytes), after which the bytes are masked.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.recording.format import (
+    EV_CLOSED,
+    EV_CONTINUED,
+    EV_GAP,
+    EV_HALF_CLOSED,
+    EV_OPENED,
+    EV_RECORDING_STARTED,
+    EV_RECORDING_STOPPED,
+    EV_UPSTREAM_CONNECTED,
+    EV_UPSTREAM_FAILED,
+    RUN_INLINE_MAX,
+    TOPIC_EVENTS,
+    TOPIC_FRAMES,
+    TOPIC_READS,
+    TOPIC_VIOLATIONS,
+    FrameEncoder,
+    encode,
+    encode_plots,
+    encode_read,
+    event_message,
+    run_message,
+    violation_message,
+)
+from whiztap.analyzer.protocol.redaction import HOLD_LIMIT_S, Redactor
+from whiztap.analyzer.protocol.rules import Violation
+from whiztap.analyzer.protocol.session import Direction, Event, LateViolation, Limits, Observation, Session
+from whiztap.sniffer.record.writer import RecordingFile
+
+C2S, S2C = Direction.C2S, Direction.S2C
+_NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})  # not protocol: written in runs
+_DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
+
+ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
+
+
+@dataclass
+class _Conn:
+    session: Session
+    client: str
+    upstream: str
+    received: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
+    written: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})  # less while reads wait
+    framed: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
+
+
+class _ReadNote(NamedTuple):
+    """What the recorder keeps with a read while it waits to be written."""
+
+    c: _Conn
+    t: int
+    offset: int
+
+
+@dataclass
+class Summary:
+    """What a recording holds, for the line printed at exit."""
+
+    connections: int = 0
+    upstream_failures: int = 0
+    frames: Counter[str] = field(default_factory=Counter)  # by direction
+    bytes: Counter[str] = field(default_factory=Counter)  # by direction
+    violations: Counter[str] = field(default_factory=Counter)  # by severity
+    messages: int = 0
+    files: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"connections": self.connections, "upstream_failures": self.upstream_failures,
+                "frames": dict(self.frames), "bytes": dict(self.bytes),
+                "violations": dict(self.violations), "messages": self.messages, "files": self.files}
+
+
+class Recorder:
+    """Feeds each connection's bytes to its own Session and writes the recording."""
+
+    def __init__(self, file: RecordingFile, *, keep_secrets: bool = False,
+                 checksum_rule: str = DEFAULT_CHECKSUM_RULE, limits: Limits = Limits(),
+                 on_violation: ViolationHook | None = None) -> None:
+        self.file = file
+        self.keep_secrets = keep_secrets
+        self.checksum_rule = checksum_rule
+        self.limits = limits
+        self.on_violation = on_violation
+        self.summary = Summary()
+        self._conns: dict[int, _Conn] = {}  # open, as far as the input goes
+        self._live: dict[int, _Conn] = {}  # open, as far as the file goes
+        # None with --keep-secrets; a queued record is a _ReadNote, or the work
+        # of a connection event (a callable)
+        self._redactor: Redactor[_ReadNote | Callable[[], None]] | None = \
+            None if keep_secrets else Redactor(HOLD_LIMIT_S)
+        self._frames = FrameEncoder()
+        self._frame_counts = {C2S: 0, S2C: 0}
+        self._bytes = {C2S: 0, S2C: 0}  # of closed connections
+        self._t = 0  # the latest input time
+        self._now = 0  # the time of what is being written: log times follow it
+        file.on_new_part = self._continued
+        self._split = file.part is not None
+
+    # -- input -----------------------------------------------------------------------
+
+    def start(self, t_ns: int, **details: object) -> None:
+        self._t = self._now = t_ns
+        self.file.open(t_ns)
+        self._write_event(0, EV_RECORDING_STARTED, t_ns, **details)
+        self.file.flush()  # schemas, channels and metadata on disk at once
+
+    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
+        t = self._clock(t_ns)
+        c = self._conns[conn] = _Conn(self.limits.session(self.checksum_rule), client, upstream)
+        self.summary.connections += 1
+        if self._redactor is not None:
+            self._redactor.opened(conn)
+        self._then(conn, lambda: self._opened(conn, c, t))
+
+    def upstream_connected(self, conn: int, t_ns: int, detail: str = "") -> None:
+        t = self._clock(t_ns)
+        self._then(conn, lambda: self._write_event(conn, EV_UPSTREAM_CONNECTED, t, detail=detail))
+
+    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
+        t = self._clock(t_ns)
+        self.summary.upstream_failures += 1
+        c = self._conns[conn]
+        if self._redactor is not None:
+            self._redactor.ended(conn, S2C)  # the server will never speak
+        self._then(conn, lambda: self._upstream_failed(conn, c, t, detail))
+
+    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
+        if t_ns > self._t:
+            self._t = t_ns
+        t = self._t
+        c = self._conns[conn]
+        offset = c.received[direction]
+        c.received[direction] = offset + len(data)
+        redactor = self._redactor
+        if redactor is None or redactor.passing(conn):
+            self._write_read(conn, c, direction, t, offset, data, ())
+            return
+        redactor.read(conn, direction, data, _ReadNote(c, t, offset), time.monotonic())
+        self._release()
+
+    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
+        """One side shut down its sending direction (TCP FIN)."""
+        t = self._clock(t_ns)
+        c = self._conns[conn]
+        if self._redactor is not None:
+            self._redactor.ended(conn, direction)
+        self._then(conn, lambda: self._half_closed(conn, c, direction, t))
+
+    def gap(self, conn: int, direction: Direction, t_ns: int, length: int,
+            detail: str = "bytes missing from the capture; the session model restarts after them") -> None:
+        """``length`` bytes of one direction are not in the recording (a capture
+        missed them, or the proxy left them out: ``--when-behind gap``)."""
+        t = self._clock(t_ns)
+        c = self._conns[conn]
+        offset = c.received[direction]
+        c.received[direction] += length
+        self._bytes[direction] -= length  # counted as received at close; never seen
+        if self._redactor is not None:
+            self._redactor.gap(conn, direction, length)
+        self._then(conn, lambda: self._gap(conn, c, direction, t, offset, length, detail))
+
+    def closed(self, conn: int, t_ns: int, by: str, detail: str = "") -> None:
+        t = self._clock(t_ns)
+        c = self._conns.pop(conn)
+        for direction, n in c.received.items():
+            self._bytes[direction] += n
+        if self._redactor is not None:
+            self._redactor.closed(conn)  # what is still undecided is masked: nothing waits for it
+        self._then(conn, lambda: self._closed(conn, c, t, by, detail))
+
+    def tick(self, t_ns: int) -> None:
+        """Called often (at least every few hundred ms): bounded holds, flush, rotation."""
+        if self._redactor is not None:
+            self._redactor.tick(time.monotonic())
+            self._release()
+        self.file.tick(max(t_ns, self._t))
+
+    def stop(self, t_ns: int, detail: str = "") -> Summary:
+        """Close every connection still open, then finish the file(s)."""
+        self.file.closing = True  # the closing events end the part they belong to
+        t = self._clock(t_ns)
+        for conn in list(self._conns):
+            self.closed(conn, t, "recorder", detail or "recording stopped")
+        # every connection is closed, so nothing waits any more
+        self._then(0, lambda: self._write_event(0, EV_RECORDING_STOPPED, t, by="recorder", detail=detail))
+        self.summary.messages = self.file.messages
+        self.summary.frames.update({d.value: n for d, n in self._frame_counts.items()})
+        self.summary.bytes.update({d.value: n for d, n in self._bytes.items()})
+        self.summary.files = self.file.finish()
+        return self.summary
+
+    # -- internals ---------------------------------------------------------------------
+
+    def _clock(self, t_ns: int) -> int:
+        """Times never go backwards (a pcap's may): each input is at least the last."""
+        if t_ns > self._t:
+            self._t = t_ns
+        return self._t
+
+    def _at(self, t: int) -> None:
+        """Writing reached time ``t``: what is written now is logged at it (so
+        log times never go back, whatever waited), and a new part begins here
+        if a split limit was reached."""
+        self._now = t
+        if self._split:
+            self.file.rotate_if_due(t)
+
+    def _then(self, conn: int, work: Callable[[], None]) -> None:
+        """A connection event's work: now, or after the reads that came before it."""
+        redactor = self._redactor
+        if redactor is None or redactor.idle:
+            work()
+        else:
+            redactor.event(conn, work)
+            self._release()
+
+    def _release(self) -> None:
+        """Write the reads (and do the events) whose turn has come."""
+        for r in self._redactor.released():  # type: ignore[union-attr]
+            if r.direction is None:
+                r.record()  # type: ignore[operator]
+            else:
+                note: _ReadNote = r.record  # type: ignore[assignment]
+                self._write_read(r.conn, note.c, r.direction, note.t, note.offset, r.data, r.spans)
+
+    def _write_read(self, conn: int, c: _Conn, direction: Direction, t: int, offset: int, data: bytes,
+                    spans: list[tuple[int, int]] | tuple) -> None:
+        """One read into /tcp/reads (as it may be shown), and what the session makes of it."""
+        self._at(t)
+        self.file.write(TOPIC_READS, t, encode_read(conn, _DIR_TEXT[direction], t, offset, data, spans))
+        c.written[direction] = offset + len(data)  # after: a part that begins before the read does not count it
+        self._observe_all(conn, c, c.session.receive(direction, data, t))
+
+    def _write_event(self, conn: int, event: str, t: int, **details: object) -> None:
+        self._now = t
+        self.file.write(TOPIC_EVENTS, t, encode(event_message(conn, event, t, **details)))
+
+    def _opened(self, conn: int, c: _Conn, t: int) -> None:
+        self._at(t)
+        self._live[conn] = c
+        self._write_event(conn, EV_OPENED, t, client=c.client, upstream=c.upstream)
+
+    def _upstream_failed(self, conn: int, c: _Conn, t: int, detail: str) -> None:
+        c.session.server_unreachable(detail)
+        self._write_event(conn, EV_UPSTREAM_FAILED, t, by="server", detail=detail)
+
+    def _half_closed(self, conn: int, c: _Conn, direction: Direction, t: int) -> None:
+        self._at(t)
+        self._observe_all(conn, c, c.session.end(direction, t))
+        # after what the session made of the side's last bytes: the file keeps each stream's order
+        self._write_event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
+
+    def _gap(self, conn: int, c: _Conn, direction: Direction, t: int, offset: int, length: int,
+             detail: str) -> None:
+        self._write_event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length, detail=detail)
+        c.written[direction] = offset + length
+        # The framer cannot know what the missing bytes were: it finishes what it
+        # has and starts a fresh session model after the hole.
+        self._observe_all(conn, c, c.session.close(t))
+        c.session = self.limits.session(self.checksum_rule)
+        c.framed = dict(c.written)
+
+    def _closed(self, conn: int, c: _Conn, t: int, by: str, detail: str) -> None:
+        self._at(t)
+        del self._live[conn]
+        self._observe_all(conn, c, c.session.close(t))
+        self._write_event(conn, EV_CLOSED, t, by=by, detail=detail, c2s_bytes=c.received[C2S],
+                          s2c_bytes=c.received[S2C], mode=c.session.mode.value,
+                          handshake=c.session.handshake_outcome)
+
+    def _observe_all(self, conn: int, c: _Conn, events: list[Event]) -> None:
+        """Write what the session made of a read: the hot loop of recording.
+        Its messages go to the file in one call, in the order they were made,
+        logged at the time of what is being written (an item the session held,
+        like a password sent before 'sendchkpass', comes out after later ones).
+        Unframed items and line breaks in a row are written together
+        (``_write_run``)."""
+        now = self._now
+        ids = self.file.channel_ids
+        frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
+        out: list[tuple[int, int, bytes]] = []
+        add = out.append
+        encode_frame = self._frames.encode
+        redact = not self.keep_secrets
+        framed = c.framed
+        frames = self._frame_counts
+        run: list[Observation] = []
+        for obs in events:
+            if type(obs) is LateViolation:
+                if run:
+                    self._write_run(conn, c, run, out)
+                    run = []
+                add((violations_id, now, self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)))
+                continue
+            _, direction, item, message, _, violations, _, _ = obs
+            kind, raw, _, t, _ = item
+            if kind in _NOT_FRAMES:
+                if run and run[0].direction is not direction:
+                    self._write_run(conn, c, run, out)
+                    run = []
+                run.append(obs)
+                continue
+            if run:
+                self._write_run(conn, c, run, out)
+                run = []
+            offset = framed[direction]
+            framed[direction] = offset + len(raw)
+            add((frames_id, now, encode_frame(conn, obs, offset, redact)))
+            if message is not None:
+                for topic, plot in encode_plots(conn, obs):
+                    add((ids[topic], now, plot))
+            frames[direction] += 1
+            for v in violations:
+                add((violations_id, now, self._violation(conn, v, obs, t, late=False)))
+        if run:
+            self._write_run(conn, c, run, out)
+        if out:
+            self.file.write_all(out)
+
+    def _write_run(self, conn: int, c: _Conn, run: list[Observation], out: list[tuple[int, int, bytes]]) -> None:
+        """Unframed items and line breaks in a row, from one read: a lone one of
+        at most ``RUN_INLINE_MAX`` bytes as the item it is; any other run as one
+        /frames message (``run_message``), and one /violations message per rule
+        its items break, with how many times (the totals count every break)."""
+        now = self._now
+        ids = self.file.channel_ids
+        frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
+        direction = run[0].direction
+        offset = c.framed[direction]
+        size = sum(len(o.item.raw) for o in run)
+        c.framed[direction] = offset + size
+        t = run[-1].item.t_end_ns
+        if len(run) == 1 and size <= RUN_INLINE_MAX:
+            out.append((frames_id, now, self._frames.encode(conn, run[0], offset, not self.keep_secrets)))
+            for v in run[0].violations:
+                out.append((violations_id, now, self._violation(conn, v, run[0], t, late=False)))
+            return
+        out.append((frames_id, now, encode(run_message(conn, run, offset))))
+        broken: dict[str, list] = {}  # rule id -> [first violation, its item, how many]
+        for o in run:
+            for v in o.violations:
+                seen = broken.get(v.rule_id)
+                if seen is None:
+                    broken[v.rule_id] = [v, o, 1]
+                else:
+                    seen[2] += 1
+        for v, about, count in broken.values():
+            if count > 1:
+                v = Violation(v.rule_id, f"{v.detail} (the first of {count} in {size} bytes of unframed data)")
+            out.append((violations_id, now, self._violation(conn, v, about, t, late=False, count=count)))
+
+    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool,
+                   count: int = 1) -> bytes:
+        """Count and report a violation (``count`` breaks of its rule: see
+        ``_write_run``); its /violations message."""
+        self.summary.violations[str(v.severity)] += count
+        if self.on_violation is not None:
+            self.on_violation(conn, t, v, about, late)
+        return encode(violation_message(conn, v, about, t, late, not self.keep_secrets, count))
+
+    def _continued(self, part: int) -> None:
+        """A new file began: say which connections are open and where their streams are."""
+        for conn, c in self._live.items():
+            self._write_event(conn, EV_CONTINUED, self._now, client=c.client, upstream=c.upstream,
+                              c2s_offset=c.written[C2S], s2c_offset=c.written[S2C],
+                              detail=f"connection open when part {part} began")
+        self.file.flush()
+

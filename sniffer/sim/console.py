@@ -1,0 +1,206 @@
+"""The little command language of ``whiztap client``: words in, one line out.
+
+Kept apart from the click command so it can be tested against a live simulator
+without a subprocess, and used both for one command on the command line and for
+lines read from standard input.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+from whiztap.analyzer.protocol.codec import EXTERNAL_SCRIPTS, decode
+from whiztap.analyzer.protocol.framing import Item
+from whiztap.analyzer.protocol.messages import SetConfigEntry
+from whiztap.analyzer.recording.output_rule import OutputRefused, check_output, create_mode
+from whiztap.analyzer.protocol.text import escape, unescape
+from whiztap.sniffer.sim.channels import ChannelSpecError, format_channels, parse_channels
+from whiztap.sniffer.sim.client import Client
+
+DEFAULT_DEVICE = 12  # the spec's default Dev#
+RAW_WAIT = 0.5  # seconds to collect whatever a raw frame brings back
+
+HELP = """commands:
+  config                     Fetch Configuration Settings
+  camera [-o FILE [--force]] Fetch Camera Image (saved to FILE; --force: over an existing one)
+  sensor CH                  Sensor Request
+  servo CH                   Servo Position Request
+  servo CH VALUE             Normal Send (move a servo to VALUE, 0-2000)
+  send CH VALUE              Normal Send to any channel
+  switch CH on|off           Activate / De-Activate Switch
+  script N                   Play Internal (11-266) or External (270-275) Script
+  script stop internal|external
+  setconfig SPEC [CHECKSUM]  Set Configuration Settings, e.g. servo:0-5,sensor:6-23
+  raw TEXT                   send escaped bytes (\\r, \\n, \\xNN) and show the replies
+  rr1-... / sr1-...          same as raw
+  sleep SECONDS              wait
+  help                       this list"""
+
+
+class CommandError(Exception):
+    """The words are not a command; the message says why."""
+
+
+def _int(word: str, what: str) -> int:
+    try:
+        value = int(word)
+    except ValueError:
+        raise CommandError(f"{what} must be a whole number, got {word!r}") from None
+    if value < 0:
+        raise CommandError(f"{what} must not be negative, got {value}")
+    return value
+
+
+def _arity(words: list[str], *counts: int) -> None:
+    if len(words) - 1 not in counts:
+        raise CommandError(f"wrong arguments for {words[0]!r}; try 'help'")
+
+
+def item_line(item: Item) -> str:
+    decoded = decode(item.kind, item.raw, item.reason)
+    meaning = decoded.message.describe() if decoded.message else str(item.reason or item.kind)
+    return f"< {escape(item.raw) if len(item.raw) <= 80 else f'{item.kind} ({len(item.raw)} bytes)'}  {meaning}"
+
+
+def split_line(line: str) -> list[str]:
+    """Words of a line; a raw frame keeps its bytes (spaces, backslashes) as typed."""
+    text = line.strip()
+    if text.startswith(("rr1-", "sr1-", "cr1-")):
+        return [text]
+    head, _, rest = text.partition(" ")
+    if head.lower() == "raw":
+        return [head, rest.strip()] if rest.strip() else [head]
+    return text.split()
+
+
+async def run(client: Client, words: list[str]) -> str:
+    """Carry out one command; the line to print.  Raises CommandError or ClientError."""
+    if not words:
+        raise CommandError("no command; try 'help'")
+    name = words[0].lower()
+    if name.startswith(("rr1-", "sr1-", "cr1-")):
+        return await _raw(client, " ".join(words))
+    match name:
+        case "help":
+            return HELP
+        case "config":
+            _arity(words, 0)
+            config = await client.fetch_configuration()
+            return f"Configuration Settings: {len(config.channels)} channels: {format_channels(config.channels)}"
+        case "camera":
+            return await _camera(client, words)
+        case "sensor":
+            _arity(words, 1)
+            channel = _int(words[1], "channel")
+            return f"sensor {channel} = {await client.sensor(channel)}"
+        case "servo" if len(words) == 2:
+            channel = _int(words[1], "channel")
+            position = await client.servo_position(channel)
+            return f"servo {channel} position {position:g} (data {round(position * 4)})"
+        case "servo" | "send":
+            _arity(words, 2)
+            channel, value = _int(words[1], "channel"), _int(words[2], "value")
+            await client.normal_send(channel, value)
+            return f"Normal Send: channel {channel} -> {value}"
+        case "switch":
+            return await _switch(client, words)
+        case "script":
+            return await _script(client, words)
+        case "setconfig":
+            return await _setconfig(client, words)
+        case "raw":
+            if len(words) < 2:
+                raise CommandError("raw needs the bytes to send")
+            return await _raw(client, " ".join(words[1:]))
+        case "sleep":
+            _arity(words, 1)
+            try:
+                seconds = float(words[1])
+            except ValueError:
+                raise CommandError(f"sleep needs seconds, got {words[1]!r}") from None
+            await asyncio.sleep(seconds)
+            return f"slept {seconds:g} s"
+    raise CommandError(f"unknown command {words[0]!r}; try 'help'")
+
+
+async def _camera(client: Client, words: list[str]) -> str:
+    rest = [w for w in words[1:] if w != "--force"]
+    force = len(rest) < len(words) - 1
+    if len(rest) == 2 and rest[0] in ("-o", "--output"):
+        target: Path | None = Path(rest[1])
+        try:  # before asking: the image is not fetched to be thrown away
+            check_output(str(target), force=force)
+        except OutputRefused as e:
+            raise CommandError(str(e)) from None
+    elif not rest and not force:
+        target = None
+    else:
+        raise CommandError("usage: camera [-o FILE [--force]]")
+    image = await client.fetch_camera_image()
+    kind = "jpeg" if image.startswith(b"\xff\xd8") else "png" if image.startswith(b"\x89PNG") else "image"
+    if target is None:
+        return f"camera: {len(image)} bytes {kind}"
+    try:
+        with open(target, create_mode(str(target), force) + "b") as f:
+            f.write(image)
+    except FileExistsError:
+        raise CommandError(f"{target} exists; use --force to overwrite it or -o to choose another name") from None
+    except OSError as e:
+        raise CommandError(f"cannot write {target}: {e.strerror}") from None
+    return f"camera: {len(image)} bytes {kind}, saved to {target}"
+
+
+async def _switch(client: Client, words: list[str]) -> str:
+    _arity(words, 2)
+    channel = _int(words[1], "channel")
+    state = words[2].lower()
+    if state in ("on", "1", "close"):
+        await client.activate_switch(channel)
+    elif state in ("off", "0", "open"):
+        await client.deactivate_switch(channel)
+    else:
+        raise CommandError(f"switch state must be on or off, got {words[2]!r}")
+    return f"switch {channel} {'on' if state in ('on', '1', 'close') else 'off'}"
+
+
+async def _script(client: Client, words: list[str]) -> str:
+    if len(words) >= 2 and words[1].lower() == "stop":
+        which = words[2].lower() if len(words) == 3 else ""
+        if which == "internal":
+            await client.stop_internal_script()
+        elif which == "external":
+            await client.stop_external_script()
+        else:
+            raise CommandError("usage: script stop internal|external")
+        return f"stop {which} script"
+    _arity(words, 1)
+    number = _int(words[1], "script number")
+    if number in EXTERNAL_SCRIPTS:
+        await client.play_external_script(number)
+        return f"play external script {number}"
+    await client.play_internal_script(number)
+    return f"play internal script {number}"
+
+
+async def _setconfig(client: Client, words: list[str]) -> str:
+    _arity(words, 1, 2)
+    try:
+        channels = parse_channels(words[1])
+    except ChannelSpecError as e:
+        raise CommandError(str(e)) from None
+    entries = tuple(SetConfigEntry(DEFAULT_DEVICE, port, c.unit_type) for port, c in enumerate(channels))
+    checksum = _int(words[2], "checksum") if len(words) == 3 else None
+    if checksum is not None and checksum > 255:
+        raise CommandError(f"checksum is one byte (0-255), got {checksum}")
+    await client.set_configuration(entries, checksum)
+    return f"Set Configuration: {len(entries)} entries sent"
+
+
+async def _raw(client: Client, text: str) -> str:
+    data = unescape(text)
+    items = await client.exchange_raw(data, RAW_WAIT)
+    lines = [f"sent {len(data)} bytes"] + [item_line(i) for i in items]
+    if not items:
+        lines.append(f"(no reply within {RAW_WAIT:g} s)")
+    return "\n".join(lines)
