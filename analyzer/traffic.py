@@ -1,0 +1,261 @@
+"""Traffic events: what happened on the wire, in one typed shape for every part of whiztap.
+
+Every producer of traffic (the proxy, a pcap import or live capture, the scan of
+a recording, a replay) says what happened as these events, and every consumer
+(the recorder, the analyzer, the TUI, replay and stub) takes them, so "a
+connection opened", "bytes arrived", "one side shut down its sending half", "bytes
+are missing" and "the connection ended" mean one thing everywhere.
+
+``Data`` is a ``NamedTuple`` because there is one per TCP read and it is built
+on the proxy's forwarding path: a tuple is the cheapest object Python makes.
+The others are rare and are frozen dataclasses.
+
+``to_json``/``from_json`` turn the connection events into the messages of a
+recording's ``/tcp/events`` topic and back; this module is the only place their
+names appear.  ``Data`` has its own message (``/tcp/reads``), encoded by
+``whiztap.analyzer.recording.encode`` for speed.
+
+``Traffic`` keeps one ``Session`` per connection and turns events into the
+session's events (observations and late violations): the one table of sessions
+that the analyzer, the recorder's model, replay and the TUI share.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields
+from typing import Any, NamedTuple
+
+from whiztap.analyzer.protocol.session import Direction, Event, Session
+
+GAP_DETAIL = "bytes missing from the capture; the session model restarts after them"
+
+
+class Data(NamedTuple):
+    """One read of ``data`` from one direction of connection ``conn``, at ``t_ns``."""
+
+    conn: int
+    direction: Direction
+    t_ns: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingStarted:
+    """A recording began (connection 0); ``detail`` says where its traffic comes from."""
+
+    t_ns: int
+    detail: str = ""
+    conn: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Opened:
+    """A client connected (to the proxy, or as a capture first saw it)."""
+
+    conn: int
+    t_ns: int
+    client: str = ""
+    upstream: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Continued:
+    """A connection already open when this part of a split recording began;
+    its streams continue at the offsets given."""
+
+    conn: int
+    t_ns: int
+    client: str = ""
+    upstream: str = ""
+    c2s_offset: int = 0
+    s2c_offset: int = 0
+    detail: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class UpstreamConnected:
+    """The proxy reached the server for this connection."""
+
+    conn: int
+    t_ns: int
+    detail: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class UpstreamFailed:
+    """The proxy could not reach the server: the server side will never speak."""
+
+    conn: int
+    t_ns: int
+    detail: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class HalfClosed:
+    """The sender of ``direction`` shut down its sending half (TCP FIN)."""
+
+    conn: int
+    t_ns: int
+    direction: Direction
+
+
+@dataclass(frozen=True, slots=True)
+class Gap:
+    """``length`` bytes of ``direction`` (from ``offset`` when known) are not in
+    the traffic: a capture missed them, the proxy left them out, or a part of a
+    split recording is missing."""
+
+    conn: int
+    t_ns: int
+    direction: Direction
+    length: int | None = None
+    offset: int | None = None
+    detail: str = GAP_DETAIL
+
+
+@dataclass(frozen=True, slots=True)
+class Closed:
+    """The connection ended; ``by`` is "client", "server" or "recorder".  A
+    recording adds what its model made of it (bytes, mode, handshake)."""
+
+    conn: int
+    t_ns: int
+    by: str = ""
+    detail: str = ""
+    c2s_bytes: int | None = None
+    s2c_bytes: int | None = None
+    mode: str | None = None
+    handshake: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingStopped:
+    """The recording ended (connection 0)."""
+
+    t_ns: int
+    by: str = ""
+    detail: str = ""
+    conn: int = 0
+
+
+ConnectionEvent = (RecordingStarted | Opened | Continued | UpstreamConnected | UpstreamFailed | HalfClosed
+                   | Gap | Closed | RecordingStopped)
+TrafficEvent = Data | ConnectionEvent
+
+NAMES: dict[type, str] = {
+    RecordingStarted: "recording_started",
+    Opened: "opened",
+    UpstreamConnected: "upstream_connected",
+    UpstreamFailed: "upstream_failed",
+    HalfClosed: "half_closed",
+    Closed: "closed",
+    Gap: "gap",
+    Continued: "continued",
+    RecordingStopped: "recording_stopped",
+}
+"""The ``event`` field of each connection event on ``/tcp/events`` (the recording
+format's enum takes its values from here, in this order)."""
+
+_BY_NAME = {name: cls for cls, name in NAMES.items()}
+_FIELDS = {cls: tuple(f.name for f in fields(cls)) for cls in NAMES}
+
+
+class TrafficError(ValueError):
+    """A ``/tcp/events`` message that is not a traffic event whiztap knows."""
+
+
+def to_json(event: ConnectionEvent) -> dict[str, Any]:
+    """The ``/tcp/events`` message of ``event``: ``conn``, ``event``, ``t_ns``,
+    then the fields it has (a direction as ``dir``; empty optional ones left out).
+    A half-close also says who closed (``by``), for people reading the file."""
+    message: dict[str, Any] = {"conn": event.conn, "event": NAMES[type(event)], "t_ns": event.t_ns}
+    for key, value in asdict(event).items():
+        if key in ("conn", "t_ns") or value is None:
+            continue
+        if key == "direction":
+            message["dir"] = value.value
+            if type(event) is HalfClosed:
+                message["by"] = value.sender
+        else:
+            message[key] = value
+    return message
+
+
+def from_json(message: dict[str, Any]) -> ConnectionEvent:
+    """The event of a ``/tcp/events`` message; fields it does not know are left
+    out (a newer writer may add some).  Raises ``TrafficError``."""
+    cls = _BY_NAME.get(message.get("event"))  # type: ignore[arg-type]
+    if cls is None:
+        raise TrafficError(f"unknown connection event {message.get('event')!r}")
+    values = {}
+    for key in _FIELDS[cls]:
+        if key == "direction":
+            try:
+                values[key] = Direction(message["dir"])
+            except (KeyError, ValueError):
+                raise TrafficError(f"a {NAMES[cls]} event without a direction") from None
+        elif key in message:
+            values[key] = message[key]
+    try:
+        return cls(**values)
+    except TypeError:
+        raise TrafficError(f"a {NAMES[cls]} event without its connection or time") from None
+
+
+SessionEnded = Callable[[int, Session], None]
+
+
+class Traffic:
+    """One ``Session`` per connection, fed by traffic events.
+
+    ``receive(event)`` returns what the session made of it.  A session begins
+    with the first bytes of its connection and ends when the connection closes,
+    when a gap cuts its streams (what follows cannot be framed with what came
+    before: each side of a gap is judged on its own), or at ``finish()``;
+    ``on_end(conn, session)`` is told each time, after the session's last events
+    are returned, so a consumer can add up what the session counted."""
+
+    def __init__(self, new_session: Callable[[], Session], on_end: SessionEnded | None = None) -> None:
+        self.sessions: dict[int, Session] = {}
+        self._new_session = new_session
+        self._on_end = on_end
+
+    def session(self, conn: int) -> Session:
+        """The connection's session, begun now if it has none."""
+        session = self.sessions.get(conn)
+        if session is None:
+            session = self.sessions[conn] = self._new_session()
+        return session
+
+    def receive(self, event: TrafficEvent) -> list[Event]:
+        if type(event) is Data:
+            session = self.sessions.get(event.conn) or self.session(event.conn)
+            return session.receive(event.direction, event.data, event.t_ns)
+        kind = type(event)
+        session = self.sessions.get(event.conn)
+        if session is None:
+            return []
+        if kind is HalfClosed:
+            return session.end(event.direction, event.t_ns)  # type: ignore[union-attr]
+        if kind is UpstreamFailed:
+            session.server_unreachable(event.detail)  # type: ignore[union-attr]
+            return []
+        if kind is Closed or kind is Gap:
+            return self.end(event.conn, event.t_ns)
+        return []
+
+    def end(self, conn: int, t_ns: int) -> list[Event]:
+        """End the connection's session now (if it has one); its last events."""
+        session = self.sessions.pop(conn, None)
+        if session is None:
+            return []
+        events = session.close(t_ns)
+        if self._on_end is not None:
+            self._on_end(conn, session)
+        return events
+
+    def finish(self) -> list[tuple[int, list[Event]]]:
+        """End every session still open (traffic cut short), each at its last
+        time; the last events per connection."""
+        return [(conn, self.end(conn, self.sessions[conn].last_t_ns or 0)) for conn in list(self.sessions)]
