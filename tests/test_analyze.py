@@ -13,7 +13,7 @@ from junitparser import Error, Failure, JUnitXml, Skipped
 
 from whiztap.analyzer.analysis.analyzer import Analyzer
 from whiztap.analyzer.cli.analyze import scan_recording
-from whiztap.analyzer.recording.format import Read, rebuild_streams, stream_bytes
+from whiztap.analyzer.recording.format import rebuild_streams, stream_bytes
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
 from whiztap.analyzer.analysis.report.text import md_text
@@ -53,11 +53,8 @@ def test_a_report_is_the_same_whether_clean_commands_come_out_as_events_or_not(s
     """analyze leaves them out for speed (Analyzer(every_event=False)); cat and the TUI do not."""
     def report_data(every_event: bool) -> dict:
         analyzer = Analyzer(str(sample), every_event=every_event)
-        for record in scan_recording(sample):
-            if type(record) is Read:
-                analyzer.read(record.conn, record.dir, record.t_ns, record.data)
-            else:
-                analyzer.event(record)
+        for event in scan_recording(sample):
+            analyzer.receive(event)
         return build(analyzer.finish())
 
     assert report_data(every_event=False) == report_data(every_event=True)

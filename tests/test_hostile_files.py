@@ -549,7 +549,7 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
     reader either reads it or raises RecordingError with one line, the analysis
     of what it reads never fails, and recover writes a valid file or says why not."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
-    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPICS, Read, RecordingError, RecordingScan, read_metadata
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPICS, RecordingError, RecordingScan, read_metadata
     from whiztap.analyzer.recording.recover import RecoverError, recover
 
     plain = data.draw(st.booleans(), label="uncompressed, no CRCs")
@@ -569,11 +569,8 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
         try:
             read_metadata(str(path))
             with open(path, "rb") as f:
-                for record in RecordingScan(f, topics).stream():
-                    if type(record) is Read:
-                        analyzer.read(record.conn, record.dir, record.t_ns, record.data)
-                    elif record.get("event") is not None:
-                        analyzer.event(record)
+                for event in RecordingScan(f, topics).traffic():
+                    analyzer.receive(event)
         except RecordingError as e:
             assert "\n" not in str(e) and str(e)
         analyzer.finish()
@@ -600,5 +597,5 @@ def test_a_message_index_pointing_past_any_buffer_is_one_line(tmp_path):
     path = tmp_path / "far.mcap"
     path.write_bytes(bytes(raw))
     with open(path, "rb") as f, pytest.raises(RecordingError, match="points past the end"):
-        for _ in RecordingScan(f, STREAM_TOPICS).stream():
+        for _ in RecordingScan(f, STREAM_TOPICS).traffic():
             pass

@@ -32,10 +32,10 @@ import whiztap.sniffer.record.recorder as recorder_module
 from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.examples import CONFIG
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.recording.format import STREAM_TOPICS, Read, RecordingScan, metadata_record
+from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS, RecordingScan, metadata_record
 from whiztap.analyzer.recording.info import set_info
 from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.protocol.redaction import Redactor
+from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.protocol.session import Direction
 from whiztap.sniffer.record.record_run import RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
@@ -414,13 +414,13 @@ def _check_stream_order(path: Path, sent: dict[int, bytes]) -> None:
     offsets: dict[tuple[int, str], int] = {}
     opened: set[int] = set()
     with open(path, "rb") as f:
-        for record in RecordingScan(f, STREAM_TOPICS).stream():
-            if isinstance(record, Read):
-                key = (record.conn, record.dir)
-                assert record.conn in opened, f"a read of #{record.conn} before it opened"
+        for topic, _t, record in RecordingScan(f, STREAM_TOPICS).messages():
+            if topic == TOPIC_READS:
+                key = (record["conn"], record["dir"])
+                assert record["conn"] in opened, f"a read of #{record['conn']} before it opened"
                 assert key not in ended, f"a read of {key} after its side ended"
-                assert record.offset == offsets.get(key, 0), f"{key} out of stream order"
-                offsets[key] = record.offset + len(record.data)
+                assert record["offset"] == offsets.get(key, 0), f"{key} out of stream order"
+                offsets[key] = record["offset"] + record["size"]
                 continue
             conn, event = record["conn"], record["event"]
             if event == "opened":

@@ -51,11 +51,11 @@ async def test_a_login_abandoned_mid_password_is_judged_not_a_crash(tmp_path):
     assert conn["mode"] == "winsock"
     assert b"prog" not in json.dumps(items).encode()
     # the file is in stream order: the held (masked) password read comes before its side's half-close
-    from whiztap.analyzer.recording.format import STREAM_TOPICS, Read, RecordingScan
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS, RecordingScan
 
     with open(path, "rb") as f:
-        order = [("read", r.dir) if type(r) is Read else (r["event"], r.get("dir"))
-                 for r in RecordingScan(f, STREAM_TOPICS).stream()]
+        order = [("read", m["dir"]) if topic == TOPIC_READS else (m["event"], m.get("dir"))
+                 for topic, _t, m in RecordingScan(f, STREAM_TOPICS).messages()]
     assert order.index(("read", "c2s")) < order.index(("half_closed", "c2s"))
 
 
@@ -205,7 +205,7 @@ def test_the_progress_bar_moves_with_several_processes(tmp_path, monkeypatch):
     import sys
     from pathlib import Path
 
-    from whiztap.analyzer.cli import analyze
+    from whiztap.analyzer.cli import analyze as analyze_cli
     from whiztap.analyzer.recording.sets import find_recordings
     from whiztap.analyzer.protocol.session import Limits
     from tests.test_analyze import CLEAN, VPN

@@ -9,7 +9,7 @@ from whiztap.analyzer.analysis.analyzer import Analyzer
 from whiztap.analyzer.protocol.describe import fields, meaning
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.analysis.item_filter import ItemFilter
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS, Read, RecordingScan
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS, RecordingScan
 from whiztap.analyzer.protocol.session import Direction, LateViolation, Observation
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource
@@ -26,11 +26,8 @@ def analysed(path):
     analyzer = Analyzer(str(path))
     out = []
     with open(path, "rb") as f:
-        for record in RecordingScan(f, (TOPIC_READS, TOPIC_EVENTS)).stream():
-            if type(record) is Read:
-                out += [(record.conn, e) for e in analyzer.read(record.conn, record.dir, record.t_ns, record.data)]
-            else:
-                out += [(record["conn"], e) for e in analyzer.event(record)]
+        for event in RecordingScan(f, (TOPIC_READS, TOPIC_EVENTS)).traffic():
+            out += [(event.conn, e) for e in analyzer.receive(event)]
     for conn, events in analyzer.close_all():
         out += [(conn, e) for e in events]
     return out

@@ -16,6 +16,7 @@ from whiztap.analyzer.analysis.analyzer import Analyzer, Series
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.stats import LatencyStats
+from whiztap.analyzer.traffic import TrafficEvent
 from whiztap.tui.store import FrameStore
 
 
@@ -43,13 +44,9 @@ class TrafficModel:
 
     # -- feeding (one worker thread) --------------------------------------------------------
 
-    def read(self, conn: int, direction: str, t_ns: int, data: bytes) -> None:
+    def receive(self, event: TrafficEvent) -> None:
         with self.lock:
-            self.store.add(conn, self.analyzer.read(conn, direction, t_ns, data))
-
-    def event(self, message: dict) -> None:
-        with self.lock:
-            self.store.add(message["conn"], self.analyzer.event(message))
+            self.store.add(event.conn, self.analyzer.receive(event))
 
     def finish(self) -> None:
         """End every open session: requests still unanswered become violations."""

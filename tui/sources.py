@@ -19,18 +19,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
-from whiztap.analyzer.recording.format import (
-    EV_CONTINUED,
-    EV_RECORDING_STOPPED,
-    METADATA_NAME,
-    STREAM_TOPICS,
-    Read,
-    RecordingError,
-    RecordingScan,
-)
+from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS, RecordingError, RecordingScan
 from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
-from whiztap.analyzer.protocol.redaction import Redactor
+from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.traffic import Continued, Data, RecordingStopped, TrafficEvent
 from whiztap.tui.model import TrafficModel
 
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
@@ -79,13 +72,10 @@ class FileSource:
             gc.set_threshold(*threshold)
 
     def _read(self, model: TrafficModel, stop: threading.Event) -> None:
-        read, event = model.read, model.event
+        receive = model.receive
         try:
-            for record in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):  # noqa: SIM115
-                if type(record) is Read:
-                    read(record.conn, record.dir, record.t_ns, record.data)
-                else:
-                    event(record)
+            for event in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):  # noqa: SIM115
+                receive(event)
         except Stopped:
             return
         except PartError as e:
@@ -172,18 +162,15 @@ def _feed_scan(scan: RecordingScan, model: TrafficModel, skip_continued: bool = 
     rotation.  The next one starts by saying which connections continue from
     it: news to someone who opened that part alone, not to the follower, whose
     model already has them."""
-    read, event = model.read, model.event
+    receive = model.receive
     stopped = False
-    for record in scan.stream():
-        if type(record) is Read:
-            read(record.conn, record.dir, record.t_ns, record.data)
-            continue
-        name = record.get("event")
-        if name == EV_RECORDING_STOPPED:
+    for event in scan.traffic():
+        kind = type(event)
+        if kind is RecordingStopped:
             stopped = True
-        elif name == EV_CONTINUED and skip_continued:
+        elif kind is Continued and skip_continued:
             continue
-        event(record)
+        receive(event)
     return stopped
 
 
@@ -258,7 +245,7 @@ class LiveSource:
     """Traffic through the recording proxy running inside the app.
 
     Unless told to keep secrets, the traffic goes through the redaction the
-    recorder applies (``whiztap.analyzer.protocol.redaction``) before the model sees it: the
+    recorder applies (``whiztap.analyzer.recording.redaction``) before the model sees it: the
     model and the screen get the bytes the file gets, never the password."""
 
     live = True
@@ -325,16 +312,13 @@ class LiveSource:
 
 
 class _Plain:
-    """The tap's records into the model as they are (``--keep-secrets``)."""
+    """The tap's events into the model as they are (``--keep-secrets``)."""
 
     def __init__(self, model: TrafficModel) -> None:
         self.model = model
 
-    def __call__(self, record: tuple | dict) -> None:
-        if type(record) is tuple:
-            self.model.read(*record)
-        else:
-            self.model.event(record)
+    def __call__(self, event: TrafficEvent) -> None:
+        self.model.receive(event)
 
     def idle(self) -> None:
         pass
@@ -344,30 +328,21 @@ class _Plain:
 
 
 class _Redacting:
-    """The tap's records into the model through the recorder's redaction: held
+    """The tap's events into the model through the recorder's redaction: held
     while undecided (at most ``HOLD_LIMIT_S``, as in the writer), then masked
     or shown."""
 
     def __init__(self, model: TrafficModel) -> None:
         self.model = model
-        self.redactor: Redactor[tuple | dict] = Redactor()
+        self.redactor: Redactor[TrafficEvent] = Redactor()
 
-    def __call__(self, record: tuple | dict) -> None:
+    def __call__(self, event: TrafficEvent) -> None:
         redactor = self.redactor
-        if type(record) is tuple:
-            conn, direction, _t, data = record
-            redactor.read(conn, Direction(direction), data, record, time.monotonic())
+        if type(event) is Data:
+            redactor.read(event.conn, event.direction, event.data, event, time.monotonic())
         else:
-            conn, name = record["conn"], record["event"]
-            if name == "opened":
-                redactor.opened(conn)
-            elif name == "closed":
-                redactor.closed(conn)
-            elif name == "half_closed":
-                redactor.ended(conn, Direction(record["dir"]))
-            elif name == "upstream_failed":
-                redactor.ended(conn, Direction.S2C)
-            redactor.event(conn, record)
+            redactor.tell(event)  # type: ignore[arg-type]
+            redactor.event(event.conn, event)
         self._release()
 
     def idle(self) -> None:
@@ -380,12 +355,9 @@ class _Redacting:
         self._release()
 
     def _release(self) -> None:
+        receive = self.model.receive
         for r in self.redactor.released():
-            if r.direction is None:
-                self.model.event(r.record)  # type: ignore[arg-type]
-            else:
-                conn, direction, t, _ = r.record  # type: ignore[misc]
-                self.model.read(conn, direction, t, r.data)
+            receive(r.record if r.direction is None else r.record._replace(data=r.data))
 
 
 def default_output() -> str:

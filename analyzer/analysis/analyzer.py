@@ -12,16 +12,29 @@ from __future__ import annotations
 
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
+from functools import partial
 
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ChannelConfig, ServoPositionRequest, SetConfiguration
 from whiztap.analyzer.protocol.rules import RULES, Severity
-from whiztap.analyzer.protocol.session import Direction, Event, LateViolation, Limits, Observation, Session
+from whiztap.analyzer.protocol.session import Event, LateViolation, Limits, Observation, Session
 from whiztap.analyzer.protocol.stats import LatencyStats
+from whiztap.analyzer.traffic import (
+    Closed,
+    ConnectionEvent,
+    Continued,
+    Data,
+    Gap,
+    Opened,
+    RecordingStarted,
+    RecordingStopped,
+    Traffic,
+    TrafficEvent,
+    UpstreamFailed,
+)
 
 NS = 1_000_000_000
-_DIRECTIONS = {d.value: d for d in Direction}
 RAW_KEPT = 2048  # bytes of a violating item kept for the report: every frame whole; an image or garbage cut
 
 
@@ -145,101 +158,82 @@ class Analysis:
 
 
 class Analyzer:
-    """Feeds a recording's reads and events through one session per connection."""
+    """Feeds a recording's traffic through one session per connection (``Traffic``)
+    and gathers the facts of a report."""
 
     def __init__(self, file: str = "", checksum_rule: str = DEFAULT_CHECKSUM_RULE,
                  limits: Limits = Limits(), max_violations: int = 10_000, every_event: bool = True) -> None:
-        """``every_event=False``: ``read()`` may leave out clean commands (see
+        """``every_event=False``: ``receive()`` may leave out clean commands (see
         ``Session``), for a report, which needs only what they add up to."""
         self.file = file
-        self._every_event = every_event
         self._rule = get_rule(checksum_rule)
-        self._limits = limits
-        self.sessions: dict[int, Session] = {}
+        self.traffic = Traffic(partial(limits.session, self._rule.name, every_event), self._ended)
+        self.sessions = self.traffic.sessions
         self.summaries: dict[int, ConnectionSummary] = {}
         self.result = Analysis([file] if file else [], checksum_rule, max_violations=max_violations)
         self._counted: dict[int, Counter] = {}  # per connection: counts already put in a bin
         self._bin_second = 0
         self._next_second = -1
 
-    def _session(self, conn: int) -> Session:
-        session = self.sessions.get(conn)
-        if session is None:
-            session = self.sessions[conn] = self._limits.session(self._rule.name, self._every_event)
-            self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
-        return session
-
-    def read(self, conn: int, direction: str, t_ns: int, data: bytes) -> list[Event]:
-        """One TCP read; returns the session's events (for views like ``cat``)."""
-        if t_ns >= self._next_second:
-            self._new_bin(t_ns)
-        session = self.sessions.get(conn) or self._session(conn)
-        events = session.receive(_DIRECTIONS[direction], data, t_ns)
+    def receive(self, event: TrafficEvent) -> list[Event]:
+        """One traffic event; returns the session's events (for views like ``cat``)."""
+        if type(event) is not Data:
+            return self._connection_event(event)  # type: ignore[arg-type]
+        if event.t_ns >= self._next_second:
+            self._new_bin(event.t_ns)
+        conn = event.conn
+        if conn not in self.sessions and conn not in self.summaries:
+            self.summaries[conn] = ConnectionSummary(self.file, conn)
+        events = self.traffic.receive(event)
         if events:
             self._collect(conn, events)
         return events
 
-    def event(self, message: dict) -> list[Event]:
-        """A /tcp/events message: names, half-closes, closes, failures, gaps."""
-        conn, name, t = message["conn"], message["event"], message["t_ns"]
-        if conn == 0 and name.startswith("recording_"):
+    def _connection_event(self, event: ConnectionEvent) -> list[Event]:
+        """Names, notes and closes; a gap ends the session (``Traffic``)."""
+        kind = type(event)
+        if kind is RecordingStarted or kind is RecordingStopped:
             return []
-        summary = self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
-        if name in ("opened", "continued"):
-            summary.client = message.get("client", summary.client)
-            summary.upstream = message.get("upstream", summary.upstream)
-            if name == "continued":
+        summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
+        if kind is Opened or kind is Continued:
+            summary.client = event.client or summary.client  # type: ignore[union-attr]
+            summary.upstream = event.upstream or summary.upstream  # type: ignore[union-attr]
+            if kind is Continued:
                 summary.notes.append("continues a connection from the previous file")
-            return []
-        if name == "upstream_failed":
-            summary.notes.append(f"upstream failed: {message.get('detail', '')}")
-            if conn in self.sessions:
-                self.sessions[conn].server_unreachable(message.get("detail", ""))
-            return []
-        events: list[Event] = []
-        if name == "gap":
-            length = message.get("length")
+        elif kind is UpstreamFailed:
+            summary.notes.append(f"upstream failed: {event.detail}")  # type: ignore[union-attr]
+        elif kind is Gap:
             # a capture's hole, or bytes the proxy forwarded unrecorded (--when-behind gap): the detail says which
-            why = message.get("detail") or "bytes missing from the recording"
-            summary.notes.append(f"gap of {length} bytes in {message.get('dir')}: {why}" if length is not None
-                                 else f"gap in {message.get('dir')}: {why}")
-            if conn in self.sessions:
-                # what follows the hole cannot be framed with what came before:
-                # judge each side of it on its own, as the recorder does
-                events = self._finish_session(conn, t)
-                self._collect(conn, events)
-            return events
-        if name == "half_closed" and conn in self.sessions:
-            events = self.sessions[conn].end(Direction(message["dir"]), t)
-        elif name == "closed":
-            summary.closed_by = message.get("by") or ""
-            if conn in self.sessions:
-                events = self._finish_session(conn, t)
-        self._collect(conn, events)
+            why = event.detail or "bytes missing from the recording"  # type: ignore[union-attr]
+            length = event.length  # type: ignore[union-attr]
+            direction = event.direction  # type: ignore[union-attr]
+            summary.notes.append(f"gap of {length} bytes in {direction}: {why}" if length is not None
+                                 else f"gap in {direction}: {why}")
+        elif kind is Closed:
+            summary.closed_by = event.by or ""  # type: ignore[union-attr]
+        events = self.traffic.receive(event)
+        self._collect(event.conn, events)
         return events
 
     def finish(self) -> Analysis:
         """Close what is still open (a recording cut short) and return the facts."""
-        for conn in list(self.sessions):
-            session = self.sessions[conn]
-            self._collect(conn, self._finish_session(conn, session.last_t_ns or 0))
+        for conn, events in self.traffic.finish():
+            self._collect(conn, events)
         self.result.connections = [self.summaries[c] for c in sorted(self.summaries)]
         return self.result
 
     def close_all(self) -> list[tuple[int, list[Event]]]:
         """Like finish, for views that print events: the late ones per connection."""
-        out = []
-        for conn in list(self.sessions):
-            events = self._finish_session(conn, self.sessions[conn].last_t_ns or 0)
+        out = self.traffic.finish()
+        for conn, events in out:
             self._collect(conn, events)
-            out.append((conn, events))
         return out
 
     # -- internals ---------------------------------------------------------------------
 
-    def _finish_session(self, conn: int, t: int) -> list[Event]:
-        session = self.sessions.pop(conn)
-        events = session.close(t)
+    def _ended(self, conn: int, session: Session) -> None:
+        """A session ended (``Traffic``): what it counted goes into the summary
+        and the result."""
         self._bin(conn, session)
         del self._counted[conn]
         summary = self.summaries[conn]
@@ -261,7 +255,6 @@ class Analyzer:
             if t_edge is not None:
                 result.first_ns = t_edge if result.first_ns is None else min(result.first_ns, t_edge)
                 result.last_ns = t_edge if result.last_ns is None else max(result.last_ns, t_edge)
-        return events
 
     def _new_bin(self, t_ns: int) -> None:
         """Frames by kind per second of recording time: at each new second, what

@@ -18,18 +18,22 @@ from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from whiztap.analyzer.analysis.compare import ServoMotion
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import FailedValidation
-from whiztap.analyzer.recording.format import (
-    EV_CLOSED,
-    EV_HALF_CLOSED,
-    EV_OPENED,
-    METADATA_NAME,
-    Read,
-    read_metadata,
-)
-from whiztap.analyzer.recording.sets import RecordingSet, scan_set
+from typing import NamedTuple
+
 from whiztap.analyzer.protocol.session import Direction, Mode, Observation, Session
+from whiztap.analyzer.recording.format import METADATA_NAME, read_metadata
+from whiztap.analyzer.recording.sets import RecordingSet, scan_set
+from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened
 
 C2S, S2C = Direction.C2S, Direction.S2C
+
+
+class ClientRead(NamedTuple):
+    """One read of the client's, where it lies in the client's stream."""
+
+    offset: int
+    t_ns: int
+    data: bytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,7 +59,7 @@ class RecordedConnection:
     mode: Mode = Mode.UNKNOWN
     handshake: list[Observation] = field(default_factory=list)  # the server's handshake items
     items: list[ClientItem] = field(default_factory=list)  # every client item, stream order
-    reads: list[Read] = field(default_factory=list)  # the client's reads
+    reads: list[ClientRead] = field(default_factory=list)  # the client's reads
 
     @property
     def password(self) -> ClientItem | None:
@@ -102,13 +106,14 @@ class _Builder:
         self.answers: dict[int, tuple[Observation, bool]] = {}  # request index -> (answer, at rest)
         self.motion = ServoMotion()
 
-    def read(self, r: Read) -> None:
-        direction = Direction(r.dir)
+    def read(self, r: Data) -> None:
+        direction = r.direction
+        offset = self.received[direction]
+        end = self.received[direction] = offset + len(r.data)
         if direction is C2S:
-            self.rec.reads.append(r)
-            self.read_ends.append(r.offset + len(r.data))
+            self.rec.reads.append(ClientRead(offset, r.t_ns, r.data))
+            self.read_ends.append(end)
             self.read_times.append(r.t_ns)
-        self.received[direction] = r.offset + len(r.data)
         self.observe(self.session.receive(direction, r.data, r.t_ns))
 
     def observe(self, events: list) -> None:
@@ -158,27 +163,26 @@ def load_exchanges(recording) -> RecordedSessions:  # noqa: ANN001 - a Recording
     clients: dict[int, str] = {}
     start_ns: int | None = None
     last_ns = 0
-    for record in scan_set(recording):
-        if isinstance(record, Read):
+    for event in scan_set(recording):
+        conn, t, kind = event.conn, event.t_ns, type(event)
+        if kind is Data:
             if start_ns is None:
-                start_ns = record.t_ns
-            last_ns = record.t_ns
-            builder = builders.get(record.conn)
+                start_ns = t
+            last_ns = t
+            builder = builders.get(conn)
             if builder is None:  # a connection continued from a part not given
-                builder = builders[record.conn] = _Builder(record.conn, record.t_ns, rule)
-                builder.rec.client = clients.get(record.conn, "")
-            builder.read(record)
-            continue
-        conn, event, t = record["conn"], record["event"], record["t_ns"]
-        if event == EV_OPENED:
-            clients[conn] = record.get("client", "")
+                builder = builders[conn] = _Builder(conn, t, rule)
+                builder.rec.client = clients.get(conn, "")
+            builder.read(event)  # type: ignore[arg-type]
+        elif kind is Opened:
+            clients[conn] = event.client  # type: ignore[union-attr]
             builders[conn] = _Builder(conn, t, rule)
             builders[conn].rec.client = clients[conn]
         elif conn in builders:
             builder = builders[conn]
-            if event == EV_HALF_CLOSED:
-                builder.observe(builder.session.end(Direction(record["dir"]), t))
-            elif event == EV_CLOSED:
+            if kind is HalfClosed:
+                builder.observe(builder.session.end(event.direction, t))  # type: ignore[union-attr]
+            elif kind is Closed:
                 done.append(builders.pop(conn).finish(t))
     done += [b.finish(last_ns) for b in builders.values()]
     connections = sorted((c for c in done if c.reads or c.handshake), key=lambda c: c.conn)

@@ -52,8 +52,8 @@ def recordings(inputs: tuple[str, ...]):  # noqa: ANN201 - list[RecordingSet], i
 
 
 def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[Any]:  # noqa: ANN001
-    """Reads (``Read``) and connection events (``dict``) of a recording (a
-    ``RecordingSet``, or one path) in recorded order, across its parts.
+    """The traffic events of a recording (a ``RecordingSet``, or one path) in
+    recorded order, across its parts.
 
     Raises ``click`` errors with one-line messages for files that are not
     readable recordings, or end before their footer.
@@ -141,19 +141,15 @@ def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgr
     """One recording (a ``RecordingSet`` or a path) analysed in this process;
     ``limits``: an ``whiztap.analyzer.protocol.session.Limits``."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
-    from whiztap.analyzer.recording.format import Read
     from whiztap.analyzer.recording.sets import RecordingSet
     from whiztap.analyzer.protocol.session import Limits
 
     if not isinstance(recording, RecordingSet):
         recording = RecordingSet((Path(recording),))
     analyzer = Analyzer(str(recording.name), checksum_rule, limits or Limits(), every_event=False)
-    read, event = analyzer.read, analyzer.event
-    for record in scan_recording(recording, progress):
-        if type(record) is Read:
-            read(record.conn, record.dir, record.t_ns, record.data)
-        else:
-            event(record)
+    receive = analyzer.receive
+    for event in scan_recording(recording, progress):
+        receive(event)
     return analyzer.finish()
 
 
@@ -364,7 +360,6 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
     """
     from whiztap.analyzer.analysis.analyzer import Analyzer
     from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
-    from whiztap.analyzer.recording.format import Read
 
     item_filter = _cat_filter(filter_text, conns, direction, kinds, channels, since, until, violations_only)
     limits = limits_from(answer_timeout, max_frame, max_image)
@@ -386,11 +381,8 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
         fail(str(e))
     with output_stream(output, force) as out:
         printer = _CatPrinter(fmt, item_filter, out)
-        for record in records:
-            if type(record) is Read:
-                printer.show(record.conn, analyzer.read(record.conn, record.dir, record.t_ns, record.data))
-            else:
-                printer.show(record["conn"], analyzer.event(record))
+        for event in records:
+            printer.show(event.conn, analyzer.receive(event))
         for conn, events in analyzer.close_all():
             printer.show(conn, events)
 
@@ -417,7 +409,7 @@ def _cat_filter(text: str, conns, direction, kinds, channels, since, until, viol
 
 
 def _followed(path: str) -> Iterator[Any]:
-    """The records of a recording being written, until it is finished or Ctrl-C."""
+    """The traffic of a recording being written, until it is finished or Ctrl-C."""
     import threading
 
     from whiztap.analyzer.recording.format import RecordingError

@@ -37,6 +37,7 @@ from whiztap.analyzer.protocol.messages import (
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.session import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
+from whiztap.analyzer.traffic import NAMES, Data, TrafficError, TrafficEvent, from_json
 
 FORMAT_VERSION = "1"
 PROFILE = "whiztap"
@@ -423,6 +424,7 @@ _FILE_END = struct.Struct("<BQQQI8s")  # the Footer record and the closing magic
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log and publish time
 _MESSAGE_DATA_AT = 9 + _MESSAGE_FIXED
 _MAX_INT = 10 ** 19  # integers in messages are ids, counts, offsets and times: non-negative, 19 digits at most
+_DIRECTIONS = {b"c2s": Direction.C2S, b"s2c": Direction.S2C}
 _READ_JSON = re.compile(
     rb'\{"conn":(\d{1,19}),"dir":"(c2s|s2c)","t_ns":(\d{1,19}),"offset":(\d{1,19}),"size":\d+,'
     rb'(?:"redacted":\[[\d,\[\]]*\],)?"data":"([A-Za-z0-9+/=]*)"\}')
@@ -834,27 +836,40 @@ class RecordingScan:
                               "or not a whiztap recording")
 
     def reads(self) -> Iterator[Read]:
-        """Every /tcp/reads message as a Read, in file (= arrival) order."""
-        return (r for r in self.stream() if type(r) is Read)
+        """Every /tcp/reads message as a Read (with its stream offset), in file order."""
+        for _t, topic, buf, start, stop in self.records():
+            if topic == TOPIC_READS:
+                d = self.decode(topic, buf, start, stop)
+                try:
+                    yield Read(d["conn"], d["dir"], d["t_ns"], d["offset"], base64.b64decode(d["data"]))
+                except ValueError as e:
+                    raise self._invalid(topic, f"its data is not base64: {e}") from None
 
-    def stream(self) -> Iterator[Read | dict]:
-        """/tcp/reads messages as ``Read``s and every other wanted topic's messages
-        as decoded JSON dicts, interleaved in file (= arrival) order."""
+    def traffic(self) -> Iterator[TrafficEvent]:
+        """The recording's traffic as typed events in file (= arrival) order:
+        each /tcp/reads message as ``Data``, each /tcp/events message as its
+        connection event (``traffic.from_json``).  Other topics are skipped."""
         match = _READ_JSON.match
         b64 = binascii.a2b_base64  # what base64.b64decode calls, without its Python layer
+        directions = _DIRECTIONS
         try:
             for _t, topic, buf, start, stop in self.records():
-                if topic != TOPIC_READS:
-                    yield self.decode(topic, buf, start, stop)
-                    continue
-                m = match(buf, start, stop)
-                if m is not None and m.end() == stop:
-                    conn, direction, t_ns, offset, data = m.groups()
-                    yield Read(int(conn), "c2s" if direction == b"c2s" else "s2c", int(t_ns), int(offset), b64(data))
-                else:
-                    d = self.decode(topic, buf, start, stop)
-                    yield Read(d["conn"], d["dir"], d["t_ns"], d["offset"], b64(d["data"]))
+                if topic == TOPIC_READS:
+                    m = match(buf, start, stop)
+                    if m is not None and m.end() == stop:
+                        conn, direction, t_ns, _offset, data = m.groups()
+                        yield Data(int(conn), directions[direction], int(t_ns), b64(data))
+                    else:
+                        d = self.decode(topic, buf, start, stop)
+                        yield Data(d["conn"], directions[d["dir"].encode()], d["t_ns"], b64(d["data"]))
+                elif topic == TOPIC_EVENTS:
+                    try:
+                        yield from_json(self.decode(topic, buf, start, stop))
+                    except TrafficError as e:
+                        raise self._invalid(topic, str(e)) from None
         except ValueError as e:  # binascii.Error: data that is not base64 (or not ASCII)
+            if isinstance(e, RecordingError):
+                raise
             raise self._invalid(TOPIC_READS, f"its data is not base64: {e}") from None
 
     def messages(self) -> Iterator[tuple[str, int, dict]]:

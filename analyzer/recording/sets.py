@@ -21,17 +21,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from whiztap.analyzer.protocol.session import Direction
 from whiztap.analyzer.recording.format import (
-    EV_CONTINUED,
-    EV_GAP,
-    EV_RECORDING_STOPPED,
     METADATA_NAME,
     STREAM_TOPICS,
-    Read,
     RecordingError,
     RecordingScan,
     read_metadata,
 )
+from whiztap.analyzer.traffic import Continued, Gap, RecordingStopped, TrafficEvent
 
 _PART_NAME = re.compile(r"^(?P<stem>.+)-(?P<n>\d{4,})(?P<ext>\.mcap)$")
 _PART_NUMBER = re.compile(r"[0-9]{1,9}")
@@ -196,11 +194,11 @@ def _open_binary(path: Path) -> IO[bytes]:
     return open(path, "rb")  # noqa: SIM115 - closed by the caller
 
 
-def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Read | dict]:  # noqa: ANN001
-    """Reads and connection events of every part, as one stream: a connection
-    continued from the previous part is the same connection (its ``continued``
-    event is dropped); after a missing part, a ``gap`` event for each connection
-    that crossed it comes first.  Raises ``PartError`` (a RecordingError naming
+def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[TrafficEvent]:  # noqa: ANN001
+    """The traffic of every part, as one stream of typed events: a connection
+    continued from the previous part is the same connection (its ``Continued``
+    event is dropped); after a missing part, a ``Gap`` for each direction of each
+    connection that crossed it comes first.  Raises ``PartError`` (a RecordingError naming
     the file) for a part that cannot be read or is truncated."""
     seen: set[int] = set()
     expected = None
@@ -229,21 +227,17 @@ def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Read |
                                       f"(its topics: {found})")
 
 
-def _part_records(scan: RecordingScan, seen: set[int], hole: bool) -> Iterator[Read | dict]:
-    """One part's records, less what repeats the previous part."""
-    for record in scan.stream():
-        if type(record) is not Read and record.get("event") == EV_CONTINUED and record["conn"] in seen:
-            if not hole:
-                continue
-            for direction in ("c2s", "s2c"):
-                yield {"conn": record["conn"], "event": EV_GAP, "t_ns": record["t_ns"], "dir": direction,
-                       "length": None, "detail": "a part of the recording is missing"}
+def _part_records(scan: RecordingScan, seen: set[int], hole: bool) -> Iterator[TrafficEvent]:
+    """One part's traffic, less what repeats the previous part."""
+    for event in scan.traffic():
+        if type(event) is Continued and event.conn in seen:
+            if hole:
+                for direction in Direction:
+                    yield Gap(event.conn, event.t_ns, direction, detail="a part of the recording is missing")
             continue
-        if type(record) is Read:
-            seen.add(record.conn)
-        elif record.get("conn"):
-            seen.add(record["conn"])
-        yield record
+        if event.conn:
+            seen.add(event.conn)
+        yield event
 
 
 # -- a recording still being written ---------------------------------------------------------------
@@ -302,8 +296,8 @@ def wait_for_part(final: str, stop: threading.Event) -> str | None:
             return None
 
 
-def follow(path: str, stop: threading.Event) -> Iterator[Read | dict]:
-    """Reads and events of a recording as a running ``whiztap record`` writes
+def follow(path: str, stop: threading.Event) -> Iterator[TrafficEvent]:
+    """The traffic of a recording as a running ``whiztap record`` writes
     them (its ``.part``), and of each part after it, until the recorder stops it
     (or ``stop`` is set: then ``Stopped``)."""
     seen: set[int] = set()
@@ -311,10 +305,10 @@ def follow(path: str, stop: threading.Event) -> Iterator[Read | dict]:
         with open(path, "rb") as f:
             scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
             stopped = False
-            for record in _part_records(scan, seen, hole=False):
-                if type(record) is not Read and record.get("event") == EV_RECORDING_STOPPED:
+            for event in _part_records(scan, seen, hole=False):
+                if type(event) is RecordingStopped:
                     stopped = True
-                yield record
+                yield event
         following = None if stopped else next_part(path, scan.metadata.get(METADATA_NAME, {}))
         if following is None:
             return

@@ -42,6 +42,7 @@ from typing import Generic, NamedTuple, TypeVar
 
 from whiztap.analyzer.recording.format import MASK_BYTE
 from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.traffic import Closed, ConnectionEvent, Gap, HalfClosed, Opened, UpstreamFailed
 
 HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than this
 UNDECIDED_CAP = 16 * 1024  # ... or once a connection has this many
@@ -248,6 +249,22 @@ class Redactor(Generic[R]):
     def idle(self) -> bool:
         """Nothing waits: a connection event may be taken at once."""
         return not self._queue
+
+    def tell(self, event: ConnectionEvent) -> None:
+        """What a connection event means for the decisions (call before queuing
+        it with ``event``): a new connection may log in; a server that ended or
+        was never reached will give no verdict; a gap; the end."""
+        kind = type(event)
+        if kind is Opened:
+            self.opened(event.conn)
+        elif kind is HalfClosed:
+            self.ended(event.conn, event.direction)  # type: ignore[union-attr]
+        elif kind is UpstreamFailed:
+            self.ended(event.conn, S2C)
+        elif kind is Gap:
+            self.gap(event.conn, event.direction, event.length or 0)  # type: ignore[union-attr]
+        elif kind is Closed:
+            self.closed(event.conn)
 
     def opened(self, conn: int) -> None:
         self._masks[conn] = LoginMask()
