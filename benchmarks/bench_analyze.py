@@ -60,13 +60,15 @@ def _writer_digest() -> str:
     """Changes whenever the code that lays out a recording does."""
     import hashlib
 
+    import whiztap.analyzer.recording.encode
     import whiztap.analyzer.recording.format
     import whiztap.analyzer.recording.mcap
     import whiztap.sniffer.record.recorder
     import whiztap.sniffer.record.writer
 
     digest = hashlib.sha256()
-    for module in (whiztap.analyzer.recording.format, whiztap.analyzer.recording.mcap, whiztap.sniffer.record.recorder, whiztap.sniffer.record.writer):
+    for module in (whiztap.analyzer.recording.format, whiztap.analyzer.recording.encode,
+                   whiztap.analyzer.recording.mcap, whiztap.sniffer.record.recorder, whiztap.sniffer.record.writer):
         digest.update(Path(module.__file__).read_bytes())
     return digest.hexdigest()[:10]
 

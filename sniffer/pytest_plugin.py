@@ -202,7 +202,7 @@ def whiztap_server(request: pytest.FixtureRequest) -> Iterator[WhiztapServer]:
 def _load(path: Path) -> Any:
     """The recording's exchanges, or the test fails saying why."""
     from whiztap.analyzer.analysis.exchanges import load_exchanges
-    from whiztap.analyzer.recording.format import RecordingError
+    from whiztap.analyzer.recording.scan import RecordingError
 
     try:
         return load_exchanges(str(path))

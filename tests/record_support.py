@@ -14,20 +14,16 @@ import signal
 import socket
 import sys
 from collections import defaultdict
+from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import jsonschema
 from mcap.reader import make_reader
 
 from whiztap.analyzer.protocol.framing import Framer, Item
-from whiztap.analyzer.recording.format import (
-    SCHEMA_ENCODING,
-    TOPIC_FRAMES,
-    TOPIC_READS,
-    RecordingScan,
-    rebuild_streams,
-    stream_bytes,
-)
+from whiztap.analyzer.recording.format import SCHEMA_ENCODING, TOPIC_FRAMES, TOPIC_READS
+from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.sniffer.record.record_run import Recording, RecordSettings
 from whiztap.sniffer.sim.tcp_server import TcpServer
 
@@ -200,6 +196,67 @@ def read_all(path: str) -> dict[str, list[dict]]:
             last_time[channel.topic] = message.log_time
             by_topic[channel.topic].append(decoded)
     return by_topic
+
+
+class Read(NamedTuple):
+    """A /tcp/reads message as the test reads it: with its stream offset."""
+
+    conn: int
+    dir: str
+    t_ns: int
+    offset: int
+    data: bytes
+
+
+def tcp_reads(scan: RecordingScan) -> Iterator[Read]:
+    """Every /tcp/reads message the scan gives, as a Read, in file order."""
+    for _t, topic, buf, start, stop in scan.records():
+        if topic == TOPIC_READS:
+            d = scan.decode(topic, buf, start, stop)
+            yield Read(d["conn"], d["dir"], d["t_ns"], d["offset"], base64.b64decode(d["data"]))
+
+
+class Segment(NamedTuple):
+    offset: int  # stream offset of data[0]
+    data: bytes
+
+
+def rebuild_streams(path: str, topic: str = TOPIC_READS) -> dict[tuple[int, str], list[Segment]]:
+    """Each (connection, direction) byte stream, from /tcp/reads or from /frames
+    (docs/recording-format.md, "Rebuilding the streams").
+
+    A stream is a list of contiguous segments: one, unless the recording has a
+    gap (a capture that missed packets) or starts mid-stream (a rotated file).
+    Redacted password bytes come back as '*'.
+    """
+    parts: dict[tuple[int, str], list[tuple[int, bytes]]] = {}
+    with open(path, "rb") as f:
+        scan = RecordingScan(f, (topic,))
+        if topic == TOPIC_READS:
+            for r in tcp_reads(scan):
+                parts.setdefault((r.conn, r.dir), []).append((r.offset, r.data))
+        else:
+            for _topic, _t, m in scan.messages():
+                parts.setdefault((m["conn"], m["dir"]), []).append((m["offset"], base64.b64decode(m["raw"])))
+    streams: dict[tuple[int, str], list[Segment]] = {}
+    for key, pieces in parts.items():
+        joined: list[tuple[int, bytearray]] = []
+        for offset, data in pieces:
+            if joined and joined[-1][0] + len(joined[-1][1]) == offset:
+                joined[-1][1].extend(data)
+            elif data:
+                joined.append((offset, bytearray(data)))
+        streams[key] = [Segment(o, bytes(d)) for o, d in joined]
+    return streams
+
+
+def stream_bytes(segments: list[Segment]) -> bytes:
+    """The whole stream, which must have no gap and start at offset 0."""
+    if not segments:
+        return b""
+    where = ", ".join(f"{s.offset}+{len(s.data)}" for s in segments)
+    assert len(segments) == 1 and segments[0].offset == 0, f"stream is not contiguous from 0 (segments at {where})"
+    return segments[0].data
 
 
 def streams(path: str, topic: str = TOPIC_READS) -> dict[tuple[int, str], bytes]:

@@ -13,7 +13,7 @@ from junitparser import Error, Failure, JUnitXml, Skipped
 
 from whiztap.analyzer.analysis.analyzer import Analyzer
 from whiztap.analyzer.cli.analyze import scan_recording
-from whiztap.analyzer.recording.format import rebuild_streams, stream_bytes
+from tests.record_support import rebuild_streams, stream_bytes
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
 from whiztap.analyzer.analysis.report.text import md_text

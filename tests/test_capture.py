@@ -111,7 +111,7 @@ def test_missing_bytes_are_a_gap_never_zeros(tmp_path):
     pcap = _write(tmp_path / "gap.pcap", pkts)
     out = tmp_path / "gap.mcap"
     import_pcap(pcap, CaptureSettings(5000, str(out)))
-    from whiztap.analyzer.recording.format import rebuild_streams
+    from tests.record_support import rebuild_streams
 
     segments = rebuild_streams(str(out))[(1, "c2s")]
     assert [(seg.offset, seg.data) for seg in segments] == [(0, C2S[:16]), (32, C2S[32:])]

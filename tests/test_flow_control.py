@@ -18,8 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, RecordingScan, rebuild_streams
-from tests.record_support import LOCAL, WAIT, RecordProcess
+from whiztap.analyzer.recording.format import TOPIC_EVENTS
+from whiztap.analyzer.recording.scan import RecordingScan
+from tests.record_support import LOCAL, WAIT, RecordProcess, rebuild_streams
 
 RSS_BOUND_KIB = 300 << 10  # the proxy process; it starts at about 30 MB
 SAMPLE_S = 0.02

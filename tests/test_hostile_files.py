@@ -37,7 +37,8 @@ import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from whiztap.analyzer.recording.format import METADATA_NAME, MAGIC, metadata_record
+from whiztap.analyzer.recording.format import METADATA_NAME, metadata_record
+from whiztap.analyzer.recording.mcap import MAGIC
 from whiztap.analyzer.protocol.session import Direction
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
@@ -549,7 +550,8 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
     reader either reads it or raises RecordingError with one line, the analysis
     of what it reads never fails, and recover writes a valid file or says why not."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
-    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPICS, RecordingError, RecordingScan, read_metadata
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPICS
+    from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
     from whiztap.analyzer.recording.recover import RecoverError, recover
 
     plain = data.draw(st.booleans(), label="uncompressed, no CRCs")
@@ -586,7 +588,8 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
 def test_a_message_index_pointing_past_any_buffer_is_one_line(tmp_path):
     """Found by the property test above: an index entry with an offset of 2**63
     ended in OverflowError (not struct.error), an 'unexpected error'."""
-    from whiztap.analyzer.recording.format import STREAM_TOPICS, RecordingError, RecordingScan
+    from whiztap.analyzer.recording.format import STREAM_TOPICS
+    from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 
     raw = bytearray(base())
     indexes = [(pos, length) for pos, op, length in layout(bytes(raw)) if op == 0x07]

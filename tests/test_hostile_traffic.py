@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 
 from whiztap.analyzer.protocol import pairing
 from whiztap.analyzer.protocol.examples import CONFIG, VPN_OPEN
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, RecordingScan
+from whiztap.analyzer.recording.format import TOPIC_EVENTS
+from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.protocol.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.sim.tcp_server import TcpServer

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from whiztap.analyzer.recording.format import read_metadata
+from whiztap.analyzer.recording.scan import read_metadata
 
 pytest_plugins = ["pytester"]
 

@@ -23,21 +23,13 @@ from hypothesis import strategies as st
 
 from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.recording.format import (
-    EV_CLOSED,
-    EV_GAP,
-    EV_HALF_CLOSED,
-    EV_OPENED,
-    TOPIC_EVENTS,
-    TOPIC_READS,
-    RecordingError,
-    encode,
-    encode_read,
-    event_message,
-)
+from whiztap.analyzer.recording.encode import encode, encode_read
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
+from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.analyzer.recording.info import set_info
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.traffic import Closed, Gap, HalfClosed, Opened, to_json
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.sniffer.record.writer import RecordingFile
@@ -139,14 +131,14 @@ def _write_any_order(ops, path: Path) -> None:
             offsets[conn, d] += len(payload)
             continue
         if op == "opened":
-            message = event_message(conn, EV_OPENED, t, client="c", upstream="u")
+            event = Opened(conn, t, client="c", upstream="u")
         elif op == "half":
-            message = event_message(conn, EV_HALF_CLOSED, t, by="client", dir=d)
+            event = HalfClosed(conn, t, Direction(d))
         elif op == "gap":
-            message = event_message(conn, EV_GAP, t, dir=d, offset=offsets[conn, d], length=payload)
+            event = Gap(conn, t, Direction(d), offset=offsets[conn, d], length=payload)
         else:
-            message = event_message(conn, EV_CLOSED, t, by="client", detail="")
-        file.write(TOPIC_EVENTS, t, encode(message))
+            event = Closed(conn, t, by="client")
+        file.write(TOPIC_EVENTS, t, encode(to_json(event)))
     file.finish()
 
 

@@ -12,7 +12,8 @@ from pathlib import Path
 
 from mcap.stream_reader import StreamReader
 
-from whiztap.analyzer.recording.format import TOPIC_READS, RecordingScan, rebuild_streams
+from whiztap.analyzer.recording.format import TOPIC_READS
+from whiztap.analyzer.recording.scan import RecordingScan
 from tests.record_support import (
     LOCAL,
     WAIT,
@@ -23,6 +24,8 @@ from tests.record_support import (
     closed_port,
     events,
     read_all,
+    rebuild_streams,
+    tcp_reads,
 )
 
 async def _talk(port: int, payload: bytes) -> bytes:
@@ -194,6 +197,6 @@ async def test_a_full_disk_stops_recording_cleanly_and_keeps_what_was_written(tm
     assert len(records) > 5
     with open(out, "rb") as f:
         scan = RecordingScan(f)
-        reads = list(scan.reads())
-    assert reads and not scan.truncated  # it ends with a proper footer
-    assert {r.conn for r in reads} == {1}
+        got = list(tcp_reads(scan))
+    assert got and not scan.truncated  # it ends with a proper footer
+    assert {r.conn for r in got} == {1}

@@ -8,6 +8,7 @@ import errno
 import io
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -19,35 +20,33 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-import whiztap.analyzer.recording.format as recording_module
+import whiztap.analyzer.recording.scan as scan_module
 import whiztap.sniffer.record.recorder as recorder_module
 import whiztap.sniffer.record.writer as writer_module
+from whiztap.analyzer.recording.encode import (
+    FrameEncoder,
+    cat_line,
+    encode,
+    encode_plots,
+    encode_read,
+    frame_message,
+    plot_messages,
+    read_message,
+)
 from whiztap.analyzer.recording.format import (
     SCHEMAS,
     STREAM_TOPICS,
     TOPIC_FRAMES,
     TOPIC_READS,
     TOPICS,
-    FrameEncoder,
-    RecordingError,
-    RecordingScan,
-    encode,
-    encode_plots,
-    encode_read,
-    frame_message,
-    mask,
     metadata_record,
-    plot_messages,
-    read_message,
-    read_metadata,
-    rebuild_streams,
     schema_bytes,
-    stream_bytes,
 )
+from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
 from whiztap.analyzer.protocol.session import Direction, Session
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
-from tests.record_support import read_all
+from tests.record_support import read_all, rebuild_streams, stream_bytes, tcp_reads
 from tests.streams import chunked, stream_pieces
 
 T0 = 1_700_000_000_000_000_000
@@ -191,6 +190,29 @@ def test_the_fast_encoders_write_exactly_what_the_reference_dicts_say(pieces, an
         "/sensors", "/servos", "/sends", "/switches"}
 
 
+def test_cat_lines_and_frames_describe_an_item_alike_with_every_documented_key():
+    """``whiztap cat --format jsonl`` and /frames share one description of an
+    item; cat's keys are the documented ones, each with the value /frames
+    gives (its bytes as raw_b64; the latency inside the fields, as cat always had)."""
+    s = Session()
+    events = s.receive(C2S, b"rr1-24--0--0-ss1", 1) + s.receive(S2C, b"sr1-\x03200000101-ss1", 2)
+    events += s.receive(C2S, b"rr1-0--0--0-ss1junk", 3) + s.receive(S2C, b"cr1-0--7--0-ss1", 4) + s.close(5)
+    observations = [e for e in events if hasattr(e, "item")]
+    assert {o.item.kind.value for o in observations} >= {"command", "response", "config", "unframed"}
+    section = (Path(__file__).parent.parent / "docs" / "recording-format.md").read_text()
+    section = section.split("## `whiztap cat --format jsonl`")[1].split("\n## ")[0]
+    documented = re.findall(r"^\| `(\w+)` \|", section, re.M)
+    for obs in observations:
+        line = cat_line(1, obs)
+        assert list(line) == documented
+        frame = frame_message(1, obs, 0, False)
+        for key in set(line) - {"t_ns", "raw_b64", "fields"}:
+            assert line[key] == frame[key], key
+        assert line["raw_b64"] == frame["raw"] and line["t_ns"] == frame["t_end_ns"]
+        assert line["fields"] == {**frame["fields"], **({"latency_ns": obs.latency_ns} if obs.latency_ns else {})}
+    assert any(cat_line(1, o)["fields"].get("latency_ns") for o in observations)
+
+
 # -- reading -------------------------------------------------------------------------------------------
 
 
@@ -210,7 +232,7 @@ def test_the_fast_reader_gives_back_every_read_exactly(tmp_path, reads, compress
     rec.stop(T0 + len(reads))
     with open(path, "rb") as f:
         scan = RecordingScan(f)
-        got = [(r.conn, r.dir, r.data) for r in scan.reads()]
+        got = [(r.conn, r.dir, r.data) for r in tcp_reads(scan)]
     assert got == [(c, d.value, data) for c, d, data in reads]
     assert not scan.truncated
     assert {k: stream_bytes(v) for k, v in rebuild_streams(str(path)).items()} == expected
@@ -251,10 +273,39 @@ def test_a_truncated_file_reads_up_to_its_last_complete_chunk(tmp_path):
     cut.write_bytes(path.read_bytes()[:size + 30])
     with open(cut, "rb") as f:
         scan = RecordingScan(f)
-        assert [r.data for r in scan.reads()] == [b"first"]
+        assert [r.data for r in tcp_reads(scan)] == [b"first"]
     assert scan.truncated
     with pytest.raises(RecordingError, match="not an MCAP file"):
-        RecordingScan(io.BytesIO(b"nope")).reads().__next__()
+        next(RecordingScan(io.BytesIO(b"nope")).records())
+
+
+def test_a_reader_takes_the_limit_it_is_given_and_the_setting_only_without_one(tmp_path, monkeypatch):
+    path = tmp_path / "limit.mcap"
+    rec = _recorder(path, keep_secrets=True, compression="")
+    _session(rec)
+    rec.stop(T0 + 200)
+    monkeypatch.setenv("WHIZTAP_MAX_CHUNK", "lots")  # not read when a limit is passed in
+    with open(path, "rb") as f:
+        assert list(RecordingScan(f, STREAM_TOPICS, max_chunk=1 << 20).traffic())
+    with open(path, "rb") as f, pytest.raises(RecordingError, match="WHIZTAP_MAX_CHUNK: 'lots' is not a size"):
+        list(RecordingScan(f, STREAM_TOPICS).traffic())
+    with open(path, "rb") as f, pytest.raises(RecordingError, match=r"claims \d+ bytes.*WHIZTAP_MAX_CHUNK=1M lets"):
+        list(RecordingScan(f, STREAM_TOPICS, max_chunk=100).traffic())
+
+
+def test_read_metadata_walks_no_further_than_the_metadata(tmp_path):
+    """read_metadata is the scan's walk, ended at the "whiztap" record: a
+    damaged chunk after it (which the scan itself refuses) is never looked at."""
+    path = tmp_path / "meta.mcap"
+    rec = _recorder(path, keep_secrets=True, compression="")
+    _session(rec)
+    rec.stop(T0 + 200)
+    data = bytearray(path.read_bytes())
+    data[data.index(base64.b64encode(b"sendchkpass"))] ^= 0x01  # a read's bytes: its chunk's CRC no longer matches
+    path.write_bytes(bytes(data))
+    assert read_metadata(str(path))["source"] == "test"
+    with open(path, "rb") as f, pytest.raises(RecordingError, match="CRC"):
+        list(RecordingScan(f, STREAM_TOPICS).traffic())
 
 
 def test_stream_topics_have_chunks_of_their_own_that_readers_of_streams_alone_decompress(tmp_path, monkeypatch):
@@ -277,21 +328,13 @@ def test_stream_topics_have_chunks_of_their_own_that_readers_of_streams_alone_de
     # (the first flush, at the start, has only the start event; the next has both)
     assert [g <= set(STREAM_TOPICS) for g in groups[:3]] == [True, True, False]
     decompressed = []
-    real = recording_module.open_chunk
-    monkeypatch.setattr(recording_module, "open_chunk",
+    real = scan_module.open_chunk
+    monkeypatch.setattr(scan_module, "open_chunk",
                         lambda *a: decompressed.append(a) or real(*a))
     with open(path, "rb") as f:
-        reads = list(RecordingScan(f, STREAM_TOPICS).reads())
+        got = list(tcp_reads(RecordingScan(f, STREAM_TOPICS)))
     assert len(decompressed) == len(stream_chunks)
-    assert len(reads) == 3 * 12 and {r.conn for r in reads} == {1, 2, 3}
-
-
-def test_mask_and_stream_bytes():
-    assert mask(b"abcdef", [(1, 2), (5, 1)]) == b"a**de*"
-    with pytest.raises(RecordingError, match="not contiguous"):
-        from whiztap.analyzer.recording.format import Segment
-
-        stream_bytes([Segment(0, b"ab"), Segment(5, b"cd")])
+    assert len(got) == 3 * 12 and {r.conn for r in got} == {1, 2, 3}
 
 
 # -- the file ------------------------------------------------------------------------------------------
@@ -342,7 +385,7 @@ def test_a_failing_disk_keeps_what_was_flushed_readable(tmp_path, monkeypatch):
     assert path.exists() and not Path(str(path) + ".part").exists()
     with open(path, "rb") as f:
         scan = RecordingScan(f)
-        assert [r.data for r in scan.reads()] == [b"kept"]
+        assert [r.data for r in tcp_reads(scan)] == [b"kept"]
     assert not scan.truncated
 
 

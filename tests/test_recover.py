@@ -16,16 +16,22 @@ import pytest
 from mcap.stream_reader import StreamReader
 from mcap.records import Message
 
-from whiztap.analyzer.recording.format import MAGIC, RecordingScan
-from whiztap.analyzer.recording.recover import recover
-from tests.record_support import WAIT, WHIZTAP, EchoServer, RecordProcess, read_all, streams
+from whiztap.analyzer.recording.mcap import MAGIC
+from whiztap.analyzer.recording.recover import RecoverResult, recover
+from whiztap.analyzer.recording.scan import RecordingScan
+from tests.record_support import WAIT, WHIZTAP, EchoServer, RecordProcess, read_all, streams, tcp_reads
 from tests.test_hostile_files import MIB, corrupt_data, flip_crc, read_chunks, run_measured, write_recording
 
 
 def _flushed_reads(part: str) -> bytes:
     """The client's bytes the .part holds so far (its complete chunks)."""
     with open(part, "rb") as f:
-        return b"".join(r.data for r in RecordingScan(f).reads() if r.dir == "c2s")
+        return b"".join(r.data for r in tcp_reads(RecordingScan(f)) if r.dir == "c2s")
+
+
+def _complete(result: RecoverResult) -> bool:
+    """Everything in the input was copied: nothing skipped, cut or dropped."""
+    return result.cut_at is None and not result.skipped and not result.orphans
 
 
 async def _run(*args: str) -> tuple[int, str, str]:
@@ -97,7 +103,7 @@ async def test_recover_of_a_finished_file_copies_it_whole(tmp_path):
         writer.close()
         await rec.finish()
     result = recover(str(out), str(tmp_path / "copy.mcap"))
-    assert result.complete
+    assert _complete(result)
     original, copy = read_all(str(out)), read_all(result.output)
     assert copy == original and result.messages == sum(len(m) for m in original.values())
 
@@ -212,6 +218,16 @@ def test_damage_and_a_cut_are_both_said(tmp_path):
     assert (tmp_path / "broken.mcap").exists()
 
 
+def test_recovery_takes_the_limit_it_is_given_and_says_which_chunks_were_past_it(tmp_path, monkeypatch):
+    original = write_recording(tmp_path / "r.mcap", chunk_size=2048)
+    monkeypatch.setenv("WHIZTAP_MAX_CHUNK", "lots")  # not read when a limit is passed in
+    result = recover(str(original), str(tmp_path / "out.mcap"), max_chunk=1024)
+    assert result.skipped and all(s.too_big for s in result.skipped)
+    assert "larger than WHIZTAP_MAX_CHUNK allows" in result.summary()
+    whole = recover(str(original), str(tmp_path / "whole.mcap"), max_chunk=1 << 20)
+    assert _complete(whole) and _messages(whole.output) == _messages(original)
+
+
 def test_a_file_named_like_the_old_temporary_is_left_alone(tmp_path):
     original = write_recording(tmp_path / "r.mcap")
     out = tmp_path / "out.mcap"
@@ -221,7 +237,7 @@ def test_a_file_named_like_the_old_temporary_is_left_alone(tmp_path):
     result = recover(str(original), str(out))
     assert bystander.read_bytes() == b"somebody's file"
     assert set(tmp_path.iterdir()) == before | {out}  # and no temporary file left behind
-    assert result.complete and _messages(out) == _messages(original)
+    assert _complete(result) and _messages(out) == _messages(original)
     assert oct(out.stat().st_mode & 0o777) == oct(original.stat().st_mode & 0o777)  # not mkstemp's 0600
 
 

@@ -32,7 +32,8 @@ import whiztap.sniffer.record.recorder as recorder_module
 from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.examples import CONFIG
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS, RecordingScan, metadata_record
+from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS, metadata_record
+from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.recording.info import set_info
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.analyzer.recording.redaction import Redactor

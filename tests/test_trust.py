@@ -51,7 +51,8 @@ async def test_a_login_abandoned_mid_password_is_judged_not_a_crash(tmp_path):
     assert conn["mode"] == "winsock"
     assert b"prog" not in json.dumps(items).encode()
     # the file is in stream order: the held (masked) password read comes before its side's half-close
-    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS, RecordingScan
+    from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS
+    from whiztap.analyzer.recording.scan import RecordingScan
 
     with open(path, "rb") as f:
         order = [("read", m["dir"]) if topic == TOPIC_READS else (m["event"], m.get("dir"))

@@ -9,7 +9,8 @@ from whiztap.analyzer.analysis.analyzer import Analyzer
 from whiztap.analyzer.protocol.describe import fields, meaning
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.analysis.item_filter import ItemFilter
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS, RecordingScan
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
+from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.protocol.session import Direction, LateViolation, Observation
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from whiztap.analyzer.recording.format import TOPIC_READS, rebuild_streams
-from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, RecordProcess
+from whiztap.analyzer.recording.format import TOPIC_READS
+from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, RecordProcess, rebuild_streams
 
 BAD_REQUEST = b"rr1-99--5--0-ss1"  # channel 99: a violation each time it is sent (and echoed)
 

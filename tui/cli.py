@@ -17,7 +17,7 @@ HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in C
 
 
 def _check_recording(path: str) -> None:
-    from whiztap.analyzer.recording.format import RecordingError, read_metadata
+    from whiztap.analyzer.recording.scan import RecordingError, read_metadata
 
     try:
         read_metadata(path)

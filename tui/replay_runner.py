@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import threading
 
-from whiztap.analyzer.recording.format import RecordingError
+from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.sniffer.replay.engine import (
     ConnectionOpened,
     Event,

@@ -19,7 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
-from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS, RecordingError, RecordingScan
+from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
+from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
 from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.protocol.session import Direction

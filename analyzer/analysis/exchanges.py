@@ -21,7 +21,8 @@ from whiztap.analyzer.protocol.messages import FailedValidation
 from typing import NamedTuple
 
 from whiztap.analyzer.protocol.session import Direction, Mode, Observation, Session
-from whiztap.analyzer.recording.format import METADATA_NAME, read_metadata
+from whiztap.analyzer.recording.format import METADATA_NAME
+from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.analyzer.recording.sets import RecordingSet, scan_set
 from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened
 

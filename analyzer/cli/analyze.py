@@ -1,6 +1,6 @@
 """``whiztap analyze``, ``cat`` and ``info``: what a recording says.
 
-All three read recordings with ``whiztap.analyzer.recording.format.RecordingScan`` (a fast
+All three read recordings with ``whiztap.analyzer.recording.scan.RecordingScan`` (a fast
 single pass over the file) and rebuild sessions from the raw TCP reads, never
 from decoded fields stored in the file.
 """
@@ -412,7 +412,7 @@ def _followed(path: str) -> Iterator[Any]:
     """The traffic of a recording being written, until it is finished or Ctrl-C."""
     import threading
 
-    from whiztap.analyzer.recording.format import RecordingError
+    from whiztap.analyzer.recording.scan import RecordingError
     from whiztap.analyzer.recording.sets import Stopped, follow
 
     try:
@@ -458,15 +458,11 @@ class _CatPrinter:
         item = e.item
         rules = [v.rule_id for v in e.violations]
         if self.fmt == "jsonl":
-            import base64
             import json
 
-            self._out.write(json.dumps({
-                "t_ns": item.t_end_ns, "t_start_ns": item.t_start_ns, "conn": conn, "dir": str(e.direction),
-                "kind": str(item.kind), "reason": str(item.reason) if item.reason else None,
-                "raw_b64": base64.b64encode(item.raw).decode(), "text": self._escape(item.raw),
-                "meaning": self._meaning(e), "fields": self._fields(e), "violations": rules,
-            }) + "\n")
+            from whiztap.analyzer.recording.encode import cat_line
+
+            self._out.write(json.dumps(cat_line(conn, e)) + "\n")
             return
         rel = (item.t_end_ns - (self.start or 0)) / 1e9
         mark = f"  ! {' '.join(rules)}" if rules else ""

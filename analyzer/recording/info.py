@@ -7,8 +7,12 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from whiztap.analyzer.recording.format import METADATA_NAME, TOPIC_EVENTS, TOPICS, RecordingError, RecordingScan, is_finished
+from whiztap.analyzer.recording.format import METADATA_NAME, TOPIC_EVENTS, TOPICS
+from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, is_finished
 from whiztap.analyzer.recording.sets import being_written
+from whiztap.analyzer.traffic import NAMES, Opened
+
+_OPENED = b'"event":"%s"' % NAMES[Opened].encode()  # how a connection's opening reads in /tcp/events
 
 
 def _iso(t_ns: int | None) -> str:
@@ -29,7 +33,7 @@ def recording_info(path: Path) -> dict[str, Any]:
                 topics[topic] += 1
                 first = t if first is None or t < first else first
                 last = t if last is None or t > last else last
-                if topic == TOPIC_EVENTS and b'"event":"opened"' in buf[start:stop]:
+                if topic == TOPIC_EVENTS and _OPENED in buf[start:stop]:
                     connections += 1  # counted, not decoded: info reads no message's contents
         except RecordingError as e:
             raise ValueError(str(e)) from None

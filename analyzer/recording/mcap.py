@@ -1,4 +1,7 @@
-"""A small, fast MCAP writer for recordings.
+"""The one MCAP layout whiztap knows: magic, opcodes, record heads, a small fast
+writer, and the low-level pieces every reader shares (a chunk's records, a
+string, a metadata record).  ``scan`` and ``recover`` read with these; the
+writer writes with them.
 
 Why not ``mcap.writer.Writer``: it builds a record object per message and writes
 it field by field through a BytesIO, about 4 us a message here, which is more
@@ -19,21 +22,52 @@ the frames decoded from them) decompresses only their chunks.  Chunks of
 different groups overlap in time, which MCAP allows; within a channel, file
 order is still time order.  A flush closes the open chunks in group order.
 Single-threaded, like the reference writer.
+
+Readers trust nothing: the read helpers raise ``DamagedRecord`` (``TooBig`` for
+a claim past the reader's limit) saying what is wrong; their callers add where.
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Protocol
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA, OP_METADATA_INDEX = 0x07, 0x08, 0x0B, 0x0C, 0x0D
-OP_SUMMARY_OFFSET, OP_DATA_END = 0x0E, 0x0F
-_MESSAGE = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log time, publish time
-_MESSAGE_FIXED = _MESSAGE.size - 9
+OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_ATTACHMENT, OP_STATISTICS = 0x07, 0x08, 0x09, 0x0B
+OP_METADATA, OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = 0x0C, 0x0D, 0x0E, 0x0F
+KNOWN_OPS = frozenset(range(OP_HEADER, OP_DATA_END + 1))  # MCAP's opcodes; 0x80 and up are for private records
+RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of what follows
+RECORD_HEAD_CHANNEL = struct.Struct("<BQH")  # a record head, then a Message's channel id
+MESSAGE_FIELDS = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+MESSAGE_FIXED = MESSAGE_FIELDS.size  # a Message's length less its data
+MESSAGE_DATA_AT = RECORD_HEAD.size + MESSAGE_FIXED  # where its data starts in the record
+LOG_TIME_AT = RECORD_HEAD.size + 6  # where its log time is in the record
+_MESSAGE = struct.Struct("<BQHIQQ")  # a Message record's head and fields, packed by the writer at once
+CHUNK_HEAD = struct.Struct("<QQQI")  # start and end time, uncompressed size, its CRC; then the compression
+FILE_END = struct.Struct("<BQQQI8s")  # the Footer record and the closing magic
+U16, U32, U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+MIB = 1 << 20
+
+
+class DamagedRecord(ValueError):
+    """A record whose lengths or contents do not add up.  The message says
+    what, not where: its reader adds the offset."""
+
+
+class TooBig(DamagedRecord):
+    """A record, or a chunk's contents, claiming more than the reader's limit."""
+
+    def __init__(self, size: int, limit: int, what: str = "") -> None:
+        super().__init__(f"claims {size} bytes{what}, more than readers take ({_mib(limit)}): the file is "
+                         "damaged or a decompression bomb")
+        self.size = size
+
+
+def _mib(n: int) -> str:
+    return f"{n} bytes" if n < MIB else f"{n / MIB:g} MiB"
 
 
 class Stream(Protocol):
@@ -53,7 +87,7 @@ def _map(m: dict[str, str]) -> bytes:
 
 
 def _record(op: int, body: bytes) -> bytes:
-    return struct.pack("<BQ", op, len(body)) + body
+    return RECORD_HEAD.pack(op, len(body)) + body
 
 
 def minimal_end() -> bytes:
@@ -157,7 +191,7 @@ class McapWriter:
             chunk, index, open_chunk = slots[channel_id]
             index.append(log_time)
             index.append(len(chunk))
-            chunk += pack(OP_MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
+            chunk += pack(OP_MESSAGE, MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
             chunk += data
             if len(chunk) >= limit:
                 self._finish_chunk(open_chunk)
@@ -184,7 +218,7 @@ class McapWriter:
         start = min(min(index[0::2]) for _, index in indexes_in_use)
         end = max(max(index[0::2]) for _, index in indexes_in_use)
         compressed = self._compress(records)
-        chunk = _record(OP_CHUNK, struct.pack("<QQQI", start, end, len(records), zlib.crc32(records))
+        chunk = _record(OP_CHUNK, CHUNK_HEAD.pack(start, end, len(records), zlib.crc32(records))
                         + _str(self.compression) + struct.pack("<Q", len(compressed)) + compressed)
         stream = self._stream
         chunk_offset = stream.tell()
@@ -234,3 +268,104 @@ class McapWriter:
         crc = zlib.crc32(footer_head, zlib.crc32(offsets, zlib.crc32(summary)))
         stream.write(bytes(summary) + bytes(offsets) + footer_head + struct.pack("<I", crc) + MAGIC)
         stream.flush()
+
+
+# -- reading: what every reader of records shares ------------------------------------------------
+
+
+def read_string(buf: bytes, pos: int, end: int) -> tuple[str, int]:
+    """The string at ``pos`` (a u32 length, then UTF-8) and where it ends; it
+    must end by ``end``."""
+    n = U32.unpack_from(buf, pos)[0]
+    stop = pos + 4 + n
+    if stop > end:
+        raise DamagedRecord(f"a string of {n} bytes runs past the end of its record")
+    return buf[pos + 4:stop].decode(), stop
+
+
+def read_metadata_record(buf: bytes, pos: int, end: int) -> tuple[str, dict[str, str]]:
+    """A Metadata record's name and string map, from its content at ``pos``."""
+    name, pos = read_string(buf, pos, end)
+    limit = pos + 4 + U32.unpack_from(buf, pos)[0]
+    if limit > end:
+        raise DamagedRecord("its map runs past the end of the record")
+    pos += 4
+    values: dict[str, str] = {}
+    while pos < limit:
+        key, pos = read_string(buf, pos, limit)
+        values[key], pos = read_string(buf, pos, limit)
+    return name, values
+
+
+def _zstd(data: memoryview, most: int) -> bytes:
+    import zstandard
+
+    read = zstandard.ZstdDecompressor().stream_reader(data).read
+    pieces: list[bytes] = []
+    got = 0
+    while got < most and (piece := read(most - got)):
+        pieces.append(piece)
+        got += len(piece)
+    return b"".join(pieces)
+
+
+def _lz4(data: memoryview, most: int) -> bytes:
+    import lz4.frame
+
+    decompressor = lz4.frame.LZ4FrameDecompressor()
+    pieces = [decompressor.decompress(data, max_length=most)]
+    got = len(pieces[0])
+    while got < most and pieces[-1] and not decompressor.eof:
+        pieces.append(decompressor.decompress(b"", max_length=most - got))
+        got += len(pieces[-1])
+    return b"".join(pieces)
+
+
+_DECOMPRESSORS: dict[str, Callable[[memoryview, int], bytes]] = {"zstd": _zstd, "lz4": _lz4}
+READ_COMPRESSIONS = ("", *_DECOMPRESSORS)  # the chunk compressions whiztap reads
+
+
+def _decompress(compression: str, data: memoryview, size: int) -> bytes:
+    """A compressed chunk's records, which must be exactly ``size`` bytes, as it claims.
+
+    Decompressed as a stream that stops one byte past the claim: memory grows
+    with the real output, never past what the chunk claims (which the caller
+    has checked against its limit)."""
+    if compression not in _DECOMPRESSORS:
+        raise DamagedRecord(f"its compression {compression!r} is none whiztap reads (zstd, lz4 or none)")
+    try:
+        out = _DECOMPRESSORS[compression](data, size + 1)
+    except Exception as e:  # noqa: BLE001 - each library has its own error types for damaged data
+        raise DamagedRecord(f"its {compression} data does not decompress: {e}") from None
+    if len(out) > size:
+        raise DamagedRecord(f"it holds more than the {size} bytes it claims")
+    if len(out) < size:
+        raise DamagedRecord(f"it holds {len(out)} bytes, not the {size} it claims")
+    return out
+
+
+def open_chunk(body: bytes, limit: int, validate_crc: bool = True) -> tuple[bytes, int, int]:
+    """The records in a Chunk record (``body``: the record without its 9-byte
+    head) as ``(buffer, start, end)``: they are ``buffer[start:end]``,
+    decompressed within ``limit`` to exactly the size the chunk claims, and CRC
+    checked.  Uncompressed records are not copied out of ``body``: a chunk
+    costs its size once.  ``DamagedRecord`` (``TooBig``) says what is wrong."""
+    try:
+        _start, _end, size, crc = CHUNK_HEAD.unpack_from(body, 0)
+        compression, pos = read_string(body, CHUNK_HEAD.size, len(body))
+        n = U64.unpack_from(body, pos)[0]
+    except (struct.error, UnicodeDecodeError) as e:
+        raise DamagedRecord(f"its header does not add up: {e}") from None
+    if pos + 8 + n > len(body):
+        raise DamagedRecord(f"it claims {n} bytes of data in a record of {len(body)}")
+    if size > limit:
+        raise TooBig(size, limit, " uncompressed")
+    if compression == "":
+        if n != size:
+            raise DamagedRecord(f"it holds {n} bytes, not the {size} it claims")
+        records, start = body, pos + 8
+    else:
+        records, start = _decompress(compression, memoryview(body)[pos + 8:pos + 8 + n], size), 0
+    if validate_crc and crc and zlib.crc32(memoryview(records)[start:start + size]) != crc:
+        raise DamagedRecord("its CRC does not match its contents")
+    return records, start, start + size

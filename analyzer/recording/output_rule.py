@@ -84,6 +84,8 @@ def create_mode(path: str, force: bool) -> str:
 
 
 def _first_file(output: str, split: bool) -> str:
+    # imported here: every command checks its output first thing, and sets
+    # brings the recording reader (40 ms of imports), which only a recording's name needs
     from whiztap.analyzer.recording.sets import part_path
 
     return part_path(output, 1 if split else None)

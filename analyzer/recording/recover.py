@@ -4,7 +4,7 @@ A crashed recorder leaves every chunk it flushed (it flushes at least once a
 second), followed perhaps by half a chunk and no index: ``NAME.mcap.part``
 becomes ``NAME.mcap``.  A damaged file (a bad sector, a bit flip, a copy that
 went wrong) may have a bad chunk anywhere.  Recovery reads the file once, from
-the start, one record at a time (never more than ``max_chunk()`` bytes of it in
+the start, one record at a time (never more than the readers' limit of it in
 memory, whatever the file's size), and copies what checks out (schemas,
 channels, messages, metadata, attachments) into a new file through mcap's
 Writer, which adds the index:
@@ -37,29 +37,39 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Metadata, Schema
 from mcap.writer import Writer
 
-from whiztap.analyzer.recording.output_rule import OutputRefused, check_output
-from whiztap.analyzer.recording.format import (
+from whiztap.analyzer.protocol.text import human_bytes
+from whiztap.analyzer.recording.format import PROFILE
+from whiztap.analyzer.recording.mcap import (
+    CHUNK_HEAD,
+    KNOWN_OPS,
     MAGIC,
-    MAX_CHUNK_ENV,
-    PROFILE,
+    MESSAGE_FIELDS,
+    OP_ATTACHMENT,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_MESSAGE,
+    OP_METADATA,
+    OP_SCHEMA,
+    READ_COMPRESSIONS,
+    RECORD_HEAD,
+    U32,
+    U64,
     DamagedRecord,
-    RecordingError,
     TooBig,
-    max_chunk,
     open_chunk,
 )
+from whiztap.analyzer.recording.output_rule import OutputRefused, check_output
+from whiztap.analyzer.recording.scan import MAX_CHUNK_ENV, RecordingError, max_chunk_setting
 
-OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
-OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
-_KNOWN = frozenset(range(0x01, 0x10))  # MCAP's opcodes; 0x80 and up are for private records
 _COPIED = frozenset((OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_ATTACHMENT, OP_METADATA))
-_HEAD = struct.Struct("<BQ")
-_CHUNK_FIXED = struct.Struct("<QQQII")  # start, end, uncompressed size and CRC, compression length
-_MESSAGE = struct.Struct("<HIQQ")
-_COMPRESSIONS = (b"", b"zstd", b"lz4")
-_DATA_END = _HEAD.pack(OP_DATA_END, 4)
+_COMPRESSIONS = frozenset(c.encode() for c in READ_COMPRESSIONS)
+_CHUNK_FIXED = CHUNK_HEAD.size + 4  # a chunk's fixed fields and its compression's length
+_DATA_END = RECORD_HEAD.pack(OP_DATA_END, 4)
+_CHUNK_OP = bytes((OP_CHUNK,))
 _WINDOW = 1 << 20  # bytes looked through at a time when looking for the next chunk
-_PROBE = 9 + _CHUNK_FIXED.size + 4 + 8  # enough of a record to tell whether it is a chunk
+_PROBE = 9 + _CHUNK_FIXED + 4 + 8  # enough of a record to tell whether it is a chunk
 
 
 class RecoverError(Exception):
@@ -72,7 +82,7 @@ class Skipped:
 
     offset: int
     length: int
-    too_big: bool = False  # a chunk claiming more than max_chunk(): damaged, or a file that needs a higher limit
+    too_big: bool = False  # a chunk claiming more than the limit: damaged, or a file that needs a higher limit
 
 
 @dataclass(frozen=True)
@@ -84,15 +94,8 @@ class RecoverResult:
     cut_bytes: int = 0  # bytes after cut_at that could not be read (a record cut short, or junk)
     orphans: int = 0  # messages dropped: their channel was defined in a skipped chunk
 
-    @property
-    def complete(self) -> bool:
-        """Everything in the input was copied."""
-        return self.cut_at is None and not self.skipped and not self.orphans
-
     def summary(self) -> str:
         """What recovery did, in one line for the user."""
-        from whiztap.analyzer.protocol.text import human_bytes
-
         text = f"recovered {self.messages} messages into {self.output}"
         if self.skipped:
             where = ", ".join(str(s.offset) for s in self.skipped[:5]) + (", ..." if len(self.skipped) > 5 else "")
@@ -118,8 +121,11 @@ def default_output(path: str) -> str:
     return stem + ".recovered.mcap"
 
 
-def recover(path: str, output: str | None = None, *, force: bool = False) -> RecoverResult:
-    """Copy every readable record of ``path`` into a new, indexed MCAP file."""
+def recover(path: str, output: str | None = None, *, force: bool = False,
+            max_chunk: int | None = None) -> RecoverResult:
+    """Copy every readable record of ``path`` into a new, indexed MCAP file,
+    taking at most ``max_chunk`` bytes of it at once (None: the user's
+    setting, ``scan.max_chunk_setting()``)."""
     if not os.path.isfile(path):
         raise RecoverError(f"{path}: no such file" if not os.path.exists(path) else f"{path}: not a file")
     output = output or default_output(path)
@@ -128,7 +134,7 @@ def recover(path: str, output: str | None = None, *, force: bool = False) -> Rec
     except OutputRefused as e:
         raise RecoverError(str(e)) from None
     try:
-        limit = max_chunk()
+        limit = max_chunk_setting() if max_chunk is None else max_chunk
         source = open(path, "rb")  # noqa: SIM115 - closed below
     except RecordingError as e:
         raise RecoverError(str(e)) from None
@@ -191,7 +197,7 @@ class _Salvage:
             if len(head) < 9:
                 self.cut_at, self.cut_bytes = pos, len(head)
                 return
-            op, length = _HEAD.unpack(head)
+            op, length = RECORD_HEAD.unpack(head)
             if op in (OP_DATA_END, OP_FOOTER):
                 return
             if not self._plausible(pos, op, length):
@@ -226,7 +232,7 @@ class _Salvage:
         """Whether a record header at ``pos`` can be taken at its word: a known
         opcode, a length within the file, and for a chunk, a header whose own
         lengths add up."""
-        if not (op in _KNOWN or op >= 0x80) or pos + 9 + length > self.size:
+        if not (op in KNOWN_OPS or op >= 0x80) or pos + 9 + length > self.size:
             return False
         return op != OP_CHUNK or _chunk_header_adds_up(self._read(pos, _PROBE), length)
 
@@ -238,13 +244,13 @@ class _Salvage:
         while pos < self.size:
             window = self._read(pos, _WINDOW + _PROBE)  # overlapping: a header across the edge is seen whole
             best = window.find(_DATA_END, 0, _WINDOW + len(_DATA_END))
-            i = window.find(b"\x06", 0, _WINDOW)
+            i = window.find(_CHUNK_OP, 0, _WINDOW)
             while i >= 0 and (best < 0 or i < best):
-                op, length = _HEAD.unpack_from(window, i) if i + 9 <= len(window) else (0, 0)
+                op, length = RECORD_HEAD.unpack_from(window, i) if i + 9 <= len(window) else (0, 0)
                 if op == OP_CHUNK and pos + i + 9 + length <= self.size and \
                         _chunk_header_adds_up(window[i:i + _PROBE], length):
                     return pos + i
-                i = window.find(b"\x06", i + 1, _WINDOW)
+                i = window.find(_CHUNK_OP, i + 1, _WINDOW)
             if best >= 0:
                 return pos + best
             pos += _WINDOW
@@ -254,16 +260,17 @@ class _Salvage:
 def _chunk_header_adds_up(probe: bytes, length: int) -> bool:
     """Whether the start of a record (``probe``) looks like a Chunk of ``length``
     bytes: a compression whiztap reads, and lengths that sum to the record's."""
-    if len(probe) < 9 + _CHUNK_FIXED.size:
+    if len(probe) < 9 + _CHUNK_FIXED:
         return False
-    start, end, _size, _crc, n = _CHUNK_FIXED.unpack_from(probe, 9)
-    if n > 4 or len(probe) < 9 + _CHUNK_FIXED.size + n + 8 or start > end:
+    start, end, _size, _crc = CHUNK_HEAD.unpack_from(probe, 9)
+    n = U32.unpack_from(probe, 9 + CHUNK_HEAD.size)[0]
+    if n > 4 or len(probe) < 9 + _CHUNK_FIXED + n + 8 or start > end:
         return False
-    at = 9 + _CHUNK_FIXED.size
+    at = 9 + _CHUNK_FIXED
     if probe[at:at + n] not in _COMPRESSIONS:
         return False
-    data = struct.unpack_from("<Q", probe, at + n)[0]
-    return _CHUNK_FIXED.size + n + 8 + data == length
+    data = U64.unpack_from(probe, at + n)[0]
+    return _CHUNK_FIXED + n + 8 + data == length
 
 
 class _Message(NamedTuple):
@@ -281,9 +288,9 @@ def _item(op: int, body: bytes) -> Item:
     """A record to copy, parsed (by mcap's own code but for messages, the bulk);
     DamagedRecord or McapError when its fields do not parse."""
     if op == OP_MESSAGE:
-        if len(body) < _MESSAGE.size:
+        if len(body) < MESSAGE_FIELDS.size:
             raise DamagedRecord("a message too short for its fields")
-        return _Message(*_MESSAGE.unpack_from(body), body[_MESSAGE.size:])
+        return _Message(*MESSAGE_FIELDS.unpack_from(body), body[MESSAGE_FIELDS.size:])
     kind = {OP_SCHEMA: Schema, OP_CHANNEL: Channel, OP_METADATA: Metadata, OP_ATTACHMENT: Attachment}[op]
     try:
         return kind.read(ReadDataStream(io.BytesIO(body)))
@@ -298,11 +305,11 @@ def _chunk_items(records: bytes, first: int, end: int) -> Iterator[Item]:
     checked: dict[int, Item] = {}
     pos = first
     while pos < end:
-        op, length = _HEAD.unpack_from(records, pos)
+        op, length = RECORD_HEAD.unpack_from(records, pos)
         if op == 0 or pos + 9 + length > end:
             raise DamagedRecord(f"a record at {pos - first} in it does not fit")
         if op == OP_MESSAGE:
-            if length < _MESSAGE.size:
+            if length < MESSAGE_FIELDS.size:
                 raise DamagedRecord(f"the message at {pos - first} in it is too short")
         elif op in _COPIED:
             checked[pos] = _item(op, records[pos + 9:pos + 9 + length])
@@ -313,9 +320,9 @@ def _chunk_items(records: bytes, first: int, end: int) -> Iterator[Item]:
 def _chunk_walk(records: bytes, first: int, end: int, checked: dict[int, Item]) -> Iterator[Item]:
     pos = first
     while pos < end:
-        op, length = _HEAD.unpack_from(records, pos)
+        op, length = RECORD_HEAD.unpack_from(records, pos)
         if op == OP_MESSAGE:
-            yield _Message(*_MESSAGE.unpack_from(records, pos + 9), records[pos + 9 + _MESSAGE.size:pos + 9 + length])
+            yield _Message(*MESSAGE_FIELDS.unpack_from(records, pos + 9), records[pos + 9 + MESSAGE_FIELDS.size:pos + 9 + length])
         elif pos in checked:
             yield checked[pos]
         pos += 9 + length

@@ -22,13 +22,8 @@ from pathlib import Path
 from typing import IO
 
 from whiztap.analyzer.protocol.session import Direction
-from whiztap.analyzer.recording.format import (
-    METADATA_NAME,
-    STREAM_TOPICS,
-    RecordingError,
-    RecordingScan,
-    read_metadata,
-)
+from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
+from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
 from whiztap.analyzer.traffic import Continued, Gap, RecordingStopped, TrafficEvent
 
 _PART_NAME = re.compile(r"^(?P<stem>.+)-(?P<n>\d{4,})(?P<ext>\.mcap)$")

@@ -46,7 +46,7 @@ def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions
     """The recording's exchanges (``recording``: what ``_find`` found for
     ``path``), or a one-line error (exit status 2)."""
     from whiztap.analyzer.analysis.exchanges import load_exchanges
-    from whiztap.analyzer.recording.format import RecordingError
+    from whiztap.analyzer.recording.scan import RecordingError
 
     try:
         return load_exchanges(recording or _find(path))

@@ -355,7 +355,7 @@ def _say(message: dict) -> None:
 
 
 def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
-    from whiztap.analyzer.recording.format import violation_message
+    from whiztap.analyzer.recording.encode import violation_message
 
     message = violation_message(conn, violation, about, t_ns, late=late, redact=True)
     _say({"type": "violation", **message})

@@ -9,7 +9,7 @@ events.  It runs on one thread (the writer's), so messages reach each channel
 in the order they happened and ``log_time`` never goes backwards.
 
 Passwords are redacted unless asked otherwise, by the rule of
-``whiztap.analyzer.protocol.redaction``: what the client sends until the server's verdict on the
+``whiztap.analyzer.recording.redaction``: what the client sends until the server's verdict on the
 login is masked.  The masking comes first: the session model, and so every
 frame, violation and printed line, sees the bytes as the file has them, never
 the password.  A client read whose fate is still undecided (the server has not
@@ -28,21 +28,8 @@ from typing import NamedTuple
 
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.recording.format import (
-    EV_CLOSED,
-    EV_CONTINUED,
-    EV_GAP,
-    EV_HALF_CLOSED,
-    EV_OPENED,
-    EV_RECORDING_STARTED,
-    EV_RECORDING_STOPPED,
-    EV_UPSTREAM_CONNECTED,
-    EV_UPSTREAM_FAILED,
+from whiztap.analyzer.recording.encode import (
     RUN_INLINE_MAX,
-    TOPIC_EVENTS,
-    TOPIC_FRAMES,
-    TOPIC_READS,
-    TOPIC_VIOLATIONS,
     FrameEncoder,
     encode,
     encode_plots,
@@ -51,9 +38,22 @@ from whiztap.analyzer.recording.format import (
     run_message,
     violation_message,
 )
-from whiztap.analyzer.protocol.redaction import HOLD_LIMIT_S, Redactor
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_FRAMES, TOPIC_READS, TOPIC_VIOLATIONS
+from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, Redactor
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.session import Direction, Event, LateViolation, Limits, Observation, Session
+from whiztap.analyzer.traffic import (
+    NAMES,
+    Closed,
+    Continued,
+    Gap,
+    HalfClosed,
+    Opened,
+    RecordingStarted,
+    RecordingStopped,
+    UpstreamConnected,
+    UpstreamFailed,
+)
 from whiztap.sniffer.record.writer import RecordingFile
 
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -130,7 +130,7 @@ class Recorder:
     def start(self, t_ns: int, **details: object) -> None:
         self._t = self._now = t_ns
         self.file.open(t_ns)
-        self._write_event(0, EV_RECORDING_STARTED, t_ns, **details)
+        self._write_event(0, NAMES[RecordingStarted], t_ns, **details)
         self.file.flush()  # schemas, channels and metadata on disk at once
 
     def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
@@ -143,7 +143,7 @@ class Recorder:
 
     def upstream_connected(self, conn: int, t_ns: int, detail: str = "") -> None:
         t = self._clock(t_ns)
-        self._then(conn, lambda: self._write_event(conn, EV_UPSTREAM_CONNECTED, t, detail=detail))
+        self._then(conn, lambda: self._write_event(conn, NAMES[UpstreamConnected], t, detail=detail))
 
     def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
         t = self._clock(t_ns)
@@ -211,7 +211,7 @@ class Recorder:
         for conn in list(self._conns):
             self.closed(conn, t, "recorder", detail or "recording stopped")
         # every connection is closed, so nothing waits any more
-        self._then(0, lambda: self._write_event(0, EV_RECORDING_STOPPED, t, by="recorder", detail=detail))
+        self._then(0, lambda: self._write_event(0, NAMES[RecordingStopped], t, by="recorder", detail=detail))
         self.summary.messages = self.file.messages
         self.summary.frames.update({d.value: n for d, n in self._frame_counts.items()})
         self.summary.bytes.update({d.value: n for d, n in self._bytes.items()})
@@ -267,21 +267,21 @@ class Recorder:
     def _opened(self, conn: int, c: _Conn, t: int) -> None:
         self._at(t)
         self._live[conn] = c
-        self._write_event(conn, EV_OPENED, t, client=c.client, upstream=c.upstream)
+        self._write_event(conn, NAMES[Opened], t, client=c.client, upstream=c.upstream)
 
     def _upstream_failed(self, conn: int, c: _Conn, t: int, detail: str) -> None:
         c.session.server_unreachable(detail)
-        self._write_event(conn, EV_UPSTREAM_FAILED, t, by="server", detail=detail)
+        self._write_event(conn, NAMES[UpstreamFailed], t, by="server", detail=detail)
 
     def _half_closed(self, conn: int, c: _Conn, direction: Direction, t: int) -> None:
         self._at(t)
         self._observe_all(conn, c, c.session.end(direction, t))
         # after what the session made of the side's last bytes: the file keeps each stream's order
-        self._write_event(conn, EV_HALF_CLOSED, t, by=direction.sender, dir=direction.value)
+        self._write_event(conn, NAMES[HalfClosed], t, by=direction.sender, dir=direction.value)
 
     def _gap(self, conn: int, c: _Conn, direction: Direction, t: int, offset: int, length: int,
              detail: str) -> None:
-        self._write_event(conn, EV_GAP, t, dir=direction.value, offset=offset, length=length, detail=detail)
+        self._write_event(conn, NAMES[Gap], t, dir=direction.value, offset=offset, length=length, detail=detail)
         c.written[direction] = offset + length
         # The framer cannot know what the missing bytes were: it finishes what it
         # has and starts a fresh session model after the hole.
@@ -293,7 +293,7 @@ class Recorder:
         self._at(t)
         del self._live[conn]
         self._observe_all(conn, c, c.session.close(t))
-        self._write_event(conn, EV_CLOSED, t, by=by, detail=detail, c2s_bytes=c.received[C2S],
+        self._write_event(conn, NAMES[Closed], t, by=by, detail=detail, c2s_bytes=c.received[C2S],
                           s2c_bytes=c.received[S2C], mode=c.session.mode.value,
                           handshake=c.session.handshake_outcome)
 
@@ -390,7 +390,7 @@ class Recorder:
     def _continued(self, part: int) -> None:
         """A new file began: say which connections are open and where their streams are."""
         for conn, c in self._live.items():
-            self._write_event(conn, EV_CONTINUED, self._now, client=c.client, upstream=c.upstream,
+            self._write_event(conn, NAMES[Continued], self._now, client=c.client, upstream=c.upstream,
                               c2s_offset=c.written[C2S], s2c_offset=c.written[S2C],
                               detail=f"connection open when part {part} began")
         self.file.flush()
