@@ -23,10 +23,11 @@ that the analyzer, the recorder's model, replay and the TUI share.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
-from whiztap.analyzer.protocol.session import Direction, Event, Session
+from whiztap.analyzer.protocol.observations import Direction, Event
+from whiztap.analyzer.protocol.session import Session
 
 GAP_DETAIL = "bytes missing from the capture; the session model restarts after them"
 
@@ -159,6 +160,7 @@ format's enum takes its values from here, in this order)."""
 
 _BY_NAME = {name: cls for cls, name in NAMES.items()}
 _FIELDS = {cls: tuple(f.name for f in fields(cls)) for cls in NAMES}
+_FIELDS[Gap] = ("conn", "t_ns", "direction", "offset", "length", "detail")  # a gap's offset comes first in a recording
 
 
 class TrafficError(ValueError):
@@ -167,16 +169,21 @@ class TrafficError(ValueError):
 
 def to_json(event: ConnectionEvent) -> dict[str, Any]:
     """The ``/tcp/events`` message of ``event``: ``conn``, ``event``, ``t_ns``,
-    then the fields it has (a direction as ``dir``; empty optional ones left out).
-    A half-close also says who closed (``by``), for people reading the file."""
-    message: dict[str, Any] = {"conn": event.conn, "event": NAMES[type(event)], "t_ns": event.t_ns}
-    for key, value in asdict(event).items():
+    then the fields it has, in the order recordings have always had them (a
+    direction as ``dir``; empty optional ones left out).  A half-close and an
+    upstream that failed also say who closed (``by``), for people reading the file."""
+    kind = type(event)
+    message: dict[str, Any] = {"conn": event.conn, "event": NAMES[kind], "t_ns": event.t_ns}
+    if kind is HalfClosed:
+        message["by"] = event.direction.sender  # type: ignore[union-attr]
+    elif kind is UpstreamFailed:
+        message["by"] = "server"
+    for key in _FIELDS[kind]:
+        value = getattr(event, key)
         if key in ("conn", "t_ns") or value is None:
             continue
         if key == "direction":
             message["dir"] = value.value
-            if type(event) is HalfClosed:
-                message["by"] = value.sender
         else:
             message[key] = value
     return message

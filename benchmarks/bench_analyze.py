@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from benchmarks.bench_core import mixed_session
 
 FRAMES = int(os.environ.get("WHIZTAP_BENCH_FRAMES", 1_000_000))

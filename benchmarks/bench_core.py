@@ -17,7 +17,8 @@ from pathlib import Path
 from whiztap.analyzer.protocol.codec import encode
 from whiztap.analyzer.protocol.framing import Framer
 from whiztap.analyzer.protocol import messages as m
-from whiztap.analyzer.protocol.session import Direction, Session
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.analysis.throughput import tune_gc
 
 FRAMES = int(os.environ.get("WHIZTAP_BENCH_FRAMES", 1_000_000))

@@ -23,3 +23,24 @@ def reason(e: OSError) -> str:
 def show_address(host: str, port: int) -> str:
     """host:port, with an IPv6 host in brackets."""
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+class AddressError(ValueError):
+    """An address the user typed is not HOST:PORT; the message is one line for them."""
+
+
+def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, int]:
+    """(host, port) from HOST:PORT, [V6]:PORT, or PORT alone when a default
+    host is given: the inverse of ``show_address``.  ``what`` names the
+    address in the message (an option, 'target')."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = "", text
+    host = host.strip("[]")
+    if not host:
+        if default_host is None:
+            raise AddressError(f"{what} must be HOST:PORT, got {text!r}")
+        host = default_host
+    if not port.isdigit() or int(port) > 65535:
+        raise AddressError(f"{what} needs a port number 0-65535, got {text!r}")
+    return host, int(port)

@@ -268,8 +268,9 @@ class ReplayCheck:
         """Options: pace, rate, segments ("frames"/"exact"), compare, tolerance
         ({"sensor_value": 20}), ignore_fields, ignore_kinds, timeout, loop,
         conns, start, end, kinds, output; and password.  The result
-        (``whiztap.sniffer.replay.engine.ReplayResult``) when every answer matched."""
-        from whiztap.sniffer.replay.engine import Replay, ReplayError
+        (``whiztap.sniffer.replay.events.ReplayResult``) when every answer matched."""
+        from whiztap.sniffer.replay.engine import Replay
+        from whiztap.sniffer.replay.options import ReplayError
 
         settings = _settings(self._request)
         path = Path(recording) if recording is not None else settings.recording
@@ -298,7 +299,7 @@ class ReplayCheck:
 
 def _replay_options(options: dict[str, Any], target: tuple[str, int], password: str | None) -> Any:
     from whiztap.analyzer.analysis.compare import CompareError, CompareRules
-    from whiztap.sniffer.replay.engine import Pace, ReplayOptions
+    from whiztap.sniffer.replay.options import Pace, ReplayOptions
     from whiztap.sniffer.replay.plan import Selection
 
     tolerance = options.pop("tolerance", {})

@@ -26,7 +26,8 @@ from whiztap.analyzer.protocol.messages import (
     ServoPositionRequest,
     StopInternalScript,
 )
-from whiztap.analyzer.protocol.session import Direction, Observation, Session
+from whiztap.analyzer.protocol.observations import Direction, Observation
+from whiztap.analyzer.protocol.session import Session
 
 CONFIG = ConfigurationSettings(tuple([ChannelConfig(0)] * 6 + [ChannelConfig(1)] * 6 + [ChannelConfig(2)] * 12))
 EXACT, STRUCTURE, NONE = (CompareRules.parse(m) for m in ("exact", "structure", "none"))

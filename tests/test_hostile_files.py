@@ -39,7 +39,7 @@ from hypothesis import strategies as st
 
 from whiztap.analyzer.recording.format import METADATA_NAME, metadata_record
 from whiztap.analyzer.recording.mcap import MAGIC
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import WHIZTAP

@@ -19,7 +19,8 @@ from whiztap.analyzer.protocol import pairing
 from whiztap.analyzer.protocol.examples import CONFIG, VPN_OPEN
 from whiztap.analyzer.recording.format import TOPIC_EVENTS
 from whiztap.analyzer.recording.scan import RecordingScan
-from whiztap.analyzer.protocol.session import PENDING_KEPT, Direction, LateViolation, Observation, Session
+from whiztap.analyzer.protocol.observations import Direction, LateViolation, Observation
+from whiztap.analyzer.protocol.session import PENDING_KEPT, Session
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.sim.tcp_server import TcpServer
 from whiztap.sniffer.record.tcpreasm import ACK, DLT_EN10MB, EVICTED, FIN, MAX_OPEN, SYN, Reassembler, parse_frame
@@ -47,7 +48,8 @@ def verdicts(events: list) -> tuple[int, int]:
 _FEED = """
 import json, sys
 from whiztap.analyzer.protocol.examples import VPN_OPEN
-from whiztap.analyzer.protocol.session import Direction, LateViolation, Session
+from whiztap.analyzer.protocol.observations import Direction, LateViolation
+from whiztap.analyzer.protocol.session import Session
 
 def peak_kib():
     # this process's own peak (VmHWM): ru_maxrss would count pytest's memory,

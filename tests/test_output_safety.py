@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from markdown_it import MarkdownIt
 from rich.console import Console
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.cli.record import base_metadata
 from whiztap.sniffer.record.recorder import Recorder

@@ -28,7 +28,7 @@ from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
 from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.analyzer.recording.info import set_info
 from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Closed, Gap, HalfClosed, Opened, to_json
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan

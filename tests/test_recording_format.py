@@ -43,7 +43,8 @@ from whiztap.analyzer.recording.format import (
     schema_bytes,
 )
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
-from whiztap.analyzer.protocol.session import Direction, Session
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.session import Session
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
 from tests.record_support import read_all, rebuild_streams, stream_bytes, tcp_reads

@@ -18,17 +18,9 @@ from whiztap.analyzer.analysis.compare import CompareRules, Status
 from whiztap.analyzer.analysis.exchanges import load_exchanges
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.sniffer.sim.faults import FaultConfig
-from whiztap.sniffer.replay.engine import (
-    ConnectionClosed,
-    ConnectionOpened,
-    Finished,
-    Pace,
-    Replay,
-    ReplayError,
-    ReplayOptions,
-    RequestSent,
-    ResponseCompared,
-)
+from whiztap.sniffer.replay.engine import Replay
+from whiztap.sniffer.replay.events import ConnectionClosed, ConnectionOpened, Finished, RequestSent, ResponseCompared
+from whiztap.sniffer.replay.options import Pace, ReplayError, ReplayOptions
 from whiztap.sniffer.replay.plan import Selection, kinds_of, plan
 from whiztap.sniffer.sim.client import Client, HandshakeError
 from tests.record_support import LOCAL, WAIT, both_ways, closed_port, recording
@@ -143,9 +135,9 @@ async def test_recorded_pacing_keeps_writing_on_schedule_and_reports_its_drift(e
 
 
 def test_the_schedule_divides_recorded_gaps_by_the_rate():
-    from whiztap.sniffer.replay.engine import _Pacer
+    from whiztap.sniffer.replay.pacing import Pacer
 
-    pacer = _Pacer(rate=2.0)
+    pacer = Pacer(rate=2.0)
     pacer.anchor(1_000_000_000)
     assert pacer.due(1_010_000_000) - pacer.due(1_000_000_000) == 5_000_000  # 10 ms recorded, at 2x
     assert pacer.late_by(10**18) == 0  # not due for decades: not late

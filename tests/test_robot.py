@@ -30,7 +30,8 @@ from whiztap.analyzer.protocol.messages import (
     StopExternalScript,
     StopInternalScript,
 )
-from whiztap.analyzer.protocol.session import Direction, Session
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.session import Session
 from whiztap.sniffer.sim.camera import render_frame
 from whiztap.sniffer.sim.channels import DEFAULT_CHANNELS, ChannelSpecError, format_channels, parse_channels
 from whiztap.sniffer.sim.robot import Output, Robot, ServerMode

@@ -5,11 +5,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from whiztap.analyzer.protocol import messages as m
+from whiztap.analyzer.protocol.channels import unit_of
 from whiztap.analyzer.protocol.codec import encode
 from whiztap.analyzer.protocol.examples import CONFIG, SCENARIOS, VPN_OPEN, WINSOCK_OPEN
 from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.handshake import HandshakeState, Mode
+from whiztap.analyzer.protocol.observations import Direction, LateViolation, Observation
 from whiztap.analyzer.protocol.rules import RULES
-from whiztap.analyzer.protocol.session import Direction, HandshakeState, LateViolation, Mode, Observation, Session
+from whiztap.analyzer.protocol.session import Session
 from tests.streams import TINY_JPEG, chunked
 
 C, S = Direction.C2S, Direction.S2C
@@ -114,8 +117,8 @@ def test_valid_set_configuration_updates_the_map_and_invalid_does_not():
     good = encode(m.SetConfiguration((m.SetConfigEntry(12, 3, 0),), 12))
     bad = encode(m.SetConfiguration((m.SetConfigEntry(12, 2, 2),), 99))
     session, events = run(VPN_OPEN + [(C, good), (C, bad)])
-    assert session.unit_of(3) is m.UnitType.SERVO
-    assert session.unit_of(2) is m.UnitType.SWITCH
+    assert unit_of(session.channel_map, 3) is m.UnitType.SERVO
+    assert unit_of(session.channel_map, 2) is m.UnitType.SWITCH
     assert fired(events) == ["PW-SETCFG-CHECKSUM"]
 
 

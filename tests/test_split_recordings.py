@@ -8,7 +8,7 @@ import subprocess
 from pathlib import Path
 
 from whiztap.analyzer.recording.sets import find_recordings
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from tests.record_support import WHIZTAP

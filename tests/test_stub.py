@@ -9,7 +9,7 @@ import signal
 import pytest
 
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.sim.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
 from whiztap.sniffer.sim.dialogue import Dialogue
 from whiztap.sniffer.replay.stub import Stub

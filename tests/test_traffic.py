@@ -6,7 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from whiztap.analyzer.protocol.session import Direction, Limits, Observation
+from whiztap.analyzer.protocol.observations import Direction, Observation
+from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.traffic import (
     NAMES,
     Closed,

@@ -1,7 +1,7 @@
 """The TUI on sample recordings, driven by key presses as a user would."""
 
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.help import HelpScreen

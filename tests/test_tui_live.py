@@ -8,7 +8,7 @@ from whiztap.analyzer.cli.analyze import analyse_file
 from whiztap.analyzer.protocol.examples import CONFIG
 from whiztap.analyzer.recording.format import metadata_record
 from whiztap.analyzer.recording.scan import read_metadata
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.record.record_run import RecordSettings
 from whiztap.sniffer.record.recorder import Recorder

@@ -11,7 +11,7 @@ from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.analysis.item_filter import ItemFilter
 from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
 from whiztap.analyzer.recording.scan import RecordingScan
-from whiztap.analyzer.protocol.session import Direction, LateViolation, Observation
+from whiztap.analyzer.protocol.observations import Direction, LateViolation, Observation
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource
 from whiztap.tui.store import FrameStore

@@ -128,8 +128,28 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
         paired_latency = abs(store.t_end[n] - store.t_end[paired]) if paired >= 0 else 0
         conn = store.conn[n]
         relative = store.relative_s(n)
+    parts: list[RenderableType] = [_heading(obs, meaning, conn, relative)]
+    if obs.message is None and obs.candidates:
+        parts.append(Text(printable("may mean: " + " / ".join(c.describe() for c in obs.candidates)),
+                          style="yellow"))
+    rows = _field_rows(values, response_meaning(obs))
+    if rows:
+        parts.append(_fields_table(rows))
+    if obs.violations:
+        parts.append(_violations_text(obs.violations))
+    if paired >= 0:
+        pairing = Text("Pairing\n", style="bold")
+        what = "answers" if obs.direction.sender == "server" else "answered by"
+        pairing.append(f"{what}: {printable(paired_meaning)}\n"
+                       f"latency {latency_text(paired_latency)}  (p jumps there)")
+        parts.append(pairing)
+    parts += _bytes_parts(store.raw(n), size)
+    return Group(*parts)
+
+
+def _heading(obs: Observation, meaning: str, conn: int, relative: float) -> Text:
+    """What the frame means, where it belongs and when it came."""
     item = obs.item
-    parts: list[RenderableType] = []
     head = Text()
     head.append(printable(meaning), style="bold")
     head.append("\n" + printable(f"conn #{conn}, item {obs.index} of the session, {obs.direction.sender} → "
@@ -138,46 +158,37 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
     head.append(f"\nat {relative:.6f} s  ({clock(item.t_end_ns)})", style="dim")
     if item.t_start_ns != item.t_end_ns:
         head.append(f"\nfirst byte {(item.t_end_ns - item.t_start_ns) / 1e6:.3f} ms earlier", style="dim")
-    parts.append(head)
+    return head
 
-    if obs.message is None and obs.candidates:
-        parts.append(Text(printable("may mean: " + " / ".join(c.describe() for c in obs.candidates)),
-                          style="yellow"))
-    rows = _field_rows(values, response_meaning(obs))
-    if rows:
-        table = Table(title="Fields", title_justify="left", expand=True, show_edge=False, pad_edge=False)
-        table.add_column("field", style="cyan", no_wrap=True)
-        table.add_column("value")
-        table.add_column("spec allows", style="dim")
-        for row in rows:
-            table.add_row(*(Text(printable(cell)) for cell in row))
-        parts.append(table)
 
-    if obs.violations:
-        violations = Text("Violations\n", style="bold")
-        for v in obs.violations:
-            rule = RULES[v.rule_id]
-            violations.append(f"● {v.rule_id}", style=SEVERITY_STYLE[rule.severity])
-            violations.append(f" ({rule.severity}, {rule.section})\n", style="dim")
-            violations.append(f"  {rule.summary}\n  {printable(v.detail)}\n")
-        parts.append(violations)
+def _fields_table(rows: list[tuple[str, str, str]]) -> Table:
+    table = Table(title="Fields", title_justify="left", expand=True, show_edge=False, pad_edge=False)
+    table.add_column("field", style="cyan", no_wrap=True)
+    table.add_column("value")
+    table.add_column("spec allows", style="dim")
+    for row in rows:
+        table.add_row(*(Text(printable(cell)) for cell in row))
+    return table
 
-    if paired >= 0:
-        pairing = Text("Pairing\n", style="bold")
-        what = "answers" if obs.direction.sender == "server" else "answered by"
-        pairing.append(f"{what}: {printable(paired_meaning)}\n"
-                       f"latency {latency_text(paired_latency)}  (p jumps there)")
-        parts.append(pairing)
 
-    kept = store.raw(n)
+def _violations_text(found: Iterable[Violation]) -> Text:
+    violations = Text("Violations\n", style="bold")
+    for v in found:
+        rule = RULES[v.rule_id]
+        violations.append(f"● {v.rule_id}", style=SEVERITY_STYLE[rule.severity])
+        violations.append(f" ({rule.severity}, {rule.section})\n", style="dim")
+        violations.append(f"  {rule.summary}\n  {printable(v.detail)}\n")
+    return violations
+
+
+def _bytes_parts(kept: bytes, size: int) -> list[RenderableType]:
+    """The kept bytes, escaped, then as a hex dump."""
     shown = Text("Bytes", style="bold")
     shown.append(f" ({size} bytes" + (f", first {len(kept)} kept" if len(kept) < size else "") + ")\n")
     shown.append(escape(kept[:1024]) + ("…" if len(kept) > 1024 else ""), style="bold")
-    parts.append(shown)
     dump = hex_dump(kept)
     more = len(kept) - HEX_LINES * HEX_WIDTH
-    parts.append(Text(dump + (f"\n… {more} more bytes" if more > 0 else ""), style="dim"))
-    return Group(*parts)
+    return [shown, Text(dump + (f"\n… {more} more bytes" if more > 0 else ""), style="dim")]
 
 
 class DetailPane(VerticalScroll):

@@ -15,7 +15,7 @@ from __future__ import annotations
 from rich.style import Style
 from textual.binding import Binding
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
 from whiztap.tui.store import FrameStore
 from whiztap.tui.view import FrameView

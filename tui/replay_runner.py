@@ -14,17 +14,9 @@ import asyncio
 import threading
 
 from whiztap.analyzer.recording.scan import RecordingError
-from whiztap.sniffer.replay.engine import (
-    ConnectionOpened,
-    Event,
-    Finished,
-    Replay,
-    ReplayError,
-    ReplayOptions,
-    ReplayResult,
-    RequestSent,
-    ResponseCompared,
-)
+from whiztap.sniffer.replay.engine import Replay
+from whiztap.sniffer.replay.events import ConnectionOpened, Event, Finished, ReplayResult, RequestSent, ResponseCompared
+from whiztap.sniffer.replay.options import ReplayError, ReplayOptions
 
 CONTROLS = ("pause", "resume", "step", "stop")
 

@@ -129,13 +129,13 @@ class ReplayScreen(Screen):
 
     # -- options -------------------------------------------------------------------------------
 
-    def _options(self, output: str | None):  # noqa: ANN202 - a whiztap.sniffer.replay.engine.ReplayOptions
+    def _options(self, output: str | None):  # noqa: ANN202 - a whiztap.sniffer.replay.options.ReplayOptions
         """The form as ReplayOptions; raises ValueError with a line for the user."""
         import click
 
         from whiztap.analyzer.analysis.compare import CompareError, CompareRules
         from whiztap.sniffer.cli.record import parse_address
-        from whiztap.sniffer.replay.engine import Pace, ReplayOptions
+        from whiztap.sniffer.replay.options import Pace, ReplayOptions
 
         try:
             target = parse_address(self.query_one("#target", Input).value.strip(), None, "target")

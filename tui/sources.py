@@ -23,7 +23,7 @@ from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
 from whiztap.analyzer.recording.redaction import Redactor
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Continued, Data, RecordingStopped, TrafficEvent
 from whiztap.tui.model import TrafficModel
 

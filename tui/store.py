@@ -25,7 +25,7 @@ from whiztap.analyzer.protocol.codec import decode
 from whiztap.analyzer.protocol.describe import fields, meaning
 from whiztap.analyzer.protocol.framing import Item, ItemKind, Unframed
 from whiztap.analyzer.protocol.rules import Violation
-from whiztap.analyzer.protocol.session import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 
 NS = 1_000_000_000
 KINDS: tuple[ItemKind, ...] = tuple(ItemKind)
@@ -70,8 +70,10 @@ class FrameStore:
         """Store a connection's session events: observations become frames, late
         violations mark the frame they are about.
 
-        One tight loop with everything in locals: it runs once per frame, at
-        hundreds of thousands of frames a second while a recording loads.
+        A hot loop, kept in one piece with everything in locals: it runs once
+        per frame, at hundreds of thousands of frames a second while a
+        recording loads, where a helper call or attribute lookup per frame
+        shows in the TUI's load benchmark (benchmarks/bench_tui.py).
         """
         index = self._by_conn.get(conn)
         if index is None:

@@ -18,7 +18,8 @@ from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, 
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ChannelConfig, ServoPositionRequest, SetConfiguration
 from whiztap.analyzer.protocol.rules import RULES, Severity
-from whiztap.analyzer.protocol.session import Event, LateViolation, Limits, Observation, Session
+from whiztap.analyzer.protocol.observations import Event, LateViolation, Observation
+from whiztap.analyzer.protocol.session import Limits, Session
 from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.analyzer.traffic import (
     Closed,

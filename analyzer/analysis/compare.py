@@ -37,7 +37,7 @@ from whiztap.analyzer.protocol.messages import (
     StopInternalScript,
     UnitType,
 )
-from whiztap.analyzer.protocol.session import Direction, Observation
+from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
 
 EXPECTS_ANSWER = ("Fetch Configuration Settings", "Fetch Camera Image", "Sensor Request",

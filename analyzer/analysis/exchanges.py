@@ -20,7 +20,9 @@ from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import FailedValidation
 from typing import NamedTuple
 
-from whiztap.analyzer.protocol.session import Direction, Mode, Observation, Session
+from whiztap.analyzer.protocol.handshake import Mode
+from whiztap.analyzer.protocol.observations import Direction, Observation
+from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.recording.format import METADATA_NAME
 from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.analyzer.recording.sets import RecordingSet, scan_set

@@ -8,7 +8,7 @@ import shlex
 from dataclasses import dataclass
 
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.session import Observation
+from whiztap.analyzer.protocol.observations import Observation
 
 NS = 1_000_000_000
 

@@ -439,7 +439,7 @@ class _CatPrinter:
         self._colour = out.isatty()
 
     def show(self, conn: int, events: list) -> None:  # noqa: ANN001
-        from whiztap.analyzer.protocol.session import LateViolation
+        from whiztap.analyzer.protocol.observations import LateViolation
 
         for e in events:
             if type(e) is LateViolation:

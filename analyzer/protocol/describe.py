@@ -11,7 +11,7 @@ from typing import Any
 
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ChannelResponse, Password, ServoPositionRequest
-from whiztap.analyzer.protocol.session import Observation
+from whiztap.analyzer.protocol.observations import Observation
 
 
 def response_meaning(observation: Observation) -> str | None:

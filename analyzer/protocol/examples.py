@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.codec import encode
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 
 C, S = Direction.C2S, Direction.S2C
 Step = tuple[Direction, bytes]

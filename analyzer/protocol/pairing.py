@@ -21,14 +21,37 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 from whiztap.analyzer.protocol.framing import ItemKind
-
-if TYPE_CHECKING:
-    from whiztap.analyzer.protocol.session import Observation
+from whiztap.analyzer.protocol.messages import (
+    FetchCameraImage,
+    FetchConfiguration,
+    Message,
+    SensorRequest,
+    ServoPositionRequest,
+)
+from whiztap.analyzer.protocol.observations import Observation
 
 REBUILD_SLACK = 1024  # taken entries tolerated in the queues beyond the live ones
+# The item kind that answers each request.
+_ANSWER_KIND = {
+    FetchConfiguration: ItemKind.CONFIG,
+    FetchCameraImage: ItemKind.IMAGE,
+    SensorRequest: ItemKind.RESPONSE,
+    ServoPositionRequest: ItemKind.RESPONSE,
+}
+
+
+def answer_spec(message: Message | None,
+                candidates: tuple[Message, ...]) -> tuple[ItemKind | None, int | None, bool]:
+    """What answer a command waits for: (item kind, channel, certain)."""
+    if message is not None:
+        return _ANSWER_KIND.get(type(message)), getattr(message, "channel", None), True
+    if any(isinstance(c, SensorRequest) for c in candidates):
+        # may be a Sensor Request: pair an answer if one comes, forgive it if none does
+        return ItemKind.RESPONSE, candidates[0].channel, False
+    return None, None, False
 
 
 class Pending(NamedTuple):

@@ -1,125 +1,40 @@
 """The session model: both directions of one connection, turned into meaning.
 
-Everything that needs context lives here: the handshake state machine, the
-channel map the server announced, which request a response answers and how long
-it took.  Recorder, reports, replayer and TUI all read traffic through it.
+Everything that needs context lives here: where the handshake stands
+(``handshake``), the channel map the server announced (``channels``), which
+request a response answers (``pairing``) and how long it took.  Recorder,
+reports, replayer and TUI all read traffic through it.
 """
 
 from __future__ import annotations
 
 from collections import Counter, defaultdict
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import NamedTuple
 
+from whiztap.analyzer.protocol.channels import ChannelMap, command_meaning, data_violation
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
-from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, UNIT_OF_COMMAND, decode, decode_cache, resolve
+from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, decode, decode_cache
 from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, Unframed
+from whiztap.analyzer.protocol.handshake import SERVER_STEPS, HandshakeState, Mode, Step, advance, outcome
 from whiztap.analyzer.protocol.messages import (
     ChannelConfig,
     ChannelResponse,
     ConfigurationSettings,
-    FailedValidation,
-    FetchCameraImage,
     FetchConfiguration,
     Message,
-    ReadyToGo,
-    SendCheckPassword,
-    SensorRequest,
     ServoPositionRequest,
     SetConfiguration,
-    UnitType,
 )
-from whiztap.analyzer.protocol.pairing import Book, Pending
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.pairing import Book, Pending, answer_spec
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.stats import LatencyStats
 
-
-class Direction(StrEnum):
-    C2S = "c2s"  # client to server
-    S2C = "s2c"  # server to client
-
-    @property
-    def sender(self) -> str:
-        return "client" if self is Direction.C2S else "server"
-
-
-class Mode(StrEnum):
-    UNKNOWN = "unknown"
-    WINSOCK = "winsock"  # password handshake
-    VPN = "vpn"  # no handshake: the first command is Fetch Configuration Settings
-
-
-class HandshakeState(StrEnum):
-    START = "start"
-    EARLY_PASSWORD = "early_password"  # the client answered before it was asked
-    AWAIT_PASSWORD = "await_password"
-    AWAIT_VERDICT = "await_verdict"
-    READY = "ready"
-    FAILED = "failed"
-
-
-class Step(StrEnum):
-    """What the handshake state machine is fed."""
-
-    SENDCHKPASS = "sendchkpass"
-    PASSWORD = "password"
-    READYTOGO = "readytogo"
-    FAILED = "failed_validation"
-    CLIENT_FRAME = "client_frame"
-    SERVER_FRAME = "server_frame"
-
-
 _S, _St = HandshakeState, Step
-# (state, step) -> (next state, rule broken or None).  Pairs not listed keep the
-# state and break PW-HS-ORDER (or PW-HS-AFTER-FAILED once validation failed).
-HANDSHAKE_TABLE: dict[tuple[HandshakeState, Step], tuple[HandshakeState, str | None]] = {
-    (_S.START, _St.SENDCHKPASS): (_S.AWAIT_PASSWORD, None),
-    (_S.START, _St.CLIENT_FRAME): (_S.READY, None),  # VPN: no handshake
-    (_S.START, _St.SERVER_FRAME): (_S.START, None),  # unsolicited: pairing reports it
-    (_S.START, _St.PASSWORD): (_S.EARLY_PASSWORD, "PW-HS-ORDER"),  # an eager client
-    (_S.EARLY_PASSWORD, _St.SENDCHKPASS): (_S.AWAIT_VERDICT, None),
-    (_S.EARLY_PASSWORD, _St.CLIENT_FRAME): (_S.EARLY_PASSWORD, "PW-HS-COMMAND-BEFORE-READY"),
-    (_S.AWAIT_PASSWORD, _St.PASSWORD): (_S.AWAIT_VERDICT, None),
-    (_S.AWAIT_PASSWORD, _St.CLIENT_FRAME): (_S.AWAIT_PASSWORD, "PW-HS-COMMAND-BEFORE-READY"),
-    (_S.AWAIT_PASSWORD, _St.READYTOGO): (_S.READY, "PW-HS-ORDER"),
-    (_S.AWAIT_PASSWORD, _St.FAILED): (_S.FAILED, None),
-    (_S.AWAIT_VERDICT, _St.READYTOGO): (_S.READY, None),
-    (_S.AWAIT_VERDICT, _St.FAILED): (_S.FAILED, None),
-    (_S.AWAIT_VERDICT, _St.CLIENT_FRAME): (_S.AWAIT_VERDICT, "PW-HS-COMMAND-BEFORE-READY"),
-    (_S.READY, _St.CLIENT_FRAME): (_S.READY, None),
-    (_S.READY, _St.SERVER_FRAME): (_S.READY, None),
-}
-EXPECTED_IN_STATE = {
-    _S.START: "'sendchkpass' from the server or a first command from the client",
-    _S.EARLY_PASSWORD: "'sendchkpass' from the server before the client's password",
-    _S.AWAIT_PASSWORD: "the client's password",
-    _S.AWAIT_VERDICT: "'readytogo' or 'Failed Validation' from the server",
-    _S.READY: "commands and responses",
-    _S.FAILED: "the connection to close",
-}
-_HANDSHAKE_STEPS = {SendCheckPassword: _St.SENDCHKPASS, ReadyToGo: _St.READYTOGO, FailedValidation: _St.FAILED}
 _CLIENT_KINDS = frozenset({ItemKind.COMMAND, ItemKind.SET_CONFIG, ItemKind.PASSWORD})
 _SERVER_KINDS = frozenset({ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
 _FRAME_KINDS = frozenset({ItemKind.COMMAND, ItemKind.SET_CONFIG, ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
-# The item kind that answers each request.
-_ANSWER_KIND = {
-    FetchConfiguration: ItemKind.CONFIG,
-    FetchCameraImage: ItemKind.IMAGE,
-    SensorRequest: ItemKind.RESPONSE,
-    ServoPositionRequest: ItemKind.RESPONSE,
-}
-
-
-def _answer_spec(message: Message | None,
-                 candidates: tuple[Message, ...]) -> tuple[ItemKind | None, int | None, bool]:
-    """What answer a command waits for: (item kind, channel, certain)."""
-    if message is not None:
-        return _ANSWER_KIND.get(type(message)), getattr(message, "channel", None), True
-    if any(isinstance(c, SensorRequest) for c in candidates):
-        # may be a Sensor Request: pair an answer if one comes, forgive it if none does
-        return ItemKind.RESPONSE, candidates[0].channel, False
-    return None, None, False
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,33 +56,9 @@ class Limits:
                 "max_image": self.max_image}
 
 
-class Observation(NamedTuple):
-    """One item of the session with everything known about it when it arrived."""
-
-    index: int  # position in the session, both directions together
-    direction: Direction
-    item: Item
-    message: Message | None  # the meaning, when there is exactly one
-    candidates: tuple[Message, ...]  # every meaning the bytes allow
-    violations: tuple[Violation, ...]
-    answers: Observation | None = None  # for a response: the request it answers
-    latency_ns: int | None = None
-
-
 PENDING_KEPT = 250_000  # requests awaited at once per connection; the oldest is given up beyond
 EXPIRED_KEPT = 1024  # requests given up (deadline or cap) that a late answer may still pair with
 EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'
-
-
-class LateViolation(NamedTuple):
-    """A violation found after the item it concerns (a request never answered)."""
-
-    violation: Violation
-    about: Observation
-    t_ns: int
-
-
-Event = Observation | LateViolation
 
 
 class _Plan(NamedTuple):
@@ -211,7 +102,7 @@ class Session:
         self.framers = {Direction.C2S: Framer(max_item, max_image), Direction.S2C: Framer(max_item, max_image)}
         self.state = HandshakeState.START
         self.mode = Mode.UNKNOWN
-        self.channel_map: dict[int, ChannelConfig] = {}
+        self.channel_map: ChannelMap = {}
         self.counts: Counter[tuple[Direction, ItemKind]] = Counter()
         self.violation_counts: Counter[str] = Counter()
         self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
@@ -273,22 +164,7 @@ class Session:
 
     @property
     def handshake_outcome(self) -> str:
-        if self.mode is Mode.VPN:
-            return "none (vpn)"
-        return {
-            _S.START: "not started",
-            _S.EARLY_PASSWORD: "password sent before 'sendchkpass'",
-            _S.AWAIT_PASSWORD: "no password sent",
-            _S.AWAIT_VERDICT: "no verdict",
-            _S.READY: "readytogo",
-            _S.FAILED: "failed validation",
-        }[self.state]
-
-    def unit_of(self, channel: int) -> UnitType | None:
-        config = self.channel_map.get(channel)
-        if config is None or config.unit_type not in (0, 1, 2):
-            return None
-        return UnitType(config.unit_type)
+        return outcome(self.state, self.mode)
 
     # -- internals ----------------------------------------------------------------------
 
@@ -408,6 +284,8 @@ class Session:
         return events
 
     def _observe(self, direction: Direction, item: Item, events: list[Event]) -> None:
+        """The general path: one item of any kind, in any state (the fast paths
+        hand over every item they do not take)."""
         if self._may_hold_early:
             if direction is Direction.S2C:
                 self._release_early(events, item)
@@ -425,46 +303,17 @@ class Session:
         message = decoded.message
         violations = list(decoded.violations)
         candidates = decoded.candidates
-        state_before = self.state
-
+        was_ready = self.state is _S.READY
         if kind is ItemKind.HANDSHAKE and message is not None and direction is Direction.S2C:
-            step = _HANDSHAKE_STEPS[type(message)]
-            if step is not _St.SENDCHKPASS:
-                # the verdict ends the password: observe the password first
-                password_items = self.framers[Direction.C2S].close_password(t)
-                events.extend(self._observe_all(Direction.C2S, password_items, t))
-            early = self.state is _S.EARLY_PASSWORD
-            self._step(step, violations)
-            if step is _St.SENDCHKPASS and (self.state is _S.AWAIT_PASSWORD or early):
-                self.mode = Mode.WINSOCK
-                self._asked_t_ns = item.t_start_ns
-                if not early:
-                    self.framers[Direction.C2S].expect_password()
+            self._server_handshake(message, item, violations, events)
         elif kind in _FRAME_KINDS or kind is ItemKind.PASSWORD or kind is ItemKind.HANDSHAKE:
-            own = _CLIENT_KINDS if direction is Direction.C2S else _SERVER_KINDS
-            if kind not in own:
-                violations.append(Violation(
-                    "PW-DIRECTION", f"a {kind} item came from the {direction.sender}"))
-            else:
-                if direction is Direction.S2C:
-                    step = _St.SERVER_FRAME
-                else:
-                    step = _St.PASSWORD if kind is ItemKind.PASSWORD else _St.CLIENT_FRAME
-                if (step is _St.PASSWORD and self._asked_t_ns is not None
-                        and item.t_start_ns < self._asked_t_ns and self.state is _S.AWAIT_PASSWORD):
-                    violations.append(Violation(
-                        "PW-HS-ORDER", "the password began before the server's 'sendchkpass' arrived"))
-                self._step(step, violations)
-                if direction is Direction.C2S and kind is not ItemKind.PASSWORD:
-                    message = self._client_frame(message, candidates, violations)
+            message = self._frame(direction, item, message, candidates, violations)
         elif kind is ItemKind.EOL:
             if self._last_kind[direction] not in (ItemKind.HANDSHAKE, ItemKind.PASSWORD):
                 violations.append(Violation("PW-FRAME-EOL", f"line break {item.raw!r} after a {self._last_kind[direction]}"))
-
         answers = latency = None
         if direction is Direction.S2C and kind in _SERVER_KINDS:
             answers, latency = self._answer(kind, message, t, violations)
-
         observation = Observation(self._index, direction, item, message, candidates,
                                   tuple(violations), answers, latency)
         self._index += 1
@@ -473,16 +322,58 @@ class Session:
         for v in violations:
             self.violation_counts[v.rule_id] += 1
         if direction is Direction.C2S and kind is ItemKind.COMMAND:
-            answer_kind, channel, certain = _answer_spec(message, candidates)
-            if answer_kind is not None:
-                if self._pending.live >= self.pending_kept:
-                    self._give_up_oldest(t, events)
-                self._pending.add(Pending(observation, answer_kind, channel, certain, t))
-            if state_before is _S.READY and self.state is _S.READY and self._commands > 1:
-                # from now on these bytes mean the same until the channel map changes
-                self._plans[item.raw] = _Plan(message, candidates, observation.violations,
-                                              answer_kind, channel, certain)
+            self._await_answer(observation, was_ready, t, events)
         events.append(observation)
+
+    def _server_handshake(self, message: Message, item: Item, violations: list[Violation],
+                          events: list[Event]) -> None:
+        """'sendchkpass', 'readytogo' or 'Failed Validation' from the server."""
+        step = SERVER_STEPS[type(message)]
+        t = item.t_end_ns
+        if step is not _St.SENDCHKPASS:
+            # the verdict ends the password: observe the password first
+            password_items = self.framers[Direction.C2S].close_password(t)
+            events.extend(self._observe_all(Direction.C2S, password_items, t))
+        early = self.state is _S.EARLY_PASSWORD
+        self._step(step, violations)
+        if step is _St.SENDCHKPASS and (self.state is _S.AWAIT_PASSWORD or early):
+            self._asked_t_ns = item.t_start_ns
+            if not early:
+                self.framers[Direction.C2S].expect_password()
+
+    def _frame(self, direction: Direction, item: Item, message: Message | None,
+               candidates: tuple[Message, ...], violations: list[Violation]) -> Message | None:
+        """A frame or a password: from the side that sends such items, in its
+        place in the handshake; a command's meaning in the channel map."""
+        kind = item.kind
+        if kind not in (_CLIENT_KINDS if direction is Direction.C2S else _SERVER_KINDS):
+            violations.append(Violation("PW-DIRECTION", f"a {kind} item came from the {direction.sender}"))
+            return message
+        if direction is Direction.S2C:
+            step = _St.SERVER_FRAME
+        else:
+            step = _St.PASSWORD if kind is ItemKind.PASSWORD else _St.CLIENT_FRAME
+        if (step is _St.PASSWORD and self._asked_t_ns is not None
+                and item.t_start_ns < self._asked_t_ns and self.state is _S.AWAIT_PASSWORD):
+            violations.append(Violation(
+                "PW-HS-ORDER", "the password began before the server's 'sendchkpass' arrived"))
+        self._step(step, violations)
+        if direction is Direction.C2S and kind is not ItemKind.PASSWORD:
+            message = self._client_frame(message, candidates, violations)
+        return message
+
+    def _await_answer(self, observation: Observation, was_ready: bool, t: int, events: list[Event]) -> None:
+        """Book the answer a command waits for; once the traffic is established,
+        keep what its bytes mean as a plan for the fast path."""
+        answer_kind, channel, certain = answer_spec(observation.message, observation.candidates)
+        if answer_kind is not None:
+            if self._pending.live >= self.pending_kept:
+                self._give_up_oldest(t, events)
+            self._pending.add(Pending(observation, answer_kind, channel, certain, t))
+        if was_ready and self.state is _S.READY and self._commands > 1:
+            # from now on these bytes mean the same until the channel map changes
+            self._plans[observation.item.raw] = _Plan(observation.message, observation.candidates,
+                                                      observation.violations, answer_kind, channel, certain)
 
     def _hold_early(self, item: Item, events: list[Event]) -> bool:
         """Hold a client item that may be (or follow) a password sent before the
@@ -513,46 +404,19 @@ class Session:
             self._observe(Direction.C2S, held, events)
 
     def _step(self, step: Step, violations: list[Violation]) -> None:
-        state = self.state
-        transition = HANDSHAKE_TABLE.get((state, step))
-        if transition is None:
-            rule = "PW-HS-AFTER-FAILED" if state is _S.FAILED else "PW-HS-ORDER"
-            violations.append(Violation(rule, f"got {step}, expected {EXPECTED_IN_STATE[state]}"))
-            return
-        self.state, rule = transition
-        if rule is not None:
-            violations.append(Violation(rule, f"got {step}, expected {EXPECTED_IN_STATE[state]}"))
-        if state is _S.START and step is _St.CLIENT_FRAME:
-            self.mode = Mode.VPN
+        self.state, mode, broken = advance(self.state, step)
+        if mode is not None:
+            self.mode = mode
+        if broken is not None:
+            violations.append(broken)
 
     def _client_frame(self, message: Message | None, candidates: tuple[Message, ...],
                       violations: list[Violation]) -> Message | None:
         """Resolve a command's meaning from the channel map and check it fits."""
         self._commands += 1
-        channel = getattr(candidates[0], "channel", None) if candidates else None
-        if channel is not None:
-            unit = self.unit_of(channel)
-            if message is None:
-                message = resolve(candidates, unit)
-                if message is None:
-                    if unit is not None:
-                        names = " or ".join(c.title for c in candidates)
-                        violations.append(Violation(
-                            "PW-UNIT-MISMATCH", f"channel {channel} is a {unit}; the frame means {names}"))
-                    elif self.channel_map:
-                        violations.append(Violation(
-                            "PW-CHANNEL-UNCONFIGURED", f"channel {channel} is not in the server's configuration"))
-                    else:
-                        names = ", ".join(c.title for c in candidates)
-                        violations.append(Violation("PW-AMBIGUOUS", f"may be {names}"))
-            elif type(message) in UNIT_OF_COMMAND:
-                needed = UNIT_OF_COMMAND[type(message)]
-                if unit is not None and unit != needed:
-                    violations.append(Violation(
-                        "PW-UNIT-MISMATCH", f"{message.title} needs a {needed}; channel {channel} is a {unit}"))
-                elif unit is None and self.channel_map:
-                    violations.append(Violation(
-                        "PW-CHANNEL-UNCONFIGURED", f"channel {channel} is not in the server's configuration"))
+        message, broken = command_meaning(message, candidates, self.channel_map)
+        if broken is not None:
+            violations.append(broken)
         if isinstance(message, SetConfiguration):
             self._apply_set_config(message, violations)
         if self._commands == 1 and self.state is _S.READY and not isinstance(message, FetchConfiguration):
@@ -587,28 +451,15 @@ class Session:
             self.channel_map = dict(enumerate(message.channels))
             self._plans.clear()
         if isinstance(message, ChannelResponse):
-            self._check_data(message, request, violations)
+            broken = data_violation(message, request, self.channel_map)
+            if broken is not None:
+                violations.append(broken)
         if request is None:
             return None, None
         latency = t - found.t_ns
         title = request.message.title if request.message is not None else "Sensor Request"
         self.latencies[title].add(latency)
         return request, latency
-
-    def _check_data(self, message: ChannelResponse, request: Observation | None,
-                    violations: list[Violation]) -> None:
-        """Sensor data and servo data have different ranges: use what was asked."""
-        if request is not None:
-            servo: bool | None = isinstance(request.message, ServoPositionRequest)
-        else:
-            unit = self.unit_of(message.channel)
-            servo = None if unit is None else unit is UnitType.SERVO
-        if servo is False:
-            limit, rule, what = MAX_SENSOR_DATA, "PW-RANGE-SENSOR", "sensor data"
-        else:
-            limit, rule, what = MAX_SERVO_DATA, "PW-RANGE-SERVO", "servo data" if servo else "sensor or servo data"
-        if message.data > limit:
-            violations.append(Violation(rule, f"{what} must be 0-{limit}, got {message.data}"))
 
     # -- pairing: the only code that touches the books of requests (tests replace it) --
 

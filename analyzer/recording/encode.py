@@ -27,7 +27,7 @@ from whiztap.analyzer.protocol.messages import (
     ServoPositionRequest,
 )
 from whiztap.analyzer.protocol.rules import Violation
-from whiztap.analyzer.protocol.session import Direction, Observation
+from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.recording.format import (
     MASK_BYTE,

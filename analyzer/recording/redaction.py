@@ -41,7 +41,7 @@ from enum import Enum
 from typing import Generic, NamedTuple, TypeVar
 
 from whiztap.analyzer.recording.format import MASK_BYTE
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Closed, ConnectionEvent, Gap, HalfClosed, Opened, UpstreamFailed
 
 HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than this

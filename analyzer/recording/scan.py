@@ -23,7 +23,7 @@ import struct
 from collections.abc import Iterable, Iterator
 from typing import IO
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import parse_size
 from whiztap.analyzer.recording.format import METADATA_NAME, TOPIC_EVENTS, TOPIC_READS, misfit
 from whiztap.analyzer.recording.mcap import (

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
 from whiztap.analyzer.traffic import Continued, Gap, RecordingStopped, TrafficEvent
@@ -137,13 +137,23 @@ def group(paths: Iterable[Path]) -> list[RecordingSet]:
     return sorted(out, key=lambda s: str(s.name))
 
 
+def numbered_parts(output: str) -> list[str]:
+    """The numbered parts of a recording written to ``output`` that are there
+    (``NAME-0002.mcap``, and the ``.part`` of one being written or cut short;
+    a link counts, even dangling), by name."""
+    stem, ext = os.path.splitext(output)
+    ext = ext or ".mcap"
+    name = re.compile(re.escape(stem) + r"-\d{4,}" + re.escape(ext) + r"(\.part)?")
+    pattern = glob.escape(stem) + "-[0-9][0-9][0-9][0-9]*" + glob.escape(ext) + "*"
+    return sorted(p for p in glob.glob(pattern) if name.fullmatch(p))
+
+
 def _siblings(path: Path) -> list[Path]:
     """The other parts a part's name suggests (same stem, any number)."""
     m = _PART_NAME.match(path.name)
     if m is None:
         return [path]
-    pattern = glob.escape(str(path.parent / m["stem"])) + "-[0-9][0-9][0-9][0-9]*" + glob.escape(m["ext"])
-    return sorted(Path(p) for p in glob.glob(pattern))
+    return [Path(p) for p in numbered_parts(str(path.parent / m["stem"]) + m["ext"]) if not p.endswith(".part")]
 
 
 def find_recordings(inputs: Iterable[str]) -> list[RecordingSet]:

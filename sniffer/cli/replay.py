@@ -129,7 +129,7 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
     file cannot be read or the target cannot be reached.
     """
     from whiztap.analyzer.analysis.compare import CompareError, CompareRules
-    from whiztap.sniffer.replay.engine import Pace, ReplayError, ReplayOptions
+    from whiztap.sniffer.replay.options import Pace, ReplayError, ReplayOptions
     from whiztap.sniffer.replay.plan import KINDS, Selection, dry_run_lines, plan
 
     recording_output(output)  # before anything is read: '-' is no place for a recording
@@ -223,7 +223,7 @@ class _Printer:
 
     def __call__(self, event) -> None:  # noqa: ANN001 - a replay event
         from whiztap.analyzer.protocol.text import escape, shorten
-        from whiztap.sniffer.replay.engine import ConnectionClosed, ConnectionOpened, RequestSent, ResponseCompared
+        from whiztap.sniffer.replay.events import ConnectionClosed, ConnectionOpened, RequestSent, ResponseCompared
 
         if self.quiet:
             return

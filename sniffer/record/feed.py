@@ -1,4 +1,4 @@
-"""The recording pipe: the proxy hands connection events to a writer process.
+"""The recording pipe: the proxy hands traffic events to a writer process.
 
 Why a process and not a thread: the session model, JSON and MCAP encoding cost
 tens of microseconds per frame in Python; in a thread of the proxy's process
@@ -7,8 +7,8 @@ they would hold the GIL the event loop needs to forward the next read (up to the
 down whenever traffic is being written.  In a child process they run on the
 other core and the event loop does nothing per read but copy it into a batch.
 
-Parent side (``WriterProcess``): each event becomes one binary record appended
-to a batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
+Parent side (``WriterProcess``, a consumer of the proxy's traffic events:
+``receive(event)``): each event becomes one binary record appended to a batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
 through an asyncio write-pipe transport.
 
 When the writer falls behind, only the connections that cause it wait.  The
@@ -28,14 +28,16 @@ batch), and a light connection keeps going while a heavy one waits.  The
 decision is made again at each batch sent, and every ``BATCH_S`` while behind.
 
 Child side (``python -m whiztap.sniffer.record.feed CONFIG``): one thread reads the pipe,
-drives a ``Recorder`` and reports on its stdout as JSON lines (ready,
+decodes the records back into traffic events for a ``Recorder`` and reports on its stdout as JSON lines (ready,
 violations for ``--analyze``, finished files, errors, the summary).  It ignores
 SIGINT (Ctrl-C reaches the whole process group; the parent decides when to
 stop) and finishes the file when the pipe closes, so even a parent killed with
 SIGKILL leaves a finished recording.
 
 Record layout: ``<BIBQI`` = type, connection id, direction (0 c2s, 1 s2c),
-t_ns, payload length; then the payload (the bytes read, or a JSON object).
+t_ns, payload length; then the payload: for a read (``REC_DATA``) the bytes
+read; for any other event (``REC_EVENT``) its ``/tcp/events`` message
+(``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
 """
 
 from __future__ import annotations
@@ -55,13 +57,25 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from whiztap.analyzer.protocol.session import Direction, Limits
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.session import Limits
+from whiztap.analyzer.traffic import (
+    Closed,
+    ConnectionEvent,
+    Data,
+    Gap,
+    HalfClosed,
+    Opened,
+    RecordingStopped,
+    TrafficEvent,
+    from_json,
+    to_json,
+)
 
-(REC_DATA, REC_OPENED, REC_UPSTREAM_CONNECTED, REC_UPSTREAM_FAILED, REC_HALF_CLOSED, REC_CLOSED, REC_STOP,
- REC_GAP) = range(1, 9)
+REC_DATA, REC_EVENT = 1, 2
 _HEAD = struct.Struct("<BIBQI")
-_DIRS = (Direction.C2S, Direction.S2C)
-_DIR_CODE = {Direction.C2S: 0, Direction.S2C: 1}
+C2S, S2C = Direction.C2S, Direction.S2C
+_DIRS = (C2S, S2C)
 BATCH_S = 0.005
 BATCH_MAX = 256 << 10
 BEHIND = 8 << 20  # backlog bytes above which the writer is behind
@@ -116,8 +130,8 @@ class _Status(asyncio.Protocol):
 
 
 class WriterProcess:
-    """The proxy's handle on the writer process.  Methods named after events
-    never block and never raise: recording must not get in the way of traffic.
+    """The proxy's handle on the writer process.  ``receive(event)`` never
+    blocks and never raises: recording must not get in the way of traffic.
 
     ``when_behind`` is what happens to a connection over its share of the
     backlog (see the module docstring); in "pause" mode ``on_hold(conn, held)``
@@ -141,7 +155,7 @@ class WriterProcess:
         self._open: set[int] = set()
         self._over: frozenset[int] = frozenset()
         self._unrecorded: frozenset[int] = frozenset()  # over, in "gap" mode
-        self._gaps: dict[tuple[int, int], list[int]] = {}  # (connection, direction) -> [t_ns, bytes] left out
+        self._gaps: dict[tuple[int, Direction], list[int]] = {}  # (connection, direction) -> [t_ns, bytes] left out
         self._timer: asyncio.TimerHandle | None = None
         self._pipe: asyncio.WriteTransport | None = None
         self._proc: subprocess.Popen | None = None
@@ -171,52 +185,54 @@ class WriterProcess:
 
     # -- events from the proxy --------------------------------------------------------------
 
-    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
-        if conn in self._unrecorded:
-            self._leave_out(conn, _DIR_CODE[direction], t_ns, len(data))
+    def receive(self, event: TrafficEvent) -> None:
+        """One event into the batch: a read as its bytes (the hot path, once per
+        read), any other event as its message."""
+        if type(event) is Data:
+            conn, direction, t_ns, data = event
+            if conn in self._unrecorded:
+                self._leave_out(conn, direction, t_ns, len(data))
+                return
+            batch = self._batch
+            batch += _HEAD.pack(REC_DATA, conn, 0 if direction is C2S else 1, t_ns, len(data))
+            batch += data
+            counts = self._batch_bytes
+            counts[conn] = counts.get(conn, 0) + len(data)
+            self._queued()
             return
-        batch = self._batch
-        batch += _HEAD.pack(REC_DATA, conn, _DIR_CODE[direction], t_ns, len(data))
-        batch += data
-        counts = self._batch_bytes
-        counts[conn] = counts.get(conn, 0) + len(data)
-        self._queued()
-
-    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
-        self._open.add(conn)
-        self._event(REC_OPENED, conn, 0, t_ns, {"client": client, "upstream": upstream})
-        if self._behind:
-            self._rebalance()  # over the limit, a new connection is over at once
-
-    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None:
-        self._event(REC_UPSTREAM_CONNECTED, conn, 0, t_ns, {"detail": detail})
-
-    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
-        self._event(REC_UPSTREAM_FAILED, conn, 0, t_ns, {"detail": detail})
-
-    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
-        self._end_gaps(conn)
-        self._event(REC_HALF_CLOSED, conn, _DIR_CODE[direction], t_ns, None)
-
-    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None:
-        self._open.discard(conn)
-        self._end_gaps(conn)
-        self._event(REC_CLOSED, conn, 0, t_ns, {"by": by, "detail": detail})
+        kind = type(event)
+        conn = event.conn
+        if kind is HalfClosed or kind is Closed:
+            self._end_gaps(conn)  # what was left out came before
+            if kind is Closed:
+                self._open.discard(conn)
+        self._event(event)  # type: ignore[arg-type]
+        if kind is Opened:
+            self._open.add(conn)
+            if self._behind:
+                self._rebalance()  # over the limit, a new connection is over at once
 
     async def stop(self, t_ns: int, detail: str = "") -> dict | None:
         """Finish the recording; returns the writer's summary (None if it failed)."""
         if self._pipe is not None and not self._pipe.is_closing():
-            self._event(REC_STOP, 0, 0, t_ns, {"detail": detail})
+            self._event(RecordingStopped(t_ns, "recorder", detail))
             self._send()
             self._pipe.close()
         await self._reap()
         return self.summary
 
+    def fail(self, message: str) -> None:
+        """The recording cannot go on (the first reason is the one kept)."""
+        if self.error is None:
+            self.error = message
+            if self.on_error is not None:
+                self.on_error(message)
+
     # -- internals ---------------------------------------------------------------------------
 
-    def _event(self, kind: int, conn: int, direction: int, t_ns: int, payload: dict | None) -> None:
-        body = json.dumps(payload).encode() if payload is not None else b""
-        self._batch += _HEAD.pack(kind, conn, direction, t_ns, len(body)) + body
+    def _event(self, event: ConnectionEvent) -> None:
+        body = json.dumps(to_json(event)).encode()
+        self._batch += _HEAD.pack(REC_EVENT, event.conn, 0, event.t_ns, len(body)) + body
         self._queued()
 
     def _queued(self) -> None:
@@ -287,7 +303,7 @@ class WriterProcess:
             for conn in before - over:
                 self.on_hold(conn, False)
 
-    def _leave_out(self, conn: int, direction: int, t_ns: int, length: int) -> None:
+    def _leave_out(self, conn: int, direction: Direction, t_ns: int, length: int) -> None:
         """A read of a connection that is over, in "gap" mode: only counted."""
         gap = self._gaps.get((conn, direction))
         if gap is None:
@@ -297,14 +313,14 @@ class WriterProcess:
 
     def _end_gaps(self, conn: int) -> None:
         """The gap records of what was left out, before anything else of ``conn``."""
-        for direction in (0, 1):
+        for direction in _DIRS:
             gap = self._gaps.pop((conn, direction), None)
             if gap is not None:
-                self._event(REC_GAP, conn, direction, gap[0], {"length": gap[1]})
+                self._event(Gap(conn, gap[0], direction, length=gap[1], detail=GAP_DETAIL))
 
     def _pipe_lost(self, exc: Exception | None) -> None:
         if exc is not None and self.error is None:
-            self._fail("the writer process stopped reading")
+            self.fail("the writer process stopped reading")
 
     def _status(self, message: dict) -> None:
         kind = message.get("type")
@@ -316,19 +332,13 @@ class WriterProcess:
         elif kind == "file" and self.on_file is not None:
             self.on_file(message["path"])
         elif kind == "error":
-            self._fail(message["message"])
+            self.fail(message["message"])
         elif kind == "summary":
             self.summary = message
 
-    def _fail(self, message: str) -> None:
-        if self.error is None:
-            self.error = message
-            if self.on_error is not None:
-                self.on_error(message)
-
     def _status_closed(self) -> None:
         if self.summary is None and self._ready is not None and self._ready.done():
-            self._fail("the writer process exited unexpectedly")
+            self.fail("the writer process exited unexpectedly")
         if self._done is not None and not self._done.done():
             self._done.set_result(None)
 
@@ -361,28 +371,42 @@ def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> Non
     _say({"type": "violation", **message})
 
 
-def _dispatch(recorder, kind: int, conn: int, direction: int, t: int, payload: bytes) -> str | None:  # noqa: ANN001
-    """Apply one record; for the stop record, its detail (else None)."""
-    if kind == REC_DATA:
-        recorder.data(conn, _DIRS[direction], t, payload)
+def _apply(recorder, buf: bytearray) -> RecordingStopped | None:  # noqa: ANN001 - a Recorder
+    """Hot loop (once per read recorded): turn each whole record at the start of
+    ``buf`` back into its traffic event for the recorder, and remove it; the
+    stop event, if one came (nothing after it is read)."""
+    head = _HEAD.size
+    pos = 0
+    n = len(buf)
+    receive = recorder.receive
+    try:
+        while n - pos >= head:
+            kind, conn, direction, t, length = _HEAD.unpack_from(buf, pos)
+            end = pos + head + length
+            if end > n:
+                break
+            payload = bytes(buf[pos + head:end])
+            pos = end
+            if kind == REC_DATA:
+                receive(Data(conn, _DIRS[direction], t, payload))
+                continue
+            event = from_json(json.loads(payload))
+            if type(event) is RecordingStopped:
+                return event
+            receive(event)
         return None
-    if kind == REC_HALF_CLOSED:
-        recorder.half_closed(conn, _DIRS[direction], t)
-        return None
-    args = json.loads(payload)
-    if kind == REC_OPENED:
-        recorder.opened(conn, t, args["client"], args["upstream"])
-    elif kind == REC_UPSTREAM_CONNECTED:
-        recorder.upstream_connected(conn, t, args["detail"])
-    elif kind == REC_UPSTREAM_FAILED:
-        recorder.upstream_failed(conn, t, args["detail"])
-    elif kind == REC_CLOSED:
-        recorder.closed(conn, t, args["by"], args["detail"])
-    elif kind == REC_GAP:
-        recorder.gap(conn, _DIRS[direction], t, args["length"], GAP_DETAIL)
-    elif kind == REC_STOP:
-        return args["detail"]
-    return None
+    finally:
+        del buf[:pos]
+
+
+def _ignore_signals(on_term: Callable[[int, object], None]) -> None:
+    """Ctrl-C and a closed terminal reach the whole process group: the proxy
+    decides when to stop and says so with a stop record (or dies, and the pipe
+    closes).  A broken status pipe is an error to survive, not a death, and a
+    file size limit an error to report."""
+    for ignored in (signal.SIGINT, signal.SIGHUP, signal.SIGPIPE, signal.SIGXFSZ):
+        signal.signal(ignored, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, on_term)
 
 
 def _run(config: dict[str, Any]) -> int:
@@ -398,13 +422,7 @@ def _run(config: dict[str, Any]) -> int:
         stop_requested = True
 
     os.nice(WRITER_NICE)
-    # Ctrl-C and a closed terminal reach the whole process group: the proxy
-    # decides when to stop and says so with a stop record (or dies, and the pipe
-    # closes).  A broken status pipe is an error to survive, not a death.
-    for ignored in (signal.SIGINT, signal.SIGHUP, signal.SIGPIPE):
-        signal.signal(ignored, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a file size limit is an error to report, not a death
+    _ignore_signals(on_term)
     file = RecordingFile(config["path"], config["metadata"], split_size=config.get("split_size"),
                          split_duration_ns=config.get("split_duration_ns"), overwrite=config.get("overwrite", True))
     recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
@@ -415,33 +433,21 @@ def _run(config: dict[str, Any]) -> int:
         recorder.start(config["start_ns"], **config.get("started", {}))
         _say({"type": "ready", "path": file.current_path})
         buf = bytearray()
-        head = _HEAD.size
-        stop_detail: str | None = None
-        t = config["start_ns"]
-        while stop_detail is None and not stop_requested:
-            ready, _, _ = select.select([0], [], [], TICK_S)
-            if ready:
+        stop: RecordingStopped | None = None
+        while stop is None and not stop_requested:
+            if select.select([0], [], [], TICK_S)[0]:
                 chunk = os.read(0, 4 << 20)
                 if not chunk:
                     break
                 buf += chunk
-                pos = 0
-                n = len(buf)
-                while stop_detail is None and n - pos >= head:
-                    kind, conn, direction, t, length = _HEAD.unpack_from(buf, pos)
-                    end = pos + head + length
-                    if end > n:
-                        break
-                    stop_detail = _dispatch(recorder, kind, conn, direction, t, bytes(buf[pos + head:end]))
-                    pos = end
-                del buf[:pos]
+                stop = _apply(recorder, buf)
             recorder.tick(time.time_ns())
             for path in file.finished[reported:]:
                 _say({"type": "file", "path": path})
             reported = len(file.finished)
-        if stop_detail is None:  # no stop record: the proxy is gone, or SIGTERM came
-            t, stop_detail = time.time_ns(), "writer terminated" if stop_requested else "proxy gone"
-        summary = recorder.stop(t, stop_detail)
+        if stop is None:  # no stop record: the proxy is gone, or SIGTERM came
+            stop = RecordingStopped(time.time_ns(), detail="writer terminated" if stop_requested else "proxy gone")
+        summary = recorder.stop(stop.t_ns, stop.detail)
     except RecordingWriteError as e:
         _say({"type": "error", "message": str(e)})
         return EXIT_WRITE_ERROR

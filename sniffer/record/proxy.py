@@ -1,11 +1,12 @@
-"""A transparent TCP proxy that tells a recorder everything it forwards.
+"""A transparent TCP proxy that tells its consumers everything it forwards.
 
 Each client connection gets its own upstream connection.  Every chunk read from
 one side is written to the other side's transport at once, inside the same
 ``data_received`` call, before anything else happens: no byte is held back,
 reordered or changed, and nothing waits for a frame to complete.  Only then is
-the chunk handed to the sink (the recorder's pipe), which copies it into a
-batch.  ``asyncio.Protocol`` rather than streams: streams add a task switch and
+the chunk handed on as a traffic event (``Data``) to the consumer (the
+recorder's pipe, which copies it into a batch; with the TUI, a fan-out:
+``whiztap.sniffer.record.consumers``).  ``asyncio.Protocol`` rather than streams: streams add a task switch and
 a buffer copy per read, which halves round trips (see docs/benchmarks.md).
 
 Flow control is end to end, and derived, not remembered: a side is read
@@ -35,25 +36,15 @@ import itertools
 import socket
 import time
 from collections.abc import Callable
-from typing import Protocol
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened, UpstreamConnected, UpstreamFailed
 from whiztap.sniffer.nettext import reason, show_address
+from whiztap.sniffer.record.consumers import Consumer
 
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
 CLOSE_GRACE_S = 2.0
-
-
-class Sink(Protocol):
-    """Where the proxy reports what it sees (``whiztap.sniffer.record.feed.WriterProcess``)."""
-
-    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None: ...
-    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None: ...
-    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None: ...
-    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None: ...
-    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None: ...
-    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None: ...
 
 
 class Clock:
@@ -116,14 +107,16 @@ class _Leg(asyncio.Protocol):
         asyncio.get_running_loop().call_soon(self.sync)  # once reading has started
 
     def data_received(self, data: bytes) -> None:
-        t = self.conn.proxy.clock()
+        conn = self.conn
+        proxy = conn.proxy
+        t = proxy.clock()
         target = self.target
         if target is not None:
             target.write(data)
         else:
             self.early.append(data)  # the upstream is not connected yet
         self.received += len(data)
-        self.conn.proxy.sink.data(self.conn.id, self.direction, t, data)
+        proxy.receive(Data(conn.id, self.direction, t, data))
         if not self.may_read():  # whatever pause was missed, this read is the last
             self.transport.pause_reading()  # type: ignore[union-attr]
 
@@ -166,7 +159,7 @@ class Connection:
         proxy = self.proxy
         self.client_addr = address(transport.get_extra_info("peername"))
         self.opened_ns = proxy.clock()
-        proxy.sink.opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text)
+        proxy.receive(Opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text))
         proxy.notify("opened", self)
         self._connect = asyncio.get_running_loop().create_task(self._open_upstream())
 
@@ -182,7 +175,7 @@ class Connection:
         except (OSError, asyncio.TimeoutError) as e:
             why = "timed out" if isinstance(e, asyncio.TimeoutError) else reason(e)
             detail = f"cannot connect to {proxy.upstream_text}: {why}"
-            proxy.sink.upstream_failed(self.id, proxy.clock(), detail)
+            proxy.receive(UpstreamFailed(self.id, proxy.clock(), detail))
             self.detail = detail
             self.closed_by = "server"
             self.client.transport.close()  # type: ignore[union-attr]
@@ -191,7 +184,7 @@ class Connection:
             self.upstream.transport.close()  # type: ignore[union-attr]
             return
         local = address(self.upstream.transport.get_extra_info("sockname"))  # type: ignore[union-attr]
-        proxy.sink.upstream_connected(self.id, proxy.clock(), f"from {local}")
+        proxy.receive(UpstreamConnected(self.id, proxy.clock(), f"from {local}"))
         for data in self.client.early:
             self.upstream.transport.write(data)  # type: ignore[union-attr]
         self.client.early.clear()
@@ -204,7 +197,7 @@ class Connection:
 
     def half_closed(self, leg: _Leg) -> None:
         """A FIN from one side (the client's is only read once upstream is connected)."""
-        self.proxy.sink.half_closed(self.id, leg.direction, self.proxy.clock())
+        self.proxy.receive(HalfClosed(self.id, self.proxy.clock(), leg.direction))
         if self.closed_by is None:
             self.closed_by, self.detail = leg.direction.sender, "closed"
         peer = leg.peer
@@ -225,7 +218,7 @@ class Connection:
         if peer.transport is not None and not peer.lost:  # type: ignore[union-attr]
             peer.transport.close()  # type: ignore[union-attr]  # after sending what it holds
         elif not self._done.done():
-            self.proxy.sink.closed(self.id, self.proxy.clock(), self.closed_by, self.detail)
+            self.proxy.receive(Closed(self.id, self.proxy.clock(), self.closed_by, self.detail))
             self._done.set_result(None)
             self.proxy.forget(self)
 
@@ -248,18 +241,19 @@ class Connection:
 
 
 class RecordingProxy:
-    """Listens, and proxies each client to the upstream address, reporting to ``sink``.
+    """Listens, and proxies each client to the upstream address, handing what
+    happens to ``consumer`` as traffic events (one ``Data`` per read).
 
     ``on_connection(event, connection)`` is told about "opened" and "closed".
     """
 
     def __init__(self, listen_host: str, listen_port: int, upstream_host: str, upstream_port: int,
-                 sink: Sink, *, connect_timeout: float = 5.0,
+                 consumer: Consumer, *, connect_timeout: float = 5.0,
                  on_connection: Callable[[str, Connection], None] | None = None) -> None:
         self.listen_host, self.listen_port = listen_host, listen_port
         self.upstream_host, self.upstream_port = upstream_host, upstream_port
         self.upstream_text = address((upstream_host, upstream_port))
-        self.sink = sink
+        self.receive = consumer.receive
         self.connect_timeout = connect_timeout
         self.on_connection = on_connection
         self.clock = Clock()

@@ -1,12 +1,14 @@
-"""Connection events in, recording out: the sessions, redaction and channels.
+"""Traffic events in, recording out: the sessions, redaction and channels.
 
-The proxy, the pcap importer and the live capture all describe traffic the same
-way (a connection opened, bytes arrived on one direction at a time, a side shut
-down, the connection closed) and the Recorder turns that into the recording
-layout of ``whiztap.analyzer.recording.format``: every read, every framer item with what the
-live session model made of it, violations, plottable values and lifecycle
-events.  It runs on one thread (the writer's), so messages reach each channel
-in the order they happened and ``log_time`` never goes backwards.
+The proxy, the pcap importer and the live capture all say what happened as the
+typed events of ``whiztap.analyzer.traffic`` (a connection opened, bytes
+arrived on one direction at a time, a side shut down, bytes are missing, the
+connection closed), and the Recorder (``receive(event)``) turns them into the
+recording layout of ``whiztap.analyzer.recording.format``: every read, every
+framer item with what the live session model made of it, violations, plottable
+values and the events themselves.  It runs on one thread (the writer's), so
+messages reach each channel in the order they happened and ``log_time`` never
+goes backwards.
 
 Passwords are redacted unless asked otherwise, by the rule of
 ``whiztap.analyzer.recording.redaction``: what the client sends until the server's verdict on the
@@ -23,8 +25,9 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import NamedTuple
+from dataclasses import dataclass, field, replace
+from functools import partial
+from typing import Any, NamedTuple
 
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.framing import ItemKind
@@ -34,25 +37,29 @@ from whiztap.analyzer.recording.encode import (
     encode,
     encode_plots,
     encode_read,
-    event_message,
     run_message,
     violation_message,
 )
 from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_FRAMES, TOPIC_READS, TOPIC_VIOLATIONS
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, Redactor
 from whiztap.analyzer.protocol.rules import Violation
-from whiztap.analyzer.protocol.session import Direction, Event, LateViolation, Limits, Observation, Session
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.traffic import (
-    NAMES,
     Closed,
+    ConnectionEvent,
     Continued,
+    Data,
     Gap,
     HalfClosed,
     Opened,
     RecordingStarted,
     RecordingStopped,
+    Traffic,
+    TrafficEvent,
     UpstreamConnected,
     UpstreamFailed,
+    to_json,
 )
 from whiztap.sniffer.record.writer import RecordingFile
 
@@ -61,11 +68,13 @@ _NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})  # not protocol: writ
 _DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
 
 ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
+Work = Callable[[], None]
 
 
 @dataclass
 class _Conn:
-    session: Session
+    """What the recorder keeps per connection besides its session (``Traffic``)."""
+
     client: str
     upstream: str
     received: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
@@ -77,7 +86,7 @@ class _ReadNote(NamedTuple):
     """What the recorder keeps with a read while it waits to be written."""
 
     c: _Conn
-    t: int
+    read: Data  # at the recorder's time
     offset: int
 
 
@@ -100,23 +109,27 @@ class Summary:
 
 
 class Recorder:
-    """Feeds each connection's bytes to its own Session and writes the recording."""
+    """Feeds each connection's bytes to its own Session and writes the recording:
+    ``start()``, then ``receive(event)`` for every traffic event (``tick()``
+    often), then ``stop()``."""
 
     def __init__(self, file: RecordingFile, *, keep_secrets: bool = False,
                  checksum_rule: str = DEFAULT_CHECKSUM_RULE, limits: Limits = Limits(),
                  on_violation: ViolationHook | None = None) -> None:
         self.file = file
         self.keep_secrets = keep_secrets
-        self.checksum_rule = checksum_rule
-        self.limits = limits
         self.on_violation = on_violation
         self.summary = Summary()
+        self._traffic = Traffic(partial(limits.session, checksum_rule))
         self._conns: dict[int, _Conn] = {}  # open, as far as the input goes
         self._live: dict[int, _Conn] = {}  # open, as far as the file goes
         # None with --keep-secrets; a queued record is a _ReadNote, or the work
-        # of a connection event (a callable)
-        self._redactor: Redactor[_ReadNote | Callable[[], None]] | None = \
-            None if keep_secrets else Redactor(HOLD_LIMIT_S)
+        # of a connection event
+        self._redactor: Redactor[_ReadNote | Work] | None = None if keep_secrets else Redactor(HOLD_LIMIT_S)
+        self._inputs: dict[type, Callable[[Any], Work]] = {
+            Opened: self._input_opened, UpstreamConnected: self._input_upstream_connected,
+            UpstreamFailed: self._input_upstream_failed, HalfClosed: self._input_half_closed,
+            Gap: self._input_gap, Closed: self._input_closed}
         self._frames = FrameEncoder()
         self._frame_counts = {C2S: 0, S2C: 0}
         self._bytes = {C2S: 0, S2C: 0}  # of closed connections
@@ -127,75 +140,41 @@ class Recorder:
 
     # -- input -----------------------------------------------------------------------
 
-    def start(self, t_ns: int, **details: object) -> None:
+    def start(self, t_ns: int, detail: str = "") -> None:
+        """Open the file; ``detail`` says where the traffic comes from."""
         self._t = self._now = t_ns
         self.file.open(t_ns)
-        self._write_event(0, NAMES[RecordingStarted], t_ns, **details)
+        self._write_event(RecordingStarted(t_ns, detail))
         self.file.flush()  # schemas, channels and metadata on disk at once
 
-    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
-        t = self._clock(t_ns)
-        c = self._conns[conn] = _Conn(self.limits.session(self.checksum_rule), client, upstream)
-        self.summary.connections += 1
-        if self._redactor is not None:
-            self._redactor.opened(conn)
-        self._then(conn, lambda: self._opened(conn, c, t))
-
-    def upstream_connected(self, conn: int, t_ns: int, detail: str = "") -> None:
-        t = self._clock(t_ns)
-        self._then(conn, lambda: self._write_event(conn, NAMES[UpstreamConnected], t, detail=detail))
-
-    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
-        t = self._clock(t_ns)
-        self.summary.upstream_failures += 1
-        c = self._conns[conn]
-        if self._redactor is not None:
-            self._redactor.ended(conn, S2C)  # the server will never speak
-        self._then(conn, lambda: self._upstream_failed(conn, c, t, detail))
-
-    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
-        if t_ns > self._t:
-            self._t = t_ns
-        t = self._t
-        c = self._conns[conn]
-        offset = c.received[direction]
-        c.received[direction] = offset + len(data)
-        redactor = self._redactor
-        if redactor is None or redactor.passing(conn):
-            self._write_read(conn, c, direction, t, offset, data, ())
+    def receive(self, event: TrafficEvent) -> None:
+        """One traffic event of a connection (the recording's own start and
+        stop are ``start()`` and ``stop()``).  Hot loop for reads: each one
+        costs a little bookkeeping here before it is written."""
+        if type(event) is Data:
+            conn, direction, t_ns, data = event
+            if t_ns > self._t:
+                self._t = t_ns
+            t = self._t
+            if t != t_ns:
+                event = Data(conn, direction, t, data)  # a pcap's times may go back; the file's never do
+            c = self._conns[conn]
+            offset = c.received[direction]
+            c.received[direction] = offset + len(data)
+            redactor = self._redactor
+            if redactor is None or redactor.passing(conn):
+                self._write_read(c, event, offset, ())
+                return
+            redactor.read(conn, direction, data, _ReadNote(c, event, offset), time.monotonic())
+            self._release()
             return
-        redactor.read(conn, direction, data, _ReadNote(c, t, offset), time.monotonic())
-        self._release()
-
-    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
-        """One side shut down its sending direction (TCP FIN)."""
-        t = self._clock(t_ns)
-        c = self._conns[conn]
+        t = self._clock(event.t_ns)
+        if t != event.t_ns:
+            event = replace(event, t_ns=t)
+        work = self._inputs[type(event)](event)
         if self._redactor is not None:
-            self._redactor.ended(conn, direction)
-        self._then(conn, lambda: self._half_closed(conn, c, direction, t))
-
-    def gap(self, conn: int, direction: Direction, t_ns: int, length: int,
-            detail: str = "bytes missing from the capture; the session model restarts after them") -> None:
-        """``length`` bytes of one direction are not in the recording (a capture
-        missed them, or the proxy left them out: ``--when-behind gap``)."""
-        t = self._clock(t_ns)
-        c = self._conns[conn]
-        offset = c.received[direction]
-        c.received[direction] += length
-        self._bytes[direction] -= length  # counted as received at close; never seen
-        if self._redactor is not None:
-            self._redactor.gap(conn, direction, length)
-        self._then(conn, lambda: self._gap(conn, c, direction, t, offset, length, detail))
-
-    def closed(self, conn: int, t_ns: int, by: str, detail: str = "") -> None:
-        t = self._clock(t_ns)
-        c = self._conns.pop(conn)
-        for direction, n in c.received.items():
-            self._bytes[direction] += n
-        if self._redactor is not None:
-            self._redactor.closed(conn)  # what is still undecided is masked: nothing waits for it
-        self._then(conn, lambda: self._closed(conn, c, t, by, detail))
+            self._redactor.tell(event)  # type: ignore[arg-type]
+        self._then(event.conn, work)
 
     def tick(self, t_ns: int) -> None:
         """Called often (at least every few hundred ms): bounded holds, flush, rotation."""
@@ -209,14 +188,52 @@ class Recorder:
         self.file.closing = True  # the closing events end the part they belong to
         t = self._clock(t_ns)
         for conn in list(self._conns):
-            self.closed(conn, t, "recorder", detail or "recording stopped")
+            self.receive(Closed(conn, t, "recorder", detail or "recording stopped"))
         # every connection is closed, so nothing waits any more
-        self._then(0, lambda: self._write_event(0, NAMES[RecordingStopped], t, by="recorder", detail=detail))
+        stopped = RecordingStopped(t, "recorder", detail)
+        self._then(0, lambda: self._write_event(stopped))
         self.summary.messages = self.file.messages
         self.summary.frames.update({d.value: n for d, n in self._frame_counts.items()})
         self.summary.bytes.update({d.value: n for d, n in self._bytes.items()})
         self.summary.files = self.file.finish()
         return self.summary
+
+    # -- connection events as they come: the bookkeeping, and the work for their turn ----------
+
+    def _input_opened(self, e: Opened) -> Work:
+        c = self._conns[e.conn] = _Conn(e.client, e.upstream)
+        self._traffic.session(e.conn)
+        self.summary.connections += 1
+        return lambda: self._opened(c, e)
+
+    def _input_upstream_connected(self, e: UpstreamConnected) -> Work:
+        return lambda: self._write_event(e)
+
+    def _input_upstream_failed(self, e: UpstreamFailed) -> Work:
+        self.summary.upstream_failures += 1
+        c = self._conns[e.conn]
+        return lambda: self._upstream_failed(c, e)
+
+    def _input_half_closed(self, e: HalfClosed) -> Work:
+        c = self._conns[e.conn]
+        return lambda: self._half_closed(c, e)
+
+    def _input_gap(self, e: Gap) -> Work:
+        """``length`` bytes of one direction are not in the recording (a capture
+        missed them, or the proxy left them out: ``--when-behind gap``)."""
+        c = self._conns[e.conn]
+        offset = c.received[e.direction]
+        length = e.length or 0
+        c.received[e.direction] = offset + length
+        self._bytes[e.direction] -= length  # counted as received at close; never seen
+        gap = replace(e, offset=offset, length=length)
+        return lambda: self._gap(c, gap)
+
+    def _input_closed(self, e: Closed) -> Work:
+        c = self._conns.pop(e.conn)
+        for direction, n in c.received.items():
+            self._bytes[direction] += n
+        return lambda: self._closed(c, e)
 
     # -- internals ---------------------------------------------------------------------
 
@@ -234,7 +251,7 @@ class Recorder:
         if self._split:
             self.file.rotate_if_due(t)
 
-    def _then(self, conn: int, work: Callable[[], None]) -> None:
+    def _then(self, conn: int, work: Work) -> None:
         """A connection event's work: now, or after the reads that came before it."""
         redactor = self._redactor
         if redactor is None or redactor.idle:
@@ -250,52 +267,51 @@ class Recorder:
                 r.record()  # type: ignore[operator]
             else:
                 note: _ReadNote = r.record  # type: ignore[assignment]
-                self._write_read(r.conn, note.c, r.direction, note.t, note.offset, r.data, r.spans)
+                self._write_read(note.c, note.read._replace(data=r.data), note.offset, r.spans)
 
-    def _write_read(self, conn: int, c: _Conn, direction: Direction, t: int, offset: int, data: bytes,
-                    spans: list[tuple[int, int]] | tuple) -> None:
+    def _write_read(self, c: _Conn, read: Data, offset: int, spans: list[tuple[int, int]] | tuple) -> None:
         """One read into /tcp/reads (as it may be shown), and what the session makes of it."""
+        conn, direction, t, data = read
         self._at(t)
         self.file.write(TOPIC_READS, t, encode_read(conn, _DIR_TEXT[direction], t, offset, data, spans))
         c.written[direction] = offset + len(data)  # after: a part that begins before the read does not count it
-        self._observe_all(conn, c, c.session.receive(direction, data, t))
+        self._observe_all(conn, c, self._traffic.receive(read))
 
-    def _write_event(self, conn: int, event: str, t: int, **details: object) -> None:
-        self._now = t
-        self.file.write(TOPIC_EVENTS, t, encode(event_message(conn, event, t, **details)))
+    def _write_event(self, event: ConnectionEvent) -> None:
+        t = self._now = event.t_ns
+        self.file.write(TOPIC_EVENTS, t, encode(to_json(event)))
 
-    def _opened(self, conn: int, c: _Conn, t: int) -> None:
-        self._at(t)
-        self._live[conn] = c
-        self._write_event(conn, NAMES[Opened], t, client=c.client, upstream=c.upstream)
+    def _opened(self, c: _Conn, e: Opened) -> None:
+        self._at(e.t_ns)
+        self._live[e.conn] = c
+        self._write_event(e)
 
-    def _upstream_failed(self, conn: int, c: _Conn, t: int, detail: str) -> None:
-        c.session.server_unreachable(detail)
-        self._write_event(conn, NAMES[UpstreamFailed], t, by="server", detail=detail)
+    def _upstream_failed(self, c: _Conn, e: UpstreamFailed) -> None:
+        self._observe_all(e.conn, c, self._traffic.receive(e))  # the server will never speak
+        self._write_event(e)
 
-    def _half_closed(self, conn: int, c: _Conn, direction: Direction, t: int) -> None:
-        self._at(t)
-        self._observe_all(conn, c, c.session.end(direction, t))
+    def _half_closed(self, c: _Conn, e: HalfClosed) -> None:
+        self._at(e.t_ns)
+        self._observe_all(e.conn, c, self._traffic.receive(e))
         # after what the session made of the side's last bytes: the file keeps each stream's order
-        self._write_event(conn, NAMES[HalfClosed], t, by=direction.sender, dir=direction.value)
+        self._write_event(e)
 
-    def _gap(self, conn: int, c: _Conn, direction: Direction, t: int, offset: int, length: int,
-             detail: str) -> None:
-        self._write_event(conn, NAMES[Gap], t, dir=direction.value, offset=offset, length=length, detail=detail)
-        c.written[direction] = offset + length
+    def _gap(self, c: _Conn, e: Gap) -> None:
+        self._write_event(e)
+        c.written[e.direction] = e.offset + e.length  # type: ignore[operator]
         # The framer cannot know what the missing bytes were: it finishes what it
         # has and starts a fresh session model after the hole.
-        self._observe_all(conn, c, c.session.close(t))
-        c.session = self.limits.session(self.checksum_rule)
+        self._observe_all(e.conn, c, self._traffic.receive(e))
+        self._traffic.session(e.conn)
         c.framed = dict(c.written)
 
-    def _closed(self, conn: int, c: _Conn, t: int, by: str, detail: str) -> None:
-        self._at(t)
-        del self._live[conn]
-        self._observe_all(conn, c, c.session.close(t))
-        self._write_event(conn, NAMES[Closed], t, by=by, detail=detail, c2s_bytes=c.received[C2S],
-                          s2c_bytes=c.received[S2C], mode=c.session.mode.value,
-                          handshake=c.session.handshake_outcome)
+    def _closed(self, c: _Conn, e: Closed) -> None:
+        self._at(e.t_ns)
+        del self._live[e.conn]
+        session = self._traffic.sessions[e.conn]
+        self._observe_all(e.conn, c, self._traffic.receive(e))
+        self._write_event(Closed(e.conn, e.t_ns, e.by, e.detail, c.received[C2S], c.received[S2C],
+                                 session.mode.value, session.handshake_outcome))
 
     def _observe_all(self, conn: int, c: _Conn, events: list[Event]) -> None:
         """Write what the session made of a read: the hot loop of recording.
@@ -390,8 +406,7 @@ class Recorder:
     def _continued(self, part: int) -> None:
         """A new file began: say which connections are open and where their streams are."""
         for conn, c in self._live.items():
-            self._write_event(conn, NAMES[Continued], self._now, client=c.client, upstream=c.upstream,
-                              c2s_offset=c.written[C2S], s2c_offset=c.written[S2C],
-                              detail=f"connection open when part {part} began")
+            self._write_event(Continued(conn, self._now, c.client, c.upstream, c.written[C2S], c.written[S2C],
+                                        f"connection open when part {part} began"))
         self.file.flush()
 

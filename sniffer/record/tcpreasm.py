@@ -1,11 +1,11 @@
-"""TCP reassembly for captures: packets in, per-direction byte streams out.
+"""TCP reassembly for captures: packets in, traffic events out.
 
 Scapy's own TCPSession fills bytes missing from a capture with zeros without a
 word; a recording must never invent bytes, so whiztap reassembles itself.  Each
 direction keeps the next sequence number it expects.  A segment at or before it
 is a retransmission (its new part, if any, is used); one after it waits in a
 small buffer for the hole to fill.  A hole is declared a gap (an event, never
-zeros) when the receiver acknowledges bytes the capture never showed, or the
+zeros: a ``Gap`` event with its length) when the receiver acknowledges bytes the capture never showed, or the
 sender's FIN comes after them, and they still have not shown up
 ``ACK_GRACE_NS`` later (a capture taken on several CPUs can list a packet
 after the ACK that answered it); when the connection resets or the capture
@@ -28,9 +28,11 @@ import itertools
 import struct
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
-from whiztap.analyzer.protocol.session import Direction
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, UpstreamConnected, UpstreamFailed
+from whiztap.sniffer.record.consumers import Consumer
 
 C2S, S2C = Direction.C2S, Direction.S2C
 MAX_PENDING = 4 << 20  # bytes waiting behind a hole before it is declared a gap
@@ -123,18 +125,6 @@ def endpoint_text(ep: tuple[str, int]) -> str:
     return f"[{ep[0]}]:{ep[1]}" if ":" in ep[0] else f"{ep[0]}:{ep[1]}"
 
 
-class StreamSink(Protocol):
-    """What reassembly reports to: ``whiztap.sniffer.record.recorder.Recorder``."""
-
-    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None: ...
-    def upstream_connected(self, conn: int, t_ns: int, detail: str = "") -> None: ...
-    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None: ...
-    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None: ...
-    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None: ...
-    def gap(self, conn: int, direction: Direction, t_ns: int, length: int) -> None: ...
-    def closed(self, conn: int, t_ns: int, by: str, detail: str = "") -> None: ...
-
-
 def _diff(a: int, b: int) -> int:
     """a - b in 32-bit sequence space (positive: a is after b)."""
     return ((a - b + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
@@ -164,11 +154,12 @@ class _Conn:
 
 
 class Reassembler:
-    """Turns the TCP segments to and from ``port`` into stream events on ``sink``."""
+    """Turns the TCP segments to and from ``port`` into traffic events for
+    ``consumer`` (``whiztap.sniffer.record.recorder.Recorder``)."""
 
-    def __init__(self, port: int, sink: StreamSink, max_open: int = MAX_OPEN) -> None:
+    def __init__(self, port: int, consumer: Consumer, max_open: int = MAX_OPEN) -> None:
         self.port = port
-        self.sink = sink
+        self.receive = consumer.receive
         self.max_open = max_open
         self.gaps = 0
         self._conns: OrderedDict[frozenset, _Conn] = OrderedDict()  # the one idle longest first
@@ -203,7 +194,7 @@ class Reassembler:
                 half.next = (s.seq + 1) & 0xFFFFFFFF
             if direction is S2C and s.flags & ACK and not conn.established:
                 conn.established = True
-                self.sink.upstream_connected(conn.id, s.t_ns, "SYN-ACK")
+                self.receive(UpstreamConnected(conn.id, s.t_ns, "SYN-ACK"))
             return
         if s.flags & RST:
             self._reset(key, conn, direction, s.t_ns)
@@ -233,7 +224,7 @@ class Reassembler:
             for direction, half in conn.halves.items():
                 self._flush_pending(conn, direction, half, t_ns)
             self._end(key)
-            self.sink.closed(conn.id, t_ns, "recorder", "the capture ended")
+            self.receive(Closed(conn.id, t_ns, "recorder", "the capture ended"))
 
     # -- internals ---------------------------------------------------------------------
 
@@ -253,7 +244,7 @@ class Reassembler:
             self._settle(conn, direction, t, force=True)
             self._flush_pending(conn, direction, half, t)
         self._end(key, evicted=True)
-        self.sink.closed(conn.id, t, "recorder", EVICTED)
+        self.receive(Closed(conn.id, t, "recorder", EVICTED))
 
     def _open(self, key: frozenset, s: Segment) -> _Conn:
         if len(self._conns) >= self.max_open:
@@ -269,7 +260,7 @@ class Reassembler:
             conn.established = True  # joined mid-stream
         self._conns[key] = conn
         self._quiet[key] = None
-        self.sink.opened(conn.id, s.t_ns, endpoint_text(client), endpoint_text(server))
+        self.receive(Opened(conn.id, s.t_ns, endpoint_text(client), endpoint_text(server)))
         return conn
 
     def _data(self, conn: _Conn, direction: Direction, half: _Half, seq: int, payload: bytes, t: int) -> None:
@@ -288,7 +279,7 @@ class Reassembler:
             self._flush_pending(conn, direction, half, t)
 
     def _deliver(self, conn: _Conn, direction: Direction, half: _Half, data: bytes, t: int) -> None:
-        self.sink.data(conn.id, direction, t, data)
+        self.receive(Data(conn.id, direction, t, data))
         half.next = (half.next + len(data)) & 0xFFFFFFFF  # type: ignore[operator]
 
     def _drain(self, conn: _Conn, direction: Direction, half: _Half, t: int) -> None:
@@ -310,7 +301,7 @@ class Reassembler:
         length = _diff(seq, half.next)  # type: ignore[arg-type]
         if length > 0:
             self.gaps += 1
-            self.sink.gap(conn.id, direction, t, length)
+            self.receive(Gap(conn.id, t, direction, length))
             half.next = seq
             self._drain(conn, direction, half, t)
 
@@ -366,10 +357,10 @@ class Reassembler:
         half.done = True
         if conn.closed_by is None:
             conn.closed_by = direction.sender
-        self.sink.half_closed(conn.id, direction, t)
+        self.receive(HalfClosed(conn.id, t, direction))
         if all(h.done for h in conn.halves.values()):
             self._end(key)
-            self.sink.closed(conn.id, t, conn.closed_by, "closed")
+            self.receive(Closed(conn.id, t, conn.closed_by, "closed"))
 
     def _reset(self, key: frozenset, conn: _Conn, direction: Direction, t: int) -> None:
         for d, half in conn.halves.items():
@@ -377,5 +368,5 @@ class Reassembler:
             self._flush_pending(conn, d, half, t)
         self._end(key)
         if direction is S2C and not conn.established:
-            self.sink.upstream_failed(conn.id, t, "connection refused (RST)")
-        self.sink.closed(conn.id, t, direction.sender, "reset")
+            self.receive(UpstreamFailed(conn.id, t, "connection refused (RST)"))
+        self.receive(Closed(conn.id, t, direction.sender, "reset"))

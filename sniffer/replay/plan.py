@@ -31,7 +31,7 @@ from whiztap.analyzer.protocol.messages import (
     StopInternalScript,
     UnknownCommand,
 )
-from whiztap.analyzer.protocol.session import Mode
+from whiztap.analyzer.protocol.handshake import Mode
 from whiztap.analyzer.protocol.text import escape, shorten
 
 NS = 1_000_000_000

@@ -34,9 +34,11 @@ from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.analysis.exchanges import RecordedConnection, RecordedSessions
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import FailedValidation, ReadyToGo
-from whiztap.analyzer.protocol.session import Direction, Mode, Observation, Session
+from whiztap.analyzer.protocol.handshake import Mode
+from whiztap.analyzer.protocol.observations import Direction, Observation
+from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.text import escape
-from whiztap.sniffer.replay.engine import Pace
+from whiztap.sniffer.replay.options import Pace
 from whiztap.sniffer.sim.tcp_server import READ_SIZE, TcpServer
 
 NS = 1_000_000_000

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from whiztap.analyzer import __version__
-from whiztap.analyzer.analysis.analyzer import NS, Analysis
+from whiztap.analyzer.analysis.analyzer import NS, Analysis, ConnectionSummary, ViolationRecord
 from whiztap.analyzer.protocol.checksum import get_rule
 from whiztap.analyzer.protocol.rules import RULES, Severity
 from whiztap.analyzer.protocol.text import escape
@@ -21,16 +21,9 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
     not be read (the key is there only when there are some).  A report on no
     traffic (``nothing_judged`` says why) does not pass unless ``allow_empty``."""
     counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
-    by_severity = {str(s): 0 for s in (Severity.ERROR, Severity.WARNING, Severity.INFO)}
-    for rule_id, n in counts.items():
-        by_severity[str(RULES[rule_id].severity)] += n
     failing = any(RULES[r].severity >= threshold for r, n in counts.items() if n)
     nothing = nothing_judged(analysis)
     start = analysis.first_ns or 0
-    frames_by_kind: dict[str, dict[str, int]] = {"c2s": {}, "s2c": {}}
-    for c in analysis.connections:
-        for (direction, kind), n in c.frames.items():
-            frames_by_kind[direction][kind] = frames_by_kind[direction].get(kind, 0) + n
     listed = [v for v in analysis.violations if v.rule_id not in ignore]
     rule = get_rule(analysis.checksum_rule)
     report: dict[str, Any] = {
@@ -43,33 +36,10 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         "severity_threshold": str(threshold),
         "ignored_rules": sorted(ignore),
         "passed": not failing and (nothing is None or allow_empty),
-        "summary": {
-            "connections": len(analysis.connections),
-            "frames": analysis.frames,
-            "first_ns": analysis.first_ns,
-            "last_ns": analysis.last_ns,
-            "duration_s": round(analysis.duration_s, 6),
-            "frames_by_kind": frames_by_kind,
-            "violations_by_severity": by_severity,
-        },
-        "connections": [{
-            "file": c.file, "conn": c.conn, "client": c.client, "upstream": c.upstream,
-            "mode": c.mode, "handshake": c.handshake, "first_ns": c.first_ns, "last_ns": c.last_ns,
-            "frames": sum(c.frames.values()),
-            "violations": {r: n for r, n in sorted(c.violations.items()) if r not in ignore},
-            "channel_map": {str(ch): {"unit_type": cfg.unit_type, "unused": cfg.unused,
-                                      "switch_type": cfg.switch_type}
-                            for ch, cfg in sorted(c.channel_map.items())},
-            "closed_by": c.closed_by, "notes": list(c.notes),
-        } for c in analysis.connections],
+        "summary": _summary(analysis, counts),
+        "connections": [_connection(c, ignore) for c in analysis.connections],
         "rule_counts": {r: counts[r] for r in RULES if counts.get(r)},
-        "violations": [{
-            "rule_id": v.rule_id, "severity": str(v.severity), "section": RULES[v.rule_id].section,
-            "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
-            "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
-            "detail": v.detail,
-            "late": v.late,
-        } for v in listed],
+        "violations": [_violation(v, start) for v in listed],
         "violations_not_listed": sum(counts.values()) - len(listed),
         "latency": [{
             "request": title, "count": s.count, "mean_ns": round(s.mean), "p50_ns": s.percentile(50),
@@ -87,6 +57,50 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
     if nothing is not None:
         report["nothing_judged"] = nothing
     return report
+
+
+def _summary(analysis: Analysis, counts: dict[str, int]) -> dict[str, Any]:
+    """The report's totals; ``counts``: violations by rule, ignored rules left out."""
+    by_severity = {str(s): 0 for s in (Severity.ERROR, Severity.WARNING, Severity.INFO)}
+    for rule_id, n in counts.items():
+        by_severity[str(RULES[rule_id].severity)] += n
+    frames_by_kind: dict[str, dict[str, int]] = {"c2s": {}, "s2c": {}}
+    for c in analysis.connections:
+        for (direction, kind), n in c.frames.items():
+            frames_by_kind[direction][kind] = frames_by_kind[direction].get(kind, 0) + n
+    return {
+        "connections": len(analysis.connections),
+        "frames": analysis.frames,
+        "first_ns": analysis.first_ns,
+        "last_ns": analysis.last_ns,
+        "duration_s": round(analysis.duration_s, 6),
+        "frames_by_kind": frames_by_kind,
+        "violations_by_severity": by_severity,
+    }
+
+
+def _connection(c: ConnectionSummary, ignore: frozenset[str]) -> dict[str, Any]:
+    return {
+        "file": c.file, "conn": c.conn, "client": c.client, "upstream": c.upstream,
+        "mode": c.mode, "handshake": c.handshake, "first_ns": c.first_ns, "last_ns": c.last_ns,
+        "frames": sum(c.frames.values()),
+        "violations": {r: n for r, n in sorted(c.violations.items()) if r not in ignore},
+        "channel_map": {str(ch): {"unit_type": cfg.unit_type, "unused": cfg.unused,
+                                  "switch_type": cfg.switch_type}
+                        for ch, cfg in sorted(c.channel_map.items())},
+        "closed_by": c.closed_by, "notes": list(c.notes),
+    }
+
+
+def _violation(v: ViolationRecord, start: int) -> dict[str, Any]:
+    """One violation; ``t_rel_s`` counts from ``start``, the first traffic."""
+    return {
+        "rule_id": v.rule_id, "severity": str(v.severity), "section": RULES[v.rule_id].section,
+        "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
+        "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
+        "detail": v.detail,
+        "late": v.late,
+    }
 
 
 def nothing_judged(analysis: Analysis) -> str | None:

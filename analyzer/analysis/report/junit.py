@@ -14,7 +14,7 @@ from __future__ import annotations
 import datetime
 import socket
 import xml.etree.ElementTree as ET
-from collections import defaultdict
+from collections import Counter, defaultdict
 from typing import Any
 
 from whiztap.analyzer.protocol.rules import RULES, Severity
@@ -24,6 +24,27 @@ from whiztap.analyzer.protocol.text import printable as _x  # XML 1.0 forbids mo
 def render_junit(report: dict[str, Any]) -> str:
     """Every value from the report goes through ``_x`` (ElementTree escapes
     markup, but writes control characters as they are: invalid XML)."""
+    suites = ET.Element("testsuites", name="whiztap")
+    suite = ET.SubElement(suites, "testsuite", name="whiztap conformance",
+                          timestamp=_timestamp(report), hostname=socket.gethostname())
+    props = ET.SubElement(suite, "properties")
+    for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
+                        ("severity_threshold", report["severity_threshold"])):
+        ET.SubElement(props, "property", name=name, value=_x(value))
+    tally: Counter[str] = Counter()  # tests, failures, errors, skipped
+    _rule_cases(suite, report, tally)
+    _input_cases(suite, report, tally)
+    for element in (suites, suite):
+        element.set("tests", str(tally["tests"]))
+        element.set("failures", str(tally["failures"]))
+        element.set("errors", str(tally["errors"]))
+    suite.set("skipped", str(tally["skipped"]))
+    ET.indent(suites)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(suites, encoding="unicode") + "\n"
+
+
+def _rule_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) -> None:
+    """A case per rule per connection that broke it; one for the whole recording when none did."""
     listed: dict[tuple[str, str, int], list[dict[str, Any]]] = defaultdict(list)
     for v in report["violations"]:
         listed[(v["rule_id"], v["file"], v["conn"])].append(v)
@@ -33,29 +54,21 @@ def render_junit(report: dict[str, Any]) -> str:
             counted[rule_id][(c["file"], c["conn"])] = n
     ignored = set(report["ignored_rules"])
     threshold = Severity.parse(report["severity_threshold"])
-    suites = ET.Element("testsuites", name="whiztap")
-    suite = ET.SubElement(suites, "testsuite", name="whiztap conformance",
-                          timestamp=_timestamp(report), hostname=socket.gethostname())
-    props = ET.SubElement(suite, "properties")
-    for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
-                        ("severity_threshold", report["severity_threshold"])):
-        ET.SubElement(props, "property", name=name, value=_x(value))
-    tests = failures = skipped = errors = 0
     for rule_id, rule in RULES.items():
         classname = f"whiztap.{rule.section}"
         where = sorted(counted.get(rule_id, {}).items())
         if rule_id in ignored or not where:
             case = ET.SubElement(suite, "testcase", classname=classname, name=f"{rule_id}: {rule.summary}")
-            tests += 1
+            tally["tests"] += 1
             if rule_id in ignored:
                 ET.SubElement(case, "skipped", message="ignored by --ignore")
-                skipped += 1
+                tally["skipped"] += 1
             continue
         fails = rule.severity >= threshold
         for (file, conn), n in where:
             case = ET.SubElement(suite, "testcase", classname=classname,
                                  name=_x(f"{rule_id}: {rule.summary} [{file} conn {conn}]"))
-            tests += 1
+            tally["tests"] += 1
             shown = listed.get((rule_id, file, conn), [])
             texts = [_x(f"{v['file']} conn {v['conn']} {v['dir'] or ''} at +{v['t_rel_s']:.6f}s") + "\n"
                      + _x(f"frame: {v['frame']}") + "\n" + _x(v["detail"]) for v in shown]
@@ -63,30 +76,27 @@ def render_junit(report: dict[str, Any]) -> str:
                 if texts:
                     ET.SubElement(case, "system-out").text = "\n\n".join(texts)
                 continue
-            failures += 1
+            tally["failures"] += 1
             for v, text in zip(shown, texts):
                 ET.SubElement(case, "failure", type=v["severity"], message=_x(v["detail"])).text = text
             if n > len(shown):
                 ET.SubElement(case, "failure", type=str(rule.severity), message=f"{n - len(shown)} more not listed")
+
+
+def _input_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) -> None:
+    """The cases about the inputs: there was traffic to judge; every recording could be read."""
     if report.get("nothing_judged"):
         case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="the recordings hold traffic to judge")
-        tests += 1
+        tally["tests"] += 1
         if not report["passed"]:
             ET.SubElement(case, "failure", type="nothing_judged", message=_x(report["nothing_judged"]))
-            failures += 1
+            tally["failures"] += 1
     if report.get("unreadable"):
         case = ET.SubElement(suite, "testcase", classname="whiztap.input", name="every recording could be read")
-        tests += 1
-        errors += 1
+        tally["tests"] += 1
+        tally["errors"] += 1
         for u in report["unreadable"]:
             ET.SubElement(case, "error", type="unreadable", message=_x(u["error"])).text = _x(u["file"])
-    for element in (suites, suite):
-        element.set("tests", str(tests))
-        element.set("failures", str(failures))
-        element.set("errors", str(errors))
-    suite.set("skipped", str(skipped))
-    ET.indent(suites)
-    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(suites, encoding="unicode") + "\n"
 
 
 def _timestamp(report: dict[str, Any]) -> str:

@@ -85,15 +85,26 @@ def _table(title: str, columns: list[tuple[str, str]], rows: list[list[object]])
 def render_text(report: dict[str, Any], console: Console) -> None:
     """Every value reaches the console as ``_plain`` text: values come from
     recordings and the wire, and the report is often read on a terminal."""
-    def plain(value: object, style: str = "") -> Text:
-        return _plain(console, value, style)
-
     rule = report["checksum_rule"]
-    console.print(Text("whiztap conformance report", style="bold"), plain(f"— {headline(report)}"))
-    console.print(plain(f"Spec Rev {report['spec_revision']}; checksum rule: {rule['name']} ({rule['description']})"))
+    console.print(Text("whiztap conformance report", style="bold"), _plain(console, f"— {headline(report)}"))
+    console.print(_plain(console, f"Spec Rev {report['spec_revision']}; checksum rule: {rule['name']} "
+                                  f"({rule['description']})"))
     if report["ignored_rules"]:
-        console.print(plain(f"Ignored rules: {', '.join(report['ignored_rules'])}"))
+        console.print(_plain(console, f"Ignored rules: {', '.join(report['ignored_rules'])}"))
+    _text_traffic(report, console)
+    if report["violations"]:
+        _text_violations(report, console)
+    _text_latency_and_checksums(report, console)
+    if report.get("unreadable"):
+        console.print(Text("Not in this report (could not be read)", style="bold red"))
+        for u in report["unreadable"]:
+            console.print(_plain(console, f"  {u['error']}"), overflow="fold")
+    good = report["passed"] and not report.get("unreadable")
+    console.print(Text(printable(verdict(report)), style="bold green" if good else "bold red"))
 
+
+def _text_traffic(report: dict[str, Any], console: Console) -> None:
+    """Files, connections (with their notes and channels) and items by kind."""
     if len(report["per_file"]) > 1:
         console.print(_table("Files", [("file", "left"), ("connections", "right"), ("frames", "right"),
                                        ("violations", "right")],
@@ -106,9 +117,10 @@ def render_text(report: dict[str, Any], console: Console) -> None:
                            sum(c["violations"].values())] for c in report["connections"]]))
     for c in report["connections"]:
         for note in c["notes"]:
-            console.print(plain(f"  conn {c['conn']}: {note}"))
+            console.print(_plain(console, f"  conn {c['conn']}: {note}"))
         if c["channel_map"]:
-            console.print(plain(f"  conn {c['conn']} channels: {channel_ranges(c['channel_map'])}"), overflow="fold")
+            console.print(_plain(console, f"  conn {c['conn']} channels: {channel_ranges(c['channel_map'])}"),
+                          overflow="fold")
 
     kinds = report["summary"]["frames_by_kind"]
     console.print(_table("Items by kind", [("kind", "left"), ("client→server", "right"),
@@ -116,40 +128,38 @@ def render_text(report: dict[str, Any], console: Console) -> None:
                          [[kind, f"{kinds['c2s'].get(kind, 0):,}", f"{kinds['s2c'].get(kind, 0):,}"]
                           for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"]))]))
 
-    if report["violations"]:
-        console.print(Text("Violations", style="bold"))
-        for v in report["violations"]:
-            line = Text()
-            line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
-            line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  "))
-            line.append(printable(v["detail"]))
-            console.print(line)
-            frame = shorten(v["frame"], TEXT_FRAME)
-            console.print(Text(printable(f"    {frame}"), style="dim"), plain(f"  ({v['section']})"), overflow="fold")
-        if report["violations_not_listed"]:
-            console.print(plain(f"… and {report['violations_not_listed']} more not listed"))
-        console.print(_table("Violations by rule", [("rule", "left"), ("count", "right")],
-                             [[rule_id, n] for rule_id, n in report["rule_counts"].items()]))
 
+def _text_violations(report: dict[str, Any], console: Console) -> None:
+    console.print(Text("Violations", style="bold"))
+    for v in report["violations"]:
+        line = Text()
+        line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
+        line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  "))
+        line.append(printable(v["detail"]))
+        console.print(line)
+        frame = shorten(v["frame"], TEXT_FRAME)
+        console.print(Text(printable(f"    {frame}"), style="dim"), _plain(console, f"  ({v['section']})"),
+                      overflow="fold")
+    if report["violations_not_listed"]:
+        console.print(_plain(console, f"… and {report['violations_not_listed']} more not listed"))
+    console.print(_table("Violations by rule", [("rule", "left"), ("count", "right")],
+                         [[rule_id, n] for rule_id, n in report["rule_counts"].items()]))
+
+
+def _text_latency_and_checksums(report: dict[str, Any], console: Console) -> None:
     if report["latency"]:
         console.print(_table("Latency by request", [("request", "left")] + [(c, "right") for c in (
             "count", "p50", "p95", "p99", "max")],
                              [[r["request"], f"{r['count']:,}", duration(r["p50_ns"]), duration(r["p95_ns"]),
                                duration(r["p99_ns"]), duration(r["max_ns"])] for r in report["latency"]]))
     for title, n in report["unanswered"].items():
-        console.print(plain(f"Never answered: {n} × {title}", "yellow"))
+        console.print(_plain(console, f"Never answered: {n} × {title}", "yellow"))
 
     for c in report["set_configurations"]:
         ok = "ok" if c["ok"] else f"expected {c['expected']}"
         fits = ", ".join(c["satisfies"]) or "no candidate rule"
-        console.print(plain(f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); fits: {fits}"))
-
-    if report.get("unreadable"):
-        console.print(Text("Not in this report (could not be read)", style="bold red"))
-        for u in report["unreadable"]:
-            console.print(plain(f"  {u['error']}"), overflow="fold")
-    good = report["passed"] and not report.get("unreadable")
-    console.print(Text(printable(verdict(report)), style="bold green" if good else "bold red"))
+        console.print(_plain(console, f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); "
+                                      f"fits: {fits}"))
 
 
 _MD_INLINE = re.compile(r"([\\`*_\[\]|~])")  # what Markdown (GFM tables too) reads as syntax anywhere

@@ -1,0 +1,67 @@
+"""Options of the sniffer's commands: network addresses, and the options of
+every command that writes a recording (record, capture) with its output check."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import click
+
+from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.output import check_output
+from whiztap.analyzer.cli.params import ByteSize, checksum_rule_option, force_option
+
+
+class Address(click.ParamType):
+    """HOST:PORT, [V6]:PORT, or PORT alone when there is a default host; the
+    value is (host, port).  ``what`` names it in a message (default: the option)."""
+
+    name = "address"
+
+    def __init__(self, default_host: str | None = None, what: str | None = None) -> None:
+        self.default_host = default_host
+        self.what = what
+
+    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
+        if isinstance(value, tuple):
+            return value
+        from whiztap.sniffer.nettext import AddressError, parse_address
+
+        what = self.what or (max(param.opts, key=len) if param is not None else "address")
+        try:
+            return parse_address(value, self.default_host, what)
+        except AddressError as e:
+            fail(str(e))
+
+
+def recording_options(f: Callable) -> Callable:
+    """Splitting, secrets, the checksum rule and --force: the options of every
+    command that writes a recording."""
+    for option in reversed([
+        click.option("--split-size", type=ByteSize(), default=None,
+                     help="Start a new numbered file when this one reaches BYTES (e.g. 100M)."),
+        click.option("--split-duration", type=click.FloatRange(min=0.001), default=None, metavar="SECONDS",
+                     help="Start a new numbered file every SECONDS."),
+        click.option("--keep-secrets", is_flag=True,
+                     help="Record the password as sent (default: '*' bytes and <redacted>)."),
+        checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules')."),
+        force_option,
+    ]):
+        f = option(f)
+    return f
+
+
+def check_recording_output(output: str, split: bool, force: bool, inputs: tuple[str, ...] = ()) -> None:
+    """The output rule (whiztap.analyzer.recording.output_rule) for a recording: never over an
+    input; not over a recording, or the ``.part`` a crashed one left (which
+    'whiztap recover' could still save), unless --force.  A split recording
+    refuses every numbered part already there at start, rather than stop when
+    it reaches one hours later."""
+    check_output(output, inputs, force=force, recording=True, split=split)
+    if split and not force:
+        from whiztap.analyzer.recording.sets import numbered_parts
+
+        later = numbered_parts(output)
+        if later:
+            fail(f"{later[0]} exists (a part of another recording?); "
+                 f"use --force to overwrite it or -o to choose another name")

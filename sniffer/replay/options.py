@@ -1,0 +1,55 @@
+"""What a replay is asked to do (``ReplayOptions``), and the error it stops with.
+
+Shared by the replay engine, the stub (which takes its ``Pace``) and the front
+ends that build the options: the command line, the TUI and the pytest plugin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+from whiztap.analyzer.analysis.compare import CompareRules
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
+from whiztap.sniffer.replay.plan import Selection
+
+
+class Pace(StrEnum):
+    RECORDED = "recorded"
+    LOCKSTEP = "lockstep"
+    MAX = "max"
+
+
+class ReplayError(Exception):
+    """The replay cannot start or go on (one line for the user).
+
+    ``missing`` names a setting the replay needs and was not given ("target",
+    "password"): each front end says how to give it in its own terms
+    (``explained``); the command line and the TUI check the target themselves
+    before a replay exists, so only the password reaches them this way.
+    """
+
+    def __init__(self, message: str, missing: str | None = None) -> None:
+        super().__init__(message)
+        self.missing = missing
+
+    def explained(self, how: dict[str, str]) -> str:
+        """The message, with ``how[missing]`` saying how to give what is missing."""
+        hint = how.get(self.missing or "")
+        return f"{self}: {hint}" if hint else str(self)
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayOptions:
+    target: tuple[str, int] | None = None
+    password: bytes | None = None  # None: the recorded one if it was kept
+    pace: Pace = Pace.RECORDED
+    rate: float = 1.0
+    segments: bool = False  # re-send the recorded TCP reads instead of whole frames
+    rules: CompareRules = CompareRules()
+    timeout: float = 2.0  # for each expected answer and the handshake
+    connect_timeout: float = 5.0
+    loop: int = 1
+    selection: Selection = Selection()
+    output: str | None = None  # write the replayed session here as a recording
+    checksum_rule: str = DEFAULT_CHECKSUM_RULE
