@@ -25,7 +25,6 @@ import textwrap
 import zipfile
 from pathlib import Path
 
-import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("analyzer", "sniffer", "tui")

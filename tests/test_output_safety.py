@@ -31,7 +31,7 @@ from rich.console import Console
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
-from whiztap.sniffer.cli.record import base_metadata
+from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.record.writer import RecordingFile

@@ -204,7 +204,6 @@ def test_the_progress_bar_moves_with_several_processes(tmp_path, monkeypatch):
     """analyze -j 2: each file done in a worker advances the bar by its size."""
     import shutil
     import sys
-    from pathlib import Path
 
     from whiztap.analyzer.cli import analyze as analyze_cli
     from whiztap.analyzer.recording.sets import find_recordings

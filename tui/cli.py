@@ -11,7 +11,10 @@ import sys
 
 import click
 
-from whiztap.analyzer.cli.root import check_output, fail, force_option, limits_from, limits_options
+from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.output import check_output
+from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
+from whiztap.sniffer.cli.params import Address, check_recording_output
 
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
@@ -80,18 +83,18 @@ def _command_name() -> str:
 @click.argument("path", required=False, metavar="[RECORDING]")
 @click.option("--follow", metavar="FILE.mcap.part", default=None,
               help="Follow a recording that 'whiztap record' is writing.")
-@click.option("--upstream", metavar="HOST:PORT", default=None,
+@click.option("--upstream", type=Address(), metavar="HOST:PORT", default=None,
               help="Live: run the recording proxy in the app, in front of this server.")
-@click.option("--listen", metavar="[HOST:]PORT", default="127.0.0.1:6000", show_default=True,
+@click.option("--listen", type=Address("127.0.0.1"), metavar="[HOST:]PORT", default="127.0.0.1:6000", show_default=True,
               help="Live: where clients connect.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Live: the recording to write [default: whiztap-DATE-TIME.mcap].")
 @click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
 @click.option("--force", is_flag=True, help="Live: write over a recording of the same name (never over an input).")
-@click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules').")
+@checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
 @limits_options
-def tui_command(path: str | None, follow: str | None, upstream: str | None, listen: str, output: str | None,
-                keep_secrets: bool, force: bool, checksum_rule: str | None, answer_timeout: float, max_frame: int,
+def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] | None, listen: tuple[str, int],
+                output: str | None, keep_secrets: bool, force: bool, checksum_rule: str, answer_timeout: float, max_frame: int,
                 max_image: int) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
     recording being written.
@@ -104,11 +107,9 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
 
     Press ? in the app for its keys.
     """
-    from whiztap.sniffer.cli.record import check_checksum_rule, check_output_free, parse_address
-
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
-    rule = check_checksum_rule(checksum_rule)
+    rule = checksum_rule
     limits = limits_from(answer_timeout, max_frame, max_image)
     from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
@@ -122,9 +123,8 @@ def tui_command(path: str | None, follow: str | None, upstream: str | None, list
         from whiztap.sniffer.record.record_run import RecordSettings
 
         output = output or default_output()
-        check_output_free(output, split=False, force=force)
-        settings = RecordSettings(parse_address(listen, "127.0.0.1", "--listen"),
-                                  parse_address(upstream, None, "--upstream"), output,
+        check_recording_output(output, split=False, force=force)
+        settings = RecordSettings(listen, upstream, output,
                                   keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")

@@ -9,6 +9,7 @@ request or response it pairs with, with the latency.
 from __future__ import annotations
 
 import datetime
+from collections.abc import Iterable
 from typing import Any
 
 from rich.console import Group, RenderableType
@@ -29,7 +30,8 @@ from whiztap.analyzer.protocol.codec import (
 )
 from whiztap.analyzer.protocol.describe import response_meaning
 from whiztap.analyzer.protocol.messages import CameraImage
-from whiztap.analyzer.protocol.rules import RULES
+from whiztap.analyzer.protocol.observations import Observation
+from whiztap.analyzer.protocol.rules import RULES, Violation
 from whiztap.analyzer.protocol.text import escape, printable
 from whiztap.tui.store import NS, FrameStore
 

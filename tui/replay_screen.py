@@ -131,16 +131,11 @@ class ReplayScreen(Screen):
 
     def _options(self, output: str | None):  # noqa: ANN202 - a whiztap.sniffer.replay.options.ReplayOptions
         """The form as ReplayOptions; raises ValueError with a line for the user."""
-        import click
-
         from whiztap.analyzer.analysis.compare import CompareError, CompareRules
-        from whiztap.sniffer.cli.record import parse_address
+        from whiztap.sniffer.nettext import parse_address
         from whiztap.sniffer.replay.options import Pace, ReplayOptions
 
-        try:
-            target = parse_address(self.query_one("#target", Input).value.strip(), None, "target")
-        except click.ClickException as e:
-            raise ValueError(e.format_message()) from None
+        target = parse_address(self.query_one("#target", Input).value.strip(), None, "target")  # AddressError is a ValueError
         try:
             rate = float(self.query_one("#rate", Input).value)
         except ValueError:

@@ -23,7 +23,6 @@ from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
 from whiztap.analyzer.recording.redaction import Redactor
-from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Continued, Data, RecordingStopped, TrafficEvent
 from whiztap.tui.model import TrafficModel
 
@@ -179,46 +178,22 @@ def _feed_scan(scan: RecordingScan, model: TrafficModel, skip_continued: bool = 
 
 
 class Tap:
-    """The proxy's sink, teed: the writer process gets every event as before, and
-    a copy goes on a queue for the TUI.  Called on the proxy's forwarding path,
-    so it only appends; the bytes on the queue are as sent, and ``LiveSource``
-    masks them by the recorder's rule before the model sees them."""
+    """The TUI's consumer of the proxy's traffic events: a copy of each goes on
+    a queue.  Called on the proxy's forwarding path, so it only appends; the
+    bytes on the queue are as sent, and ``LiveSource`` masks them by the
+    recorder's rule before the model sees them."""
 
-    def __init__(self, sink, queue: deque) -> None:  # noqa: ANN001 - a whiztap.sniffer.record.proxy.Sink
-        self.sink = sink
-        self.queue = queue
-
-    def opened(self, conn: int, t_ns: int, client: str, upstream: str) -> None:
-        self.sink.opened(conn, t_ns, client, upstream)
-        self.queue.append({"conn": conn, "event": "opened", "t_ns": t_ns, "client": client, "upstream": upstream})
-
-    def upstream_connected(self, conn: int, t_ns: int, detail: str) -> None:
-        self.sink.upstream_connected(conn, t_ns, detail)
-
-    def upstream_failed(self, conn: int, t_ns: int, detail: str) -> None:
-        self.sink.upstream_failed(conn, t_ns, detail)
-        self.queue.append({"conn": conn, "event": "upstream_failed", "t_ns": t_ns, "detail": detail})
-
-    def data(self, conn: int, direction: Direction, t_ns: int, data: bytes) -> None:
-        self.sink.data(conn, direction, t_ns, data)
-        self.queue.append((conn, direction.value, t_ns, data))
-
-    def half_closed(self, conn: int, direction: Direction, t_ns: int) -> None:
-        self.sink.half_closed(conn, direction, t_ns)
-        self.queue.append({"conn": conn, "event": "half_closed", "t_ns": t_ns, "dir": direction.value})
-
-    def closed(self, conn: int, t_ns: int, by: str, detail: str) -> None:
-        self.sink.closed(conn, t_ns, by, detail)
-        self.queue.append({"conn": conn, "event": "closed", "t_ns": t_ns, "by": by, "detail": detail})
+    def __init__(self, queue: deque) -> None:
+        self.receive = queue.append
 
 
 class Rig(Protocol):
-    """What runs the proxy: ``start(tap)`` returns the running Recording, its
-    sink wrapped by ``tap`` before any client is accepted."""
+    """What runs the proxy: ``start(tap)`` returns the running Recording, with
+    ``tap`` among its consumers before any client is accepted."""
 
     output: str
 
-    async def start(self, tap): ...  # noqa: ANN001, ANN201 - a sink wrapper; a whiztap.sniffer.record.record_run.Recording
+    async def start(self, tap: Tap): ...  # noqa: ANN201 - a whiztap.sniffer.record.record_run.Recording
     async def stop(self) -> None: ...
 
 
@@ -230,10 +205,10 @@ class ProxyRig:
         self.output = settings.output
         self.recording = None
 
-    async def start(self, tap):  # noqa: ANN001, ANN201
+    async def start(self, tap: Tap):  # noqa: ANN201 - a whiztap.sniffer.record.record_run.Recording
         from whiztap.sniffer.record.record_run import Recording
 
-        self.recording = Recording(self.settings, tap=tap)
+        self.recording = Recording(self.settings, consumers=[tap])
         await self.recording.start()
         return self.recording
 
@@ -273,7 +248,7 @@ class LiveSource:
         from whiztap.sniffer.record.feed import WriterError
 
         try:
-            self.recording = await self.rig.start(lambda sink: Tap(sink, self.queue))
+            self.recording = await self.rig.start(Tap(self.queue))
         except WriterError as e:
             raise SourceError(str(e)) from None
         except OSError as e:

@@ -6,150 +6,25 @@ functions so that ``whiztap --help`` does not pay for them.
 
 from __future__ import annotations
 
-import datetime
 import os
-import socket
-import sys
-import uuid
-from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import click
 
-from whiztap.analyzer.cli.root import ByteSize, check_output, fail, force_option, limits_from, limits_options, recording_output
-from whiztap.analyzer.protocol.text import human_bytes
-
-def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, int]:
-    """HOST:PORT, [V6]:PORT, or PORT alone when a default host is given."""
-    host, sep, port = text.rpartition(":")
-    if not sep:
-        host, port = "", text
-    host = host.strip("[]")
-    if not host:
-        if default_host is None:
-            fail(f"{what} must be HOST:PORT, got {text!r}")
-        host = default_host
-    if not port.isdigit() or int(port) > 65535:
-        fail(f"{what} needs a port number 0-65535, got {text!r}")
-    return host, int(port)
-
-
-def say(line: str) -> None:
-    """Print a line for the user.  Once standard output is gone (a closed
-    terminal gives EIO, a closed pipe EPIPE) print nothing more: the recording
-    still has to be finished, and the interpreter's last flush must not fail."""
-    from whiztap.analyzer.protocol.text import printable  # lines quote clients and servers: shown, never obeyed
-
-    try:
-        click.echo(printable(line))
-    except OSError:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-
-
-def clock_text(t_ns: int) -> str:
-    t = datetime.datetime.fromtimestamp(t_ns / 1e9)
-    return t.strftime("%H:%M:%S.%f")
-
-
-def summary_lines(summary: dict, what: str) -> list[str]:
-    """The lines printed when a recording ends."""
-    frames, nbytes, violations = summary["frames"], summary["bytes"], summary["violations"]
-    files = summary["files"]
-    where = files[0] if len(files) == 1 else f"{len(files)} files ({files[0]} ... {files[-1]})" if files else "no file"
-    per_dir = "; ".join(f"{d} {frames.get(d, 0)} frames {human_bytes(nbytes.get(d, 0))}" for d in ("c2s", "s2c"))
-    counts = ", ".join(f"{violations.get(s, 0)} {s}" for s in ("error", "warning", "info"))
-    return [f"{what} {summary['connections']} connection(s) into {where} ({human_bytes(summary['size'])}, "
-            f"{summary['messages']} messages)",
-            f"  {per_dir}",
-            f"  violations: {counts}"]
-
-
-def _run_loop(main: Callable) -> object:
-    """Run a coroutine function on uvloop: an asyncio.Protocol proxy on it
-    forwards about twice as fast as on the default loop."""
-    import asyncio
-
-    import uvloop
-
-    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
-        return runner.run(main())
-
-
-def base_metadata(source: str, keep_secrets: bool, checksum_rule: str, start_ns: int, **extra: object) -> dict:
-    from whiztap.analyzer.recording.format import metadata_record
-
-    start = datetime.datetime.fromtimestamp(start_ns / 1e9, datetime.timezone.utc)
-    return metadata_record(source=source, start_time=start.isoformat(), start_time_ns=start_ns,
-                           checksum_rule=checksum_rule, host=socket.gethostname(),
-                           secrets="kept" if keep_secrets else "redacted",
-                           session_id=uuid.uuid4().hex, **extra)
-
-
-def check_checksum_rule(name: str | None) -> str:
-    from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
-
-    try:
-        return get_rule(name or DEFAULT_CHECKSUM_RULE).name
-    except ValueError as e:
-        fail(str(e))
-
-
-def check_output_free(output: str, split: bool, force: bool, inputs: Iterable[str] = ()) -> None:
-    """The output rule (whiztap.analyzer.recording.output_rule) for a recording: never over an
-    input; not over a recording, or the ``.part`` a crashed one left (which
-    'whiztap recover' could still save), unless --force."""
-    check_output(output, inputs, force=force, recording=True, split=split)
-    if split and not force:
-        later = existing_parts(output)
-        if later:
-            fail(f"{later[0]} exists (a part of another recording?); "
-                 f"use --force to overwrite it or -o to choose another name")
-
-
-def existing_parts(output: str) -> list[str]:
-    """The numbered parts of ``output`` already there (``NAME-0002.mcap``, its
-    ``.part``; a link counts, even dangling): a split recording refuses them all
-    at start, rather than stop when it reaches one hours later."""
-    import glob
-    import re
-
-    stem, ext = os.path.splitext(output)
-    ext = ext or ".mcap"
-    name = re.compile(re.escape(stem) + r"-\d{4,}" + re.escape(ext) + r"(\.part)?")
-    pattern = glob.escape(stem) + "-[0-9][0-9][0-9][0-9]*" + glob.escape(ext) + "*"
-    return sorted(p for p in glob.glob(pattern) if name.fullmatch(p))
-
-
-_FORCE = force_option
-
-_split_options = [
-    click.option("--split-size", type=ByteSize(), default=None,
-                 help="Start a new numbered file when this one reaches BYTES (e.g. 100M)."),
-    click.option("--split-duration", type=click.FloatRange(min=0.001), default=None, metavar="SECONDS",
-                 help="Start a new numbered file every SECONDS."),
-    click.option("--keep-secrets", is_flag=True,
-                 help="Record the password as sent (default: '*' bytes and <redacted>)."),
-    click.option("--checksum-rule", default=None, help="Set Configuration checksum rule (see 'whiztap rules')."),
-    _FORCE,
-]
-
-
-def _with_options(options: list) -> Callable:
-    def decorate(f: Callable) -> Callable:
-        for option in reversed(options):
-            f = option(f)
-        return f
-    return decorate
+from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.output import recording_output, say
+from whiztap.analyzer.cli.params import force_option, limits_from, limits_options
+from whiztap.sniffer.cli.params import Address, check_recording_output, recording_options
+from whiztap.sniffer.cli.run import run, stop_signals
+from whiztap.sniffer.record.summary import summary_lines
 
 
 @click.command("record")
-@click.option("--listen", default="127.0.0.1:6000", show_default=True, metavar="[HOST:]PORT",
-              help="Where clients connect (port 0 picks a free one).")
-@click.option("--upstream", required=True, metavar="HOST:PORT", help="The real server.")
+@click.option("--listen", type=Address("127.0.0.1"), default="127.0.0.1:6000", show_default=True,
+              metavar="[HOST:]PORT", help="Where clients connect (port 0 picks a free one).")
+@click.option("--upstream", type=Address(), required=True, metavar="HOST:PORT", help="The real server.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
-@_with_options(_split_options)
+@recording_options
 @click.option("-q", "--quiet", is_flag=True,
               help="Print only the first line (it names the listening address) and errors.")
 @click.option("--analyze", is_flag=True, help="Print each violation as it happens.")
@@ -160,8 +35,8 @@ def _with_options(options: list) -> Callable:
                    "(the recording stays complete), or keep them flowing and record a gap event "
                    "with the count of bytes left out.")
 @limits_options
-def record_command(listen: str, upstream: str, output: str, split_size: int | None, split_duration: float | None,
-                   keep_secrets: bool, checksum_rule: str | None, quiet: bool, force: bool, analyze: bool,
+def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: str, split_size: int | None,
+                   split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool, analyze: bool,
                    connect_timeout: float, when_behind: str, answer_timeout: float, max_frame: int,
                    max_image: int) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
@@ -170,18 +45,41 @@ def record_command(listen: str, upstream: str, output: str, split_size: int | No
     unchanged in both directions and recorded with its receive time.  Ctrl-C or
     SIGTERM closes the connections and finishes the file.
     """
-    listen_addr = parse_address(listen, "127.0.0.1", "--listen")
-    upstream_addr = parse_address(upstream, None, "--upstream")
-    rule = check_checksum_rule(checksum_rule)
-    check_output_free(output, split_size is not None or split_duration is not None, force)
-    from whiztap.sniffer.record.record_run import RecordSettings, run_record
+    check_recording_output(output, split_size is not None or split_duration is not None, force)
+    from whiztap.sniffer.record.record_run import RecordSettings
 
-    settings = RecordSettings(listen_addr, upstream_addr, output, split_size, split_duration, keep_secrets, rule,
+    settings = RecordSettings(listen, upstream, output, split_size, split_duration, keep_secrets, checksum_rule,
                               quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
                               overwrite=force, when_behind=when_behind)
-    error = _run_loop(lambda: run_record(settings))
+    error = run(_record(settings))
     if error:
-        fail(str(error))
+        fail(error)
+
+
+async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, imported lazily
+    """Record until Ctrl-C, SIGTERM, SIGHUP or a write error; the error, if any."""
+    from whiztap.sniffer.nettext import show_address
+    from whiztap.sniffer.record.feed import WriterError
+    from whiztap.sniffer.record.record_run import Recording
+
+    echo = (lambda line: None) if settings.quiet else say
+    recording = Recording(settings, echo)
+    try:
+        await recording.start()
+    except WriterError as e:
+        return str(e)
+    except OSError as e:
+        return f"cannot listen on {show_address(*settings.listen)}: {e.strerror or e}"
+    proxy = recording.proxy
+    with stop_signals(recording.stopped.set):
+        # even with -q: with port 0 this line is the only way to learn the port
+        say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output} (Ctrl-C to stop)")
+        await recording.stopped.wait()
+        summary = await recording.stop("write error" if recording.error else "recording stopped")
+    if summary is not None:
+        for line in summary_lines(summary, "recorded"):
+            echo(line)
+    return recording.error
 
 
 @click.command("recover")
@@ -213,14 +111,14 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
 @click.option("--iface", default=None, help="Capture live on this interface (needs root or CAP_NET_RAW).")
 @click.option("--port", type=click.IntRange(1, 65535), required=True, help="The server's TCP port.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
-@_with_options(_split_options)
+@recording_options
 @click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
 @click.option("--count", type=click.IntRange(min=1), default=None, help="Live: stop after this many packets.")
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=None, metavar="SECONDS",
               help="Live: stop after this long.")
 @limits_options
 def capture_command(pcap: str | None, iface: str | None, port: int, output: str, split_size: int | None,
-                    split_duration: float | None, keep_secrets: bool, checksum_rule: str | None, quiet: bool,
+                    split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool,
                     force: bool, count: int | None, timeout: float | None, answer_timeout: float, max_frame: int,
                     max_image: int) -> None:
     """Record traffic to PORT from a capture file or a live interface.
@@ -232,12 +130,11 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
     """
     if (pcap is None) == (iface is None):
         fail("give exactly one of --pcap FILE or --iface NAME")
-    rule = check_checksum_rule(checksum_rule)
-    check_output_free(output, split_size is not None or split_duration is not None, force,
-                      inputs=[pcap] if pcap is not None else [])
+    check_recording_output(output, split_size is not None or split_duration is not None, force,
+                           inputs=(pcap,) if pcap is not None else ())
     from whiztap.sniffer.record.capture import CaptureError, CaptureSettings, capture_live, import_pcap
 
-    settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, rule,
+    settings = CaptureSettings(port, output, split_size, split_duration, keep_secrets, checksum_rule,
                                limits_from(answer_timeout, max_frame, max_image), overwrite=force)
     try:
         if pcap is not None:

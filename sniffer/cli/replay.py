@@ -6,27 +6,17 @@ engines load when a command runs.
 
 from __future__ import annotations
 
-import signal
 import sys
-from collections.abc import Callable, Coroutine
-from typing import Any
 
 import click
 
-from whiztap.analyzer.cli.root import check_output, fail, force_option, recording_output, warn
+from whiztap.analyzer.cli.errors import fail, warn
+from whiztap.analyzer.cli.output import check_output, recording_output
+from whiztap.analyzer.cli.params import force_option
+from whiztap.sniffer.cli.params import Address
+from whiztap.sniffer.cli.run import run, stop_signals
 
 PACES = ["recorded", "lockstep", "max"]
-
-
-def _run(main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
-    """Run on uvloop (its timers and sockets cost less, which keeps a recorded
-    schedule tighter)."""
-    import asyncio  # here, not at the top: 'whiztap --help' loads this module
-
-    import uvloop
-
-    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
-        return runner.run(main())
 
 
 def _find(path: str):  # noqa: ANN202 - a RecordingSet, imported lazily
@@ -64,12 +54,6 @@ def _echo(text: str) -> None:
     click.echo("\n".join(printable(line) for line in text.split("\n")))
 
 
-def _address(text: str, what: str) -> tuple[str, int]:
-    from whiztap.sniffer.cli.record import parse_address
-
-    return parse_address(text, "127.0.0.1", what)
-
-
 def _password(text: str | None) -> bytes | None:
     return text.encode() if text is not None else None
 
@@ -79,7 +63,7 @@ def _password(text: str | None) -> bytes | None:
 
 @click.command("replay")
 @click.argument("path", metavar="RECORDING")
-@click.option("--target", metavar="HOST:PORT", help="The server to replay against (not needed with --dry-run).")
+@click.option("--target", type=Address("127.0.0.1"), metavar="HOST:PORT", help="The server to replay against (not needed with --dry-run).")
 @click.option("--password", envvar="WHIZTAP_PASSWORD", default=None,
               help="Winsock password (default: $WHIZTAP_PASSWORD, or each connection's recorded one if "
                    "it was kept); connections refused in the recording send a wrong one.")
@@ -118,7 +102,7 @@ def _password(text: str | None) -> bytes | None:
 @click.option("-q", "--quiet", is_flag=True, help="Print only the summary.")
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
               help="json: one object at the end (counts, differences, drift), for scripts.")
-def replay_command(path: str, target: str | None, password: str | None, conns: tuple[int, ...], pace: str,
+def replay_command(path: str, target: tuple[str, int] | None, password: str | None, conns: tuple[int, ...], pace: str,
                    rate: float, segments: str, mode: str, tolerances: tuple[str, ...], ignore_fields: tuple[str, ...],
                    ignore_kinds: tuple[str, ...], timeout: float, connect_timeout: float, loop: int,
                    start_s: float | None, end_s: float | None, kinds: tuple[str, ...], dry_run: bool,
@@ -155,12 +139,12 @@ def replay_command(path: str, target: str | None, password: str | None, conns: t
         return
     if target is None:
         fail("--target HOST:PORT is required (or --dry-run)")
-    options = ReplayOptions(target=_address(target, "--target"), password=_password(password), pace=Pace(pace),
+    options = ReplayOptions(target=target, password=_password(password), pace=Pace(pace),
                             rate=rate, segments=segments == "exact", rules=rules, timeout=timeout,
                             connect_timeout=connect_timeout, loop=loop, selection=selection, output=output,
                             checksum_rule=recording.checksum_rule)
     try:
-        result = _run(lambda: _replay(recording, options, verbose, quiet, fmt == "json"))
+        result = run(_replay(recording, options, verbose, quiet, fmt == "json"))
     except ReplayError as e:
         fail(e.explained({"password": "give --password or set WHIZTAP_PASSWORD"}))  # --target is checked above
     if result.error:
@@ -181,16 +165,8 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
         _echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
                    + f", {options.rules.describe()}")
-    import asyncio
-
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, replay.stop)
-    try:
+    with stop_signals(replay.stop):
         result = await replay.run()
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
     if result.error:
         return result
     if as_json:
@@ -250,7 +226,7 @@ class _Printer:
 
 @click.command("stub")
 @click.argument("path", metavar="RECORDING")
-@click.option("--listen", default="127.0.0.1:5000", show_default=True, metavar="[HOST:]PORT",
+@click.option("--listen", type=Address("127.0.0.1"), default="127.0.0.1:5000", show_default=True, metavar="[HOST:]PORT",
               help="Where clients connect (port 0 picks a free one, printed).")
 @click.option("--password", default=None, help="Check the winsock password (default: accept any).")
 @click.option("--conn", type=int, default=None, help="Answer every client from this recorded connection.")
@@ -267,7 +243,7 @@ class _Printer:
 @click.option("--strict", is_flag=True, help="Exit with status 1 if any request had no recorded answer.")
 @click.option("--once", is_flag=True, help="Exit after the first client disconnects.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the listening line and problems.")
-def stub_command(path: str, listen: str, password: str | None, conn: int | None, pace: str, rate: float,
+def stub_command(path: str, listen: tuple[str, int], password: str | None, conn: int | None, pace: str, rate: float,
                  exhausted: str, unmatched: str, strict: bool, once: bool, quiet: bool) -> None:
     """Serve a recording's server side to a client under test.
 
@@ -282,7 +258,7 @@ def stub_command(path: str, listen: str, password: str | None, conn: int | None,
     """
     from whiztap.sniffer.replay.stub import Stub
 
-    address = _address(listen, "--listen")
+
     recording = _load(path)
 
     def log(line: str) -> None:
@@ -295,11 +271,11 @@ def stub_command(path: str, listen: str, password: str | None, conn: int | None,
 
         reaction = unescape(unmatched)
     try:
-        stub = Stub(recording, *address, password=_password(password), pace=pace, rate=rate,
+        stub = Stub(recording, *listen, password=_password(password), pace=pace, rate=rate,
                     exhausted=exhausted, conn=conn, unmatched=reaction, on_log=log)
     except ValueError as e:
         fail(str(e))
-    error = _run(lambda: _serve(stub, once))
+    error = run(_serve(stub, once))
     if error:
         fail(error)
     missing = len(stub.unanswered)
@@ -319,14 +295,12 @@ async def _serve(stub, once: bool) -> str | None:  # noqa: ANN001 - Stub, import
     import asyncio
 
     stopped = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stopped.set)
     waiters = [asyncio.create_task(stopped.wait())]
     if once:
         waiters.append(asyncio.create_task(stub.finished.wait()))
     try:
-        await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+        with stop_signals(stopped.set):
+            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
     finally:
         for task in waiters:
             task.cancel()

@@ -8,33 +8,21 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import sys
 import threading
-from collections.abc import Coroutine
-from typing import Any, TypeVar
 
 import click
 
 from whiztap.analyzer.protocol.checksum import CHECKSUM_RULES, DEFAULT_CHECKSUM_RULE
-from whiztap.analyzer.cli.root import fail
+from whiztap.analyzer.cli.errors import fail
 from whiztap.sniffer.sim.channels import DEFAULT_CHANNELS
+from whiztap.sniffer.cli.params import Address
+from whiztap.sniffer.cli.run import run, stop_signals
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.sim.robot import DEFAULT_PASSWORD, DEFAULT_SERVO_SPEED
 
 DEFAULT_PORT = 5000
-T = TypeVar("T")
 _LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
-
-
-def _run(main: Coroutine[Any, Any, T]) -> T:
-    """asyncio.run, with Ctrl-C as the usual one-line error (click would add a blank line)."""
-    import asyncio  # here, not at the top: 'whiztap --help' loads this module
-
-    try:
-        return asyncio.run(main)
-    except KeyboardInterrupt:
-        fail("interrupted")
 
 
 @click.command("sim")
@@ -82,10 +70,7 @@ def sim_command(host: str, port: int, mode: str, password: str, channels: str, s
         fail(f"--channels: {e}" if isinstance(e, ChannelSpecError) else str(e))
     level = logging.WARNING if quiet else _LOG_LEVELS[min(1 + verbose, 2)]
     logging.basicConfig(stream=sys.stderr, level=level, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    # Started in the background by a script, the process inherits an ignored
-    # SIGINT; restore it so that `kill -INT` stops the server like Ctrl-C does.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    _run(_run_sim(sim))
+    run(_run_sim(sim))
 
 
 async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
@@ -96,20 +81,19 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
     import asyncio
 
     stopped = asyncio.Event()
-    # Ctrl-C and SIGTERM are how a server is meant to end: exit 0, as record and stub do
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        asyncio.get_running_loop().add_signal_handler(sig, stopped.set)
+    # Ctrl-C, SIGTERM and SIGHUP are how a server is meant to end: exit 0, as record and stub do
     try:
-        where = ", ".join(show_address(host, port) for host, port in sim.addresses)
-        click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
-                   f"seed {sim.seed})")
-        await stopped.wait()
+        with stop_signals(stopped.set):
+            where = ", ".join(show_address(host, port) for host, port in sim.addresses)
+            click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
+                       f"seed {sim.seed})")
+            await stopped.wait()
     finally:
         await sim.close()
 
 
 @click.command("client", context_settings={"ignore_unknown_options": True})
-@click.argument("address", metavar="HOST:PORT")
+@click.argument("address", type=Address(what="the server address"), metavar="HOST:PORT")
 @click.argument("words", nargs=-1, type=click.UNPROCESSED, metavar="[COMMAND]...")
 @click.option("--password", "-p", default=None,
               help="Do the winsock handshake with this password (or set WHIZTAP_PASSWORD, which ps does not show).")
@@ -117,7 +101,7 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
               help="Seconds to wait for a connection, the handshake and each answer.")
 @click.option("--raw", is_flag=True,
               help="Send commands even when their frame breaks the spec (a channel or value out of range).")
-def client_command(address: str, words: tuple[str, ...], password: str | None, timeout: float, raw: bool) -> None:
+def client_command(address: tuple[str, int], words: tuple[str, ...], password: str | None, timeout: float, raw: bool) -> None:
     """Send commands to a Progwhiz server (or a proxy in front of one).
 
     One COMMAND on the command line (e.g. 'sensor 12', 'servo 3 1500',
@@ -131,12 +115,10 @@ def client_command(address: str, words: tuple[str, ...], password: str | None, t
     and a frame typed as escaped text (raw TEXT, rr1-...) is always sent as is.
     The password may also come from WHIZTAP_PASSWORD (not shown by ps).
     """
-    from whiztap.sniffer.cli.record import parse_address
-
-    host, port = parse_address(address, None, "the server address")
+    host, port = address
     if password is None:
         password = os.environ.get("WHIZTAP_PASSWORD") or None
-    sys.exit(_run(_run_client(host, port, password, timeout, list(words), not raw)))
+    sys.exit(run(_run_client(host, port, password, timeout, list(words), not raw)))
 
 
 async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str],

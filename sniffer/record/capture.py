@@ -44,7 +44,7 @@ class CaptureSettings:
 
 
 def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: object) -> Recorder:
-    from whiztap.sniffer.cli.record import base_metadata
+    from whiztap.sniffer.record.metadata import base_metadata
 
     metadata = base_metadata(source, settings.keep_secrets, settings.checksum_rule, start_ns,
                              server_port=settings.port, split_size=settings.split_size,
@@ -151,7 +151,7 @@ def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
         raise CaptureError(f"cannot capture on {iface}: {e.strerror or e}") from None
     except Scapy_Exception as e:
         raise CaptureError(f"cannot capture on {iface}: {e}") from None
-    except ValueError as e:  # scapy's "Interface 'x' not found !"
+    except ValueError:  # scapy's "Interface 'x' not found !"
         names = ", ".join(sorted(socket.if_nameindex() and (n for _, n in socket.if_nameindex())))
         raise CaptureError(f"cannot capture on {iface}: no such interface (this machine has: {names})") from None
 

@@ -7,12 +7,15 @@ event loop, and so the command module stays cheap to import.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from whiztap.analyzer.protocol.session import Limits
+from whiztap.sniffer.record.consumers import Consumer, Consumers
 from whiztap.sniffer.record.feed import WriterError, WriterProcess
-from whiztap.sniffer.record.proxy import Connection, RecordingProxy, address
-from whiztap.sniffer.record.writer import STOP_SIGNALS
+from whiztap.sniffer.record.metadata import base_metadata
+from whiztap.sniffer.record.proxy import Connection, RecordingProxy
+from whiztap.sniffer.record.summary import clock_text
 
 
 @dataclass(frozen=True)
@@ -41,12 +44,15 @@ class Recording:
     ``stopped`` is set when the recording has to end on its own (write error).
     """
 
-    def __init__(self, settings: RecordSettings, echo=None, tap=None) -> None:  # noqa: ANN001 - callables
-        """``tap``, if given, wraps the writer's sink before the first client is
-        accepted (the TUI sees every event the file gets, from the first)."""
+    def __init__(self, settings: RecordSettings, echo: Callable[[str], None] | None = None,
+                 consumers: Iterable[Consumer] = ()) -> None:
+        """``consumers`` receive every traffic event the file gets, from the
+        first (the TUI's tap), each isolated: one that raises is reported once
+        and cut off, and the recording goes on."""
         self.settings = settings
         self.echo = echo or (lambda line: None)
-        self.tap = tap
+        self.consumers = Consumers(self._consumer_failed)
+        self._extra = tuple(consumers)
         self.stopped = asyncio.Event()
         self.writer: WriterProcess | None = None
         self.proxy: RecordingProxy | None = None
@@ -58,10 +64,8 @@ class Recording:
 
     async def start(self) -> None:
         """Bind, start the writer, accept.  Raises WriterError or OSError (bind)."""
-        from whiztap.sniffer.cli.record import base_metadata
-
         s = self.settings
-        self.proxy = proxy = RecordingProxy(*s.listen, *s.upstream, sink=None,  # type: ignore[arg-type]
+        self.proxy = proxy = RecordingProxy(*s.listen, *s.upstream, self.consumers,
                                             connect_timeout=s.connect_timeout, on_connection=self._connection)
         await proxy.start(serving=False)
         start_ns = proxy.clock()
@@ -80,7 +84,9 @@ class Recording:
         writer.on_violation = self._violation
         writer.on_error = lambda message: self.stopped.set()
         writer.on_file = lambda path: self.echo(f"finished {path}")
-        proxy.sink = self.tap(writer) if self.tap is not None else writer
+        self.consumers.add(writer)
+        for consumer in self._extra:
+            self.consumers.add(consumer)
         try:
             await writer.start()
         except WriterError:
@@ -102,39 +108,17 @@ class Recording:
         self.echo(f"#{conn.id} closed by {conn.closed_by} after {seconds:.2f} s ({conn.detail}): "
                   f"c2s {conn.client.received} B, s2c {conn.upstream.received} B")
 
-    def _violation(self, v: dict) -> None:
-        from whiztap.sniffer.cli.record import clock_text
+    def _consumer_failed(self, consumer: Consumer, error: Exception) -> None:
+        """A consumer raised: it gets no more events; the file and the traffic go on.
+        The writer never raises (``WriterProcess.receive``); if it did, the
+        recording could not go on, and stops with the reason."""
+        if consumer is self.writer:
+            self.writer.fail(f"recording failed: {type(error).__name__}: {error}")  # type: ignore[union-attr]
+            return
+        self.echo(f"{type(consumer).__name__} stopped receiving traffic: {type(error).__name__}: {error}")
 
+    def _violation(self, v: dict) -> None:
         where = f" frame #{v['frame_index']} {v['frame_text']!r}" if "frame_index" in v else ""
         self.echo(f"! {v['rule_id']} ({v['severity']}) conn #{v['conn']} at {clock_text(v['t_ns'])}"
                   f"{where}: {v['detail']}")
 
-
-async def run_record(settings: RecordSettings) -> str | None:
-    """The whole command: record until Ctrl-C, SIGTERM or a write error; the error."""
-    from whiztap.sniffer.cli.record import say, summary_lines
-
-    echo = (lambda line: None) if settings.quiet else say
-    recording = Recording(settings, echo)
-    try:
-        await recording.start()
-    except WriterError as e:
-        return str(e)
-    except OSError as e:
-        return f"cannot listen on {address(settings.listen)}: {e.strerror or e}"
-    loop = asyncio.get_running_loop()
-    for sig in STOP_SIGNALS:
-        loop.add_signal_handler(sig, recording.stopped.set)
-    proxy = recording.proxy
-    # even with -q: with port 0 this line is the only way to learn the port
-    say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output} "  # type: ignore[union-attr]
-        f"(Ctrl-C to stop)")
-    await recording.stopped.wait()
-    detail = "write error" if recording.error else "recording stopped"
-    summary = await recording.stop(detail)
-    for sig in STOP_SIGNALS:
-        loop.remove_signal_handler(sig)
-    if summary is not None:
-        for line in summary_lines(summary, "recorded"):
-            echo(line)
-    return recording.error

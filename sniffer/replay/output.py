@@ -14,7 +14,7 @@ import os
 from collections.abc import Callable
 
 from whiztap.analyzer.traffic import TrafficEvent
-from whiztap.sniffer.cli.record import base_metadata
+from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.nettext import show_address
 from whiztap.sniffer.record.proxy import Clock
 from whiztap.sniffer.record.recorder import Recorder

@@ -1,0 +1,52 @@
+"""``whiztap info``: file-level facts about a recording."""
+
+from __future__ import annotations
+
+import click
+
+from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.reading import one_recording
+
+
+@click.command("info")
+@click.argument("inputs", nargs=-1, required=True, metavar="RECORDING")
+@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True)
+def info_command(inputs: tuple[str, ...], fmt: str) -> None:
+    """File-level facts: format version, session metadata, time span,
+    connections, messages per topic, size, and whether the file is complete.
+    A split recording (its first part, folder or a glob) is shown as one, with
+    its parts listed."""
+    from whiztap.analyzer.recording.info import set_info
+    from whiztap.analyzer.protocol.text import printable
+
+    recording = one_recording(inputs)
+    path_ = recording.parts[-1]
+    try:
+        info = set_info(list(recording.parts))
+    except OSError as e:
+        fail(f"{path_}: cannot read ({e.strerror})")
+    except ValueError as e:
+        fail(f"{path_}: {e}")
+    if fmt == "json":
+        import json
+
+        click.echo(json.dumps(info, indent=2))
+        return
+    # names and metadata come from the file: a terminal must show them, never obey them
+    click.echo(f"file            {printable(info['path'])}")
+    for part in info.get("parts", []):
+        click.echo(f"  part          {printable(part['path'])} ({part['size_bytes']:,} bytes, "
+                   f"{printable(part['state'])})")
+    click.echo(f"size            {info['size_bytes']:,} bytes")
+    click.echo(f"complete        {'yes (indexed)' if info['complete'] else 'NO: ' + printable(info['state'])}")
+    version = info["format_version"]
+    click.echo(f"format version  {printable(version) if version else 'unknown (not written by whiztap?)'}")
+    for key, value in info["metadata"].items():
+        click.echo(f"  {printable(key):14} {printable(value)}")
+    click.echo(f"time span       {info['start']} .. {info['end']} ({info['duration_s']:.3f} s)")
+    click.echo(f"connections     {info['connections']}")
+    click.echo("messages per topic")
+    for topic, n in info["topics"].items():
+        click.echo(f"  {topic:14} {n:,}")
+    if not info["complete"] and not info["state"].startswith("being written"):
+        click.echo(f"Run 'whiztap recover {printable(str(path_))}' to make a complete, indexed copy.")

@@ -1,0 +1,68 @@
+"""How commands find and read the recordings a user names: one line and exit
+status 2 for anything that is not a readable recording, with what to do."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+
+from whiztap.analyzer.cli.errors import fail, warn
+from whiztap.analyzer.cli.progress import ByteProgress
+
+
+def recordings(inputs: tuple[str, ...]):  # noqa: ANN201 - list[RecordingSet], imported lazily
+    """What the user named, as recordings (a split one's parts together);
+    a line on stderr for each whose parts are not all there."""
+    from whiztap.analyzer.recording.sets import RecordingInputError, find_recordings
+
+    try:
+        found = find_recordings(inputs)
+    except RecordingInputError as e:
+        fail(str(e))
+    for recording in found:
+        if recording.warning():
+            warn(recording.warning())
+    return found
+
+
+def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[Any]:  # noqa: ANN001
+    """The traffic events of a recording (a ``RecordingSet``, or one path) in
+    recorded order, across its parts.
+
+    Raises ``click`` errors with one-line messages for files that are not
+    readable recordings, or end before their footer.
+    """
+    from whiztap.analyzer.recording.sets import PartError, RecordingSet, scan_set
+
+    if not isinstance(recording, RecordingSet):
+        recording = RecordingSet((Path(recording),))
+    opener = progress.open if progress is not None else (lambda p: open(p, "rb"))  # noqa: SIM115
+    try:
+        yield from scan_set(recording, opener)
+    except PartError as e:
+        from whiztap.analyzer.recording.sets import being_written
+
+        if being_written(e.path):
+            fail(f"{e.path} is being written by a running recorder: 'whiztap cat --follow {e.path}' shows it "
+                 "as it grows; analyze it once the recorder has finished")
+        if e.truncated or e.path.name.endswith(".part"):
+            fail(f"{e}; it looks like a recording that was cut short. "
+                 f"Run 'whiztap recover {e.path}' to turn it into a complete file")
+        fail(str(e))
+
+
+def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, imported lazily
+    """The one recording a command reads: a file, a split one's first part, its
+    folder or a glob (expanded by the shell or not)."""
+    from whiztap.analyzer.recording.sets import RecordingInputError, find_one
+
+    try:
+        found = find_one(inputs)
+    except RecordingInputError as e:
+        fail(f"{e} (see '{click.get_current_context().command_path} --help')")
+    if found.warning():
+        warn(found.warning())
+    return found
