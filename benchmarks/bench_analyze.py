@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.traffic import Closed, Data, Opened
+
 from benchmarks.bench_core import mixed_session
 
 FRAMES = int(os.environ.get("WHIZTAP_BENCH_FRAMES", 1_000_000))
@@ -39,7 +41,7 @@ def _write(path: Path, blocks: list[tuple[bytes, bytes]], read_size: int | None)
     recorder = Recorder(recording)
     t = 1_700_000_000_000_000_000
     recorder.start(t)
-    recorder.opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000")
+    recorder.receive(Opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000"))
     for client, server in blocks:
         for direction, data in ((Direction.C2S, client), (Direction.S2C, server)):
             if read_size is None:  # one frame per read
@@ -48,9 +50,9 @@ def _write(path: Path, blocks: list[tuple[bytes, bytes]], read_size: int | None)
                 pieces = [data[i:i + read_size] for i in range(0, len(data), read_size)]
             for piece in pieces:
                 t += 20_000
-                recorder.data(1, direction, t, piece)
+                recorder.receive(Data(1, direction, t, piece))
         recorder.tick(t)
-    recorder.closed(1, t, "client")
+    recorder.receive(Closed(1, t, "client"))
     recorder.stop(t)
     for written in recording.finished:
         os.replace(written, path)

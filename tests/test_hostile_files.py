@@ -36,12 +36,13 @@ import pytest
 import zstandard
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import METADATA_NAME, metadata_record
 from whiztap.analyzer.recording.mcap import MAGIC
-from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
+
 from tests.record_support import WHIZTAP
 
 T0 = 1_700_000_000_000_000_000
@@ -108,17 +109,17 @@ def write_recording(path: Path, exchanges: int = 60, chunk_size: int = 2048, com
                          compression=compression)
     rec = Recorder(file)
     rec.start(T0)
-    rec.opened(1, T0 + 1, "127.0.0.1:5555", "127.0.0.1:5000")
+    rec.receive(Opened(1, T0 + 1, "127.0.0.1:5555", "127.0.0.1:5000"))
     t = T0 + 10
     for direction, data in [(Direction.S2C, b"sendchkpass"), (Direction.C2S, b"secret"),
                             (Direction.S2C, b"readytogo")]:
-        rec.data(1, direction, t, data)
+        rec.receive(Data(1, direction, t, data))
         t += 1000
     for i in range(exchanges):
-        rec.data(1, Direction.C2S, t, b"rr1-%d--0--0-ss1" % (i % 4))
-        rec.data(1, Direction.S2C, t + 500, b"cr1-%d--%d--0-ss1" % (i % 4, 1000 + i))
+        rec.receive(Data(1, Direction.C2S, t, b"rr1-%d--0--0-ss1" % (i % 4)))
+        rec.receive(Data(1, Direction.S2C, t + 500, b"cr1-%d--%d--0-ss1" % (i % 4, 1000 + i)))
         t += 1_000_000
-    rec.closed(1, t, "client", "closed")
+    rec.receive(Closed(1, t, "client", "closed"))
     rec.stop(t + 1)
     return path
 
@@ -551,8 +552,12 @@ def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_check
     of what it reads never fails, and recover writes a valid file or says why not."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
     from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPICS
-    from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
     from whiztap.analyzer.recording.recover import RecoverError, recover
+    from whiztap.analyzer.recording.scan import (
+        RecordingError,
+        RecordingScan,
+        read_metadata,
+    )
 
     plain = data.draw(st.booleans(), label="uncompressed, no CRCs")
     raw = bytearray(base("" if plain else "zstd"))

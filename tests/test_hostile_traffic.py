@@ -14,18 +14,36 @@ from collections import Counter, deque
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from whiztap.analyzer.protocol import pairing
 from whiztap.analyzer.protocol.examples import CONFIG, VPN_OPEN
-from whiztap.analyzer.recording.format import TOPIC_EVENTS
-from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.protocol.observations import Direction, LateViolation, Observation
 from whiztap.analyzer.protocol.session import PENDING_KEPT, Session
+from whiztap.analyzer.recording.format import TOPIC_EVENTS
+from whiztap.analyzer.recording.scan import RecordingScan
+from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
-from whiztap.sniffer.sim.tcp_server import TcpServer
-from whiztap.sniffer.record.tcpreasm import ACK, DLT_EN10MB, EVICTED, FIN, MAX_OPEN, SYN, Reassembler, parse_frame
+from whiztap.sniffer.record.tcpreasm import (
+    ACK,
+    DLT_EN10MB,
+    EVICTED,
+    FIN,
+    MAX_OPEN,
+    SYN,
+    Reassembler,
+    parse_frame,
+)
 from whiztap.sniffer.record.writer import RecordingFile
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, both_ways, read_all, streams
+from whiztap.sniffer.sim.tcp_server import TcpServer
+
+from tests.record_support import (
+    LOCAL,
+    WAIT,
+    WHIZTAP,
+    RecordProcess,
+    both_ways,
+    read_all,
+    streams,
+)
 from tests.streams import TINY_JPEG
 from tests.test_session import SlowSession, _shape
 
@@ -488,12 +506,12 @@ def test_a_flood_of_line_breaks_is_a_message_per_read(tmp_path):
     path = tmp_path / "breaks.mcap"
     recorder = Recorder(RecordingFile(str(path), {"source": "test"}))
     recorder.start(1)
-    recorder.opened(1, 2, "client", "server")
-    recorder.data(1, C, 3, b"rr1-24--0--0-ss1")
-    recorder.data(1, S, 4, CONFIG)
+    recorder.receive(Opened(1, 2, "client", "server"))
+    recorder.receive(Data(1, C, 3, b"rr1-24--0--0-ss1"))
+    recorder.receive(Data(1, S, 4, CONFIG))
     for t in range(5, 505):
-        recorder.data(1, C, t, b"\n" * 100)
-    recorder.closed(1, 505, "client")
+        recorder.receive(Data(1, C, t, b"\n" * 100))
+    recorder.receive(Closed(1, 505, "client"))
     summary = recorder.stop(506)
     by_topic = read_all(str(path))
     c2s = [f for f in by_topic["/frames"] if f["dir"] == "c2s"]

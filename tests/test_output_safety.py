@@ -28,21 +28,36 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from markdown_it import MarkdownIt
 from rich.console import Console
-
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
+from whiztap.analyzer.traffic import (
+    Closed,
+    Data,
+    Opened,
+    UpstreamConnected,
+    UpstreamFailed,
+)
 from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.record.recorder import Recorder
-from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.record.writer import RecordingFile
-from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, RecordProcess, closed_port, read_all
-from tests.test_capture import C2S, S2C, _session, _write
-from tests.test_split_recordings import split_vpn_session
-from tests.tui_support import SIZE, loaded, settled, until
+from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.detail import describe_frame
 from whiztap.tui.replay_screen import ReplayScreen
 from whiztap.tui.sources import FileSource
+
+from tests.record_support import (
+    LOCAL,
+    WAIT,
+    WHIZTAP,
+    EchoServer,
+    RecordProcess,
+    closed_port,
+    read_all,
+)
+from tests.test_capture import C2S, S2C, _session, _write
+from tests.test_split_recordings import split_vpn_session
+from tests.tui_support import SIZE, loaded, settled, until
 
 SAMPLE = Path(__file__).parent.parent / "samples" / "vpn.mcap"
 
@@ -248,14 +263,14 @@ def record_hostile(path: Path) -> Path:
     metadata.update({"host": HOSTILE, HOSTILE: HOSTILE})
     rec = Recorder(RecordingFile(str(path), metadata))
     rec.start(T0, detail=HOSTILE)
-    rec.opened(1, T0 + 1, HOSTILE, HOSTILE)
-    rec.upstream_connected(1, T0 + 2, HOSTILE)
-    rec.data(1, Direction.C2S, T0 + 3, b"rr1-12--0--0-ss1" + HOSTILE_BYTES + b"rr1-12--0--0-ss1")
-    rec.data(1, Direction.S2C, T0 + 4, b"cr1-12--431--0-ss1" + HOSTILE_BYTES)
-    rec.closed(1, T0 + 5, "client", HOSTILE)
-    rec.opened(2, T0 + 6, HOSTILE, HOSTILE)
-    rec.upstream_failed(2, T0 + 7, HOSTILE)
-    rec.closed(2, T0 + 8, "server", HOSTILE)
+    rec.receive(Opened(1, T0 + 1, HOSTILE, HOSTILE))
+    rec.receive(UpstreamConnected(1, T0 + 2, HOSTILE))
+    rec.receive(Data(1, Direction.C2S, T0 + 3, b"rr1-12--0--0-ss1" + HOSTILE_BYTES + b"rr1-12--0--0-ss1"))
+    rec.receive(Data(1, Direction.S2C, T0 + 4, b"cr1-12--431--0-ss1" + HOSTILE_BYTES))
+    rec.receive(Closed(1, T0 + 5, "client", HOSTILE))
+    rec.receive(Opened(2, T0 + 6, HOSTILE, HOSTILE))
+    rec.receive(UpstreamFailed(2, T0 + 7, HOSTILE))
+    rec.receive(Closed(2, T0 + 8, "server", HOSTILE))
     rec.stop(T0 + 9, HOSTILE)
     return path
 

@@ -20,19 +20,18 @@ from pathlib import Path
 from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.analysis.exchanges import load_exchanges
+from whiztap.analyzer.cli.root import cli
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.encode import encode, encode_read
 from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
-from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.analyzer.recording.info import set_info
+from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.traffic import Closed, Gap, HalfClosed, Opened, to_json
+from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, to_json
 from whiztap.sniffer.record.recorder import Recorder
-from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.sniffer.record.writer import RecordingFile
+from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource
 
@@ -105,15 +104,15 @@ def _record(ops, path: Path, keep_secrets: bool, split_size: int | None) -> None
     for op, conn, d, payload in ops:
         t += MS
         if op == "opened":
-            recorder.opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000")
+            recorder.receive(Opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000"))
         elif op == "data":
-            recorder.data(conn, Direction(d), t, payload)
+            recorder.receive(Data(conn, Direction(d), t, payload))
         elif op == "half":
-            recorder.half_closed(conn, Direction(d), t)
+            recorder.receive(HalfClosed(conn, t, Direction(d)))
         elif op == "gap":
-            recorder.gap(conn, Direction(d), t, payload)
+            recorder.receive(Gap(conn, t, Direction(d), payload))
         elif op == "closed":
-            recorder.closed(conn, t, "client")
+            recorder.receive(Closed(conn, t, "client"))
         recorder.tick(t)
     recorder.stop(t + MS)
 

@@ -15,14 +15,15 @@ from pathlib import Path
 
 import jsonschema
 import pytest
+import whiztap.analyzer.recording.scan as scan_module
+import whiztap.sniffer.record.recorder as recorder_module
+import whiztap.sniffer.record.writer as writer_module
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import Writer
-
-import whiztap.analyzer.recording.scan as scan_module
-import whiztap.sniffer.record.recorder as recorder_module
-import whiztap.sniffer.record.writer as writer_module
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.recording.encode import (
     FrameEncoder,
     cat_line,
@@ -43,10 +44,10 @@ from whiztap.analyzer.recording.format import (
     schema_bytes,
 )
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
-from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.protocol.session import Session
+from whiztap.analyzer.traffic import Closed, Data, Opened, UpstreamFailed
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
+
 from tests.record_support import read_all, rebuild_streams, stream_bytes, tcp_reads
 from tests.streams import chunked, stream_pieces
 
@@ -66,14 +67,14 @@ def _recorder(path: Path, **kwargs) -> Recorder:
 
 def _session(rec: Recorder, conn: int = 1, t: int = T0) -> int:
     """A short winsock session with a password sent in three reads."""
-    rec.opened(conn, t + 1, "127.0.0.1:5555", "127.0.0.1:5000")
+    rec.receive(Opened(conn, t + 1, "127.0.0.1:5555", "127.0.0.1:5000"))
     steps = [(S2C, b"sendchkpass"), (C2S, b"pa"), (C2S, b"ss"), (C2S, b"wd"), (S2C, b"readytogo"),
              (C2S, b"rr1-24--0--0-ss1"), (S2C, b"sr1-\x03200000101-ss1"), (C2S, b"rr1-0--0--0-ss1"),
              (S2C, b"cr1-0--1000--0-ss1"), (C2S, b"rr1-1--0--2-ss1"), (S2C, b"cr1-1--4000--0-ss1"),
              (C2S, b"rr1-1--7--0-ss1rr1-2--1--0-ss1rr1-99--0--0-ss1")]
     for i, (d, data) in enumerate(steps):
-        rec.data(conn, d, t + 10 + i, data)
-    rec.closed(conn, t + 100, "client", "closed")
+        rec.receive(Data(conn, d, t + 10 + i, data))
+    rec.receive(Closed(conn, t + 100, "client", "closed"))
     return t + 100
 
 
@@ -112,16 +113,16 @@ def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
 def test_a_request_to_a_server_never_reached_is_reported_as_such_live_and_in_the_report(tmp_path):
     path = tmp_path / "down.mcap"
     rec = _recorder(path)
-    rec.opened(1, T0 + 1, "127.0.0.1:5555", "127.0.0.1:5000")
-    rec.data(1, C2S, T0 + 2, b"rr1-24--0--0-ss1")  # sent while the proxy was still connecting
-    rec.upstream_failed(1, T0 + 3, "cannot connect to 127.0.0.1:5000: Connection refused")
-    rec.closed(1, T0 + 4, "server", "cannot connect to 127.0.0.1:5000: Connection refused")
+    rec.receive(Opened(1, T0 + 1, "127.0.0.1:5555", "127.0.0.1:5000"))
+    rec.receive(Data(1, C2S, T0 + 2, b"rr1-24--0--0-ss1"))  # sent while the proxy was still connecting
+    rec.receive(UpstreamFailed(1, T0 + 3, "cannot connect to 127.0.0.1:5000: Connection refused"))
+    rec.receive(Closed(1, T0 + 4, "server", "cannot connect to 127.0.0.1:5000: Connection refused"))
     rec.stop(T0 + 5)
     why = ("Fetch Configuration Settings: the server was never reached "
            "(cannot connect to 127.0.0.1:5000: Connection refused)")
     assert [(v["rule_id"], v["detail"]) for v in read_all(str(path))["/violations"]] == [("PW-PAIR-UNANSWERED", why)]
-    from whiztap.analyzer.cli.analyze import analyse_file
     from whiztap.analyzer.analysis.report.content import build
+    from whiztap.analyzer.cli.analyze import analyse_file
 
     report = build(analyse_file(path, "dev-sum"))
     assert [(v["rule_id"], v["detail"]) for v in report["violations"]] == [("PW-PAIR-UNANSWERED", why)]
@@ -149,12 +150,12 @@ def test_a_password_left_pending_is_masked_after_the_hold_limit(tmp_path, monkey
     monkeypatch.setattr(recorder_module, "HOLD_LIMIT_S", 0.0)
     path = tmp_path / "hold.mcap"
     rec = _recorder(path)
-    rec.opened(1, T0 + 1, "a:1", "b:2")
-    rec.data(1, S2C, T0 + 2, b"sendchkpass")
-    rec.data(1, C2S, T0 + 3, b"topsecret")  # no verdict yet: held
-    rec.data(1, S2C, T0 + 4, b"cr1-0--1--0-ss1")  # behind it in /tcp/reads order
+    rec.receive(Opened(1, T0 + 1, "a:1", "b:2"))
+    rec.receive(Data(1, S2C, T0 + 2, b"sendchkpass"))
+    rec.receive(Data(1, C2S, T0 + 3, b"topsecret"))  # no verdict yet: held
+    rec.receive(Data(1, S2C, T0 + 4, b"cr1-0--1--0-ss1"))  # behind it in /tcp/reads order
     rec.tick(T0 + 5)  # the hold limit passed: masked and written
-    rec.data(1, S2C, T0 + 6, b"readytogo")
+    rec.receive(Data(1, S2C, T0 + 6, b"readytogo"))
     rec.stop(T0 + 7)
     reads = read_all(str(path))["/tcp/reads"]
     assert [base64.b64decode(r["data"]) for r in reads] == [b"sendchkpass", b"*********", b"cr1-0--1--0-ss1",
@@ -226,9 +227,9 @@ def test_the_fast_reader_gives_back_every_read_exactly(tmp_path, reads, compress
     rec = _recorder(path, keep_secrets=True, compression=compression)
     expected: dict[tuple[int, str], bytes] = {}
     for conn in range(1, 5):
-        rec.opened(conn, T0, "a:1", "b:2")
+        rec.receive(Opened(conn, T0, "a:1", "b:2"))
     for i, (conn, d, data) in enumerate(reads):
-        rec.data(conn, d, T0 + i, data)
+        rec.receive(Data(conn, d, T0 + i, data))
         expected[(conn, d.value)] = expected.get((conn, d.value), b"") + data
     rec.stop(T0 + len(reads))
     with open(path, "rb") as f:
@@ -264,11 +265,11 @@ def test_the_fast_reader_falls_back_for_another_key_order_and_checks_crcs(tmp_pa
 def test_a_truncated_file_reads_up_to_its_last_complete_chunk(tmp_path):
     path = tmp_path / "cut.mcap"
     rec = _recorder(path, keep_secrets=True)
-    rec.opened(1, T0, "a:1", "b:2")
-    rec.data(1, C2S, T0 + 1, b"first")
+    rec.receive(Opened(1, T0, "a:1", "b:2"))
+    rec.receive(Data(1, C2S, T0 + 1, b"first"))
     rec.file.flush()
     size = rec.file.size
-    rec.data(1, C2S, T0 + 2, b"second")
+    rec.receive(Data(1, C2S, T0 + 2, b"second"))
     rec.stop(T0 + 3)
     cut = tmp_path / "cut.mcap.part"
     cut.write_bytes(path.read_bytes()[:size + 30])
@@ -344,11 +345,11 @@ def test_stream_topics_have_chunks_of_their_own_that_readers_of_streams_alone_de
 def test_split_by_duration_writes_numbered_files_that_continue_each_other(tmp_path):
     path = tmp_path / "d.mcap"
     rec = _recorder(path, keep_secrets=True, split_duration_ns=1000)
-    rec.opened(1, T0, "a:1", "b:2")
+    rec.receive(Opened(1, T0, "a:1", "b:2"))
     sent = b""
     for i in range(10):
         data = b"rr1-%d--0--0-ss1" % i
-        rec.data(1, C2S, T0 + i * 400, data)
+        rec.receive(Data(1, C2S, T0 + i * 400, data))
         sent += data
         rec.tick(T0 + i * 400)
     summary = rec.stop(T0 + 5000)
@@ -367,8 +368,8 @@ def test_split_by_duration_writes_numbered_files_that_continue_each_other(tmp_pa
 def test_a_failing_disk_keeps_what_was_flushed_readable(tmp_path, monkeypatch):
     path = tmp_path / "full.mcap"
     rec = _recorder(path, keep_secrets=True)
-    rec.opened(1, T0, "a:1", "b:2")
-    rec.data(1, C2S, T0 + 1, b"kept")
+    rec.receive(Opened(1, T0, "a:1", "b:2"))
+    rec.receive(Data(1, C2S, T0 + 1, b"kept"))
     rec.file.flush()
     real_write = os.write
 
@@ -379,7 +380,7 @@ def test_a_failing_disk_keeps_what_was_flushed_readable(tmp_path, monkeypatch):
         return real_write(fd, data)
 
     monkeypatch.setattr(writer_module.os, "write", full)
-    rec.data(1, C2S, T0 + 2, os.urandom(3000))
+    rec.receive(Data(1, C2S, T0 + 2, os.urandom(3000)))
     with pytest.raises(RecordingWriteError, match=r"No space left on device; recording stopped, what was written"):
         rec.file.flush()
     monkeypatch.undo()

@@ -24,30 +24,35 @@ import re
 import threading
 from pathlib import Path
 
+import whiztap.sniffer.record.recorder as recorder_module
 from click.testing import CliRunner
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-
-import whiztap.sniffer.record.recorder as recorder_module
+from whiztap.analyzer.analysis.exchanges import load_exchanges
 from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.examples import CONFIG
-from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_READS, metadata_record
-from whiztap.analyzer.recording.scan import RecordingScan
-from whiztap.analyzer.recording.info import set_info
-from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.recording.format import (
+    STREAM_TOPICS,
+    TOPIC_READS,
+    metadata_record,
+)
+from whiztap.analyzer.recording.info import set_info
+from whiztap.analyzer.recording.redaction import Redactor
+from whiztap.analyzer.recording.scan import RecordingScan
+from whiztap.analyzer.recording.sets import find_one
+from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened
 from whiztap.sniffer.record.record_run import RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.sim.tcp_server import TcpServer
-from whiztap.sniffer.record.writer import RecordingFile
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, read_all, streams
-from tests.test_readers_property import TOKENS, stream
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource, LiveSource, ProxyRig
+
+from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, read_all, streams
+from tests.test_readers_property import TOKENS, stream
 
 SECRET = b"Kx9hunter2Tq4"
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -375,15 +380,15 @@ def _record_ops(path: Path, ops: list, clock: FakeClock) -> dict[int, bytes]:
     for op, conn, d, payload in ops:
         t += MS
         if op == "opened":
-            recorder.opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000")
+            recorder.receive(Opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000"))
         elif op == "data":
-            recorder.data(conn, Direction(d), t, payload)
+            recorder.receive(Data(conn, Direction(d), t, payload))
             if d == "c2s":
                 sent[conn] = sent.get(conn, b"") + payload
         elif op == "half":
-            recorder.half_closed(conn, Direction(d), t)
+            recorder.receive(HalfClosed(conn, t, Direction(d)))
         elif op == "closed":
-            recorder.closed(conn, t, "client")
+            recorder.receive(Closed(conn, t, "client"))
         else:
             clock.now += 60.0 if payload else 0.001
             recorder.tick(t)

@@ -7,10 +7,12 @@ import json
 import subprocess
 from pathlib import Path
 
-from whiztap.analyzer.recording.sets import find_recordings
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.recording.sets import find_recordings
+from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
+
 from tests.record_support import WHIZTAP
 
 T0 = 1_700_000_000_000_000_000
@@ -29,19 +31,19 @@ def split_vpn_session(path: Path, parts: int = 3, idle_ticks: int = 0) -> list[s
     rec = Recorder(file)
     t = T0
     rec.start(t)
-    rec.opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000")
-    rec.data(1, Direction.C2S, t, b"rr1-24--0--0-ss1")
-    rec.data(1, Direction.S2C, t + MS, CONFIG)
+    rec.receive(Opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000"))
+    rec.receive(Data(1, Direction.C2S, t, b"rr1-24--0--0-ss1"))
+    rec.receive(Data(1, Direction.S2C, t + MS, CONFIG))
     for n in range(parts - 1):
         t += 2 * MS
-        rec.data(1, Direction.C2S, t, b"rr1-1--0--0-ss1")  # Sensor Request on channel 1
+        rec.receive(Data(1, Direction.C2S, t, b"rr1-1--0--0-ss1"))  # Sensor Request on channel 1
         t += 20 * MS
         rec.tick(t)  # the split duration is over
         for _ in range(idle_ticks):  # nothing happens for a while: no part is begun for it
             t += 20 * MS
             rec.tick(t)
-        rec.data(1, Direction.S2C, t, b"cr1-1--%d--0-ss1" % n)  # its answer, in the next part
-    rec.closed(1, t + MS, "client")
+        rec.receive(Data(1, Direction.S2C, t, b"cr1-1--%d--0-ss1" % n))  # its answer, in the next part
+    rec.receive(Closed(1, t + MS, "client"))
     return rec.stop(t + 2 * MS).files
 
 

@@ -6,18 +6,20 @@ from pathlib import Path
 
 from whiztap.analyzer.cli.analyze import analyse_file
 from whiztap.analyzer.protocol.examples import CONFIG
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import metadata_record
 from whiztap.analyzer.recording.scan import read_metadata
-from whiztap.analyzer.protocol.observations import Direction
-from whiztap.sniffer.sim.client import Client
+from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.record_run import RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
-from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.record.writer import RecordingFile
-from tests.tui_support import SIZE, until
+from whiztap.sniffer.sim.client import Client
+from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.demo import PASSWORD, DemoRig
 from whiztap.tui.sources import FollowSource, LiveSource, ProxyRig
+
+from tests.tui_support import SIZE, until
 
 LOCAL = "127.0.0.1"
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -33,18 +35,18 @@ class GrowingRecording:
         self.recorder = Recorder(self.file)
         self.t = time.time_ns() if t_ns is None else t_ns
         self.recorder.start(self.t)
-        self.recorder.opened(1, self.t, "127.0.0.1:40000", "127.0.0.1:5000")
+        self.recorder.receive(Opened(1, self.t, "127.0.0.1:40000", "127.0.0.1:5000"))
 
     def exchange(self, request: bytes, answer: bytes) -> None:
         for direction, data in ((C2S, request), (S2C, answer)):
             self.t += 1_000_000
-            self.recorder.data(1, direction, self.t, data)
+            self.recorder.receive(Data(1, direction, self.t, data))
 
     def flush(self) -> None:
         self.file.flush()
 
     def finish(self) -> None:
-        self.recorder.closed(1, self.t, "client")
+        self.recorder.receive(Closed(1, self.t, "client"))
         self.recorder.stop(self.t)
 
 
