@@ -353,14 +353,13 @@ class CountingRecorder(Recorder):
         super().__init__(*args, **kwargs)
         self.open_now = self.most_open = 0
 
-    def opened(self, conn, t_ns, client, upstream):  # noqa: ANN001
-        super().opened(conn, t_ns, client, upstream)
-        self.open_now += 1
-        self.most_open = max(self.most_open, self.open_now)
-
-    def closed(self, conn, t_ns, by, detail=""):  # noqa: ANN001
-        super().closed(conn, t_ns, by, detail)
-        self.open_now -= 1
+    def receive(self, event) -> None:  # noqa: ANN001
+        super().receive(event)
+        if type(event) is Opened:
+            self.open_now += 1
+            self.most_open = max(self.most_open, self.open_now)
+        elif type(event) is Closed:
+            self.open_now -= 1
 
 
 def _reassemble(path, frames: list[bytes], max_open: int) -> CountingRecorder:  # noqa: ANN001

@@ -30,7 +30,7 @@ from whiztap.analyzer.recording.encode import (
     encode,
     encode_plots,
     encode_read,
-    frame_message,
+    frame_static,
     plot_messages,
     read_message,
 )
@@ -55,6 +55,18 @@ T0 = 1_700_000_000_000_000_000
 C2S, S2C = Direction.C2S, Direction.S2C
 CHECK = Path(__file__).parent / "mcap_check"
 
+
+
+def frame_message(conn: int, obs, offset: int, redact: bool) -> dict:  # noqa: ANN001 - an Observation
+    """A /frames message built plainly, as a dict: what ``FrameEncoder`` must
+    give byte for byte (docs/recording-format.md)."""
+    item = obs.item
+    return {
+        "conn": conn, "dir": obs.direction.value, "index": obs.index,
+        "t_start_ns": item.t_start_ns, "t_end_ns": item.t_end_ns, "offset": offset,
+        "answers": obs.answers.index if obs.answers is not None else None, "latency_ns": obs.latency_ns,
+        **frame_static(obs, redact),
+    }
 
 def _recorder(path: Path, **kwargs) -> Recorder:
     metadata = metadata_record(source="test", listen="", upstream="")

@@ -102,14 +102,14 @@ class DemoRig:
         self.client_error: str | None = None
         self._stop_client = asyncio.Event()
 
-    async def start(self, tap):  # noqa: ANN001, ANN201 - a tui.sources.Tap; a whiztap.sniffer.record.record_run.Recording
+    async def start(self, tap):  # noqa: ANN001, ANN201 - a tui.sources.Tap or None; a whiztap.sniffer.record.record_run.Recording
         from whiztap.sniffer.record.record_run import Recording, RecordSettings
         from whiztap.sniffer.sim.simulator import Simulator
 
         self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
         await self.simulator.start()
         self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
-                                                  quiet=True), consumers=[tap])
+                                                  quiet=True), consumers=[tap] if tap is not None else [])
         try:
             await self.recording.start()
         except BaseException:

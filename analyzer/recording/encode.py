@@ -6,8 +6,9 @@ messages and the lines of ``whiztap cat --format jsonl`` both describe items
 with it.  The encoders a recorder calls once per TCP read or per frame
 (``encode_read``, ``FrameEncoder``, ``encode_plots``) build their bytes
 directly, for speed; each has a dict-building twin that says the same plainly
-(``read_message``, ``frame_message``, ``plot_messages``), and tests check that
-the two agree byte for byte.
+(``read_message`` and ``plot_messages`` here; the /frames message's twin,
+used by nothing else, is in the tests), and tests check that the two agree
+byte for byte.
 """
 
 from __future__ import annotations
@@ -108,24 +109,12 @@ def cat_line(conn: int, obs: Observation) -> dict[str, Any]:
     return line
 
 
-def _frame_static(obs: Observation, redact: bool) -> dict:
+def frame_static(obs: Observation, redact: bool) -> dict:
     """The part of a /frames message fixed by the item's bytes and meaning:
     ``item_json`` less the latency, a top-level field of the frame."""
     static = item_json(obs, redact)
     static["fields"].pop("latency_ns", None)
     return static
-
-
-def frame_message(conn: int, obs: Observation, offset: int, redact: bool) -> dict:
-    """A /frames message: where and when the item is, what it answers, then
-    ``item_json`` (``redact`` as there)."""
-    item = obs.item
-    return {
-        "conn": conn, "dir": obs.direction.value, "index": obs.index,
-        "t_start_ns": item.t_start_ns, "t_end_ns": item.t_end_ns, "offset": offset,
-        "answers": obs.answers.index if obs.answers is not None else None, "latency_ns": obs.latency_ns,
-        **_frame_static(obs, redact),
-    }
 
 
 RUN_INLINE_MAX = 256  # a run of unframed bytes up to this long keeps its raw bytes in /frames
@@ -168,10 +157,10 @@ _CACHE_LIMIT = 4096  # distinct frames kept; answers with varying values mostly 
 
 
 class FrameEncoder:
-    """``encode(frame_message(...))``, built fast: one of these per frame.
+    """A /frames message (docs/recording-format.md) as JSON bytes, built fast: one of these per frame.
 
     Real sessions repeat a few hundred distinct frames, so the JSON of the part
-    that depends only on the bytes and their meaning (``_frame_static``) is
+    that depends only on the bytes and their meaning (``frame_static``) is
     kept, keyed by everything that decides it; each frame then costs one bytes
     format for its connection, position, times and pairing (a template each for
     the two commonest cases: nothing answered, and an answer with its latency).
@@ -185,7 +174,7 @@ class FrameEncoder:
         index, direction, item, message, _, violations, answers, latency = obs
         kind, raw, t_start, t_end, reason = item
         if kind is ItemKind.PASSWORD or len(raw) > _CACHED_RAW_MAX:
-            static = _dumps(_frame_static(obs, redact))[1:].encode()
+            static = _dumps(frame_static(obs, redact))[1:].encode()
         else:
             key = (raw, kind, reason, message.__class__, None if answers is None else answers[3].__class__,
                    violations)
@@ -193,7 +182,7 @@ class FrameEncoder:
             if static is None:
                 if len(self._cache) >= _CACHE_LIMIT:
                     self._cache.clear()
-                static = self._cache[key] = _dumps(_frame_static(obs, redact))[1:].encode()
+                static = self._cache[key] = _dumps(frame_static(obs, redact))[1:].encode()
         if answers is None and latency is None:
             return _COMMAND_HEAD % (conn, _DIR_BYTES[direction], index, t_start, t_end, offset) + static
         if answers is not None and latency is not None:
