@@ -26,7 +26,7 @@ from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.recording.format import METADATA_NAME
 from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.analyzer.recording.sets import RecordingSet, scan_set
-from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened
+from whiztap.analyzer.traffic import Closed, Data, Opened, Traffic
 
 C2S, S2C = Direction.C2S, Direction.S2C
 
@@ -96,11 +96,11 @@ class RecordedSessions:
 
 
 class _Builder:
-    """One connection's session, run over its reads while the file is scanned."""
+    """What one connection's reads and its session's events say, gathered while
+    the file is scanned (the session itself is ``Traffic``'s)."""
 
-    def __init__(self, conn: int, opened_ns: int, checksum_rule: str) -> None:
+    def __init__(self, conn: int, opened_ns: int) -> None:
         self.rec = RecordedConnection(conn, opened_ns)
-        self.session = Session(checksum_rule)
         self.framed = {C2S: 0, S2C: 0}
         self.received = {C2S: 0, S2C: 0}
         self.read_ends: list[int] = []  # end offset of each client read
@@ -117,7 +117,6 @@ class _Builder:
             self.rec.reads.append(ClientRead(offset, r.t_ns, r.data))
             self.read_ends.append(end)
             self.read_times.append(r.t_ns)
-        self.observe(self.session.receive(direction, r.data, r.t_ns))
 
     def observe(self, events: list) -> None:
         for obs in events:
@@ -133,10 +132,9 @@ class _Builder:
             elif obs.answers is not None:
                 self.answers[obs.answers.index] = (obs, self.motion.at_rest(obs))
 
-    def finish(self, t_ns: int) -> RecordedConnection:
-        self.observe(self.session.close(t_ns))
+    def finish(self, mode: Mode) -> RecordedConnection:
         rec = self.rec
-        rec.mode = self.session.mode
+        rec.mode = mode
         for obs, offset in self.pending:
             end = offset + len(obs.item.raw)
             i = bisect.bisect_left(self.read_ends, end)
@@ -162,31 +160,33 @@ def load_exchanges(recording) -> RecordedSessions:  # noqa: ANN001 - a Recording
     metadata = read_metadata(str(recording.name))
     rule = _checksum_rule({METADATA_NAME: metadata})
     builders: dict[int, _Builder] = {}
+    modes: dict[int, Mode] = {}  # each connection's mode, when its session ends
+    traffic = Traffic(lambda: Session(rule), lambda conn, session: modes.__setitem__(conn, session.mode))
     done: list[RecordedConnection] = []
     clients: dict[int, str] = {}
     start_ns: int | None = None
-    last_ns = 0
     for event in scan_set(recording):
-        conn, t, kind = event.conn, event.t_ns, type(event)
+        conn, kind = event.conn, type(event)
+        if kind is Opened:
+            clients[conn] = event.client  # type: ignore[union-attr]
+            builders[conn] = _Builder(conn, event.t_ns)
+            builders[conn].rec.client = clients[conn]
+            continue
+        builder = builders.get(conn)
         if kind is Data:
             if start_ns is None:
-                start_ns = t
-            last_ns = t
-            builder = builders.get(conn)
+                start_ns = event.t_ns
             if builder is None:  # a connection continued from a part not given
-                builder = builders[conn] = _Builder(conn, t, rule)
+                builder = builders[conn] = _Builder(conn, event.t_ns)
                 builder.rec.client = clients.get(conn, "")
             builder.read(event)  # type: ignore[arg-type]
-        elif kind is Opened:
-            clients[conn] = event.client  # type: ignore[union-attr]
-            builders[conn] = _Builder(conn, t, rule)
-            builders[conn].rec.client = clients[conn]
-        elif conn in builders:
-            builder = builders[conn]
-            if kind is HalfClosed:
-                builder.observe(builder.session.end(event.direction, t))  # type: ignore[union-attr]
-            elif kind is Closed:
-                done.append(builders.pop(conn).finish(t))
-    done += [b.finish(last_ns) for b in builders.values()]
+        elif builder is None:
+            continue
+        builder.observe(traffic.receive(event))
+        if kind is Closed:
+            done.append(builders.pop(conn).finish(modes.pop(conn, Mode.UNKNOWN)))
+    for conn, events in traffic.finish():
+        builders[conn].observe(events)
+    done += [b.finish(modes.pop(conn, Mode.UNKNOWN)) for conn, b in builders.items()]
     connections = sorted((c for c in done if c.reads or c.handshake), key=lambda c: c.conn)
     return RecordedSessions(str(recording.name), metadata, start_ns or 0, connections)

@@ -63,11 +63,6 @@ def read_message(conn: int, direction: str, t_ns: int, offset: int, data: bytes,
     return message
 
 
-def event_message(conn: int, event: str, t_ns: int, **details: Any) -> dict:
-    """A /tcp/events message; ``details`` holds the fields that event has."""
-    return {"conn": conn, "event": event, "t_ns": t_ns, **details}
-
-
 def encode_read(conn: int, direction: str, t_ns: int, offset: int, data: bytes,
                 redacted: list[tuple[int, int]] | None = None) -> bytes:
     """``encode(read_message(...))``, built directly: one of these per TCP read."""

@@ -138,7 +138,7 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
                                limits_from(answer_timeout, max_frame, max_image), overwrite=force)
     try:
         if pcap is not None:
-            from whiztap.analyzer.cli.analyze import ByteProgress
+            from whiztap.analyzer.cli.progress import ByteProgress
 
             # a bar on a terminal for a large file; a missing one is import_pcap's to report
             with ByteProgress([Path(pcap)] if os.path.isfile(pcap) else [], not quiet, "importing") as bar:

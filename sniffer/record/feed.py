@@ -57,6 +57,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from whiztap.analyzer.recording.stdout import drop_stdout
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.traffic import (
@@ -359,9 +360,7 @@ def _say(message: dict) -> None:
     try:
         os.write(1, json.dumps(message).encode() + b"\n")
     except OSError:  # EPIPE: nobody reads the other end any more
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 1)
-        os.close(devnull)
+        drop_stdout()
 
 
 def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook

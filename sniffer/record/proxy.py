@@ -4,10 +4,11 @@ Each client connection gets its own upstream connection.  Every chunk read from
 one side is written to the other side's transport at once, inside the same
 ``data_received`` call, before anything else happens: no byte is held back,
 reordered or changed, and nothing waits for a frame to complete.  Only then is
-the chunk handed on as a traffic event (``Data``) to the consumer (the
-recorder's pipe, which copies it into a batch; with the TUI, a fan-out:
-``whiztap.sniffer.record.consumers``).  ``asyncio.Protocol`` rather than streams: streams add a task switch and
-a buffer copy per read, which halves round trips (see docs/benchmarks.md).
+the chunk handed on as a traffic event (``Data``) to the consumer: a fan-out
+(``whiztap.sniffer.record.consumers``) to the recorder's pipe, which copies it
+into a batch, and to any other consumer (the TUI's tap), each isolated.
+``asyncio.Protocol`` rather than streams: streams add a task switch and a
+buffer copy per read, which halves round trips (see docs/benchmarks.md).
 
 Flow control is end to end, and derived, not remembered: a side is read
 exactly while there is somewhere to send its bytes (the upstream is connected
