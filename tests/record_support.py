@@ -22,8 +22,10 @@ import jsonschema
 from mcap.reader import make_reader
 
 from whiztap.analyzer.protocol.framing import Framer, Item
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import SCHEMA_ENCODING, TOPIC_FRAMES, TOPIC_READS
 from whiztap.analyzer.recording.scan import RecordingScan
+from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, TrafficEvent
 from whiztap.sniffer.record.record_run import Recording, RecordSettings
 from whiztap.sniffer.sim.tcp_server import TcpServer
 
@@ -103,6 +105,23 @@ async def recording(upstream_port: int, path: str, **options):
     finally:
         if rec.summary is None:
             await rec.stop()
+
+
+def op_event(op: str, conn: int, d: str, t: int, payload: bytes | int) -> TrafficEvent | None:
+    """The traffic event the proxy reports for one step of a drawn session,
+    ``(op, conn, direction, payload)`` at ``t``: "opened", "data", "half",
+    "gap" (``payload`` bytes missing) or "closed"; None for any other op."""
+    if op == "opened":
+        return Opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000")
+    if op == "data":
+        return Data(conn, Direction(d), t, payload)
+    if op == "half":
+        return HalfClosed(conn, t, Direction(d))
+    if op == "gap":
+        return Gap(conn, t, Direction(d), payload)
+    if op == "closed":
+        return Closed(conn, t, "client")
+    return None
 
 
 # -- the command, as a user runs it --------------------------------------------------------------
@@ -323,9 +342,36 @@ def events(by_topic: dict[str, list[dict]], conn: int) -> list[str]:
 # -- a scripted two-sided session through the real proxy ---------------------------------------------
 
 
+async def play_steps(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, steps: list[tuple],
+                     got: bytearray, timeout: float | None = WAIT) -> bool:
+    """One side of a scripted connection: ``("send", bytes)``, ``("bytewise", bytes)``
+    (one write per byte, each its own read at the far end), ``("recv", n)`` (wait
+    for n bytes, added to ``got``), ``("sleep", s)``, ``("eof",)`` (half-close).
+    Any other step, such as ``("close",)``, ends the play early: False."""
+    for step in steps:
+        if step[0] == "send":
+            writer.write(step[1])
+            await writer.drain()
+        elif step[0] == "bytewise":
+            for i in range(len(step[1])):
+                writer.write(step[1][i:i + 1])
+                await writer.drain()
+                await asyncio.sleep(0.005)
+        elif step[0] == "recv":
+            got += await asyncio.wait_for(reader.readexactly(step[1]), timeout)
+        elif step[0] == "sleep":
+            await asyncio.sleep(step[1])
+        elif step[0] == "eof":
+            writer.write_eof()
+        else:
+            return False
+    return True
+
+
 class StepServer(TcpServer):
-    """Plays ``steps`` on each connection: ``("send", bytes)``, ``("recv", n)``
-    (wait for n more bytes from the client), ``("close",)``."""
+    """Plays ``steps`` (``play_steps``) on each connection: ``("send", bytes)``,
+    ``("recv", n)`` (wait for n more bytes from the client), ``("close",)``;
+    after the last step it reads until the client closes."""
 
     def __init__(self, steps: list[tuple]) -> None:
         super().__init__(LOCAL, 0)
@@ -334,15 +380,7 @@ class StepServer(TcpServer):
 
     async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
-            for step in self.steps:
-                if step[0] == "send":
-                    writer.write(step[1])
-                    await writer.drain()
-                elif step[0] == "recv":
-                    self.received += await reader.readexactly(step[1])
-                else:
-                    break
-            else:
+            if await play_steps(reader, writer, self.steps, self.received, timeout=None):
                 self.received += await reader.read(-1)
         except (ConnectionError, OSError, asyncio.IncompleteReadError):
             pass
@@ -351,22 +389,12 @@ class StepServer(TcpServer):
 
 
 async def play_client(port: int, steps: list[tuple]) -> bytes:
-    """The client side: ``("send", bytes)``, ``("recv", n)``, ``("sleep", s)``,
-    ``("eof",)`` (half-close);
-    closes at the end and returns what it received."""
+    """The client side: ``steps`` as ``play_steps`` plays them; closes at the
+    end and returns what it received."""
     reader, writer = await asyncio.open_connection(LOCAL, port)
     got = bytearray()
     try:
-        for step in steps:
-            if step[0] == "send":
-                writer.write(step[1])
-                await writer.drain()
-            elif step[0] == "recv":
-                got += await asyncio.wait_for(reader.readexactly(step[1]), WAIT)
-            elif step[0] == "sleep":
-                await asyncio.sleep(step[1])
-            elif step[0] == "eof":
-                writer.write_eof()
+        await play_steps(reader, writer, steps, got)
     finally:
         writer.close()
         with contextlib.suppress(ConnectionError, OSError):

@@ -28,12 +28,14 @@ from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
 from whiztap.analyzer.recording.info import set_info
 from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, to_json
+from whiztap.analyzer.traffic import Closed, Gap, HalfClosed, Opened, to_json
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource
+
+from tests.record_support import op_event
 
 # Pieces that reach the interesting states of the session model: frames of
 # every kind (valid and not), handshake words, line breaks, image markers.
@@ -103,16 +105,9 @@ def _record(ops, path: Path, keep_secrets: bool, split_size: int | None) -> None
     t = T0
     for op, conn, d, payload in ops:
         t += MS
-        if op == "opened":
-            recorder.receive(Opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000"))
-        elif op == "data":
-            recorder.receive(Data(conn, Direction(d), t, payload))
-        elif op == "half":
-            recorder.receive(HalfClosed(conn, t, Direction(d)))
-        elif op == "gap":
-            recorder.receive(Gap(conn, t, Direction(d), payload))
-        elif op == "closed":
-            recorder.receive(Closed(conn, t, "client"))
+        event = op_event(op, conn, d, t, payload)
+        if event is not None:
+            recorder.receive(event)
         recorder.tick(t)
     recorder.stop(t + MS)
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import contextlib
 import json
 import os
 import re
@@ -41,7 +40,6 @@ from whiztap.analyzer.recording.info import set_info
 from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened
 from whiztap.sniffer.record.record_run import RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
@@ -51,7 +49,7 @@ from whiztap.sniffer.sim.tcp_server import TcpServer
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import FileSource, LiveSource, ProxyRig
 
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, read_all, streams
+from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, op_event, play_client, play_steps, read_all, streams
 from tests.test_readers_property import TOKENS, stream
 
 SECRET = b"Kx9hunter2Tq4"
@@ -112,41 +110,12 @@ class ScriptServer(TcpServer):
     async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         script = self.scripts.pop(0)
         try:
-            for step in script:
-                if step[0] == "send":
-                    writer.write(step[1])
-                    await writer.drain()
-                elif step[0] == "recv":
-                    await asyncio.wait_for(reader.readexactly(step[1]), WAIT)
-                else:
-                    return
-            await asyncio.wait_for(reader.read(-1), WAIT)
+            if await play_steps(reader, writer, script, bytearray()):
+                await asyncio.wait_for(reader.read(-1), WAIT)
         except (ConnectionError, OSError, asyncio.IncompleteReadError):
             pass
         finally:
             writer.close()
-
-
-async def client(port: int, steps: list[tuple]) -> None:
-    """``("send", bytes)``, ``("bytewise", bytes)`` (one write per byte, each
-    its own read at the proxy), ``("recv", n)``; closes at the end."""
-    reader, writer = await asyncio.open_connection(LOCAL, port)
-    try:
-        for step in steps:
-            if step[0] == "send":
-                writer.write(step[1])
-                await writer.drain()
-            elif step[0] == "bytewise":
-                for i in range(len(step[1])):
-                    writer.write(step[1][i:i + 1])
-                    await writer.drain()
-                    await asyncio.sleep(0.005)
-            elif step[0] == "recv":
-                await asyncio.wait_for(reader.readexactly(step[1]), WAIT)
-    finally:
-        writer.close()
-        with contextlib.suppress(ConnectionError, OSError):
-            await writer.wait_closed()
 
 
 EAGER = SECRET + b"\r\n" + COMMAND
@@ -179,7 +148,7 @@ async def record_every_client(path: Path) -> str:
     async with ScriptServer([server for _, server, _ in CONNECTIONS]) as server:
         rec = await RecordProcess.start(server.port, path, "--analyze")
         for n, (_name, _, steps) in enumerate(CONNECTIONS, 1):
-            await client(rec.port, steps)
+            await play_client(rec.port, steps)
             await rec.wait_line(rf"#{n} closed by")
         code, stdout, stderr = await rec.finish()
     assert code == 0, stderr
@@ -262,7 +231,7 @@ async def test_the_live_tui_shows_the_bytes_the_file_has(tmp_path):
         await source.start()
         port = source.recording.proxy.port
         for _name, _, steps in CONNECTIONS:
-            await client(port, steps)
+            await play_client(port, steps)
         await asyncio.sleep(0.2)  # the last close reaches the proxy
         await source.stop()
     model = TrafficModel(str(path), redact_passwords=True)
@@ -379,19 +348,13 @@ def _record_ops(path: Path, ops: list, clock: FakeClock) -> dict[int, bytes]:
     sent: dict[int, bytes] = {}
     for op, conn, d, payload in ops:
         t += MS
-        if op == "opened":
-            recorder.receive(Opened(conn, t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000"))
-        elif op == "data":
-            recorder.receive(Data(conn, Direction(d), t, payload))
-            if d == "c2s":
-                sent[conn] = sent.get(conn, b"") + payload
-        elif op == "half":
-            recorder.receive(HalfClosed(conn, t, Direction(d)))
-        elif op == "closed":
-            recorder.receive(Closed(conn, t, "client"))
-        else:
+        if op == "tick":
             clock.now += 60.0 if payload else 0.001
             recorder.tick(t)
+            continue
+        recorder.receive(op_event(op, conn, d, t, payload))
+        if op == "data" and d == "c2s":
+            sent[conn] = sent.get(conn, b"") + payload
     recorder.stop(t + MS)
     return sent
 

@@ -11,6 +11,15 @@ import pytest
 from tests.record_support import WHIZTAP, record_dialogue
 
 CONFIG = b"sr1-\x18" + b"200" * 24 + b"-ss1"  # 24 sensors
+FETCH_CONFIG = b"rr1-24--0--0-ss1"
+
+
+async def config_then(path, config: bytes, command: bytes, answer: bytes):
+    """Recorded through the real proxy: Fetch Configuration answered with
+    ``config``, then ``command`` answered with ``answer``."""
+    return await record_dialogue(
+        path, [("recv", len(FETCH_CONFIG)), ("send", config), ("recv", len(command)), ("send", answer)],
+        [("send", FETCH_CONFIG), ("recv", len(config)), ("send", command), ("recv", len(answer))])
 
 
 def run(*args: object) -> subprocess.CompletedProcess:
@@ -29,11 +38,7 @@ def judged(path) -> tuple[dict, list[dict]]:
 
 @pytest.mark.parametrize("answer", [b"cr1-12-ss1", b"cr1--ss1", b"cr1-12--\xff\xfe--0-ss1", b"cr1-12--1x0--0-ss1"])
 async def test_an_answer_that_does_not_parse_is_judged_not_a_crash(tmp_path, answer):
-    path = await record_dialogue(
-        tmp_path / "r.mcap",
-        [("recv", 16), ("send", CONFIG), ("recv", 16), ("send", answer)],
-        [("send", b"rr1-24--0--0-ss1"), ("recv", len(CONFIG)), ("send", b"rr1-12--0--0-ss1"),
-         ("recv", len(answer))])
+    path = await config_then(tmp_path / "r.mcap", CONFIG, b"rr1-12--0--0-ss1", answer)
     report, items = judged(path)
     assert not report["passed"]
     assert any(line["kind"] == "response" and line["violations"] for line in items)
@@ -186,11 +191,7 @@ async def test_a_camera_image_of_several_megabytes_is_one_frame_end_to_end(tmp_p
 
     picture = big_jpeg(5_000_000)
     config = b"sr1-\x01200-ss1"
-    path = await record_dialogue(
-        tmp_path / "camera.mcap",
-        [("recv", 16), ("send", config), ("recv", 16), ("send", picture)],
-        [("send", b"rr1-24--0--0-ss1"), ("recv", len(config)), ("send", b"rr1-29--0--0-ss1"),
-         ("recv", len(picture))])
+    path = await config_then(tmp_path / "camera.mcap", config, b"rr1-29--0--0-ss1", picture)
     report, items = judged(path)
     assert report["rule_counts"] == {} and report["passed"], report["rule_counts"]
     [image] = [i for i in items if i["kind"] == "image"]

@@ -1,5 +1,7 @@
 """The TUI on sample recordings, driven by key presses as a user would."""
 
+import contextlib
+
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Direction
 from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
@@ -8,14 +10,17 @@ from whiztap.tui.help import HelpScreen
 from whiztap.tui.sources import FileSource
 
 
-def app_on(name: str) -> WhiztapApp:
-    return WhiztapApp(FileSource(str(SAMPLES / name)))
+@contextlib.asynccontextmanager
+async def loaded_app(name: str):
+    """The app on a sample recording, run headless until the recording is loaded: (app, pilot)."""
+    app = WhiztapApp(FileSource(str(SAMPLES / name)))
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        yield app, pilot
 
 
 async def test_a_recording_opens_on_its_first_frame_with_its_connections():
-    app = app_on("clean-winsock.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("clean-winsock.mcap") as (app, pilot):
         store = app.model.store
         assert app.frames.rows == store.count > 0
         assert app.frames.cursor == 0 and app.detail.frame == 0
@@ -27,9 +32,7 @@ async def test_a_recording_opens_on_its_first_frame_with_its_connections():
 
 
 async def test_vim_keys_move_the_cursor_and_the_detail_follows():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         last = app.frames.rows - 1
         await pilot.press("j", "j", "down")
         assert app.frames.cursor == 3
@@ -50,9 +53,7 @@ async def test_vim_keys_move_the_cursor_and_the_detail_follows():
 
 
 async def test_n_and_N_walk_the_violations_in_order():
-    app = app_on("violations.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("violations.mcap") as (app, pilot):
         store = app.model.store
         seen = []
         for _ in range(5):
@@ -68,9 +69,7 @@ async def test_n_and_N_walk_the_violations_in_order():
 
 
 async def test_p_jumps_between_a_request_and_its_response():
-    app = app_on("clean-winsock.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("clean-winsock.mcap") as (app, pilot):
         store = app.model.store
         request = next(n for n in range(store.count)
                        if store.kind(n) is ItemKind.COMMAND and store.pair[n] >= 0)
@@ -84,9 +83,7 @@ async def test_p_jumps_between_a_request_and_its_response():
 
 
 async def test_the_filter_bar_narrows_the_list_and_an_empty_filter_restores_it():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         total = app.frames.rows
         await pilot.press("slash")
         assert app.filter_bar.has_focus
@@ -103,9 +100,7 @@ async def test_the_filter_bar_narrows_the_list_and_an_empty_filter_restores_it()
 
 
 async def test_free_text_and_violations_only_in_the_filter():
-    app = app_on("violations.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("violations.mcap") as (app, pilot):
         await pilot.press("slash", *"violations junk", "enter")
         await until(pilot, lambda: app.frames.view.complete and app.frames.rows == len(app.frames.view))
         store = app.model.store
@@ -115,9 +110,7 @@ async def test_free_text_and_violations_only_in_the_filter():
 
 
 async def test_a_bad_filter_is_reported_and_changes_nothing():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         await pilot.press("slash", *"dir:sideways", "enter")
         await pilot.pause()
         assert app.frames.view.all
@@ -127,9 +120,7 @@ async def test_a_bad_filter_is_reported_and_changes_nothing():
 
 
 async def test_choosing_a_connection_shows_only_its_frames():
-    app = app_on("violations.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("violations.mcap") as (app, pilot):
         await settled(pilot)
         await pilot.press("c")
         assert app.connections.has_focus
@@ -143,9 +134,7 @@ async def test_choosing_a_connection_shows_only_its_frames():
 
 
 async def test_help_opens_over_the_list_and_closes():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         await pilot.press("question_mark")
         assert isinstance(app.screen, HelpScreen)
         await pilot.press("j", "slash")  # the main screen's keys do nothing meanwhile
@@ -155,9 +144,7 @@ async def test_help_opens_over_the_list_and_closes():
 
 
 async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         await pilot.press("s")
         await pilot.pause()
         assert app.tabs.active == "stats"
@@ -171,18 +158,14 @@ async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
 
 
 async def test_q_quits():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         await pilot.press("q")
         await pilot.pause()
         assert not app.is_running
 
 
 async def test_z_gives_the_list_the_whole_width_and_d_brings_the_pane_back():
-    app = app_on("vpn.mcap")
-    async with app.run_test(size=SIZE) as pilot:
-        await loaded(pilot)
+    async with loaded_app("vpn.mcap") as (app, pilot):
         narrow = app.frames.size.width
         await pilot.press("z")
         await pilot.pause()

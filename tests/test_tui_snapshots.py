@@ -26,22 +26,22 @@ def sample(name: str) -> WhiztapApp:
     return WhiztapApp(FileSource(f"samples/{name}"))
 
 
-def test_frames_with_a_violation_in_detail(snap_compare):
-    async def second_violation(pilot):
+def pressing(*keys: str):
+    """What to do before the snapshot: wait for the recording, press ``keys``, let the panes settle."""
+    async def run_before(pilot):
         await loaded(pilot)
-        await pilot.press("n", "n")
+        await pilot.press(*keys)
         await settled(pilot)
 
-    assert snap_compare(sample("violations.mcap"), terminal_size=SIZE, run_before=second_violation)
+    return run_before
+
+
+def test_frames_with_a_violation_in_detail(snap_compare):
+    assert snap_compare(sample("violations.mcap"), terminal_size=SIZE, run_before=pressing("n", "n"))
 
 
 def test_statistics(snap_compare):
-    async def stats(pilot):
-        await loaded(pilot)
-        await pilot.press("s")
-        await settled(pilot)
-
-    assert snap_compare(sample("vpn.mcap"), terminal_size=SIZE, run_before=stats)
+    assert snap_compare(sample("vpn.mcap"), terminal_size=SIZE, run_before=pressing("s"))
 
 
 def test_a_filtered_list(snap_compare):

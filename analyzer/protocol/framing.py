@@ -401,13 +401,18 @@ class Framer:
             return (1, ItemKind.EOL, None) if self._final else _NEED_MORE
         return (2 if buf[pos + 1] == 0x0A else 1), ItemKind.EOL, None
 
-    def _scan_jpeg(self, pos: int):
-        buf, n = self._buf, min(len(self._buf), pos + self.max_image)
-        head = bytes(buf[pos:min(n, pos + 3)])
-        if not head or not JPEG_SOI.startswith(head):
+    def _image_start(self, pos: int, signature: bytes):
+        """None (no image opening with ``signature`` at pos), _NEED_MORE, or the end of its max_image window."""
+        n = min(len(self._buf), pos + self.max_image)
+        head = bytes(self._buf[pos:min(n, pos + len(signature))])
+        if not head or not signature.startswith(head):
             return None
-        if len(head) < 3:
-            return _NEED_MORE
+        return _NEED_MORE if len(head) < len(signature) else n
+
+    def _scan_jpeg(self, pos: int):
+        n = self._image_start(pos, JPEG_SOI)
+        if n is None or n == _NEED_MORE:
+            return n
         phase, i = self._resume if pos == 0 and self._resume is not None else (0, pos + 2)
         result = self._walk_jpeg(pos, n, phase, i) if phase == 0 else self._walk_entropy(pos, n, i)
         if result != _NEED_MORE:
@@ -464,12 +469,10 @@ class Framer:
                 i = j + 2 + ((buf[j + 2] << 8) | buf[j + 3])
 
     def _scan_png(self, pos: int):
-        buf, n = self._buf, min(len(self._buf), pos + self.max_image)
-        head = bytes(buf[pos:min(n, pos + 8)])
-        if not head or not PNG_SIGNATURE.startswith(head):
-            return None
-        if len(head) < 8:
-            return _NEED_MORE
+        n = self._image_start(pos, PNG_SIGNATURE)
+        if n is None or n == _NEED_MORE:
+            return n
+        buf = self._buf
         i = self._resume[1] if pos == 0 and self._resume is not None else pos + 8
         while True:
             if i + 8 > n:

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import ClassVar
 
+from whiztap.analyzer.protocol.text import LowerNamed
 
-class UnitType(IntEnum):
+
+class UnitType(LowerNamed):
     SERVO = 0
     SWITCH = 1
     SENSOR = 2
-
-    def __str__(self) -> str:
-        return self.name.lower()
 
 
 class Message:

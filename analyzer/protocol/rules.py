@@ -7,16 +7,14 @@ them, so an id is never renamed or reused.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
+
+from whiztap.analyzer.protocol.text import LowerNamed
 
 
-class Severity(IntEnum):
+class Severity(LowerNamed):
     INFO = 1
     WARNING = 2
     ERROR = 3
-
-    def __str__(self) -> str:
-        return self.name.lower()
 
     @classmethod
     def parse(cls, text: str) -> Severity:

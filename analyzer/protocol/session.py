@@ -182,31 +182,27 @@ class Session:
             return self._observe_commands(items)
         return self._observe_responses(items)
 
-    def _observe_commands(self, items: list[Item]) -> list[Event]:
+    def _fast_start(self) -> tuple:
+        """The locals both fast paths start from: a new events list and its append,
+        the book of pending requests and its order, the answer timeout, readiness, the index."""
         events: list[Event] = []
-        append = events.append
         book = self._pending
-        pending = book.order
+        return events, events.append, book, book.order, self.answer_timeout_ns, self.state is _S.READY, self._index
+
+    def _observe_commands(self, items: list[Item]) -> list[Event]:
+        events, append, book, pending, timeout, ready, index = self._fast_start()
         plans = self._plans
-        timeout = self.answer_timeout_ns
         command = ItemKind.COMMAND
         direction = Direction.C2S
-        ready = self.state is _S.READY
         every = self.clean_commands
-        index = self._index
         fast = 0
         t = None
         for item in items:
             kind, raw, _, t, _ = item
             plan = plans.get(raw) if ready and kind is command else None
             if plan is None:
-                self._index = index
-                self._commands += fast
-                self.counts[(direction, command)] += fast
+                index, ready = self._slow_step(direction, command, item, events, index, fast)
                 fast = 0
-                self._observe(direction, item, events)
-                index = self._index
-                ready = self.state is _S.READY
                 continue
             if pending and t - pending[0][4] > timeout:
                 self._expire(t, events)
@@ -225,26 +221,15 @@ class Session:
                 book.add(_new(Pending, (obs, answer_kind, channel, certain, t)))
             if every or violations:
                 append(obs)
-        if fast:
-            self._index = index
-            self._commands += fast
-            self.counts[(direction, command)] += fast
-            self._last_kind[direction] = command
-            self.last_t_ns = t
+        self._end_fast(direction, command, index, fast, t)
         return events
 
     def _observe_responses(self, items: list[Item]) -> list[Event]:
-        events: list[Event] = []
-        append = events.append
-        book = self._pending
-        pending = book.order
-        timeout = self.answer_timeout_ns
+        events, append, book, pending, timeout, ready, index = self._fast_start()
         response = ItemKind.RESPONSE
         direction = Direction.S2C
         waited: dict[str, list[int]] = {}  # latencies by request title, added in bulk at the end
         known = decode_cache(response)
-        ready = self.state is _S.READY
-        index = self._index
         fast = 0
         t = None
         for item in items:
@@ -268,20 +253,32 @@ class Session:
                         index += 1
                         fast += 1
                         continue
-            self._index = index
-            self.counts[(direction, response)] += fast
+            index, ready = self._slow_step(direction, response, item, events, index, fast)
             fast = 0
-            self._observe(direction, item, events)
-            index = self._index
-            ready = self.state is _S.READY
-        if fast:
-            self._index = index
-            self.counts[(direction, response)] += fast
-            self._last_kind[direction] = response
-            self.last_t_ns = t
+        self._end_fast(direction, response, index, fast, t)
         for title, batch in waited.items():
             self.latencies[title].add_many(batch)
         return events
+
+    def _hand_back(self, direction: Direction, kind: ItemKind, index: int, fast: int) -> None:
+        """Give ``self`` the counters a fast path keeps in locals: the index and the ``fast`` items it took."""
+        self._index = index
+        self.counts[(direction, kind)] += fast
+        if kind is ItemKind.COMMAND:
+            self._commands += fast
+
+    def _slow_step(self, direction: Direction, kind: ItemKind, item: Item, events: list[Event], index: int,
+                   fast: int) -> tuple[int, bool]:
+        """A fast path hands ``item`` to ``_observe``: the index and readiness after it."""
+        self._hand_back(direction, kind, index, fast)
+        self._observe(direction, item, events)
+        return self._index, self.state is _S.READY
+
+    def _end_fast(self, direction: Direction, kind: ItemKind, index: int, fast: int, t: int | None) -> None:
+        if fast:  # the fast path took the last items: its counters, their kind and time
+            self._hand_back(direction, kind, index, fast)
+            self._last_kind[direction] = kind
+            self.last_t_ns = t
 
     def _observe(self, direction: Direction, item: Item, events: list[Event]) -> None:
         """The general path: one item of any kind, in any state (the fast paths

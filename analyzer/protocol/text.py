@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from enum import IntEnum
 
 _SPECIAL = {0x5C: "\\\\", 0x0D: "\\r", 0x0A: "\\n", 0x09: "\\t"}
 _ESCAPES = [_SPECIAL.get(b) or (chr(b) if 0x20 <= b < 0x7F else f"\\x{b:02x}") for b in range(256)]
@@ -82,3 +83,11 @@ def human_bytes(n: int) -> str:
             return f"{n} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000  # type: ignore[assignment]
     return f"{n} B"
+
+
+class LowerNamed(IntEnum):
+    """An IntEnum shown (``str``, f-strings) as its member's name in lower case,
+    "servo" or "error": an int everywhere else."""
+
+    def __str__(self) -> str:
+        return self.name.lower()
