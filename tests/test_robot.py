@@ -11,25 +11,9 @@ import re
 
 import pytest
 
+from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.codec import UNIT_OF_COMMAND, encode
 from whiztap.analyzer.protocol.framing import Framer, ItemKind
-from whiztap.analyzer.protocol.messages import (
-    ActivateSwitch,
-    ChannelConfig,
-    DeactivateSwitch,
-    FetchCameraImage,
-    FetchConfiguration,
-    Message,
-    NormalSend,
-    PlayExternalScript,
-    PlayInternalScript,
-    SensorRequest,
-    ServoPositionRequest,
-    SetConfigEntry,
-    SetConfiguration,
-    StopExternalScript,
-    StopInternalScript,
-)
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Session
 from whiztap.sniffer.sim.camera import render_frame
@@ -60,52 +44,52 @@ def make_robot(channels: str = DEFAULT_CHANNELS, **kwargs) -> Robot:
     return Robot(parse_channels(channels), **kwargs)
 
 
-def example_robot(message: Message) -> Robot:
+def example_robot(message: m.Message) -> Robot:
     """A robot on which the example frame means ``message``."""
     unit = UNIT_OF_COMMAND.get(type(message))
     robot = make_robot(f"{unit}:0-23" if unit is not None else "sensor:0-23")
-    if isinstance(message, DeactivateSwitch):
+    if isinstance(message, m.DeactivateSwitch):
         robot.switches = [True] * len(robot.switches)
-    robot.internal_script = 11 if isinstance(message, StopInternalScript) else None
-    robot.external_script = 270 if isinstance(message, StopExternalScript) else None
+    robot.internal_script = 11 if isinstance(message, m.StopInternalScript) else None
+    robot.external_script = 270 if isinstance(message, m.StopExternalScript) else None
     return robot
 
 
-def check_effect(message: Message, robot: Robot, replies: list[bytes], t: int) -> None:
+def check_effect(message: m.Message, robot: Robot, replies: list[bytes], t: int) -> None:
     """What the message must do to the robot, and what it answers."""
     match message:
-        case FetchConfiguration():
+        case m.FetchConfiguration():
             assert replies == [encode(robot.configuration())]
-        case FetchCameraImage():
+        case m.FetchCameraImage():
             assert replies == [fake_camera(1, t / SEC)]
-        case SensorRequest(channel=ch):
+        case m.SensorRequest(channel=ch):
             assert replies == [b"cr1-%d--%d--0-ss1" % (ch, robot.sensor_value(ch, t))]
-        case ServoPositionRequest(channel=ch):
+        case m.ServoPositionRequest(channel=ch):
             assert replies == [b"cr1-%d--4000--0-ss1" % ch]  # centred: position 1000, data 4000
-        case NormalSend(channel=ch, value=value):
+        case m.NormalSend(channel=ch, value=value):
             assert replies == [] and robot.servo_target(ch) == value
-        case ActivateSwitch(channel=ch):
+        case m.ActivateSwitch(channel=ch):
             assert replies == [] and robot.switches[ch] and sum(robot.switches) == 1
-        case DeactivateSwitch(channel=ch):
+        case m.DeactivateSwitch(channel=ch):
             assert replies == [] and not robot.switches[ch] and sum(robot.switches) == len(robot.switches) - 1
-        case PlayInternalScript(script=n):
+        case m.PlayInternalScript(script=n):
             assert replies == [] and robot.internal_script == n
-        case PlayExternalScript(script=n):
+        case m.PlayExternalScript(script=n):
             assert replies == [] and robot.external_script == n
-        case StopInternalScript():
+        case m.StopInternalScript():
             assert replies == [] and robot.internal_script is None
-        case StopExternalScript():
+        case m.StopExternalScript():
             assert replies == [] and robot.external_script is None
-        case SetConfiguration():
+        case m.SetConfiguration():
             assert replies == [] and format_channels(robot.channels) == "servo:0-5,sensor:6-23"
         case _:
             raise AssertionError(f"no expectation for {message}")
 
 
 def fields(frame: bytes) -> tuple[int, int, int]:
-    m = re.fullmatch(rb"[rc]r1-(\d+)--(\d+)--(\d+)-ss1", frame)
-    assert m is not None
-    return int(m[1]), int(m[2]), int(m[3])
+    found = re.fullmatch(rb"[rc]r1-(\d+)--(\d+)--(\d+)-ss1", frame)
+    assert found is not None
+    return int(found[1]), int(found[2]), int(found[3])
 
 
 def data(out: Output) -> list[bytes]:
@@ -128,9 +112,9 @@ def test_default_channels_cover_every_unit_and_both_switch_types():
 
 
 @pytest.mark.parametrize("spec, expected", [
-    ("servo:0-2", (ChannelConfig(0),) * 3),
-    ("sensor:1, servo:0", (ChannelConfig(0), ChannelConfig(2))),
-    ("switch1:0,switch0:1", (ChannelConfig(1, 0, 1), ChannelConfig(1, 0, 0))),
+    ("servo:0-2", (m.ChannelConfig(0),) * 3),
+    ("sensor:1, servo:0", (m.ChannelConfig(0), m.ChannelConfig(2))),
+    ("switch1:0,switch0:1", (m.ChannelConfig(1, 0, 1), m.ChannelConfig(1, 0, 0))),
 ])
 def test_parse_channels(spec, expected):
     assert parse_channels(spec) == expected
@@ -212,8 +196,8 @@ def test_winsock_needs_a_password():
 # -- the spec's examples -----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("frame, message", EXAMPLES, ids=[f"{f.decode('latin-1')}={type(m).__name__}"
-                                                         for f, m in EXAMPLES])
+@pytest.mark.parametrize("frame, message", EXAMPLES, ids=[f"{f.decode('latin-1')}={type(msg).__name__}"
+                                                         for f, msg in EXAMPLES])
 def test_spec_example_split_at_every_offset(frame, message):
     t = 3 * SEC
     for cut in range(len(frame) + 1):
@@ -402,10 +386,10 @@ def test_every_shape_is_used_and_each_is_smooth():
 
 
 def set_config(entries: list[tuple[int, int, int]], checksum: int | None = None) -> bytes:
-    message_entries = tuple(SetConfigEntry(*e) for e in entries)
+    message_entries = tuple(m.SetConfigEntry(*e) for e in entries)
     if checksum is None:
         checksum = sum(e[0] for e in entries) % 256
-    return encode(SetConfiguration(message_entries, checksum))
+    return encode(m.SetConfiguration(message_entries, checksum))
 
 
 def test_set_configuration_changes_the_listed_channels_and_sends_no_reply():

@@ -161,7 +161,8 @@ class Connection:
         self.client_addr = address(transport.get_extra_info("peername"))
         self.opened_ns = proxy.clock()
         proxy.receive(Opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text))
-        proxy.notify("opened", self)
+        if proxy.on_opened is not None:
+            proxy.on_opened(self)
         self._connect = asyncio.get_running_loop().create_task(self._open_upstream())
 
     async def _open_upstream(self) -> None:
@@ -245,18 +246,21 @@ class RecordingProxy:
     """Listens, and proxies each client to the upstream address, handing what
     happens to ``consumer`` as traffic events (one ``Data`` per read).
 
-    ``on_connection(event, connection)`` is told about "opened" and "closed".
+    Two hooks, for the person running it: ``on_opened(connection)`` when a
+    client connects, ``on_closed(connection)`` when both of its sides are done.
     """
 
     def __init__(self, listen_host: str, listen_port: int, upstream_host: str, upstream_port: int,
                  consumer: Consumer, *, connect_timeout: float = 5.0,
-                 on_connection: Callable[[str, Connection], None] | None = None) -> None:
+                 on_opened: Callable[[Connection], None] | None = None,
+                 on_closed: Callable[[Connection], None] | None = None) -> None:
         self.listen_host, self.listen_port = listen_host, listen_port
         self.upstream_host, self.upstream_port = upstream_host, upstream_port
         self.upstream_text = address((upstream_host, upstream_port))
         self.receive = consumer.receive
         self.connect_timeout = connect_timeout
-        self.on_connection = on_connection
+        self.on_opened = on_opened
+        self.on_closed = on_closed
         self.clock = Clock()
         self.connections: dict[int, Connection] = {}
         self._ids = itertools.count(1)
@@ -284,13 +288,10 @@ class RecordingProxy:
         self.connections[conn.id] = conn
         return conn.client
 
-    def notify(self, event: str, conn: Connection) -> None:
-        if self.on_connection is not None:
-            self.on_connection(event, conn)
-
     def forget(self, conn: Connection) -> None:
         self.connections.pop(conn.id, None)
-        self.notify("closed", conn)
+        if self.on_closed is not None:
+            self.on_closed(conn)
 
     def hold(self, conn_id: int, held: bool) -> None:
         """The recorder's verdict on one connection: stop reading both of its

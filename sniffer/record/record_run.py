@@ -66,7 +66,8 @@ class Recording:
         """Bind, start the writer, accept.  Raises WriterError or OSError (bind)."""
         s = self.settings
         self.proxy = proxy = RecordingProxy(*s.listen, *s.upstream, self.consumers,
-                                            connect_timeout=s.connect_timeout, on_connection=self._connection)
+                                            connect_timeout=s.connect_timeout, on_opened=self._opened,
+                                            on_closed=self._closed)
         await proxy.start(serving=False)
         start_ns = proxy.clock()
         listen = proxy.listen_text
@@ -100,10 +101,10 @@ class Recording:
         self.summary = await self.writer.stop(self.proxy.clock(), detail)  # type: ignore[union-attr]
         return self.summary
 
-    def _connection(self, event: str, conn: Connection) -> None:
-        if event == "opened":
-            self.echo(f"#{conn.id} opened from {conn.client_addr}")
-            return
+    def _opened(self, conn: Connection) -> None:
+        self.echo(f"#{conn.id} opened from {conn.client_addr}")
+
+    def _closed(self, conn: Connection) -> None:
         seconds = (self.proxy.clock() - conn.opened_ns) / 1e9  # type: ignore[union-attr]
         self.echo(f"#{conn.id} closed by {conn.closed_by} after {seconds:.2f} s ({conn.detail}): "
                   f"c2s {conn.client.received} B, s2c {conn.upstream.received} B")

@@ -13,35 +13,21 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass
 
+from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.analysis.exchanges import ClientItem, RecordedConnection, RecordedSessions
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.messages import (
-    ActivateSwitch,
-    DeactivateSwitch,
-    FetchCameraImage,
-    FetchConfiguration,
-    Message,
-    NormalSend,
-    PlayExternalScript,
-    PlayInternalScript,
-    SensorRequest,
-    ServoPositionRequest,
-    StopExternalScript,
-    StopInternalScript,
-    UnknownCommand,
-)
 from whiztap.analyzer.protocol.handshake import Mode
 from whiztap.analyzer.protocol.text import escape, shorten
 
 NS = 1_000_000_000
 
 # --kind names: what a client item is, by message...
-_MESSAGE_KINDS: dict[type[Message], str] = {
-    FetchConfiguration: "config", FetchCameraImage: "camera", NormalSend: "send",
-    ActivateSwitch: "switch", DeactivateSwitch: "switch", PlayInternalScript: "script",
-    StopInternalScript: "script", PlayExternalScript: "script", StopExternalScript: "script",
-    SensorRequest: "sensor", ServoPositionRequest: "servo", UnknownCommand: "unknown",
+_MESSAGE_KINDS: dict[type[m.Message], str] = {
+    m.FetchConfiguration: "config", m.FetchCameraImage: "camera", m.NormalSend: "send",
+    m.ActivateSwitch: "switch", m.DeactivateSwitch: "switch", m.PlayInternalScript: "script",
+    m.StopInternalScript: "script", m.PlayExternalScript: "script", m.StopExternalScript: "script",
+    m.SensorRequest: "sensor", m.ServoPositionRequest: "servo", m.UnknownCommand: "unknown",
 }
 # ...or by item kind.
 _ITEM_KINDS = ("command", "set_config", "eol", "unframed")

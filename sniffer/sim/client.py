@@ -15,31 +15,11 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
+from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from whiztap.analyzer.protocol.codec import decode, encode
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.text import escape
-from whiztap.analyzer.protocol.messages import (
-    ActivateSwitch,
-    ChannelResponse,
-    ConfigurationSettings,
-    DeactivateSwitch,
-    FailedValidation,
-    FetchCameraImage,
-    FetchConfiguration,
-    Message,
-    NormalSend,
-    PlayExternalScript,
-    PlayInternalScript,
-    ReadyToGo,
-    SendCheckPassword,
-    SensorRequest,
-    ServoPositionRequest,
-    SetConfigEntry,
-    SetConfiguration,
-    StopExternalScript,
-    StopInternalScript,
-)
 
 DEFAULT_TIMEOUT = 5.0
 READ_SIZE = 65536
@@ -86,7 +66,7 @@ class Client:
         self.stray: list[Item] = []  # items that answered nothing (garbage, unsolicited replies)
         self._framer = Framer()
         self._waiters: deque[_Waiter] = deque()
-        self._handshake: asyncio.Queue[Message] = asyncio.Queue()
+        self._handshake: asyncio.Queue[m.Message] = asyncio.Queue()
         self._taps: list[list[Item]] = []
         self._closed: ClientError | None = None
         self._reader_task = asyncio.create_task(self._read())
@@ -117,17 +97,17 @@ class Client:
 
     async def _login(self, password: bytes) -> None:
         first = await self._handshake_message("sendchkpass")
-        if not isinstance(first, SendCheckPassword):
+        if not isinstance(first, m.SendCheckPassword):
             raise HandshakeError(f"expected sendchkpass, got {first.title!r}")
         await self.send_raw(password)
         verdict = await self._handshake_message("readytogo or Failed Validation")
-        if isinstance(verdict, FailedValidation):
+        if isinstance(verdict, m.FailedValidation):
             raise HandshakeError("Failed Validation: the server rejected the password")
-        if not isinstance(verdict, ReadyToGo):
+        if not isinstance(verdict, m.ReadyToGo):
             raise HandshakeError(f"expected readytogo, got {verdict.title!r}")
         self.handshaking = False
 
-    async def _handshake_message(self, what: str) -> Message:
+    async def _handshake_message(self, what: str) -> m.Message:
         # A verdict may come with the server's close: take what arrived before looking at the close.
         if self._handshake.empty() and not self._reader_task.done():
             getter = asyncio.ensure_future(self._handshake.get())
@@ -144,52 +124,52 @@ class Client:
 
     # -- the spec's commands -------------------------------------------------------------
 
-    async def fetch_configuration(self, timeout: float | None = None) -> ConfigurationSettings:
-        item = await self._request(FetchConfiguration(), ItemKind.CONFIG, None, timeout)
+    async def fetch_configuration(self, timeout: float | None = None) -> m.ConfigurationSettings:
+        item = await self._request(m.FetchConfiguration(), ItemKind.CONFIG, None, timeout)
         decoded = decode(item.kind, item.raw)
-        if not isinstance(decoded.message, ConfigurationSettings):
+        if not isinstance(decoded.message, m.ConfigurationSettings):
             raise ClientError(f"unreadable Configuration Settings: {decoded.violations[0].detail}")
         return decoded.message
 
     async def fetch_camera_image(self, timeout: float | None = None) -> bytes:
         """The image as the server sent it (the simulator sends a bare JPEG)."""
-        return (await self._request(FetchCameraImage(), ItemKind.IMAGE, None, timeout)).raw
+        return (await self._request(m.FetchCameraImage(), ItemKind.IMAGE, None, timeout)).raw
 
     async def sensor(self, channel: int, timeout: float | None = None) -> int:
         """Sensor Request: the sensor value (0-1024)."""
-        return (await self._channel_request(SensorRequest(channel), channel, timeout)).data
+        return (await self._channel_request(m.SensorRequest(channel), channel, timeout)).data
 
     async def servo_position(self, channel: int, timeout: float | None = None) -> float:
         """Servo Position Request: the position (0-2000), i.e. the servo data / 4."""
-        return (await self._channel_request(ServoPositionRequest(channel), channel, timeout)).servo_position
+        return (await self._channel_request(m.ServoPositionRequest(channel), channel, timeout)).servo_position
 
     async def normal_send(self, channel: int, value: int) -> None:
-        await self._send(NormalSend(channel, value))
+        await self._send(m.NormalSend(channel, value))
 
     async def activate_switch(self, channel: int) -> None:
-        await self._send(ActivateSwitch(channel))
+        await self._send(m.ActivateSwitch(channel))
 
     async def deactivate_switch(self, channel: int) -> None:
-        await self._send(DeactivateSwitch(channel))
+        await self._send(m.DeactivateSwitch(channel))
 
     async def play_internal_script(self, script: int) -> None:
-        await self._send(PlayInternalScript(script))
+        await self._send(m.PlayInternalScript(script))
 
     async def stop_internal_script(self) -> None:
-        await self._send(StopInternalScript())
+        await self._send(m.StopInternalScript())
 
     async def play_external_script(self, script: int) -> None:
-        await self._send(PlayExternalScript(script))
+        await self._send(m.PlayExternalScript(script))
 
     async def stop_external_script(self) -> None:
-        await self._send(StopExternalScript())
+        await self._send(m.StopExternalScript())
 
-    async def set_configuration(self, entries: tuple[SetConfigEntry, ...], checksum: int | None = None,
+    async def set_configuration(self, entries: tuple[m.SetConfigEntry, ...], checksum: int | None = None,
                                 checksum_rule: str = DEFAULT_CHECKSUM_RULE) -> None:
         """Set Configuration Settings; the checksum is computed unless given."""
         if checksum is None:
             checksum = get_rule(checksum_rule).compute(entries)
-        await self._send(SetConfiguration(entries, checksum))
+        await self._send(m.SetConfiguration(entries, checksum))
 
     # -- raw access ------------------------------------------------------------------------
 
@@ -232,7 +212,7 @@ class Client:
         if self._closed is not None:
             raise self._closed
 
-    def _frame(self, message: Message) -> bytes:
+    def _frame(self, message: m.Message) -> bytes:
         """The message's bytes; with ``validate`` on, refused if they break a rule
         on their own (a channel or value out of range), before anything is sent."""
         data = encode(message)
@@ -245,17 +225,17 @@ class Client:
                                     f"(not sent; --raw sends it anyway)")
         return data
 
-    async def _send(self, message: Message) -> None:
+    async def _send(self, message: m.Message) -> None:
         await self.send_raw(self._frame(message))
 
-    async def _channel_request(self, message: Message, channel: int, timeout: float | None) -> ChannelResponse:
+    async def _channel_request(self, message: m.Message, channel: int, timeout: float | None) -> m.ChannelResponse:
         item = await self._request(message, ItemKind.RESPONSE, channel, timeout)
         decoded = decode(item.kind, item.raw)
-        if not isinstance(decoded.message, ChannelResponse):
+        if not isinstance(decoded.message, m.ChannelResponse):
             raise ClientError(f"unreadable response: {decoded.violations[0].detail}")
         return decoded.message
 
-    async def _request(self, message: Message, kind: ItemKind, channel: int | None,
+    async def _request(self, message: m.Message, kind: ItemKind, channel: int | None,
                        timeout: float | None) -> Item:
         self._check_open()
         data = self._frame(message)
@@ -297,7 +277,7 @@ class Client:
             message = decode(kind, item.raw).message
             if self.handshaking and message is not None:
                 self._handshake.put_nowait(message)
-            elif isinstance(message, SendCheckPassword):
+            elif isinstance(message, m.SendCheckPassword):
                 self._fail(HandshakeError("the server asks for a password (winsock mode): give one"))
             else:
                 self.stray.append(item)
@@ -305,7 +285,7 @@ class Client:
         channel = None
         if kind is ItemKind.RESPONSE:
             message = decode(kind, item.raw).message
-            channel = message.channel if isinstance(message, ChannelResponse) else None
+            channel = message.channel if isinstance(message, m.ChannelResponse) else None
         for waiter in self._waiters:
             if waiter.kind is kind and waiter.channel == channel and not waiter.future.done():
                 waiter.future.set_result(item)

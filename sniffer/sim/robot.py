@@ -17,31 +17,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from whiztap.analyzer.protocol.codec import MAX_CHANNEL, MAX_SEND_VALUE, Decoded, decode, encode, resolve
 from whiztap.analyzer.protocol.framing import DEFAULT_MAX_ITEM, Framer, Item, ItemKind
-from whiztap.analyzer.protocol.messages import (
-    ActivateSwitch,
-    ChannelConfig,
-    ChannelResponse,
-    ConfigurationSettings,
-    DeactivateSwitch,
-    FailedValidation,
-    FetchCameraImage,
-    FetchConfiguration,
-    Message,
-    NormalSend,
-    PlayExternalScript,
-    PlayInternalScript,
-    ReadyToGo,
-    SendCheckPassword,
-    SensorRequest,
-    ServoPositionRequest,
-    SetConfiguration,
-    StopExternalScript,
-    StopInternalScript,
-    UnitType,
-)
 from whiztap.analyzer.protocol.rules import Severity
 from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.sim.waveforms import Signal, make_signal
@@ -121,7 +100,7 @@ class Robot:
 
     def __init__(
         self,
-        channels: tuple[ChannelConfig, ...],
+        channels: tuple[m.ChannelConfig, ...],
         *,
         seed: int = 0,
         servo_speed: float = DEFAULT_SERVO_SPEED,
@@ -149,13 +128,13 @@ class Robot:
 
     # -- what a client can read ------------------------------------------------------------
 
-    def unit_of(self, channel: int) -> UnitType | None:
+    def unit_of(self, channel: int) -> m.UnitType | None:
         if channel >= len(self.channels) or self.channels[channel].unit_type not in (0, 1, 2):
             return None
-        return UnitType(self.channels[channel].unit_type)
+        return m.UnitType(self.channels[channel].unit_type)
 
-    def configuration(self) -> ConfigurationSettings:
-        return ConfigurationSettings(self.channels)
+    def configuration(self) -> m.ConfigurationSettings:
+        return m.ConfigurationSettings(self.channels)
 
     def sensor_value(self, channel: int, t_ns: int) -> int:
         return self._sensors[channel].value((t_ns - self.start_ns) / 1e9)
@@ -195,41 +174,41 @@ class Robot:
                 return None
         return None if message is None else self._execute(message, t_ns, notes)
 
-    def _execute(self, message: Message, t_ns: int, notes: list[Note]) -> bytes | None:
+    def _execute(self, message: m.Message, t_ns: int, notes: list[Note]) -> bytes | None:
         match message:
-            case FetchConfiguration():
+            case m.FetchConfiguration():
                 return encode(self.configuration())
-            case FetchCameraImage():
+            case m.FetchCameraImage():
                 if self.camera is None:
                     notes.append(Note(logging.INFO, "Fetch Camera Image: the camera is off, no reply"))
                     return None
                 self.frames += 1
                 return self.camera(self.frames, (t_ns - self.start_ns) / 1e9)
-            case SensorRequest(channel=ch):
-                return encode(ChannelResponse(ch, self.sensor_value(ch, t_ns)))
-            case ServoPositionRequest(channel=ch):
-                return encode(ChannelResponse(ch, round(self.servo_position(ch, t_ns) * 4)))
-            case NormalSend(channel=ch, value=value):
+            case m.SensorRequest(channel=ch):
+                return encode(m.ChannelResponse(ch, self.sensor_value(ch, t_ns)))
+            case m.ServoPositionRequest(channel=ch):
+                return encode(m.ChannelResponse(ch, round(self.servo_position(ch, t_ns) * 4)))
+            case m.NormalSend(channel=ch, value=value):
                 servo = self._servos[ch]
                 if self._sweep is None:
                     servo.start, servo.t0_ns = servo.position(t_ns, self.servo_speed), t_ns
                 servo.target = value  # under a script, taken up when the script stops
-            case ActivateSwitch(channel=ch):
+            case m.ActivateSwitch(channel=ch):
                 self.switches[ch] = True
-            case DeactivateSwitch(channel=ch):
+            case m.DeactivateSwitch(channel=ch):
                 self.switches[ch] = False
-            case PlayInternalScript(script=n):
+            case m.PlayInternalScript(script=n):
                 if self._sweep is None:
                     self._sweep = (t_ns, [self.servo_position(ch, t_ns) for ch in range(MAX_CHANNEL + 1)])
                 self.internal_script = n
-            case StopInternalScript():
+            case m.StopInternalScript():
                 self._stop_sweep(t_ns)
                 self.internal_script = None
-            case PlayExternalScript(script=n):
+            case m.PlayExternalScript(script=n):
                 self.external_script = n
-            case StopExternalScript():
+            case m.StopExternalScript():
                 self.external_script = None
-            case SetConfiguration():
+            case m.SetConfiguration():
                 self._set_configuration(message, notes)
         return None
 
@@ -240,7 +219,7 @@ class Robot:
             servo.start, servo.t0_ns = self.servo_position(ch, t_ns), t_ns
         self._sweep = None
 
-    def _set_configuration(self, message: SetConfiguration, notes: list[Note]) -> None:
+    def _set_configuration(self, message: m.SetConfiguration, notes: list[Note]) -> None:
         """Change the units of the listed ports, as the analyzer's session does."""
         expected = self.checksum_rule.compute(message.entries)
         if expected != message.checksum:
@@ -251,7 +230,7 @@ class Robot:
         for entry in message.entries:
             old = channels.get(entry.port)
             switch_type = old.switch_type if old is not None and old.unit_type == entry.unit_type else 0
-            channels[entry.port] = ChannelConfig(entry.unit_type, 0, switch_type)
+            channels[entry.port] = m.ChannelConfig(entry.unit_type, 0, switch_type)
         gaps = [ch for ch in range(max(channels) + 1) if ch not in channels]
         if gaps:
             notes.append(Note(logging.WARNING, f"Set Configuration ignored: channel {gaps[0]} would have "
@@ -288,7 +267,7 @@ class RobotConnection:
     def start(self, t_ns: int) -> Output:
         """What the server sends as soon as the client connects."""
         if self.mode is ServerMode.WINSOCK:
-            return Output([Reply(encode(SendCheckPassword()), answer=False)])
+            return Output([Reply(encode(m.SendCheckPassword()), answer=False)])
         return Output()
 
     def receive(self, data: bytes, t_ns: int) -> Output:
@@ -314,7 +293,7 @@ class RobotConnection:
         take = data[:len(expected)]
         if not expected.startswith(take):
             self.state = ConnectionState.FAILED
-            out.replies.append(Reply(encode(FailedValidation()), answer=False))
+            out.replies.append(Reply(encode(m.FailedValidation()), answer=False))
             out.notes.append(Note(logging.WARNING, "wrong password: Failed Validation, closing"))
             out.close = True
             return b""
@@ -322,7 +301,7 @@ class RobotConnection:
         if self._matched < len(self.password):
             return b""
         self.state = ConnectionState.READY
-        out.replies.append(Reply(encode(ReadyToGo()), answer=False))
+        out.replies.append(Reply(encode(m.ReadyToGo()), answer=False))
         out.notes.append(Note(logging.INFO, "password accepted: readytogo"))
         return data[len(take):]
 
