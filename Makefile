@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-deps bench samples clean
+.PHONY: demo test test-deps bench bench-peers samples clean
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
@@ -28,11 +28,19 @@ test: $(STAMP) test-deps
 test-deps:
 	@bash .ci/install-test-deps
 
-bench: $(STAMP)
+bench: $(STAMP) test-deps bench-peers
 	$(BIN)/python -m benchmarks
+
+# The peers the benchmarks compare with that pip installs: mitmproxy (mitmdump),
+# in a venv of its own so its pins never meet whiztap's.  socat comes with test-deps.
+bench-peers: .venv-peers/bin/mitmdump
+
+.venv-peers/bin/mitmdump:
+	$(PYTHON) -m venv .venv-peers
+	.venv-peers/bin/pip install --quiet mitmproxy
 
 samples: $(STAMP)
 	$(BIN)/python samples/generate.py
 
 clean:
-	rm -rf $(VENV) .pytest_cache
+	rm -rf $(VENV) .venv-peers .pytest_cache

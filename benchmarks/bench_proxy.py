@@ -2,17 +2,23 @@
 
 Everything runs as separate processes on this machine, as a user would run
 them: the simulator (``whiztap sim --mode vpn``), ``socat`` as a plain relay
-when it is installed, ``whiztap record -q``, and a blocking-socket client in
-this process.
+when it is installed, ``mitmdump`` in raw TCP reverse mode writing its flows
+(the peer a user would otherwise pick; ``make bench`` installs mitmproxy into
+``.venv-peers``), ``whiztap record -q``, and a blocking-socket client in this
+process.
 
 * Round trips: one Sensor Request, wait for its response, repeat, for
-  ``WHIZTAP_BENCH_RT_S`` seconds (default 3) per path; direct, socat, a bare
-  relay and whiztap record take turns ``ROUNDS`` times and the median counts.
+  ``WHIZTAP_BENCH_RT_S`` seconds (default 3) per path; direct, socat, mitmdump,
+  a bare relay and whiztap record take turns ``ROUNDS`` times and the median
+  counts.  The targets are ratios in the same run: whiztap record / socat at
+  least 1.0; whiztap record / mitmdump is printed beside it.
   The bare relay forwards the way whiztap record does (uvloop, asyncio
   protocols, TCP_NODELAY, each read written on at once) and records nothing:
   it is what a relay in Python costs before recording costs anything.
 * Pipelined: a Fetch Configuration, its answer, then ``WHIZTAP_BENCH_PIPELINE_FRAMES``
-  Sensor Requests (default 200k) written as fast as the socket takes them
+  requests (default 200k; a realistic mix: Sensor Requests on channels 12-23
+  and, one in ``BAD_EVERY``, a request for channel 99, which breaks a rule, as
+  does its answer, so the violation path is measured too) written as fast as the socket takes them
   through whiztap record to a responder that answers each at C speed (the
   simulator answers too slowly to be what is measured), read back in
   parallel; then Ctrl-C, and the clock stops when the file is finished.
@@ -45,6 +51,10 @@ ROUNDS = 3
 PIPELINE_FRAMES = int(os.environ.get("WHIZTAP_BENCH_PIPELINE_FRAMES", "200000"))
 SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", "60"))
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+PEERS = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin"
+BAD_EVERY = 10  # one pipelined request in this many breaks a rule (channel 99), and so does its answer
+TARGET_PIPELINED_FPS = 250_000
+TARGET_SOCAT_RATIO = 1.0
 REQUEST = b"rr1-12--0--0-ss1"
 FETCH_CONFIG = b"rr1-24--0--0-ss1"
 RESPONDER = """
@@ -165,21 +175,42 @@ def _tree_rss(pid: int) -> tuple[int, int]:
     return _rss_kib(pid), sum(_rss_kib(k) for k in kids)
 
 
+def _mitmdump() -> str | None:
+    """mitmproxy's command-line proxy: ``make bench`` installs it in .venv-peers."""
+    found = PEERS / "mitmdump"
+    return str(found) if found.exists() else shutil.which("mitmdump")
+
+
+def _relay_round_trips(args: list[str], port: int) -> float:
+    relay = _spawn(args)
+    try:
+        _wait_port(port, relay)
+        return _round_trips(port, RT_S)
+    finally:
+        relay.terminate()
+        relay.wait()
+
+
 def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
-    paths: dict[str, list[float]] = {"direct": [], "socat": [], "bare relay": [], "whiztap record": []}
-    socat = shutil.which("socat")
+    paths: dict[str, list[float]] = {"direct": [], "socat": [], "mitmdump": [], "bare relay": [],
+                                     "whiztap record": []}
+    socat, mitmdump = shutil.which("socat"), _mitmdump()
     if socat is None:
         del paths["socat"]
+    if mitmdump is None:
+        del paths["mitmdump"]
     for _ in range(ROUNDS):
         paths["direct"].append(_round_trips(sim_port, RT_S))
         if socat is not None:
             port = _free_port()
-            relay = _spawn([socat, f"TCP-LISTEN:{port},reuseaddr,fork,nodelay,bind=127.0.0.1",
-                            f"TCP:127.0.0.1:{sim_port},nodelay"])
-            _wait_port(port)
-            paths["socat"].append(_round_trips(port, RT_S))
-            relay.terminate()
-            relay.wait()
+            paths["socat"].append(_relay_round_trips(
+                [socat, f"TCP-LISTEN:{port},reuseaddr,fork,nodelay,bind=127.0.0.1",
+                 f"TCP:127.0.0.1:{sim_port},nodelay"], port))
+        if mitmdump is not None:
+            port = _free_port()
+            paths["mitmdump"].append(_relay_round_trips(
+                [mitmdump, "-q", "--mode", f"reverse:tcp://127.0.0.1:{sim_port}@{port}",
+                 "-w", str(tmp / "rt.flows")], port))
         port = _free_port()
         relay = subprocess.Popen([sys.executable, "-c", BARE_RELAY, str(port), str(sim_port)])
         _wait_port(port)
@@ -215,7 +246,8 @@ def pipelined(tmp: Path) -> dict[str, float]:
     rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
                   "-o", str(out)])
     _wait_port(port, rec)
-    payload = b"".join(b"rr1-%d--0--0-ss1" % (12 + i % 12) for i in range(PIPELINE_FRAMES))
+    payload = b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
+                       for i in range(PIPELINE_FRAMES))
     got = bytearray()
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -300,11 +332,20 @@ def main() -> None:
             direct = rates["direct"]
             for name, rate in rates.items():
                 print(f"round trips/s {name:15} {rate:9,.0f}   {rate / direct:.2f} x direct")
+            record = rates["whiztap record"]
+            peers = (("socat", f"target >= {TARGET_SOCAT_RATIO}"), ("mitmdump", "the peer a user would pick"))
+            for peer, target in peers:
+                if peer in rates:
+                    print(f"RATIO round trips whiztap record / {peer}: {record / rates[peer]:.2f} ({target})")
+                else:
+                    print(f"RATIO round trips whiztap record / {peer}: not measured ({peer} is not installed)")
             p = pipelined(tmp)
-            print(f"pipelined: {p['frames']:,} frames (requests and responses) through whiztap record: "
-                  f"forwarded at {p['forwarding_fps']:,.0f} frames/s; recorded (until the file was finished) "
-                  f"at {p['recorded_fps']:,.0f} frames/s; {p['recorded_frames']:,} frames in the recording, "
+            print(f"pipelined: {p['frames']:,} frames (requests and responses; 1 request in {BAD_EVERY} breaks a "
+                  f"rule, as its answer does) through whiztap record: forwarded at {p['forwarding_fps']:,.0f} "
+                  f"frames/s; {p['recorded_frames']:,} frames in the recording, "
                   f"{'SOME LOST' if p['lost'] else 'nothing lost'}; {p['size'] / 1e6:.1f} MB")
+            print(f"FRAMES/S pipelined recording, first byte to finished file: {p['recorded_fps']:,.0f} "
+                  f"(target >= {TARGET_PIPELINED_FPS:,})")
             s = soak(sim_port, tmp)
             print(f"memory over {s['seconds']:.0f} s of round trips ({s['round_trips']:,}): resident size after 1 s "
                   f"-> at the end: proxy {s['proxy_kib'][0]:,} -> {s['proxy_kib'][1]:,} KiB, writer "
