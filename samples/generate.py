@@ -22,10 +22,11 @@ LOCAL = "127.0.0.1"
 PASSWORD = "progwhiz"
 
 
-async def recorded(upstream_port: int, path: Path, session) -> None:  # noqa: ANN001 - an async callable
-    """Run ``session(proxy_port)`` through a recording proxy into ``path``."""
+async def recorded(upstream_port: int, path: Path, session, keep_secrets: bool = False) -> None:  # noqa: ANN001
+    """Run ``session(proxy_port)`` (an async callable) through a recording proxy into ``path``."""
     path.unlink(missing_ok=True)
-    recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, upstream_port), str(path), quiet=True))
+    recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, upstream_port), str(path), quiet=True,
+                                         keep_secrets=keep_secrets))
     await recording.start()
     try:
         await session(recording.proxy.port)
@@ -75,7 +76,10 @@ async def violations() -> None:
         async def session(port: int) -> None:
             for steps in SCENARIOS.values():
                 await peer.play(steps, (LOCAL, port))
-        await recorded(peer.port, HERE / "violations.mcap", session)
+        # --keep-secrets: redaction masks what a client sends before the server's
+        # verdict on its password, so PW-HS-COMMAND-BEFORE-READY's early command
+        # would be '*' bytes; the scenarios' passwords are made up
+        await recorded(peer.port, HERE / "violations.mcap", session, keep_secrets=True)
 
 
 async def main() -> None:

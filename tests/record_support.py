@@ -217,6 +217,12 @@ def read_all(path: str) -> dict[str, list[dict]]:
     return by_topic
 
 
+def on_channels(by_topic: dict[str, list[dict]], base: str) -> list[dict]:
+    """The messages of every channel's topic under ``base`` (``/sensors/12``,
+    ``/sensors/13``, ...: docs/recording-format.md), channel by channel."""
+    return [m for topic in sorted(by_topic) if topic.startswith(base + "/") for m in by_topic[topic]]
+
+
 class Read(NamedTuple):
     """A /tcp/reads message as the test reads it: with its stream offset."""
 

@@ -18,7 +18,7 @@ from whiztap.sniffer.record.capture import CaptureError, CaptureSettings, import
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.record.scapy_layer import Progwhiz, bind
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, WAIT, WHIZTAP, frame_items, read_all, recording, streams
+from tests.record_support import LOCAL, WAIT, WHIZTAP, frame_items, on_channels, read_all, recording, streams
 
 CLIENT, SERVER = ("10.1.1.2", 40000), ("10.1.1.9", 5000)
 ISN_C, ISN_S = 1000, 9000
@@ -82,8 +82,8 @@ def test_retransmissions_reordering_and_duplicates_reassemble_exactly(tmp_path, 
     assert [e["event"] for e in by_topic["/tcp/events"] if e["conn"] == 1] == [
         "opened", "upstream_connected", "half_closed", "half_closed", "closed"]
     assert not any(e["event"] == "gap" for e in by_topic["/tcp/events"])
-    assert [v["value"] for v in by_topic["/sensors"]] == [431]
-    assert [v["position"] for v in by_topic["/servos"]] == [100.0]
+    assert [v["value"] for v in by_topic["/sensors/12"]] == [431]
+    assert [v["position"] for v in by_topic["/servos/3"]] == [100.0]
     opened = by_topic["/tcp/events"][1]
     assert (opened["client"], opened["upstream"]) == ("10.1.1.2:40000", "10.1.1.9:5000")
 
@@ -235,7 +235,7 @@ async def test_a_tcpdump_capture_imports_to_the_frames_the_proxy_recorded(tmp_pa
     a, b = read_all(str(imported)), read_all(str(proxy_rec))
     for direction in ("c2s", "s2c"):
         assert frame_items(a["/frames"], 1, direction) == frame_items(b["/frames"], 1, direction)
-    assert [m["value"] for m in a["/sensors"]] == [m["value"] for m in b["/sensors"]]
+    assert [m["value"] for m in on_channels(a, "/sensors")] == [m["value"] for m in on_channels(b, "/sensors")]
     assert len(a["/camera"]) == 1
 
 
@@ -255,7 +255,7 @@ async def test_live_capture_on_loopback_until_ctrl_c(tmp_path):
     assert proc.returncode == 0, stderr
     assert b"captured 1 connection(s)" in stdout
     by_topic = read_all(str(out))
-    assert [m["value"] for m in by_topic["/sensors"]] == [value]
+    assert [m["value"] for m in by_topic["/sensors/15"]] == [value]
     recorded = streams(str(out))
     assert recorded[(1, "c2s")] == b"rr1-24--0--0-ss1rr1-15--0--0-ss1"
 

@@ -10,7 +10,7 @@ import pytest
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.faults import FaultConfig
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, both_ways, events, frame_items, read_all, recording
+from tests.record_support import LOCAL, both_ways, events, frame_items, on_channels, read_all, recording
 
 PASSWORD = "s3cret-pw"
 
@@ -39,11 +39,12 @@ async def test_a_winsock_session_through_the_proxy_is_recorded_whole(tmp_path):
     assert len(recorded[(1, "c2s")]) == stats.bytes_in
     assert recorded[(1, "c2s")].startswith(b"*" * len(PASSWORD))  # redacted
     by_topic = read_all(str(path))
-    assert [s["value"] for s in by_topic["/sensors"]] == [sensor]
-    assert [(s["channel"], s["position"]) for s in by_topic["/servos"]] == [(3, position)]
-    assert all(isinstance(s["latency_ns"], int) and s["latency_ns"] >= 0 for s in by_topic["/servos"])
-    assert [(s["channel"], s["value"]) for s in by_topic["/sends"]] == [(2, 1500)]
-    assert [(s["channel"], s["state"]) for s in by_topic["/switches"]] == [(7, 1), (7, 0)]
+    assert [s["value"] for s in on_channels(by_topic, "/sensors")] == [sensor]
+    assert [s["value"] for s in by_topic["/sensors/12"]] == [sensor]  # a topic per channel
+    assert [(s["channel"], s["position"]) for s in on_channels(by_topic, "/servos")] == [(3, position)]
+    assert all(isinstance(s["latency_ns"], int) and s["latency_ns"] >= 0 for s in by_topic["/servos/3"])
+    assert [(s["channel"], s["value"]) for s in on_channels(by_topic, "/sends")] == [(2, 1500)]
+    assert [(s["channel"], s["state"]) for s in on_channels(by_topic, "/switches")] == [(7, 1), (7, 0)]
     [camera] = by_topic["/camera"]
     assert camera["format"] == "jpeg" and base64.b64decode(camera["data"]) == image
     assert camera["frame_id"] == "conn-1" and set(camera["timestamp"]) == {"sec", "nsec"}
@@ -88,7 +89,7 @@ async def test_simulator_faults_are_forwarded_and_recorded_exactly(tmp_path, fau
     recorded = both_ways(str(path))
     assert len(recorded[(1, "s2c")]) == sim.stats.bytes_out
     by_topic = read_all(str(path))
-    assert len(by_topic["/sensors"]) >= answered
+    assert len(on_channels(by_topic, "/sensors")) >= answered
     rules = {v["rule_id"] for v in by_topic["/violations"]}
     if faults.garbage_rate:
         assert "PW-FRAME-GARBAGE" in rules
@@ -96,4 +97,4 @@ async def test_simulator_faults_are_forwarded_and_recorded_exactly(tmp_path, fau
         assert sim.stats.answers_dropped > 0 and "PW-PAIR-UNANSWERED" in rules
     if faults.split:  # replies cut into many writes still make whole frames
         responses = [raw for kind, raw in frame_items(by_topic["/frames"], 1, "s2c") if kind == "response"]
-        assert len(responses) == len(by_topic["/sensors"]) == answered
+        assert len(responses) == len(on_channels(by_topic, "/sensors")) == answered

@@ -30,11 +30,18 @@ from whiztap.analyzer.recording.encode import (
     encode,
     encode_plots,
     encode_read,
+    encode_violation,
+    LOG_LEVELS,
     frame_static,
     plot_messages,
     read_message,
+    violation_message,
 )
 from whiztap.analyzer.recording.format import (
+    CHANNEL_TOPICS,
+    FORMAT_VERSION,
+    KNOWN_TOPICS,
+    PLOT_TOPICS,
     SCHEMAS,
     STREAM_TOPICS,
     TOPIC_FRAMES,
@@ -68,6 +75,22 @@ def frame_message(conn: int, obs, offset: int, redact: bool) -> dict:  # noqa: A
         **frame_static(obs, redact),
     }
 
+def log_message(violation: dict) -> dict:
+    """A /log message built plainly, as a dict, from its /violations message:
+    what ``encode_violation`` must give byte for byte (docs/recording-format.md, ``/log``)."""
+    t, conn = violation["t_ns"], violation["conn"]
+    where = f"conn {conn}" + (f" {violation['dir']}" if "dir" in violation else "")
+    if "frame_index" in violation:
+        where += f", frame {violation['frame_index']}: {violation['frame_text']}"
+    if violation["late"]:
+        where += ", found later"
+    return {"timestamp": {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000},
+            "level": LOG_LEVELS[violation["severity"]],
+            "message": f"{violation['rule_id']}: {violation['detail']} ({where})", "name": violation["rule_id"],
+            "file": f"conn-{conn}" + (f" {violation['dir']}" if "dir" in violation else ""),
+            "line": violation.get("frame_index", 0)}
+
+
 def _recorder(path: Path, **kwargs) -> Recorder:
     metadata = metadata_record(source="test", listen="", upstream="")
     file = RecordingFile(str(path), metadata, **{k: kwargs.pop(k) for k in list(kwargs)
@@ -93,15 +116,25 @@ def _session(rec: Recorder, conn: int = 1, t: int = T0) -> int:
 # -- schemas and topics ------------------------------------------------------------------------------
 
 
+# A topic name as Foxglove's message-path grammar reads one unquoted: slash-separated
+# ids of letters, digits, '_' and '-', so "/sensors/12.value" is topic "/sensors/12", field "value".
+FOXGLOVE_TOPIC = re.compile(r"(/[A-Za-z0-9_-]+)+")
+
+
 def test_every_schema_is_valid_json_schema_and_every_topic_is_foxglove_friendly():
     for name, schema in SCHEMAS.items():
         jsonschema.Draft202012Validator.check_schema(schema)
         assert json.loads(schema_bytes(name)) == schema
         assert "$ref" not in json.dumps(schema)  # Foxglove does not follow references
-    for topic, schema in TOPICS.items():
-        assert topic.startswith("/") and "." not in topic and schema in SCHEMAS
+    for topic, schema in KNOWN_TOPICS.items():
+        assert FOXGLOVE_TOPIC.fullmatch(topic) and schema in SCHEMAS, topic
+    assert set(KNOWN_TOPICS) == set(TOPICS) | set(CHANNEL_TOPICS) | set(PLOT_TOPICS)
+    assert len(CHANNEL_TOPICS) == 4 * 25 and "/sensors/12" in CHANNEL_TOPICS and "/sends/other" in CHANNEL_TOPICS
     image = SCHEMAS["foxglove.CompressedImage"]["properties"]
     assert set(image) == {"timestamp", "frame_id", "data", "format"}
+    log = SCHEMAS["foxglove.Log"]
+    assert set(log["properties"]) == set(log["required"]) == {"timestamp", "level", "message", "name", "file", "line"}
+    assert [c["const"] for c in log["properties"]["level"]["oneOf"]] == [0, 1, 2, 3, 4, 5]
 
 
 def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
@@ -110,15 +143,19 @@ def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
     summary = rec.stop(_session(rec))
     assert summary.connections == 1 and summary.files == [str(path)]
     by_topic = read_all(str(path))  # schemas validated, CRCs checked, log_time monotonic
-    assert [(m["channel"], m["value"]) for m in by_topic["/sensors"]] == [(0, 1000)]
-    assert [(m["channel"], m["data"], m["position"]) for m in by_topic["/servos"]] == [(1, 4000, 1000.0)]
-    assert [(m["channel"], m["value"]) for m in by_topic["/sends"]] == [(1, 7)]
-    assert [(m["channel"], m["state"]) for m in by_topic["/switches"]] == [(2, 1)]
-    assert all(isinstance(m["latency_ns"], int) for m in by_topic["/sensors"] + by_topic["/servos"])
+    assert [(m["channel"], m["value"]) for m in by_topic["/sensors/0"]] == [(0, 1000)]
+    assert [(m["channel"], m["data"], m["position"]) for m in by_topic["/servos/1"]] == [(1, 4000, 1000.0)]
+    assert [(m["channel"], m["value"]) for m in by_topic["/sends/1"]] == [(1, 7)]
+    assert [(m["channel"], m["state"]) for m in by_topic["/switches/2"]] == [(2, 1)]
+    assert all(isinstance(m["latency_ns"], int) for m in by_topic["/sensors/0"] + by_topic["/servos/1"])
+    with open(path, "rb") as f:  # the channels that occurred, and no aggregated plot topic
+        assert {c.topic for c in make_reader(f).get_summary().channels.values()} == set(TOPICS) | {
+            "/sensors/0", "/servos/1", "/sends/1", "/switches/2"}
     violations = {v["rule_id"]: v for v in by_topic["/violations"]}
     assert violations["PW-RANGE-CHANNEL"]["level"] == 3 and violations["PW-RANGE-CHANNEL"]["frame_index"] > 0
+    assert [m["name"] for m in by_topic["/log"]] == [v["rule_id"] for v in by_topic["/violations"]]
     meta = read_metadata(str(path))
-    assert meta["format_version"] == "1" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
+    assert meta["format_version"] == FORMAT_VERSION == "2" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
     assert meta["source"] == "test"
 
 
@@ -178,8 +215,8 @@ def test_a_password_left_pending_is_masked_after_the_hold_limit(tmp_path, monkey
 @given(pieces=stream_pieces(), answers=stream_pieces(), cuts=st.lists(st.integers(0, 2000), max_size=8),
        redact=st.booleans())
 def test_the_fast_encoders_write_exactly_what_the_reference_dicts_say(pieces, answers, cuts, redact):
-    """Frames, reads and plot messages are built by string templates and a
-    cache on the hot path; they must equal the plain dict builders, encoded."""
+    """Frames, reads, plot and log messages are built by string templates and
+    a cache on the hot path; they must equal the plain dict builders, encoded."""
     s = Session()
     encoder = FrameEncoder()
     events = s.receive(S2C, b"sendchkpass", 1) + s.receive(C2S, b"pw\r\nrr1-24--0--0-ss1", 2)
@@ -193,15 +230,24 @@ def test_the_fast_encoders_write_exactly_what_the_reference_dicts_say(pieces, an
     offset = 0
     for obs in events:
         if not hasattr(obs, "item"):
+            late = violation_message(3, obs.violation, obs.about, obs.t_ns, True, redact)
+            assert encode_violation(3, obs.violation, obs.about, obs.t_ns, True, redact) == (
+                encode(late), encode(log_message(late)))
             continue
+        for v in obs.violations:
+            count = len(obs.violations)
+            found = violation_message(3, v, obs, obs.item.t_end_ns, False, redact, count)
+            assert encode_violation(3, v, obs, obs.item.t_end_ns, False, redact, count) == (
+                encode(found), encode(log_message(found)))
         for _ in range(2):  # a cache miss, then a hit
             assert encoder.encode(3, obs, offset, redact) == encode(frame_message(3, obs, offset, redact))
         assert encode_plots(3, obs) == [(topic, encode(m)) for topic, m in plot_messages(3, obs)]
         assert encode_read(3, obs.direction.value, obs.item.t_end_ns, offset, obs.item.raw) == encode(
             read_message(3, obs.direction.value, obs.item.t_end_ns, offset, obs.item.raw))
         offset += len(obs.item.raw)
-    assert {topic for obs in events if hasattr(obs, "item") for topic, _ in encode_plots(3, obs)} >= {
-        "/sensors", "/servos", "/sends", "/switches"}
+    topics = {topic for obs in events if hasattr(obs, "item") for topic, _ in encode_plots(3, obs)}
+    assert topics <= set(CHANNEL_TOPICS) | set(TOPICS)
+    assert {topic.rsplit("/", 1)[0] for topic in topics} >= {"/sensors", "/servos", "/sends", "/switches"}
 
 
 def test_cat_lines_and_frames_describe_an_item_alike_with_every_documented_key():
@@ -424,20 +470,22 @@ def test_the_typescript_mcap_reader_reads_our_recordings_as_foxglove_would(tmp_p
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     python_side = read_all(str(path))
-    assert report["perTopic"] == {topic: len(python_side.get(topic, [])) for topic in TOPICS}
+    assert report["perTopic"] == {topic: len(python_side.get(topic, [])) for topic in {*TOPICS, *python_side}}
+    assert {"/log", "/sensors/0", "/servos/1"} <= set(report["perTopic"])  # a late channel, read by topic
     assert report["indexedCount"] == report["streamCount"] == report["statistics"] > 0
     assert report["backwards"] == 0 and report["done"]
-    assert report["metadata"]["format_version"] == "1"
+    assert report["metadata"]["format_version"] == FORMAT_VERSION
     for topic, info in report["topics"].items():
-        assert (info["schema"], info["schemaEncoding"], info["messageEncoding"]) == (TOPICS[topic], "jsonschema",
-                                                                                   "json")
+        assert (info["schema"], info["schemaEncoding"], info["messageEncoding"]) == (KNOWN_TOPICS[topic],
+                                                                                   "jsonschema", "json")
 
 
 def test_the_format_page_shows_every_topic_and_schema_as_they_are():
-    from whiztap.analyzer.recording.format import FORMAT_VERSION
-
     page = (Path(__file__).parent.parent / "docs" / "recording-format.md").read_text()
     assert f'The format version is the string `"{FORMAT_VERSION}"`' in page
     for topic, name in TOPICS.items():
         assert f"| `{topic}` | `{name}` |" in page, topic
-        assert json.dumps(SCHEMAS[name], indent=1) in page, name
+    for base, name in PLOT_TOPICS.items():
+        assert f"| `{base}/N` | `{name}` |" in page, base
+    for name, schema in SCHEMAS.items():
+        assert json.dumps(schema, indent=1) in page, name

@@ -438,7 +438,7 @@ def _every_reader(path: Path) -> list[tuple[str, str | bytes]]:
 HELD_PAST_A_LINE_BREAK = (["vpn"], [
     ("opened", 1, "", b""), ("data", 1, "c2s", b"r"), ("data", 1, "s2c", b"\r"), ("tick", 1, "", True),
     ("data", 1, "c2s", b"r1-24--0--0-ss1"), ("data", 1, "s2c", b"\n" + CONFIG), ("closed", 1, "", b"")])
-# A servo answer puts a number under "data" in /servos: not base64.
+# A servo answer puts a number under "data" in /servos/1: not base64.
 SERVO_ANSWER = (["vpn"], [
     ("opened", 1, "", b""), ("data", 1, "c2s", b"rr1-24--0--0-ss1rr1-1--0--2-ss1"),
     ("data", 1, "s2c", CONFIG + b"cr1-1--400--0-ss1"), ("closed", 1, "", b"")])

@@ -14,7 +14,7 @@ import click
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
-from whiztap.sniffer.cli.params import Address, check_recording_output
+from whiztap.sniffer.cli.params import Address, check_recording_output, foxglove_option
 
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
@@ -92,16 +92,17 @@ def _command_name() -> str:
 @click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
 @click.option("--force", is_flag=True, help="Live: write over a recording of the same name (never over an input).")
 @checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
+@foxglove_option
 @limits_options
 def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] | None, listen: tuple[str, int],
-                output: str | None, keep_secrets: bool, force: bool, checksum_rule: str, answer_timeout: float, max_frame: int,
-                max_image: int) -> None:
+                output: str | None, keep_secrets: bool, force: bool, checksum_rule: str,
+                foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
     recording being written.
 
     \b
     whiztap tui FILE.mcap                               browse a recording
-    whiztap tui --upstream HOST:PORT [--listen ADDR] [-o FILE.mcap]
+    whiztap tui --upstream HOST:PORT [--listen ADDR] [-o FILE.mcap] [--foxglove]
                                                         live, through the proxy
     whiztap tui --follow FILE.mcap.part                 follow 'whiztap record'
 
@@ -109,6 +110,8 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
     """
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
+    if foxglove is not None and upstream is None:
+        fail("--foxglove serves live traffic: it goes with --upstream HOST:PORT")
     rule = checksum_rule
     limits = limits_from(answer_timeout, max_frame, max_image)
     from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
@@ -125,7 +128,8 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
         output = output or default_output()
         check_recording_output(output, split=False, force=force)
         settings = RecordSettings(listen, upstream, output,
-                                  keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits)
+                                  keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits,
+                                  foxglove=foxglove)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")
     from whiztap.tui.app import WhiztapApp
@@ -146,7 +150,9 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default="demo.mcap", show_default=True,
               help="The recording to write.")
 @force_option
-def demo_command(headless: bool, seconds: float | None, output: str, force: bool) -> None:
+@foxglove_option
+def demo_command(headless: bool, seconds: float | None, output: str, force: bool,
+                 foxglove: tuple[str, int] | None) -> None:
     """The whole tool on an embedded robot: the simulator, the recording proxy in
     front of it, and a scripted client using every command of the spec (with a
     few deliberate violations), shown live in the TUI and recorded.
@@ -162,13 +168,13 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
                    f"(whiztap demo --headless)")
         headless = True
     if headless:
-        _headless(output, seconds or HEADLESS_SECONDS)
+        _headless(output, seconds or HEADLESS_SECONDS, foxglove)
         return
     from whiztap.tui.app import WhiztapApp
     from whiztap.tui.demo import PASSWORD, DemoRig
     from whiztap.tui.sources import LiveSource
 
-    app = WhiztapApp(LiveSource(DemoRig(output), "demo", redact_passwords=True), quit_after=seconds)
+    app = WhiztapApp(LiveSource(DemoRig(output, foxglove), "demo", redact_passwords=True), quit_after=seconds)
     app.run()
     if app.error:
         fail(app.error)
@@ -176,7 +182,7 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
         click.echo(line)
 
 
-def _headless(output: str, seconds: float) -> None:
+def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None) -> None:
     import asyncio
     from pathlib import Path
 
@@ -186,7 +192,8 @@ def _headless(output: str, seconds: float) -> None:
     from whiztap.tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
 
     try:
-        client_error = asyncio.run(run_headless(output, seconds))
+        client_error = asyncio.run(run_headless(output, seconds, foxglove,
+                                                announce=lambda url: click.echo(f"whiztap demo: foxglove: {url}")))
     except WriterError as e:
         fail(str(e))
     except OSError as e:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import Callable
 
 from whiztap.sniffer.sim.client import Client, ClientError
 from whiztap.sniffer.sim.tour import SPEC_EXAMPLE_ENTRIES, every_command
@@ -94,8 +95,9 @@ async def demo_client(port: int, stop: asyncio.Event) -> None:
 class DemoRig:
     """Simulator, recording proxy and demo client: ``start()`` returns the Recording."""
 
-    def __init__(self, output: str) -> None:
+    def __init__(self, output: str, foxglove: tuple[str, int] | None = None) -> None:
         self.output = output
+        self.foxglove = foxglove  # (host, port): serve it live to the Foxglove app too
         self.simulator = None
         self.recording = None
         self.client: asyncio.Task | None = None
@@ -109,7 +111,8 @@ class DemoRig:
         self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
         await self.simulator.start()
         self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
-                                                  quiet=True), consumers=[tap] if tap is not None else [])
+                                                  quiet=True, foxglove=self.foxglove),
+                                   consumers=[tap] if tap is not None else [])
         try:
             await self.recording.start()
         except BaseException:
@@ -142,10 +145,14 @@ class DemoRig:
         return summary
 
 
-async def run_headless(output: str, seconds: float) -> str | None:
-    """The demo without a screen for ``seconds``; the client's error, if it had one."""
-    rig = DemoRig(output)
-    await rig.start(tap=None)
+async def run_headless(output: str, seconds: float, foxglove: tuple[str, int] | None = None,
+                       announce: Callable[[str], None] | None = None) -> str | None:
+    """The demo without a screen for ``seconds``; the client's error, if it had
+    one.  With ``foxglove``, ``announce`` is told where the Foxglove app connects."""
+    rig = DemoRig(output, foxglove)
+    recording = await rig.start(tap=None)
+    if recording.foxglove_url and announce is not None:
+        announce(recording.foxglove_url)
     try:
         await asyncio.sleep(seconds)
     finally:

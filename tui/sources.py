@@ -255,6 +255,8 @@ class LiveSource:
             raise SourceError(f"cannot listen: {e.strerror or e}") from None
         proxy = self.recording.proxy
         self.title = f"{self.title}: {proxy.listen_text} -> {proxy.upstream_text}, recording {self.rig.output}"
+        if self.recording.foxglove_url:
+            self.title += f", foxglove {self.recording.foxglove_url}"
         self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
 
     async def _watch_writer(self) -> None:

@@ -47,6 +47,6 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     click.echo(f"connections     {info['connections']}")
     click.echo("messages per topic")
     for topic, n in info["topics"].items():
-        click.echo(f"  {topic:14} {n:,}")
+        click.echo(f"  {topic:16} {n:,}")
     if not info["complete"] and not info["state"].startswith("being written"):
         click.echo(f"Run 'whiztap recover {printable(str(path_))}' to make a complete, indexed copy.")

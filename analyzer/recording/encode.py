@@ -3,12 +3,15 @@ session model made of them.
 
 One function says what a framer item is in JSON (``item_json``): the /frames
 messages and the lines of ``whiztap cat --format jsonl`` both describe items
-with it.  The encoders a recorder calls once per TCP read or per frame
-(``encode_read``, ``FrameEncoder``, ``encode_plots``) build their bytes
-directly, for speed; each has a dict-building twin that says the same plainly
-(``read_message`` and ``plot_messages`` here; the /frames message's twin,
-used by nothing else, is in the tests), and tests check that the two agree
-byte for byte.
+with it.  The encoders a recorder calls once per TCP read, per frame or per
+violation (``encode_read``, ``FrameEncoder``, ``encode_plots``,
+``encode_violation``) build their bytes directly, for speed; each has a
+dict-building twin that says the same plainly (``read_message``,
+``plot_messages`` and ``violation_message`` here; those of the /frames and
+/log messages, used by nothing else, are in the tests), and tests check that
+the two agree byte for byte.  A violation is two messages, its /violations
+message and the ``foxglove.Log`` made from it, built together, so the two
+always agree.
 """
 
 from __future__ import annotations
@@ -33,11 +36,16 @@ from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.recording.format import (
     MASK_BYTE,
     REDACTED,
+    SEND_TOPICS,
+    SENSOR_TOPICS,
+    SERVO_TOPICS,
+    SWITCH_TOPICS,
     TOPIC_CAMERA,
     TOPIC_SENDS,
     TOPIC_SENSORS,
     TOPIC_SERVOS,
     TOPIC_SWITCHES,
+    channel_topic,
 )
 
 _dumps = json.JSONEncoder(separators=(",", ":")).encode
@@ -147,6 +155,7 @@ _FRAME_HEAD = _FRAME_START + b'"answers":%s,"latency_ns":%s,'
 _COMMAND_HEAD = _FRAME_START + b'"answers":null,"latency_ns":null,'
 _ANSWER_HEAD = _FRAME_START + b'"answers":%d,"latency_ns":%d,'
 _DIR_BYTES = {d: d.value.encode() for d in Direction}  # Enum.value is a slow property
+_DIR_TEXT = {d: d.value for d in Direction}
 _CACHED_RAW_MAX = 256  # longer items (images, unframed runs) are rare: not worth keeping
 _CACHE_LIMIT = 4096  # distinct frames kept; answers with varying values mostly miss anyway
 
@@ -209,22 +218,81 @@ def violation_message(conn: int, violation: Violation, about: Observation | None
     return message
 
 
+LOG_LEVELS = {"info": 2, "warning": 3, "error": 4}  # whiztap's severities as foxglove.Log levels
+
+
+# the rule's fixed fields of a /violations message, as JSON, and its log level: by rule id
+_RULE_JSON: dict[str, tuple[str, int]] = {}
+_quote = json.encoder.encode_basestring_ascii  # a string as ``encode`` writes it (in quotes)
+
+
+def _rule_json(violation: Violation) -> tuple[str, int]:
+    rule = violation.rule
+    severity = str(rule.severity)
+    fixed = _RULE_JSON[rule.id] = (
+        f'"rule_id":{_quote(rule.id)},"severity":"{severity}","level":{int(rule.severity)},'
+        f'"section":{_quote(rule.section)},"summary":{_quote(rule.summary)}', LOG_LEVELS[severity])
+    return fixed
+
+
+def encode_violation(conn: int, violation: Violation, about: Observation | None, t_ns: int, late: bool,
+                     redact: bool, count: int = 1) -> tuple[bytes, bytes]:
+    """A violation's two messages as JSON bytes, built directly: its /violations
+    message (``encode(violation_message(...))``) and the ``foxglove.Log`` twin
+    made from it for Foxglove's Log panel (docs/recording-format.md, ``/log``),
+    whose plain twin is in the tests.  The rule id is the log's ``name`` (the
+    panel lists names to filter by), ``file`` and ``line`` say where in the
+    traffic (``conn-1 c2s``, the frame's index), and ``message`` says it all in
+    one line: rule, detail, connection, direction, frame and its escaped text.
+    The detail and the frame's text are escaped for JSON once, for both (in
+    the pipelined benchmark one frame in ten breaks a rule)."""
+    rule_id = violation.rule_id
+    fixed = _RULE_JSON.get(rule_id) or _rule_json(violation)
+    detail = _quote(violation.detail)[1:-1]
+    if about is None:
+        about_json = where = ""
+        file = f"conn-{conn}"
+        line = 0
+    else:
+        direction = _DIR_TEXT[about.direction]
+        item = about.item
+        line = about.index
+        text = _quote(REDACTED if redact and item.kind is ItemKind.PASSWORD else escape(item.raw[:200]))[1:-1]
+        about_json = f',"dir":"{direction}","frame_index":{line},"frame_text":"{text}"'
+        where = f" {direction}, frame {line}: {text}"
+        file = f"conn-{conn} {direction}"
+    if late:
+        where += ", found later"
+    counted = f',"count":{count}' if count > 1 else ""
+    flag = "true" if late else "false"
+    return (f'{{"conn":{conn},"t_ns":{t_ns},{fixed[0]},"detail":"{detail}","late":{flag}{about_json}{counted}}}'
+            .encode(),
+            f'{{"timestamp":{{"sec":{t_ns // 1_000_000_000},"nsec":{t_ns % 1_000_000_000}}},"level":{fixed[1]},'
+            f'"message":"{rule_id}: {detail} (conn {conn}{where})","name":"{rule_id}","file":"{file}",'
+            f'"line":{line}}}'.encode())
+
+
 def plot_messages(conn: int, obs: Observation) -> list[tuple[str, dict]]:
-    """The plottable channels an observation feeds: (topic, message) pairs."""
+    """The plottable values an observation gives: (topic, message) pairs, the
+    topic that of the message's channel (``/sensors/12``, ``format.channel_topic``)."""
     message = obs.message
     if message is None:
         return []
     if isinstance(message, ChannelResponse) and obs.answers is not None:
+        channel = message.channel
         if response_meaning(obs) == "servo":
-            return [(TOPIC_SERVOS, {"conn": conn, "channel": message.channel, "data": message.data,
-                                    "position": message.data / 4, "latency_ns": obs.latency_ns})]
-        return [(TOPIC_SENSORS, {"conn": conn, "channel": message.channel, "value": message.data,
-                                 "latency_ns": obs.latency_ns})]
+            return [(channel_topic(TOPIC_SERVOS, channel), {
+                "conn": conn, "channel": channel, "data": message.data, "position": message.data / 4,
+                "latency_ns": obs.latency_ns})]
+        return [(channel_topic(TOPIC_SENSORS, channel), {"conn": conn, "channel": channel, "value": message.data,
+                                                         "latency_ns": obs.latency_ns})]
     if isinstance(message, NormalSend):
-        return [(TOPIC_SENDS, {"conn": conn, "channel": message.channel, "value": message.value})]
+        return [(channel_topic(TOPIC_SENDS, message.channel),
+                 {"conn": conn, "channel": message.channel, "value": message.value})]
     if isinstance(message, (ActivateSwitch, DeactivateSwitch)):
         state = 1 if isinstance(message, ActivateSwitch) else 0
-        return [(TOPIC_SWITCHES, {"conn": conn, "channel": message.channel, "state": state})]
+        return [(channel_topic(TOPIC_SWITCHES, message.channel),
+                 {"conn": conn, "channel": message.channel, "state": state})]
     if isinstance(message, CameraImage):
         t = obs.item.t_end_ns
         return [(TOPIC_CAMERA, {"timestamp": {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000},
@@ -235,24 +303,42 @@ def plot_messages(conn: int, obs: Observation) -> list[tuple[str, dict]]:
 
 _SENSOR = b'{"conn":%d,"channel":%d,"value":%d,"latency_ns":%s}'
 _SERVO = b'{"conn":%d,"channel":%d,"data":%d,"position":%s,"latency_ns":%s}'
-_PLOTTED = (NormalSend, ActivateSwitch, DeactivateSwitch, CameraImage)
+_SEND = b'{"conn":%d,"channel":%d,"value":%d}'
+_SWITCH = b'{"conn":%d,"channel":%d,"state":%d}'
 
 
 def encode_plots(conn: int, obs: Observation) -> list[tuple[str, bytes]]:
-    """``plot_messages`` encoded; the answers to sensor and servo requests,
-    which come by the thousand, are built directly."""
+    """``plot_messages`` encoded.  The answers to sensor and servo requests,
+    which come by the thousand, and the commands that set a channel are built
+    directly, their topic found by indexing a tuple (``format.PER_CHANNEL``:
+    channels 0-23, then BASE/other at 24, where any channel past the spec's goes)."""
     message = obs.message
-    if type(message) is ChannelResponse:
+    kind = type(message)
+    if kind is ChannelResponse:
         answers = obs.answers
         if answers is None:
             return []
+        channel = message.channel
         latency = b"null" if obs.latency_ns is None else b"%d" % obs.latency_ns
         if type(answers.message) is ServoPositionRequest:
-            return [(TOPIC_SERVOS, _SERVO % (conn, message.channel, message.data,
-                                             repr(message.data / 4).encode(), latency))]
-        return [(TOPIC_SENSORS, _SENSOR % (conn, message.channel, message.data, latency))]
-    if isinstance(message, _PLOTTED):
+            topics = SERVO_TOPICS
+            data = _SERVO % (conn, channel, message.data, repr(message.data / 4).encode(), latency)
+        else:
+            topics = SENSOR_TOPICS
+            data = _SENSOR % (conn, channel, message.data, latency)
+    elif kind is NormalSend:
+        channel = message.channel
+        topics = SEND_TOPICS
+        data = _SEND % (conn, channel, message.value)
+    elif kind is ActivateSwitch or kind is DeactivateSwitch:
+        channel = message.channel
+        topics = SWITCH_TOPICS
+        data = _SWITCH % (conn, channel, 1 if kind is ActivateSwitch else 0)
+    elif kind is CameraImage:
         return [(topic, encode(m)) for topic, m in plot_messages(conn, obs)]
-    return []
-
-
+    else:
+        return []
+    try:
+        return [(topics[channel], data)]
+    except IndexError:  # a channel past 24 (no cost on the way that does not raise)
+        return [(topics[-1], data)]

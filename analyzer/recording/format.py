@@ -7,6 +7,9 @@ built in ``encode``, laid out in MCAP by ``mcap`` and read back by ``scan``.
 
 Every channel uses schema encoding ``jsonschema`` and message encoding ``json``
 so Foxglove shows all of them; numbers are JSON numbers so it can plot them.
+Violations are also ``foxglove.Log`` messages (``/log``) for Foxglove's Log
+panel, and the plottable values have a topic per protocol channel
+(``/sensors/12``), so a plot needs no message-path filter.
 """
 
 from __future__ import annotations
@@ -16,10 +19,11 @@ from collections.abc import Iterable
 from typing import Any
 
 from whiztap.analyzer import __version__
+from whiztap.analyzer.protocol.codec import MAX_CHANNEL
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.traffic import NAMES, HalfClosed
 
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"  # 2: /log, and the plot topics per channel (/sensors/12) instead of /sensors
 PROFILE = "whiztap"
 SPEC_REVISION = "1.8"
 METADATA_NAME = "whiztap"
@@ -32,11 +36,15 @@ TOPIC_READS = "/tcp/reads"
 TOPIC_EVENTS = "/tcp/events"
 TOPIC_FRAMES = "/frames"
 TOPIC_VIOLATIONS = "/violations"
+TOPIC_LOG = "/log"
+TOPIC_CAMERA = "/camera"
+# The plot topics' bases: channel N's values are on BASE/N (BASE/other for a
+# channel number past the spec's 0-23); version 1 files had them all on BASE.
 TOPIC_SENSORS = "/sensors"
 TOPIC_SERVOS = "/servos"
 TOPIC_SENDS = "/sends"
 TOPIC_SWITCHES = "/switches"
-TOPIC_CAMERA = "/camera"
+OTHER_CHANNEL = "other"
 
 # -- schemas ---------------------------------------------------------------------------
 
@@ -113,6 +121,19 @@ SCHEMAS: dict[str, dict] = {
     "whiztap.Switch": _object(
         "whiztap.Switch", "An Activate (1) or De-Activate (0) Switch command.",
         {"conn": _CONN, "channel": _INT, "state": _INT}, ("conn", "channel", "state")),
+    "foxglove.Log": {
+        "title": "foxglove.Log", "description": "A log message (Foxglove's schema): a violation, for the Log panel",
+        "type": "object",
+        "properties": {
+            "timestamp": {"type": "object", "properties": {"sec": _INT, "nsec": _INT}},
+            "level": {"type": "integer", "description": "0 UNKNOWN, 1 DEBUG, 2 INFO, 3 WARNING, 4 ERROR, 5 FATAL",
+                      "oneOf": [{"title": name, "const": n} for n, name in enumerate(
+                          ("UNKNOWN", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"))]},
+            "message": _STR,
+            "name": {"type": "string", "description": "the rule id"},
+            "file": {"type": "string", "description": "where in the traffic: conn-N and the direction"},
+            "line": {"type": "integer", "description": "the frame's index in the session (0 when none)"}},
+        "required": ["timestamp", "level", "message", "name", "file", "line"]},
     "foxglove.CompressedImage": {
         "title": "foxglove.CompressedImage", "description": "A compressed image (Foxglove's schema)",
         "type": "object",
@@ -122,10 +143,11 @@ SCHEMAS: dict[str, dict] = {
         "required": ["timestamp", "frame_id", "data", "format"]},
 }
 
-# topic -> schema name, in registration order (channel ids follow it).
-# What a reader of byte streams needs (the analyzer, replay, the TUI): the TCP
-# reads and the connection events, in arrival order.  The writer keeps them in
-# chunks of their own, so such a reader decompresses nothing else.
+# topic -> schema name of the topics every file has, in registration order
+# (channel ids follow it).  What a reader of byte streams needs (the analyzer,
+# replay, the TUI): the TCP reads and the connection events, in arrival order.
+# The writer keeps them in chunks of their own, so such a reader decompresses
+# nothing else.
 STREAM_TOPICS = (TOPIC_READS, TOPIC_EVENTS)
 
 TOPICS: dict[str, str] = {
@@ -133,12 +155,45 @@ TOPICS: dict[str, str] = {
     TOPIC_EVENTS: "whiztap.ConnectionEvent",
     TOPIC_FRAMES: "whiztap.Frame",
     TOPIC_VIOLATIONS: "whiztap.Violation",
+    TOPIC_LOG: "foxglove.Log",
+    TOPIC_CAMERA: "foxglove.CompressedImage",
+}
+
+# The plottable values: base topic -> schema.  A file has a topic per channel
+# that occurred (registered on its first message in each file), not the base.
+PLOT_TOPICS: dict[str, str] = {
     TOPIC_SENSORS: "whiztap.SensorValue",
     TOPIC_SERVOS: "whiztap.ServoPosition",
     TOPIC_SENDS: "whiztap.NormalSend",
     TOPIC_SWITCHES: "whiztap.Switch",
-    TOPIC_CAMERA: "foxglove.CompressedImage",
 }
+
+
+def _per_channel(base: str) -> tuple[str, ...]:
+    return (*(f"{base}/{channel}" for channel in range(MAX_CHANNEL + 1)), f"{base}/{OTHER_CHANNEL}")
+
+
+# Each base's topics indexed by channel number: channels 0-23, then BASE/other
+# at 24, where every channel number past the spec's goes (``channel_topic``).
+PER_CHANNEL: dict[str, tuple[str, ...]] = {base: _per_channel(base) for base in PLOT_TOPICS}
+SENSOR_TOPICS, SERVO_TOPICS, SEND_TOPICS, SWITCH_TOPICS = PER_CHANNEL.values()  # encode_plots' look-ups
+
+# Every per-channel topic -> its schema: a bounded set (a hostile client's
+# channel numbers all go to BASE/other), so a file never has more channels
+# than len(TOPICS) + len(CHANNEL_TOPICS).
+CHANNEL_TOPICS: dict[str, str] = {topic: PLOT_TOPICS[base] for base, topics in PER_CHANNEL.items()
+                                  for topic in topics}
+
+# Every topic whiztap has written: this version's, and the aggregated plot
+# topics of version 1 files (read and checked alike; no reader needs them).
+KNOWN_TOPICS: dict[str, str] = {**TOPICS, **CHANNEL_TOPICS, **PLOT_TOPICS}
+
+
+def channel_topic(base: str, channel: int) -> str:
+    """The plot topic of ``channel`` under ``base`` (``/sensors/12``; past the
+    spec's channels, ``/sensors/other``)."""
+    topics = PER_CHANNEL[base]
+    return topics[channel] if channel < MAX_CHANNEL + 1 else topics[-1]
 
 
 def schema_bytes(name: str) -> bytes:
@@ -163,9 +218,10 @@ def misfit(message: Any, topic: str) -> str | None:
     """Why a decoded message of ``topic`` does not fit its schema's top-level
     fields (None when it does, or when whiztap defines no such topic): readers
     then use those fields without checking them."""
-    if topic not in TOPICS:
+    name = KNOWN_TOPICS.get(topic)
+    if name is None:
         return None
-    schema = SCHEMAS[TOPICS[topic]]
+    schema = SCHEMAS[name]
     if type(message) is not dict:
         return "not a JSON object"
     for key in schema["required"]:

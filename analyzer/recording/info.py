@@ -7,7 +7,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from whiztap.analyzer.recording.format import METADATA_NAME, TOPIC_EVENTS, TOPICS
+from whiztap.analyzer.recording.format import KNOWN_TOPICS, METADATA_NAME, TOPIC_EVENTS, TOPICS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, is_finished
 from whiztap.analyzer.recording.sets import being_written
 from whiztap.analyzer.traffic import NAMES, Opened
@@ -21,13 +21,20 @@ def _iso(t_ns: int | None) -> str:
     return dt.datetime.fromtimestamp(t_ns / 1e9, dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+def _topic_counts(counts: Counter[str]) -> dict[str, int]:
+    """Messages per topic: every topic each file has (0 when none), then the
+    other whiztap topics that occur (plot topics such as /sensors/12, or a
+    version 1 file's /sensors), in the format's order."""
+    return {topic: counts.get(topic, 0) for topic in KNOWN_TOPICS if topic in TOPICS or counts.get(topic)}
+
+
 def recording_info(path: Path) -> dict[str, Any]:
     """One pass over the file: counts per topic, time span, connections, metadata."""
     topics: Counter[str] = Counter()
     first = last = None
     connections = 0
     with open(path, "rb") as f:
-        scan = RecordingScan(f, TOPICS, validate_crcs=True)
+        scan = RecordingScan(f, KNOWN_TOPICS, validate_crcs=True)
         try:
             for t, topic, buf, start, stop in scan.records():
                 topics[topic] += 1
@@ -60,7 +67,7 @@ def recording_info(path: Path) -> dict[str, Any]:
         "end": _iso(last),
         "duration_s": ((last - first) / 1e9) if first is not None and last is not None else 0.0,
         "connections": connections,
-        "topics": {topic: topics.get(topic, 0) for topic in TOPICS},
+        "topics": _topic_counts(topics),
     }
 
 
@@ -71,7 +78,7 @@ def set_info(parts: list[Path]) -> dict[str, Any]:
     infos = [recording_info(p) for p in parts]
     if len(infos) == 1:
         return infos[0]
-    first, last = infos[0], infos[-1]
+    first = infos[0]
     starts = [i["start_ns"] for i in infos if i["start_ns"] is not None]
     ends = [i["end_ns"] for i in infos if i["end_ns"] is not None]
     start, end = (min(starts), max(ends)) if starts and ends else (None, None)
@@ -91,5 +98,5 @@ def set_info(parts: list[Path]) -> dict[str, Any]:
         "end": _iso(end),
         "duration_s": ((end - start) / 1e9) if start is not None and end is not None else 0.0,
         "connections": sum(i["connections"] for i in infos),  # 'opened' is written once, in its own part
-        "topics": {t: sum(i["topics"][t] for i in infos) for t in last["topics"]},
+        "topics": _topic_counts(sum((Counter(i["topics"]) for i in infos), Counter())),
     }

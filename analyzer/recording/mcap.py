@@ -14,8 +14,12 @@ with its CRC.  Tests read every file it writes with mcap's Python reader and
 with the TypeScript @mcap/core reader, CRC checks on.
 
 Unlike the reference writer, schemas and channels are written as soon as they
-are registered, before any chunk, so a file cut short anywhere still says
-what its channels are.  And a channel can be registered into a chunk group of
+are registered, outside chunks and before any chunk that holds their
+messages, so a file cut short anywhere still says what its channels are.  A
+channel may be registered late, on its first message (``on_new_channel``), with
+the id the caller chose, so ids can stay the same across the files of a split
+recording while each file defines only the channels it uses.  And a channel
+can be registered into a chunk group of
 its own: its messages then go into chunks that hold only that group, so a
 reader that wants only those channels (the analyzer wants the TCP reads, not
 the frames decoded from them) decompresses only their chunks.  Chunks of
@@ -142,6 +146,9 @@ class McapWriter:
         self.index_size = 0  # bytes of chunk indexes so far: finish() writes them in the summary
         self._start = self._end = None  # message times over the file
         self.message_count = 0
+        # called with a channel id that a message names and that is not
+        # registered yet: it must register it (or raise)
+        self.on_new_channel: Callable[[int], None] | None = None
 
     def start(self, profile: str, library: str) -> None:
         self._stream.write(MAGIC + _record(OP_HEADER, _str(profile) + _str(library)))
@@ -154,9 +161,14 @@ class McapWriter:
         self._stream.write(record)
         return schema_id
 
-    def register_channel(self, topic: str, message_encoding: str, schema_id: int, group: int = 0) -> int:
-        """``group``: channels of the same group share chunks; 0 is the default group."""
-        channel_id = len(self._channels) + 1
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int, group: int = 0,
+                         channel_id: int | None = None) -> int:
+        """``group``: channels of the same group share chunks; 0 is the default
+        group.  ``channel_id``: the id to give it (default: one past the largest so far)."""
+        if channel_id is None:
+            channel_id = max(self._counts, default=0) + 1
+        elif channel_id in self._counts or not 0 < channel_id < 1 << 16:
+            raise ValueError(f"channel id {channel_id} is taken or out of range")
         record = _record(OP_CHANNEL, struct.pack("<HH", channel_id, schema_id) + _str(topic)
                          + _str(message_encoding) + _map({}))
         self._channels.append(record)
@@ -188,13 +200,23 @@ class McapWriter:
         pack = _MESSAGE.pack
         limit = self.chunk_size
         for channel_id, log_time, data in messages:
-            chunk, index, open_chunk = slots[channel_id]
+            try:
+                chunk, index, open_chunk = slots[channel_id]
+            except KeyError:  # no cost on the way that does not raise
+                chunk, index, open_chunk = self._new_slot(channel_id)
             index.append(log_time)
             index.append(len(chunk))
             chunk += pack(OP_MESSAGE, MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
             chunk += data
             if len(chunk) >= limit:
                 self._finish_chunk(open_chunk)
+
+    def _new_slot(self, channel_id: int) -> tuple[bytearray, list[int], _OpenChunk]:
+        """A message names a channel not registered: ``on_new_channel`` registers it now."""
+        if self.on_new_channel is None:
+            raise KeyError(f"no channel {channel_id}")
+        self.on_new_channel(channel_id)
+        return self._slots[channel_id]
 
     @property
     def pending(self) -> int:

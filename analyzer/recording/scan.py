@@ -220,8 +220,9 @@ class RecordingScan:
         With the indexes, only the wanted messages are looked at (a recording
         holds several messages per frame, of which an analysis wants one per
         TCP read).  Only in whiztap's own files, whose writer defines every
-        channel before the first chunk, so a chunk skipped this way cannot
-        hide a channel."""
+        channel outside chunks, before the first chunk that holds its
+        messages (a plot topic's on its first message), so a chunk skipped
+        this way cannot hide a channel."""
         f = self._stream
         chunk_at = self._at
         offsets: list[int] | None = [] if METADATA_NAME in self.metadata else None

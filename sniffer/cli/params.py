@@ -34,6 +34,19 @@ class Address(click.ParamType):
             fail(str(e))
 
 
+FOXGLOVE_DEFAULT = "127.0.0.1:8765"
+
+
+def foxglove_option(f: Callable) -> Callable:
+    """--foxglove [HOST:]PORT: also serve the recording live to the Foxglove app
+    (``whiztap.sniffer.record.live``); alone, on 127.0.0.1:8765."""
+    return click.option(
+        "--foxglove", type=Address("127.0.0.1"), is_flag=False, flag_value=FOXGLOVE_DEFAULT, default=None,
+        metavar="[[HOST:]PORT]",
+        help=f"Also serve the traffic live to the Foxglove app (Foxglove WebSocket, the recording's topics); "
+             f"alone: {FOXGLOVE_DEFAULT}.  Another host exposes the traffic to the network.")(f)
+
+
 def recording_options(f: Callable) -> Callable:
     """Splitting, secrets, the checksum rule and --force: the options of every
     command that writes a recording."""

@@ -14,7 +14,7 @@ import click
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import recording_output, say
 from whiztap.analyzer.cli.params import force_option, limits_from, limits_options
-from whiztap.sniffer.cli.params import Address, check_recording_output, recording_options
+from whiztap.sniffer.cli.params import Address, check_recording_output, foxglove_option, recording_options
 from whiztap.sniffer.cli.run import run, stop_signals
 from whiztap.sniffer.record.summary import summary_lines
 
@@ -34,23 +34,26 @@ from whiztap.sniffer.record.summary import summary_lines
               help="When the recording falls behind the traffic, the connections causing it: pause them "
                    "(the recording stays complete), or keep them flowing and record a gap event "
                    "with the count of bytes left out.")
+@foxglove_option
 @limits_options
 def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: str, split_size: int | None,
                    split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool, analyze: bool,
-                   connect_timeout: float, when_behind: str, answer_timeout: float, max_frame: int,
-                   max_image: int) -> None:
+                   connect_timeout: float, when_behind: str, foxglove: tuple[str, int] | None, answer_timeout: float,
+                   max_frame: int, max_image: int) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
     unchanged in both directions and recorded with its receive time.  Ctrl-C or
-    SIGTERM closes the connections and finishes the file.
+    SIGTERM closes the connections and finishes the file.  With --foxglove the
+    Foxglove app can watch it live (Open connection, Foxglove WebSocket,
+    ws://127.0.0.1:8765).
     """
     check_recording_output(output, split_size is not None or split_duration is not None, force)
     from whiztap.sniffer.record.record_run import RecordSettings
 
     settings = RecordSettings(listen, upstream, output, split_size, split_duration, keep_secrets, checksum_rule,
                               quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
-                              overwrite=force, when_behind=when_behind)
+                              overwrite=force, when_behind=when_behind, foxglove=foxglove)
     error = run(_record(settings))
     if error:
         fail(error)
@@ -73,7 +76,8 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     proxy = recording.proxy
     with stop_signals(recording.stopped.set):
         # even with -q: with port 0 this line is the only way to learn the port
-        say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output} (Ctrl-C to stop)")
+        live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""
+        say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output}{live} (Ctrl-C to stop)")
         await recording.stopped.wait()
         summary = await recording.stop("write error" if recording.error else "recording stopped")
     if summary is not None:

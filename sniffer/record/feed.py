@@ -29,7 +29,9 @@ decision is made again at each batch sent, and every ``BATCH_S`` while behind.
 
 Child side (``python -m whiztap.sniffer.record.feed CONFIG``): one thread reads the pipe,
 decodes the records back into traffic events for a ``Recorder`` and reports on its stdout as JSON lines (ready,
-violations for ``--analyze``, finished files, errors, the summary).  It ignores
+violations for ``--analyze``, finished files, errors, the summary).  With
+``--foxglove`` it also serves every message live (``live.py``; "ready" says
+where).  It ignores
 SIGINT (Ctrl-C reaches the whole process group; the parent decides when to
 stop) and finishes the file when the pipe closes, so even a parent killed with
 SIGKILL leaves a finished recording.
@@ -148,6 +150,7 @@ class WriterProcess:
         self._behind = False
         self.error: str | None = None
         self.summary: dict | None = None
+        self.ready: dict = {}
         self._batch = bytearray()
         self._batch_bytes: dict[int, int] = {}  # connection -> bytes of its reads in the batch
         self._in_pipe: deque[tuple[int, dict[int, int]]] = deque()  # (end in _written, _batch_bytes) per batch
@@ -326,6 +329,7 @@ class WriterProcess:
     def _status(self, message: dict) -> None:
         kind = message.get("type")
         if kind == "ready":
+            self.ready = message  # what the writer serves: "foxglove", its ws:// URL, with --foxglove
             if self._ready is not None and not self._ready.done():
                 self._ready.set_result(None)
         elif kind == "violation" and self.on_violation is not None:
@@ -408,10 +412,31 @@ def _ignore_signals(on_term: Callable[[int, object], None]) -> None:
     signal.signal(signal.SIGTERM, on_term)
 
 
+def _recording_file(config: dict[str, Any]):  # noqa: ANN202 - a RecordingFile, and what "ready" adds
+    """The file, and with ``foxglove`` (host, port) one that also serves every
+    message live (``live.py``; imported only then, so recording without it
+    pays nothing); the server starts before the file is made, so a port in
+    use leaves no file behind (raises WriterError)."""
+    from whiztap.sniffer.record.writer import RecordingFile
+
+    args = (config["path"], config["metadata"])
+    options = {"split_size": config.get("split_size"), "split_duration_ns": config.get("split_duration_ns"),
+               "overwrite": config.get("overwrite", True)}
+    if not config.get("foxglove"):
+        return RecordingFile(*args, **options), {}
+    from whiztap.sniffer.record.live import LiveRecordingFile, LiveServer, LiveServerError
+
+    try:
+        live = LiveServer(*config["foxglove"])
+    except LiveServerError as e:
+        raise WriterError(str(e)) from None
+    return LiveRecordingFile(live, *args, **options), {"foxglove": live.url}
+
+
 def _run(config: dict[str, Any]) -> int:
     from whiztap.analyzer.analysis.throughput import tune_gc
     from whiztap.sniffer.record.recorder import Recorder
-    from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
+    from whiztap.sniffer.record.writer import RecordingWriteError
 
     tune_gc()  # bulk work on millions of short-lived tuples, like the batch commands
     stop_requested = False
@@ -422,15 +447,18 @@ def _run(config: dict[str, Any]) -> int:
 
     os.nice(WRITER_NICE)
     _ignore_signals(on_term)
-    file = RecordingFile(config["path"], config["metadata"], split_size=config.get("split_size"),
-                         split_duration_ns=config.get("split_duration_ns"), overwrite=config.get("overwrite", True))
+    try:
+        file, ready = _recording_file(config)
+    except WriterError as e:
+        _say({"type": "error", "message": str(e)})
+        return EXIT_WRITE_ERROR
     recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
                         checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
                         on_violation=_violation_report if config.get("analyze") else None)
     reported = 0
     try:
         recorder.start(config["start_ns"], **config.get("started", {}))
-        _say({"type": "ready", "path": file.current_path})
+        _say({"type": "ready", "path": file.current_path, **ready})
         buf = bytearray()
         stop: RecordingStopped | None = None
         while stop is None and not stop_requested:

@@ -35,6 +35,8 @@ class RecordSettings:
     # and refuses unless --force); False: a name taken while recording stops it
     overwrite: bool = True
     when_behind: str = "pause"  # what happens to the connections that put the writer behind: "pause" or "gap"
+    # (host, port): also serve the recording live to the Foxglove app (sniffer/record/live.py); port 0 picks one
+    foxglove: tuple[str, int] | None = None
 
 
 class Recording:
@@ -62,6 +64,11 @@ class Recording:
     def error(self) -> str | None:
         return self.writer.error if self.writer is not None else None
 
+    @property
+    def foxglove_url(self) -> str | None:
+        """Where the Foxglove app connects (``ws://HOST:PORT``, the bound port), with ``foxglove`` set."""
+        return self.writer.ready.get("foxglove") if self.writer is not None else None
+
     async def start(self) -> None:
         """Bind, start the writer, accept.  Raises WriterError or OSError (bind)."""
         s = self.settings
@@ -79,7 +86,7 @@ class Recording:
                   "limits": s.limits.as_dict(),
                   "split_size": s.split_size, "overwrite": s.overwrite,
                   "split_duration_ns": int(s.split_duration * 1e9) if s.split_duration else None,
-                  "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}}
+                  "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}, "foxglove": s.foxglove}
         self.writer = writer = WriterProcess(config, s.when_behind)
         writer.on_hold = proxy.hold
         writer.on_violation = self._violation

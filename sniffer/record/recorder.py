@@ -5,8 +5,9 @@ typed events of ``whiztap.analyzer.traffic`` (a connection opened, bytes
 arrived on one direction at a time, a side shut down, bytes are missing, the
 connection closed), and the Recorder (``receive(event)``) turns them into the
 recording layout of ``whiztap.analyzer.recording.format``: every read, every
-framer item with what the live session model made of it, violations, plottable
-values and the events themselves.  It runs on one thread (the writer's), so
+framer item with what the live session model made of it, violations (each
+also a ``foxglove.Log`` message), plottable values (a topic per channel) and
+the events themselves.  It runs on one thread (the writer's), so
 messages reach each channel in the order they happened and ``log_time`` never
 goes backwards.
 
@@ -37,10 +38,10 @@ from whiztap.analyzer.recording.encode import (
     encode,
     encode_plots,
     encode_read,
+    encode_violation,
     run_message,
-    violation_message,
 )
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_FRAMES, TOPIC_READS, TOPIC_VIOLATIONS
+from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_FRAMES, TOPIC_LOG, TOPIC_READS, TOPIC_VIOLATIONS
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, Redactor
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
@@ -322,7 +323,7 @@ class Recorder:
         (``_write_run``)."""
         now = self._now
         ids = self.file.channel_ids
-        frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
+        frames_id = ids[TOPIC_FRAMES]
         out: list[tuple[int, int, bytes]] = []
         add = out.append
         encode_frame = self._frames.encode
@@ -335,7 +336,7 @@ class Recorder:
                 if run:
                     self._write_run(conn, c, run, out)
                     run = []
-                add((violations_id, now, self._violation(conn, obs.violation, obs.about, obs.t_ns, late=True)))
+                self._violation(out, conn, obs.violation, obs.about, obs.t_ns, late=True)
                 continue
             _, direction, item, message, _, violations, _, _ = obs
             kind, raw, _, t, _ = item
@@ -353,10 +354,13 @@ class Recorder:
             add((frames_id, now, encode_frame(conn, obs, offset, redact)))
             if message is not None:
                 for topic, plot in encode_plots(conn, obs):
-                    add((ids[topic], now, plot))
+                    try:
+                        add((ids[topic], now, plot))
+                    except KeyError:  # a plot topic's first message in the recording
+                        add((self.file.channel_id(topic), now, plot))
             frames[direction] += 1
             for v in violations:
-                add((violations_id, now, self._violation(conn, v, obs, t, late=False)))
+                self._violation(out, conn, v, obs, t, late=False)
         if run:
             self._write_run(conn, c, run, out)
         if out:
@@ -368,8 +372,7 @@ class Recorder:
         /frames message (``run_message``), and one /violations message per rule
         its items break, with how many times (the totals count every break)."""
         now = self._now
-        ids = self.file.channel_ids
-        frames_id, violations_id = ids[TOPIC_FRAMES], ids[TOPIC_VIOLATIONS]
+        frames_id = self.file.channel_ids[TOPIC_FRAMES]
         direction = run[0].direction
         offset = c.framed[direction]
         size = sum(len(o.item.raw) for o in run)
@@ -378,7 +381,7 @@ class Recorder:
         if len(run) == 1 and size <= RUN_INLINE_MAX:
             out.append((frames_id, now, self._frames.encode(conn, run[0], offset, not self.keep_secrets)))
             for v in run[0].violations:
-                out.append((violations_id, now, self._violation(conn, v, run[0], t, late=False)))
+                self._violation(out, conn, v, run[0], t, late=False)
             return
         out.append((frames_id, now, encode(run_message(conn, run, offset))))
         broken: dict[str, list] = {}  # rule id -> [first violation, its item, how many]
@@ -392,16 +395,20 @@ class Recorder:
         for v, about, count in broken.values():
             if count > 1:
                 v = Violation(v.rule_id, f"{v.detail} (the first of {count} in {size} bytes of unframed data)")
-            out.append((violations_id, now, self._violation(conn, v, about, t, late=False, count=count)))
+            self._violation(out, conn, v, about, t, late=False, count=count)
 
-    def _violation(self, conn: int, v: Violation, about: Observation | None, t: int, late: bool,
-                   count: int = 1) -> bytes:
+    def _violation(self, out: list[tuple[int, int, bytes]], conn: int, v: Violation, about: Observation | None,
+                   t: int, late: bool, count: int = 1) -> None:
         """Count and report a violation (``count`` breaks of its rule: see
-        ``_write_run``); its /violations message."""
+        ``_write_run``); add its /violations message to ``out``, and the
+        ``foxglove.Log`` made from it, to /log, right after it."""
         self.summary.violations[str(v.severity)] += count
         if self.on_violation is not None:
             self.on_violation(conn, t, v, about, late)
-        return encode(violation_message(conn, v, about, t, late, not self.keep_secrets, count))
+        violation, log = encode_violation(conn, v, about, t, late, not self.keep_secrets, count)
+        ids = self.file.channel_ids
+        out.append((ids[TOPIC_VIOLATIONS], self._now, violation))
+        out.append((ids[TOPIC_LOG], self._now, log))
 
     def _continued(self, part: int) -> None:
         """A new file began: say which connections are open and where their streams are."""

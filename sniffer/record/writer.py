@@ -17,6 +17,13 @@ When a write fails (disk full, file too large, I/O error) the file is cut back
 to the end of the last complete flush and closed with a DataEnd and Footer
 record, which needs only a few dozen bytes: what was written stays a valid
 (unindexed) MCAP that every reader opens, and ``whiztap recover`` re-indexes it.
+
+Channels: the topics every file has (``format.TOPICS``) are defined when a
+file begins; a plot topic (``/sensors/12``) gets its id on its first use in the
+recording (``channel_id``) and is defined in each file on its first message
+there, so a file has only the channels that occurred in it.  A topic's id is
+the same in every file of a recording, so messages made before a rotation
+still name the right channel after it.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import time
 from collections.abc import Callable
 
 from whiztap.analyzer.recording.format import (
+    CHANNEL_TOPICS,
     MESSAGE_ENCODING,
     METADATA_NAME,
     PROFILE,
@@ -162,7 +170,11 @@ class RecordingFile:
         self.messages = 0  # over all parts
         self._writer: McapWriter | None = None
         self._stream: _FileStream | None = None
-        self._channels: dict[str, int] = {}
+        # topic -> channel id over the whole recording (the same in every part): the
+        # topics every file has, then the plot topics in the order they occurred
+        self._channels: dict[str, int] = {topic: n for n, topic in enumerate(TOPICS, start=1)}
+        self._topics: dict[int, str] = {n: topic for topic, n in self._channels.items()}
+        self._schema_ids: dict[str, int] = {}  # schema name -> id in the current part
         self._part_start_ns = 0
         self._part_opening: int | None = 0  # messages when the part began (None: beginning it)
         self._unchecked = 0  # bytes of messages added since the part's size was last checked
@@ -216,14 +228,10 @@ class RecordingFile:
         try:
             writer.start(PROFILE, f"whiztap {self.metadata.get('whiztap_version', '')}".strip())
             writer.add_metadata(METADATA_NAME, metadata)
-            schema_ids: dict[str, int] = {}
-            for topic, schema in TOPICS.items():
-                if schema not in schema_ids:
-                    schema_ids[schema] = writer.register_schema(schema, SCHEMA_ENCODING, schema_bytes(schema))
-                # the stream topics' chunks first at every flush: a crash then loses
-                # decoded frames before the reads they were decoded from
-                self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, schema_ids[schema],
-                                                                group=0 if topic in STREAM_TOPICS else 1)
+            self._schema_ids = {}
+            for topic in TOPICS:
+                self._define(topic)
+            writer.on_new_channel = self._define_late
             self._stream.flush()  # synced with the first flush of traffic
         except OSError as e:
             os.close(fd)
@@ -233,10 +241,43 @@ class RecordingFile:
         self._good = self._summary_base = self._stream.written
         self._last_flush = time.monotonic()
 
+    def _define(self, topic: str) -> None:
+        """Define ``topic``'s schema (once per part) and channel in the current part."""
+        writer = self._writer
+        schema = TOPICS.get(topic) or CHANNEL_TOPICS[topic]
+        schema_id = self._schema_ids.get(schema)
+        if schema_id is None:
+            schema_id = self._schema_ids[schema] = writer.register_schema(  # type: ignore[union-attr]
+                schema, SCHEMA_ENCODING, schema_bytes(schema))
+        # the stream topics' chunks first at every flush: a crash then loses
+        # decoded frames before the reads they were decoded from
+        writer.register_channel(topic, MESSAGE_ENCODING, schema_id,  # type: ignore[union-attr]
+                                group=0 if topic in STREAM_TOPICS else 1, channel_id=self._channels[topic])
+
+    def _define_late(self, channel_id: int) -> None:
+        """A message on a channel this part has not defined yet (a plot topic's
+        first in this part): define it before the chunk that will hold it."""
+        before = self._stream.tell()  # type: ignore[union-attr]
+        self._define(self._topics[channel_id])
+        self._summary_base += self._stream.tell() - before  # type: ignore[union-attr]  # finish() repeats it
+
     @property
     def channel_ids(self) -> dict[str, int]:
-        """Topic -> channel id in the file being written (the same in every part)."""
+        """Topic -> channel id, the same in every part; it grows as plot topics
+        occur (``channel_id``).  The recorder looks ids up here, once per message."""
         return self._channels
+
+    def channel_id(self, topic: str) -> int:
+        """The id of a plot topic (``/sensors/12``) not in ``channel_ids`` yet,
+        which it joins; each part defines it on its first message there.  A
+        topic the format does not know raises KeyError."""
+        if topic not in CHANNEL_TOPICS:
+            raise KeyError(f"{topic} is no plot topic of the recording format")
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self._channels[topic] = len(self._channels) + 1
+            self._topics[channel_id] = topic
+        return channel_id
 
     def write(self, topic: str, t_ns: int, data: bytes) -> None:
         """Add one message (its JSON bytes) at ``t_ns``."""
@@ -349,7 +390,6 @@ class RecordingFile:
         final = self.current_path
         self._writer = None
         self._stream = None
-        self._channels = {}
         try:
             _publish(final + ".part", final, self.overwrite)
         except OSError as e:
