@@ -3,6 +3,7 @@
 // CRC checks on, and prints what it found as one JSON object.
 import { McapIndexedReader, McapStreamReader } from "@mcap/core";
 import { decompress } from "fzstd";
+import { createHash } from "node:crypto";
 import { open, readFile } from "node:fs/promises";
 
 const path = process.argv[2];
@@ -22,6 +23,7 @@ const readable = {
 const indexed = await McapIndexedReader.Initialize({ readable, decompressHandlers });
 const topics = {};
 const perTopic = {};
+const digests = {};  // per topic: sha256 over each message's log time (decimal, then a newline) and data, in order
 for (const channel of indexed.channelsById.values()) {
   const schema = indexed.schemasById.get(channel.schemaId);
   topics[channel.topic] = { schema: schema?.name, schemaEncoding: schema?.encoding,
@@ -33,13 +35,17 @@ const last = {};
 for (const channel of indexed.channelsById.values()) {
   // one topic at a time, as a Foxglove panel asks: this uses the message indexes
   let n = 0;
+  const hash = createHash("sha256");
   for await (const message of indexed.readMessages({ topics: [channel.topic], validateCrcs: true })) {
+    hash.update(`${message.logTime}\n`);
+    hash.update(message.data);
     JSON.parse(new TextDecoder().decode(message.data));
     if (last[channel.topic] !== undefined && message.logTime < last[channel.topic]) backwards++;
     last[channel.topic] = message.logTime;
     n++;
   }
   perTopic[channel.topic] = n;
+  digests[channel.topic] = hash.digest("hex");
   indexedCount += n;
 }
 await handle.close();
@@ -52,5 +58,5 @@ for (let record; (record = stream.nextRecord()); ) {
   if (record.type === "Message") streamCount++;
   if (record.type === "Metadata" && record.name === "whiztap") metadata = Object.fromEntries(record.metadata);
 }
-console.log(JSON.stringify({ topics, perTopic, indexedCount, streamCount, backwards, metadata,
+console.log(JSON.stringify({ topics, perTopic, digests, indexedCount, streamCount, backwards, metadata,
                              done: stream.done(), statistics: Number(indexed.statistics?.messageCount ?? -1) }));
