@@ -210,23 +210,29 @@ class _Served:
         return lambda data, t_ns: self.got[topic].append((t_ns, data))
 
 
+def _record_exchanges(file: LiveRecordingFile, exchanges: list[tuple[bytes, bytes]]) -> None:
+    """A real Recorder writing one connection's requests and answers, a read each, into ``file``."""
+    recorder = Recorder(file)
+    t = 1_700_000_000_000_000_000
+    recorder.start(t)
+    recorder.receive(Opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000"))
+    for request, answer in exchanges:
+        t += 1_000_000
+        recorder.receive(Data(1, Direction.C2S, t, request))
+        recorder.receive(Data(1, Direction.S2C, t + 1, answer))
+        recorder.tick(t)
+    recorder.receive(Closed(1, t, "client"))
+    recorder.stop(t)
+
+
 def test_every_message_of_every_part_is_served_under_its_own_topic(tmp_path):
     """Parts begin on their own (here every 64 KiB): channel ids are mapped
     back to topics again whenever the file's map changes."""
     served = _Served()
     path = tmp_path / "split.mcap"
     file = LiveRecordingFile(served, str(path), metadata_record(source="test"), split_size=64 << 10)
-    recorder = Recorder(file)
-    t = 1_700_000_000_000_000_000
-    recorder.start(t)
-    recorder.receive(Opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000"))
-    for i in range(400):
-        t += 1_000_000
-        recorder.receive(Data(1, Direction.C2S, t, SENSOR_REQUEST + b"rr1-3--0--1-ss1"))
-        recorder.receive(Data(1, Direction.S2C, t + 1, b"cr1-12--%d--0-ss1" % i + b"junk" * 40))
-        recorder.tick(t)
-    recorder.receive(Closed(1, t, "client"))
-    recorder.stop(t)
+    _record_exchanges(file, [(SENSOR_REQUEST + b"rr1-3--0--1-ss1", b"cr1-12--%d--0-ss1" % i + b"junk" * 40)
+                             for i in range(400)])
     assert len(file.finished) > 2
     in_file, _ = file_messages([Path(p) for p in file.finished])
     assert dict(served.got) == dict(in_file)
@@ -252,16 +258,7 @@ def test_a_live_server_that_raises_stops_serving_once_and_the_file_is_complete(t
     served = _Failing(ok=20)
     path = tmp_path / "failing.mcap"
     file = LiveRecordingFile(served, str(path), metadata_record(source="test"))
-    recorder = Recorder(file)
-    t = 1_700_000_000_000_000_000
-    recorder.start(t)
-    recorder.receive(Opened(1, t, "127.0.0.1:40000", "127.0.0.1:5000"))
-    for i in range(50):
-        t += 1_000_000
-        recorder.receive(Data(1, Direction.C2S, t, SENSOR_REQUEST))
-        recorder.receive(Data(1, Direction.S2C, t + 1, b"cr1-12--%d--0-ss1" % i))
-    recorder.receive(Closed(1, t, "client"))
-    recorder.stop(t)
+    _record_exchanges(file, [(SENSOR_REQUEST, b"cr1-12--%d--0-ss1" % i) for i in range(50)])
     assert not file.serving
     assert sum(map(len, served.got.values())) == 20
     in_file, _ = file_messages([path])
