@@ -169,7 +169,7 @@ async def test_each_client_connection_is_answered_from_its_recorded_connection(t
 async def test_stub_command_errors(tmp_path, recorded):
     path, _ = recorded
     code, out, err = await whiztap("stub", str(tmp_path / "nothing.mcap"))
-    assert code == 2 and err == f"whiztap: {tmp_path / 'nothing.mcap'}: no such file\n"
+    assert code == 2 and err == f"whiztap: {tmp_path / 'nothing.mcap'}: no such file (see 'whiztap stub --help')\n"
     blocker = await asyncio.start_server(lambda r, w: None, LOCAL, 0)
     port = blocker.sockets[0].getsockname()[1]
     try:

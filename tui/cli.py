@@ -13,6 +13,7 @@ import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
+from whiztap.analyzer.cli.reading import one_recording
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
 from whiztap.sniffer.cli.params import Address, check_recording_output, foxglove_option
 
@@ -33,12 +34,7 @@ def _check_recording(path: str) -> None:
 def _one_recording(path: str):  # noqa: ANN202 - a RecordingSet
     """The recording to browse: a file, or a split one named by any of its parts,
     its folder or a glob; checked readable before the app starts."""
-    from whiztap.analyzer.recording.sets import RecordingInputError, find_one
-
-    try:
-        recording = find_one((path,))
-    except RecordingInputError as e:
-        fail(str(e))
+    recording = one_recording((path,))
     for part in recording.parts:
         _check_recording(str(part))
     return recording

@@ -10,9 +10,10 @@ import sys
 
 import click
 
-from whiztap.analyzer.cli.errors import fail, warn
-from whiztap.analyzer.cli.output import check_output, recording_output
+from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.output import check_output, recording_output, say
 from whiztap.analyzer.cli.params import force_option
+from whiztap.analyzer.cli.reading import one_recording
 from whiztap.sniffer.cli.params import Address
 from whiztap.sniffer.cli.run import run, stop_signals
 
@@ -21,15 +22,7 @@ PACES = ["recorded", "lockstep", "max"]
 
 def _find(path: str):  # noqa: ANN202 - a RecordingSet, imported lazily
     """The recording a path names (a split one's parts together), or a one-line error."""
-    from whiztap.analyzer.recording.sets import RecordingInputError, find_one
-
-    try:
-        recording = find_one((path,))
-    except RecordingInputError as e:
-        fail(str(e))
-    if recording.warning():
-        warn(recording.warning())
-    return recording
+    return one_recording((path,))
 
 
 def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions, imported lazily
@@ -47,11 +40,10 @@ def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions
 
 
 def _echo(text: str) -> None:
-    """Print lines that quote the recording and the server: control characters
-    are shown escaped, never obeyed by the terminal."""
-    from whiztap.analyzer.protocol.text import printable
-
-    click.echo("\n".join(printable(line) for line in text.split("\n")))
+    """Print lines that quote the recording and the server (``say``: control
+    characters shown, never obeyed; a closed standard output ends the printing)."""
+    for line in text.split("\n"):
+        say(line)
 
 
 def _password(text: str | None) -> bytes | None:
