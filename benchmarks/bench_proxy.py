@@ -17,8 +17,8 @@ process.
   it is what a relay in Python costs before recording costs anything.
 * Pipelined: a Fetch Configuration, its answer, then ``WHIZTAP_BENCH_PIPELINE_FRAMES``
   requests (default 200k; a realistic mix: Sensor Requests on channels 12-23
-  and, one in ``BAD_EVERY``, a request for channel 99, which breaks a rule, as
-  does its answer, so the violation path is measured too) written as fast as the socket takes them
+  and, one in ``BAD_EVERY``, a request for channel 99, which breaks two rules, and
+  its answer one, so the violation path is measured too) written as fast as the socket takes them
   through whiztap record to a responder that answers each at C speed (the
   simulator answers too slowly to be what is measured), read back in
   parallel; then Ctrl-C, and the clock stops when the file is finished.
@@ -52,7 +52,7 @@ PIPELINE_FRAMES = int(os.environ.get("WHIZTAP_BENCH_PIPELINE_FRAMES", "200000"))
 SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", "60"))
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 PEERS = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin"
-BAD_EVERY = int(os.environ.get("WHIZTAP_BENCH_BAD_EVERY", "10"))  # one pipelined request in this many breaks a rule (channel 99), and so does its answer
+BAD_EVERY = int(os.environ.get("WHIZTAP_BENCH_BAD_EVERY", "10"))  # one pipelined request in this many asks channel 99: rules broken
 TARGET_PIPELINED_FPS = 250_000
 TARGET_SOCAT_RATIO = 1.0
 REQUEST = b"rr1-12--0--0-ss1"
@@ -340,8 +340,8 @@ def main() -> None:
                 else:
                     print(f"RATIO round trips whiztap record / {peer}: not measured ({peer} is not installed)")
             p = pipelined(tmp)
-            print(f"pipelined: {p['frames']:,} frames (requests and responses; 1 request in {BAD_EVERY} breaks a "
-                  f"rule, as its answer does) through whiztap record: forwarded at {p['forwarding_fps']:,.0f} "
+            print(f"pipelined: {p['frames']:,} frames (requests and responses; 1 request in {BAD_EVERY} breaks "
+                  f"rules, as its answer does) through whiztap record: forwarded at {p['forwarding_fps']:,.0f} "
                   f"frames/s; {p['recorded_frames']:,} frames in the recording, "
                   f"{'SOME LOST' if p['lost'] else 'nothing lost'}; {p['size'] / 1e6:.1f} MB")
             print(f"FRAMES/S pipelined recording, first byte to finished file: {p['recorded_fps']:,.0f} "

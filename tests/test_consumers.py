@@ -68,7 +68,7 @@ async def test_a_failing_consumer_never_stops_the_proxy_the_file_or_the_other_co
                 answers += await asyncio.wait_for(reader.readexactly(len(frame)), WAIT)
             writer.close()
             await writer.wait_closed()
-            for _ in range(200):  # the proxy tells of the close once both sides are done
+            for _ in range(int(WAIT / 0.01)):  # the proxy tells of the close once both sides are done
                 if any(type(e) is Closed for e in kept.events):
                     break
                 await asyncio.sleep(0.01)

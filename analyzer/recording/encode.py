@@ -159,7 +159,7 @@ _FRAME_HEAD = _FRAME_START + b'"answers":%s,"latency_ns":%s,'
 _COMMAND_HEAD = _FRAME_START + b'"answers":null,"latency_ns":null,'
 _ANSWER_HEAD = _FRAME_START + b'"answers":%d,"latency_ns":%d,'
 _DIR_BYTES = {d: d.value.encode() for d in Direction}  # Enum.value is a slow property
-_DIR_TEXT = {d: d.value for d in Direction}
+DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
 _CACHED_RAW_MAX = 256  # longer items (images, unframed runs) are rare: not worth keeping
 _CACHE_LIMIT = 4096  # distinct frames kept; answers with varying values mostly miss anyway
 
@@ -225,20 +225,17 @@ def violation_message(conn: int, violation: Violation, about: Observation | None
 LOG_LEVELS = {"info": 2, "warning": 3, "error": 4}  # whiztap's severities as foxglove.Log levels
 
 
-# the rule's fixed fields of a /violations message, as JSON, and its log level: by rule id
-_RULE_JSON: dict[str, tuple[str, int]] = {}
 def _quote(text: str) -> str:
     """A string as ``encode`` writes it (in quotes)."""
     return _dumps(text).decode()
 
 
 def _rule_json(violation: Violation) -> tuple[str, int]:
+    """The rule's fixed fields of a /violations message, as JSON, and its log level."""
     rule = violation.rule
     severity = str(rule.severity)
-    fixed = _RULE_JSON[rule.id] = (
-        f'"rule_id":{_quote(rule.id)},"severity":"{severity}","level":{int(rule.severity)},'
-        f'"section":{_quote(rule.section)},"summary":{_quote(rule.summary)}', LOG_LEVELS[severity])
-    return fixed
+    return (f'"rule_id":{_quote(rule.id)},"severity":"{severity}","level":{int(rule.severity)},'
+            f'"section":{_quote(rule.section)},"summary":{_quote(rule.summary)}', LOG_LEVELS[severity])
 
 
 _VIOLATION_CACHE: dict[tuple, tuple[bytes, bytes]] = {}  # what decides a violation's messages -> their templates
@@ -287,13 +284,13 @@ def _violation_templates(violation: Violation, text: str | None, direction: Dire
         return value.replace("%", "%%")
 
     rule_id = violation.rule_id
-    fixed = _RULE_JSON.get(rule_id) or _rule_json(violation)
+    fixed = _rule_json(violation)
     detail = lit(_quote(violation.detail)[1:-1])
     if direction is None:
         about_json = where = ""
         file = "conn-%d"
     else:
-        d = _DIR_TEXT[direction]
+        d = DIR_TEXT[direction]
         quoted = lit(_quote(text)[1:-1])  # type: ignore[arg-type]
         about_json = f',"dir":"{d}","frame_index":%d,"frame_text":"{quoted}"'
         where = f" {d}, frame %d: {quoted}"

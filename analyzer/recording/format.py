@@ -176,7 +176,8 @@ def _per_channel(base: str) -> tuple[str, ...]:
 # Each base's topics indexed by channel number: channels 0-23, then BASE/other
 # at 24, where every channel number past the spec's goes (``channel_topic``).
 PER_CHANNEL: dict[str, tuple[str, ...]] = {base: _per_channel(base) for base in PLOT_TOPICS}
-SENSOR_TOPICS, SERVO_TOPICS, SEND_TOPICS, SWITCH_TOPICS = PER_CHANNEL.values()  # encode_plots' look-ups
+SENSOR_TOPICS, SERVO_TOPICS = PER_CHANNEL[TOPIC_SENSORS], PER_CHANNEL[TOPIC_SERVOS]  # encode_plots' look-ups
+SEND_TOPICS, SWITCH_TOPICS = PER_CHANNEL[TOPIC_SENDS], PER_CHANNEL[TOPIC_SWITCHES]
 
 # Every per-channel topic -> its schema: a bounded set (a hostile client's
 # channel numbers all go to BASE/other), so a file never has more channels

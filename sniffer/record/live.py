@@ -35,8 +35,6 @@ from whiztap.analyzer.recording.format import KNOWN_TOPICS, MESSAGE_ENCODING, SC
 from whiztap.sniffer.nettext import show_address
 from whiztap.sniffer.record.writer import RecordingFile
 
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 8765
 SERVER_NAME = "whiztap"
 _OS_ERROR = re.compile(r"\(os error (\d+)\)")
 
@@ -63,7 +61,7 @@ class LiveServer:
     """A Foxglove WebSocket server with a channel per topic, each made when
     first asked for.  Raises LiveServerError when it cannot listen."""
 
-    def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT) -> None:
+    def __init__(self, host: str, port: int) -> None:
         import foxglove
 
         self._foxglove = foxglove
@@ -106,19 +104,16 @@ class LiveRecordingFile(RecordingFile):
     ``LiveServer``.
 
     Messages come as (channel id, t_ns, data), ids from ``channel_ids``
-    (topic -> id), which may gain topics as the recording goes and may be new
-    in each part: the map back to topics is made again whenever it changed,
-    before the file takes the messages (a part may begin inside
-    ``write_all``).  A live channel is made when the file has its topic, at
-    the first message after: for the format's topics, when the recording
-    starts; for one registered as it goes (``/sensors/12``), with its first
-    message, which no client can have subscribed to yet."""
+    (topic -> id), fixed for the whole recording (every part uses the same
+    ids) and only ever growing: when it has grown, the map back to topics is
+    made again.  A live channel is made when the file has its topic, at the
+    first message after: for the format's topics, when the recording starts;
+    for one registered as it goes (``/sensors/12``), after its first message,
+    which no client can have subscribed to yet and which is not served."""
 
     def __init__(self, live: LiveServer, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 - RecordingFile's
         super().__init__(*args, **kwargs)
         self.live = live
-        self._mapped: dict[str, int] | None = None  # the channel_ids the map below was made from
-        self._mapped_len = 0
         self._logs: dict[int, Log] = {}  # channel id -> its live channel's log
         self.serving = True  # False once the live server failed: the file goes on alone
 
@@ -133,7 +128,7 @@ class LiveRecordingFile(RecordingFile):
         more, and record on."""
         ids = self.channel_ids
         try:
-            if ids is not self._mapped or len(ids) != self._mapped_len:
+            if len(ids) != len(self._logs):
                 self._remap(ids)
             logs = self._logs
             for channel_id, t_ns, data in messages:
@@ -147,5 +142,4 @@ class LiveRecordingFile(RecordingFile):
         """Channel ids back to topics, and a live channel for every topic the
         file has (so the app lists the file's topics, and a client subscribed
         early gets their first messages too)."""
-        self._mapped, self._mapped_len = ids, len(ids)
         self._logs = {channel_id: self.live.log_function(topic) for topic, channel_id in ids.items()}

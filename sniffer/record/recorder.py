@@ -33,6 +33,7 @@ from typing import Any, NamedTuple
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.recording.encode import (
+    DIR_TEXT,
     RUN_INLINE_MAX,
     FrameEncoder,
     encode,
@@ -66,7 +67,6 @@ from whiztap.sniffer.record.writer import RecordingFile
 
 C2S, S2C = Direction.C2S, Direction.S2C
 _NOT_FRAMES = frozenset({ItemKind.EOL, ItemKind.UNFRAMED})  # not protocol: written in runs
-_DIR_TEXT = {d: d.value for d in Direction}  # Enum.value is a slow property
 
 ViolationHook = Callable[[int, int, Violation, Observation | None, bool], None]
 Work = Callable[[], None]
@@ -274,7 +274,7 @@ class Recorder:
         """One read into /tcp/reads (as it may be shown), and what the session makes of it."""
         conn, direction, t, data = read
         self._at(t)
-        self.file.write(TOPIC_READS, t, encode_read(conn, _DIR_TEXT[direction], t, offset, data, spans))
+        self.file.write(TOPIC_READS, t, encode_read(conn, DIR_TEXT[direction], t, offset, data, spans))
         c.written[direction] = offset + len(data)  # after: a part that begins before the read does not count it
         self._observe_all(conn, c, self._traffic.receive(read))
 
