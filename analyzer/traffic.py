@@ -22,6 +22,7 @@ that the analyzer, the recorder's model, replay and the TUI share.
 
 from __future__ import annotations
 
+import base64
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
@@ -39,6 +40,39 @@ class Data(NamedTuple):
     direction: Direction
     t_ns: int
     data: bytes
+
+
+class Delivered(NamedTuple):
+    """Bytes the proxy wrote toward the receiver of ``direction`` when it stands
+    in the middle (faults, interception, injection or scripts): what that side
+    actually got, beside the ``Data`` its sender sent.  ``secret``: the bytes
+    are (part of) a password."""
+
+    conn: int
+    direction: Direction
+    t_ns: int
+    data: bytes
+    secret: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Intervention:
+    """The proxy changed the traffic: ``action`` (drop, dup, delay, corrupt,
+    replace, slice, bandwidth, blackhole, reset, close, hold, release, edit,
+    inject, script) on a frame of ``direction``, because of ``cause`` (a fault
+    SPEC, a script, a hand edit, an injection), turning ``before`` into
+    ``after`` (each ``b""`` where there is none).  ``kind`` is the frame's
+    framer kind, so a password can be kept out of the recording."""
+
+    conn: int
+    t_ns: int
+    direction: Direction
+    action: str
+    cause: str
+    before: bytes = b""
+    after: bytes = b""
+    kind: str = ""
+    detail: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,7 +176,7 @@ class RecordingStopped:
 
 ConnectionEvent = (RecordingStarted | Opened | Continued | UpstreamConnected | UpstreamFailed | HalfClosed
                    | Gap | Closed | RecordingStopped)
-TrafficEvent = Data | ConnectionEvent
+TrafficEvent = Data | Delivered | Intervention | ConnectionEvent
 
 NAMES: dict[type, str] = {
     RecordingStarted: "recording_started",
@@ -208,6 +242,19 @@ def from_json(message: dict[str, Any]) -> ConnectionEvent:
         return cls(**values)
     except TypeError:
         raise TrafficError(f"a {NAMES[cls]} event without its connection or time") from None
+
+
+def intervention_to_json(event: Intervention) -> dict[str, Any]:
+    """An intervention's fields besides its connection, direction and time,
+    bytes as base64: how the proxy hands it to the writer process.  (The
+    recording's /interventions message, text for people, is ``encode``'s.)"""
+    return {"action": event.action, "cause": event.cause, "kind": event.kind, "detail": event.detail,
+            "before": base64.b64encode(event.before).decode(), "after": base64.b64encode(event.after).decode()}
+
+
+def intervention_from_json(conn: int, direction: Direction, t_ns: int, f: dict[str, Any]) -> Intervention:
+    return Intervention(conn, t_ns, direction, f["action"], f["cause"], base64.b64decode(f["before"]),
+                        base64.b64decode(f["after"]), f["kind"], f["detail"])
 
 
 SessionEnded = Callable[[int, Session], None]

@@ -278,7 +278,7 @@ def test_cat_text_marks_violations():
 def test_info_on_a_complete_recording():
     result = run("info", CLEAN, "--format", "json")
     info = json.loads(result.stdout)
-    assert info["complete"] and info["format_version"] == "2" and info["connections"] == 1
+    assert info["complete"] and info["format_version"] == "3" and info["connections"] == 1
     assert info["topics"]["/tcp/reads"] > 0 and info["duration_s"] > 0
 
 

@@ -41,6 +41,7 @@ from whiztap.analyzer.recording.format import (
     CHANNEL_TOPICS,
     FORMAT_VERSION,
     KNOWN_TOPICS,
+    MITM_TOPICS,
     PLOT_TOPICS,
     SCHEMAS,
     STREAM_TOPICS,
@@ -128,7 +129,7 @@ def test_every_schema_is_valid_json_schema_and_every_topic_is_foxglove_friendly(
         assert "$ref" not in json.dumps(schema)  # Foxglove does not follow references
     for topic, schema in KNOWN_TOPICS.items():
         assert FOXGLOVE_TOPIC.fullmatch(topic) and schema in SCHEMAS, topic
-    assert set(KNOWN_TOPICS) == set(TOPICS) | set(CHANNEL_TOPICS) | set(PLOT_TOPICS)
+    assert set(KNOWN_TOPICS) == set(TOPICS) | set(MITM_TOPICS) | set(CHANNEL_TOPICS) | set(PLOT_TOPICS)
     assert len(CHANNEL_TOPICS) == 4 * 25 and "/sensors/12" in CHANNEL_TOPICS and "/sends/other" in CHANNEL_TOPICS
     image = SCHEMAS["foxglove.CompressedImage"]["properties"]
     assert set(image) == {"timestamp", "frame_id", "data", "format"}
@@ -155,7 +156,7 @@ def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
     assert violations["PW-RANGE-CHANNEL"]["level"] == 3 and violations["PW-RANGE-CHANNEL"]["frame_index"] > 0
     assert [m["name"] for m in by_topic["/log"]] == [v["rule_id"] for v in by_topic["/violations"]]
     meta = read_metadata(str(path))
-    assert meta["format_version"] == FORMAT_VERSION == "2" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
+    assert meta["format_version"] == FORMAT_VERSION == "3" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
     assert meta["source"] == "test"
 
 

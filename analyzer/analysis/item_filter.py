@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shlex
 from dataclasses import dataclass
+from typing import Any
 
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Observation
@@ -78,38 +79,44 @@ def _seconds(key: str, value: str) -> float:
         raise FilterSyntaxError(f"{key}: wants seconds from the start, got {value!r}") from None
 
 
+def parse_word(word: str, options: dict[str, Any]) -> bool:
+    """Put one filter word into ``options`` (ItemFilter's fields by name); False
+    for a word that is no filter word, which the filter bar takes as free text
+    and a fault spec (analyzer/mitm/spec.py) as its own word or an error."""
+    key, sep, value = word.partition(":")
+    key = key.lower()
+    if word.lower() in ("violations", "!", "v:1"):
+        options["violations_only"] = True
+    elif sep and key in ("conn", "c"):
+        options["conns"] = _ints(key, value)
+    elif sep and key in ("ch", "channel"):
+        options["channels"] = _ints(key, value)
+    elif sep and key in ("dir", "d"):
+        if value not in ("c2s", "s2c"):
+            raise FilterSyntaxError(f"dir: wants c2s or s2c, got {value!r}")
+        options["direction"] = value
+    elif sep and key in ("kind", "k"):
+        kinds = value.split(",")
+        known = {k.value for k in ItemKind}
+        bad = [k for k in kinds if k not in known]
+        if bad:
+            raise FilterSyntaxError(f"kind: {bad[0]!r} is not one of {', '.join(sorted(known))}")
+        options["kinds"] = frozenset(ItemKind(k) for k in kinds)
+    elif sep and key == "since":
+        options["since_s"] = _seconds(key, value)
+    elif sep and key == "until":
+        options["until_s"] = _seconds(key, value)
+    else:
+        return False
+    return True
+
+
 def parse_filter(text: str) -> ItemFilter:
     """The filter bar's words as an ItemFilter (an empty text accepts everything)."""
     try:
         words = shlex.split(text)
     except ValueError as e:
         raise FilterSyntaxError(str(e)) from None
-    options: dict = {}
-    free: list[str] = []
-    for word in words:
-        key, sep, value = word.partition(":")
-        key = key.lower()
-        if word.lower() in ("violations", "!", "v:1"):
-            options["violations_only"] = True
-        elif sep and key in ("conn", "c"):
-            options["conns"] = _ints(key, value)
-        elif sep and key in ("ch", "channel"):
-            options["channels"] = _ints(key, value)
-        elif sep and key in ("dir", "d"):
-            if value not in ("c2s", "s2c"):
-                raise FilterSyntaxError(f"dir: wants c2s or s2c, got {value!r}")
-            options["direction"] = value
-        elif sep and key in ("kind", "k"):
-            kinds = value.split(",")
-            known = {k.value for k in ItemKind}
-            bad = [k for k in kinds if k not in known]
-            if bad:
-                raise FilterSyntaxError(f"kind: {bad[0]!r} is not one of {', '.join(sorted(known))}")
-            options["kinds"] = frozenset(ItemKind(k) for k in kinds)
-        elif sep and key == "since":
-            options["since_s"] = _seconds(key, value)
-        elif sep and key == "until":
-            options["until_s"] = _seconds(key, value)
-        else:
-            free.append(word)
+    options: dict[str, Any] = {}
+    free = [word for word in words if not parse_word(word, options)]
     return ItemFilter(text=" ".join(free), **options)

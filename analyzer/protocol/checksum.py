@@ -12,7 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from whiztap.analyzer.protocol.messages import SetConfigEntry
+from whiztap.analyzer.protocol.messages import SetConfigEntry, SetConfiguration
+from whiztap.analyzer.protocol.rules import Violation
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,3 +48,13 @@ def get_rule(name: str) -> ChecksumRule:
 def satisfied_rules(entries: tuple[SetConfigEntry, ...], checksum: int) -> tuple[str, ...]:
     """Names of every candidate rule under which ``checksum`` is right."""
     return tuple(name for name, rule in CHECKSUM_RULES.items() if rule.compute(entries) == checksum)
+
+
+def checksum_violation(message: SetConfiguration, rule: ChecksumRule) -> Violation | None:
+    """PW-SETCFG-CHECKSUM when the message's checksum is not what ``rule`` makes
+    of its entries (None: it is), one wording for the session and a frame checked
+    on its own (analyzer/protocol/frame_text.py)."""
+    expected = rule.compute(message.entries)
+    if expected == message.checksum:
+        return None
+    return Violation("PW-SETCFG-CHECKSUM", f"expected {expected} ({rule.name}), got {message.checksum}")

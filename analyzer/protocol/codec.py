@@ -274,6 +274,18 @@ def _decode_set_config(raw: bytes) -> Decoded:
     return _one(SetConfiguration(tuple(entries), checksum), out)
 
 
+def checksum_offset(raw: bytes) -> int | None:
+    """Where a Set Configuration frame's checksum byte is (either form), or
+    None for any other frame: what a deliberately corrupted frame changes."""
+    if raw.startswith(SET_CONFIG_PREFIX) and raw.endswith(SET_CONFIG_TRAILER):
+        at = len(raw) - len(SET_CONFIG_TRAILER) - 1
+    elif raw.startswith(b"sr1-\x19") and raw.endswith(TRAILER):
+        at = len(raw) - len(TRAILER) - 2
+    else:
+        return None
+    return at if at >= 5 else None
+
+
 def _decode_image(raw: bytes) -> Decoded:
     return _one(CameraImage("jpeg" if raw.startswith(JPEG_SOI) else "png", raw), [])
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 from enum import StrEnum
 from typing import NamedTuple
 
-from whiztap.analyzer.protocol.framing import Item
+from whiztap.analyzer.protocol.framing import Item, ItemKind
 from whiztap.analyzer.protocol.messages import Message
 from whiztap.analyzer.protocol.rules import Violation
 
@@ -21,6 +21,24 @@ class Direction(StrEnum):
     @property
     def sender(self) -> str:
         return "client" if self is Direction.C2S else "server"
+
+
+# The one direction each kind of item travels in; line breaks and unframed bytes may come from either side.
+_TRAVELS = {
+    ItemKind.COMMAND: Direction.C2S, ItemKind.SET_CONFIG: Direction.C2S, ItemKind.PASSWORD: Direction.C2S,
+    ItemKind.RESPONSE: Direction.S2C, ItemKind.CONFIG: Direction.S2C, ItemKind.IMAGE: Direction.S2C,
+    ItemKind.HANDSHAKE: Direction.S2C,
+}
+
+
+def direction_violation(kind: ItemKind, direction: Direction) -> Violation | None:
+    """PW-DIRECTION when an item of ``kind`` came the wrong way (None: it may come
+    this way).  Here, beside Direction, so that the session and a frame checked
+    on its own (analyzer/protocol/frame_text.py) judge it alike."""
+    travels = _TRAVELS.get(kind)
+    if travels is None or travels is direction:
+        return None
+    return Violation("PW-DIRECTION", f"a {kind} item came from the {direction.sender}")
 
 
 class Observation(NamedTuple):

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from whiztap.analyzer.protocol.channels import ChannelMap, command_meaning, data_violation
-from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
 from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, decode, decode_cache
 from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, Unframed
 from whiztap.analyzer.protocol.handshake import SERVER_STEPS, HandshakeState, Mode, Step, advance, outcome
@@ -26,13 +26,12 @@ from whiztap.analyzer.protocol.messages import (
     ServoPositionRequest,
     SetConfiguration,
 )
-from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation, direction_violation
 from whiztap.analyzer.protocol.pairing import Book, Pending, answer_spec
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.stats import LatencyStats
 
 _S, _St = HandshakeState, Step
-_CLIENT_KINDS = frozenset({ItemKind.COMMAND, ItemKind.SET_CONFIG, ItemKind.PASSWORD})
 _SERVER_KINDS = frozenset({ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
 _FRAME_KINDS = frozenset({ItemKind.COMMAND, ItemKind.SET_CONFIG, ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
 
@@ -343,8 +342,9 @@ class Session:
         """A frame or a password: from the side that sends such items, in its
         place in the handshake; a command's meaning in the channel map."""
         kind = item.kind
-        if kind not in (_CLIENT_KINDS if direction is Direction.C2S else _SERVER_KINDS):
-            violations.append(Violation("PW-DIRECTION", f"a {kind} item came from the {direction.sender}"))
+        wrong_way = direction_violation(kind, direction)
+        if wrong_way is not None:
+            violations.append(wrong_way)
             return message
         if direction is Direction.S2C:
             step = _St.SERVER_FRAME
@@ -423,11 +423,9 @@ class Session:
         return message
 
     def _apply_set_config(self, message: SetConfiguration, violations: list[Violation]) -> None:
-        expected = self.checksum_rule.compute(message.entries)
-        if expected != message.checksum:
-            violations.append(Violation(
-                "PW-SETCFG-CHECKSUM",
-                f"expected {expected} ({self.checksum_rule.name}), got {message.checksum}"))
+        wrong_sum = checksum_violation(message, self.checksum_rule)
+        if wrong_sum is not None:
+            violations.append(wrong_sum)
             return
         if any(v.rule.severity >= 3 for v in violations):
             return  # a server would not apply a configuration it cannot read

@@ -34,6 +34,7 @@ from whiztap.analyzer.protocol.messages import (
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
+from whiztap.analyzer.traffic import Intervention
 from whiztap.analyzer.recording.format import (
     MASK_BYTE,
     REDACTED,
@@ -377,3 +378,18 @@ def encode_plots(conn: int, obs: Observation) -> list[tuple[str, bytes]]:
         return [(topics[channel], data)]
     except IndexError:  # a channel past 24 (no cost on the way that does not raise)
         return [(topics[-1], data)]
+
+
+def intervention_message(event: Intervention, redact: bool) -> dict[str, Any]:
+    """An /interventions message: the frame before and after as escaped text
+    (a password's as ``<redacted>`` unless secrets are kept; sizes stay)."""
+    hidden = redact and event.kind == ItemKind.PASSWORD.value
+    message: dict[str, Any] = {
+        "conn": event.conn, "t_ns": event.t_ns, "dir": event.direction.value, "action": event.action,
+        "cause": event.cause, "kind": event.kind,
+        "before": REDACTED if hidden and event.before else escape(event.before),
+        "after": REDACTED if hidden and event.after else escape(event.after),
+        "before_size": len(event.before), "after_size": len(event.after), "detail": event.detail}
+    if hidden:
+        message["redacted"] = True
+    return message

@@ -23,7 +23,8 @@ from whiztap.analyzer.protocol.codec import MAX_CHANNEL
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.traffic import NAMES, HalfClosed
 
-FORMAT_VERSION = "2"  # 2: /log, and the plot topics per channel (/sensors/12) instead of /sensors
+FORMAT_VERSION = "3"  # 2: /log, and the plot topics per channel (/sensors/12) instead of /sensors;
+# 3: /tcp/delivered and /interventions when the proxy stands in the middle
 PROFILE = "whiztap"
 SPEC_REVISION = "1.8"
 METADATA_NAME = "whiztap"
@@ -34,6 +35,8 @@ MASK_BYTE = b"*"  # stands in for each byte of a redacted password
 
 TOPIC_READS = "/tcp/reads"
 TOPIC_EVENTS = "/tcp/events"
+TOPIC_DELIVERED = "/tcp/delivered"
+TOPIC_INTERVENTIONS = "/interventions"
 TOPIC_FRAMES = "/frames"
 TOPIC_VIOLATIONS = "/violations"
 TOPIC_LOG = "/log"
@@ -76,7 +79,7 @@ SCHEMAS: dict[str, dict] = {
     "whiztap.ConnectionEvent": _object(
         "whiztap.ConnectionEvent", "A connection's lifecycle, and the recording's own start and stop.",
         {"conn": _CONN, "event": {"type": "string", "enum": list(NAMES.values())}, "t_ns": _NS,
-         "by": {"type": ["string", "null"], "enum": ["client", "server", "recorder", None]},
+         "by": {"type": ["string", "null"], "enum": ["client", "server", "recorder", "proxy", None]},
          "detail": _STR, "client": _STR, "upstream": _STR, "dir": _DIR,
          "offset": _INT, "length": _INT, "c2s_bytes": _INT, "s2c_bytes": _INT,
          "c2s_offset": _INT, "s2c_offset": _INT, "mode": _STR, "handshake": _STR},
@@ -106,6 +109,16 @@ SCHEMAS: dict[str, dict] = {
          "count": {"type": "integer", "description": "times the rule broke in the run of unframed bytes "
                                                     "this message stands for (1 when absent)"}},
         ("conn", "t_ns", "rule_id", "severity", "level", "detail")),
+    "whiztap.Intervention": _object(
+        "whiztap.Intervention", "The proxy changed the traffic on purpose (a fault, a script, a hand edit, "
+                                "an injection): what, why, and the frame before and after.",
+        {"conn": _CONN, "t_ns": _NS, "dir": _DIR,
+         "action": {"type": "string", "description": "drop, dup, delay, corrupt, replace, slice, bandwidth, "
+                                                     "blackhole, reset, close, hold, release, edit, inject, script"},
+         "cause": {"type": "string", "description": "the fault (name: SPEC), script, hand edit or injection"},
+         "kind": _STR, "before": _STR, "after": _STR,
+         "before_size": _INT, "after_size": _INT, "detail": _STR, "redacted": {"type": "boolean"}},
+        ("conn", "t_ns", "dir", "action", "cause", "before", "after")),
     "whiztap.SensorValue": _object(
         "whiztap.SensorValue", "A Sensor/Servo Response that answers a Sensor Request.",
         {"conn": _CONN, "channel": _INT, "value": _INT, "latency_ns": _INT_OR_NULL},
@@ -148,7 +161,7 @@ SCHEMAS: dict[str, dict] = {
 # replay, the TUI): the TCP reads and the connection events, in arrival order.
 # The writer keeps them in chunks of their own, so such a reader decompresses
 # nothing else.
-STREAM_TOPICS = (TOPIC_READS, TOPIC_EVENTS)
+STREAM_TOPICS = (TOPIC_READS, TOPIC_EVENTS, TOPIC_DELIVERED, TOPIC_INTERVENTIONS)
 
 TOPICS: dict[str, str] = {
     TOPIC_READS: "whiztap.TcpRead",
@@ -157,6 +170,13 @@ TOPICS: dict[str, str] = {
     TOPIC_VIOLATIONS: "whiztap.Violation",
     TOPIC_LOG: "foxglove.Log",
     TOPIC_CAMERA: "foxglove.CompressedImage",
+}
+
+# Topics only a recording made with the proxy in the middle has (registered on
+# their first message): what each side received, and every change made to it.
+MITM_TOPICS: dict[str, str] = {
+    TOPIC_DELIVERED: "whiztap.TcpRead",
+    TOPIC_INTERVENTIONS: "whiztap.Intervention",
 }
 
 # The plottable values: base topic -> schema.  A file has a topic per channel
@@ -187,7 +207,10 @@ CHANNEL_TOPICS: dict[str, str] = {topic: PLOT_TOPICS[base] for base, topics in P
 
 # Every topic whiztap has written: this version's, and the aggregated plot
 # topics of version 1 files (read and checked alike; no reader needs them).
-KNOWN_TOPICS: dict[str, str] = {**TOPICS, **CHANNEL_TOPICS, **PLOT_TOPICS}
+KNOWN_TOPICS: dict[str, str] = {**TOPICS, **MITM_TOPICS, **CHANNEL_TOPICS, **PLOT_TOPICS}
+
+# The topics a file defines on their first message rather than at its start.
+LATE_TOPICS: dict[str, str] = {**MITM_TOPICS, **CHANNEL_TOPICS}
 
 
 def channel_topic(base: str, channel: int) -> str:

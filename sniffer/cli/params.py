@@ -4,6 +4,7 @@ every command that writes a recording (record, capture) with its output check.""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import click
 
@@ -78,3 +79,41 @@ def check_recording_output(output: str, split: bool, force: bool, inputs: tuple[
         if later:
             fail(f"{later[0]} exists (a part of another recording?); "
                  f"use --force to overwrite it or -o to choose another name")
+
+
+class FaultSpecParam(click.ParamType):
+    """A fault SPEC (docs/faults.md), parsed at once: an unknown word is a usage error naming it."""
+
+    name = "SPEC"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if not isinstance(value, str):
+            return value
+        from whiztap.analyzer.mitm.spec import FaultSpecError, parse_fault
+
+        try:
+            return parse_fault(value)
+        except FaultSpecError as e:
+            self.fail(str(e), param, ctx)
+
+
+def middle_options(f: Callable) -> Callable:
+    """The proxy as the man in the middle: faults, the control API, scripts
+    (docs/faults.md).  Any of them puts every connection through the lanes."""
+    for option in reversed([
+        click.option("--fault", "faults", type=FaultSpecParam(), multiple=True,
+                     help="A fault to apply (repeatable), e.g. 'delay:200ms dir:s2c' or "
+                          "'drop dir:s2c kind:response every:2'; see docs/faults.md."),
+        click.option("--faults", "fault_files", type=click.Path(dir_okay=False), multiple=True, metavar="FILE",
+                     help="A TOML file of named faults ([faults.NAME] spec = \"...\")."),
+        click.option("--control", type=Address("127.0.0.1"), default=None, metavar="[HOST:]PORT",
+                     help="Serve the JSON control API here (faults, intercept, release, inject; "
+                          "'whiztap ctl' uses it)."),
+        click.option("--script", "scripts", type=click.Path(dir_okay=False), multiple=True, metavar="FILE.py",
+                     help="Hooks (frame, opened, closed) that may pass, drop, replace, delay or inject."),
+        click.option("--seed", type=int, default=None, help="Seed for prob:, jitter: and slice ranges."),
+        click.option("--hold-timeout", type=click.FloatRange(min=0.01), default=60.0, show_default=True,
+                     metavar="SECONDS", help="Release a held frame as it is after this long."),
+    ]):
+        f = option(f)
+    return f

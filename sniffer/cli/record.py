@@ -8,13 +8,20 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import recording_output, say
 from whiztap.analyzer.cli.params import force_option, limits_from, limits_options
-from whiztap.sniffer.cli.params import Address, check_recording_output, foxglove_option, recording_options
+from whiztap.sniffer.cli.params import (
+    Address,
+    check_recording_output,
+    foxglove_option,
+    middle_options,
+    recording_options,
+)
 from whiztap.sniffer.cli.run import run, stop_signals
 from whiztap.sniffer.record.summary import summary_lines
 
@@ -35,11 +42,12 @@ from whiztap.sniffer.record.summary import summary_lines
                    "(the recording stays complete), or keep them flowing and record a gap event "
                    "with the count of bytes left out.")
 @foxglove_option
+@middle_options
 @limits_options
 def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: str, split_size: int | None,
                    split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool, analyze: bool,
                    connect_timeout: float, when_behind: str, foxglove: tuple[str, int] | None, answer_timeout: float,
-                   max_frame: int, max_image: int) -> None:
+                   max_frame: int, max_image: int, **middle: Any) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -47,13 +55,19 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
     SIGTERM closes the connections and finishes the file.  With --foxglove the
     Foxglove app can watch it live (Open connection, Foxglove WebSocket,
     ws://127.0.0.1:8765).
+
+    With --fault, --faults, --control or --script the proxy stands in the
+    middle: it delays, drops, corrupts, holds, edits or injects frames as
+    asked, records every change on /interventions and what each side
+    received on /tcp/delivered (docs/faults.md).
     """
     check_recording_output(output, split_size is not None or split_duration is not None, force)
     from whiztap.sniffer.record.record_run import RecordSettings
 
     settings = RecordSettings(listen, upstream, output, split_size, split_duration, keep_secrets, checksum_rule,
                               quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
-                              overwrite=force, when_behind=when_behind, foxglove=foxglove)
+                              overwrite=force, when_behind=when_behind, foxglove=foxglove,
+                              middle=middle_settings(**middle))
     error = run(_record(settings))
     if error:
         fail(error)
@@ -63,13 +77,16 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     """Record until Ctrl-C, SIGTERM, SIGHUP or a write error; the error, if any."""
     from whiztap.sniffer.nettext import show_address
     from whiztap.sniffer.record.feed import WriterError
-    from whiztap.sniffer.record.record_run import Recording
+    from whiztap.sniffer.record.record_run import Recording, StartError
+
+    from whiztap.analyzer.mitm.spec import FaultSpecError
+    from whiztap.sniffer.mitm.scripts import ScriptError
 
     echo = (lambda line: None) if settings.quiet else say
     recording = Recording(settings, echo)
     try:
         await recording.start()
-    except WriterError as e:
+    except (WriterError, FaultSpecError, ScriptError, StartError) as e:
         return str(e)
     except OSError as e:
         return f"cannot listen on {show_address(*settings.listen)}: {e.strerror or e}"
@@ -77,6 +94,7 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     with stop_signals(recording.stopped.set):
         # even with -q: with port 0 this line is the only way to learn the port
         live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""
+        live += f", control: {recording.control_url}" if recording.control_url else ""
         say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output}{live} (Ctrl-C to stop)")
         await recording.stopped.wait()
         summary = await recording.stop("write error" if recording.error else "recording stopped")
@@ -84,6 +102,14 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
         for line in summary_lines(summary, "recorded"):
             echo(line)
     return recording.error
+
+
+def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: tuple[str, int] | None,
+                    scripts: tuple[str, ...], seed: int | None, hold_timeout: float):  # noqa: ANN201 - lazily imported type
+    """The ``middle_options`` as the recording's MiddleSettings."""
+    from whiztap.sniffer.record.record_run import MiddleSettings
+
+    return MiddleSettings(tuple(faults), tuple(fault_files), control, tuple(scripts), seed, hold_timeout)
 
 
 @click.command("recover")

@@ -27,19 +27,14 @@ Either way the bytes read for the recording are bounded (``LIMIT`` plus one
 batch), and a light connection keeps going while a heavy one waits.  The
 decision is made again at each batch sent, and every ``BATCH_S`` while behind.
 
-Child side (``python -m whiztap.sniffer.record.feed CONFIG``): one thread reads the pipe,
-decodes the records back into traffic events for a ``Recorder`` and reports on its stdout as JSON lines (ready,
-violations for ``--analyze``, finished files, errors, the summary).  With
-``--foxglove`` it also serves every message live (``live.py``; "ready" says
-where).  It ignores
-SIGINT (Ctrl-C reaches the whole process group; the parent decides when to
-stop) and finishes the file when the pipe closes, so even a parent killed with
-SIGKILL leaves a finished recording.
+The child side, the writer process, is ``writer_child.py``.
 
 Record layout: ``<BIBQI`` = type, connection id, direction (0 c2s, 1 s2c),
 t_ns, payload length; then the payload: for a read (``REC_DATA``) the bytes
-read; for any other event (``REC_EVENT``) its ``/tcp/events`` message
-(``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
+read; for bytes the proxy in the middle delivered (``REC_DELIVERED``) those
+bytes (direction plus ``SECRET`` for a password's); for an intervention
+(``REC_INTERVENTION``) its fields as JSON, bytes in base64; for any other
+event (``REC_EVENT``) its ``/tcp/events`` message (``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
 """
 
 from __future__ import annotations
@@ -49,33 +44,31 @@ import contextlib
 import fcntl
 import json
 import os
-import select
-import signal
 import struct
 import subprocess
 import sys
-import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from whiztap.analyzer.recording.stdout import drop_stdout
 from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.traffic import (
     Closed,
     ConnectionEvent,
     Data,
+    Delivered,
     Gap,
     HalfClosed,
+    Intervention,
     Opened,
     RecordingStopped,
     TrafficEvent,
-    from_json,
+    intervention_to_json,
     to_json,
 )
 
-REC_DATA, REC_EVENT = 1, 2
+REC_DATA, REC_EVENT, REC_DELIVERED, REC_INTERVENTION = 1, 2, 3, 4
+SECRET = 2  # added to a delivery's direction byte: the bytes are a password's
 _HEAD = struct.Struct("<BIBQI")
 C2S, S2C = Direction.C2S, Direction.S2C
 _DIRS = (C2S, S2C)
@@ -174,7 +167,7 @@ class WriterProcess:
         status_r, status_w = os.pipe()
         _grow_pipe(data_w)
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "whiztap.sniffer.record.feed", json.dumps(self.config)],
+            [sys.executable, "-m", "whiztap.sniffer.record.writer_child", json.dumps(self.config)],
             stdin=data_r, stdout=status_w, close_fds=True)
         os.close(data_r)
         os.close(status_w)
@@ -206,6 +199,9 @@ class WriterProcess:
             return
         kind = type(event)
         conn = event.conn
+        if kind is Delivered or kind is Intervention:
+            self._middle(event)  # type: ignore[arg-type]
+            return
         if kind is HalfClosed or kind is Closed:
             self._end_gaps(conn)  # what was left out came before
             if kind is Closed:
@@ -237,6 +233,18 @@ class WriterProcess:
     def _event(self, event: ConnectionEvent) -> None:
         body = json.dumps(to_json(event)).encode()
         self._batch += _HEAD.pack(REC_EVENT, event.conn, 0, event.t_ns, len(body)) + body
+        self._queued()
+
+    def _middle(self, event: Delivered | Intervention) -> None:
+        """What the proxy in the middle delivered or changed (rare: no hot path)."""
+        direction = 0 if event.direction is C2S else 1
+        if type(event) is Delivered:
+            body = event.data
+            self._batch += _HEAD.pack(REC_DELIVERED, event.conn, direction + (SECRET if event.secret else 0),
+                                      event.t_ns, len(body)) + body
+        else:
+            body = json.dumps(intervention_to_json(event)).encode()  # type: ignore[arg-type]
+            self._batch += _HEAD.pack(REC_INTERVENTION, event.conn, direction, event.t_ns, len(body)) + body
         self._queued()
 
     def _queued(self) -> None:
@@ -352,139 +360,3 @@ class WriterProcess:
             await self._done
         if self._proc is not None:
             await asyncio.get_running_loop().run_in_executor(None, self._proc.wait)
-
-
-# -- child side ---------------------------------------------------------------------------------
-
-
-def _say(message: dict) -> None:
-    """One status line to the proxy.  A proxy that is gone (killed on its own)
-    hears nothing more, but the recording must still be finished: the first
-    failed write points stdout at /dev/null and later ones go nowhere."""
-    try:
-        os.write(1, json.dumps(message).encode() + b"\n")
-    except OSError:  # EPIPE: nobody reads the other end any more
-        drop_stdout()
-
-
-def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
-    from whiztap.analyzer.recording.encode import violation_message
-
-    message = violation_message(conn, violation, about, t_ns, late=late, redact=True)
-    _say({"type": "violation", **message})
-
-
-def _apply(recorder, buf: bytearray) -> RecordingStopped | None:  # noqa: ANN001 - a Recorder
-    """Hot loop (once per read recorded): turn each whole record at the start of
-    ``buf`` back into its traffic event for the recorder, and remove it; the
-    stop event, if one came (nothing after it is read)."""
-    head = _HEAD.size
-    pos = 0
-    n = len(buf)
-    receive = recorder.receive
-    try:
-        while n - pos >= head:
-            kind, conn, direction, t, length = _HEAD.unpack_from(buf, pos)
-            end = pos + head + length
-            if end > n:
-                break
-            payload = bytes(buf[pos + head:end])
-            pos = end
-            if kind == REC_DATA:
-                receive(Data(conn, _DIRS[direction], t, payload))
-                continue
-            event = from_json(json.loads(payload))
-            if type(event) is RecordingStopped:
-                return event
-            receive(event)
-        return None
-    finally:
-        del buf[:pos]
-
-
-def _ignore_signals(on_term: Callable[[int, object], None]) -> None:
-    """Ctrl-C and a closed terminal reach the whole process group: the proxy
-    decides when to stop and says so with a stop record (or dies, and the pipe
-    closes).  A broken status pipe is an error to survive, not a death, and a
-    file size limit an error to report."""
-    for ignored in (signal.SIGINT, signal.SIGHUP, signal.SIGPIPE, signal.SIGXFSZ):
-        signal.signal(ignored, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, on_term)
-
-
-def _recording_file(config: dict[str, Any]):  # noqa: ANN202 - a RecordingFile, and what "ready" adds
-    """The file, and with ``foxglove`` (host, port) one that also serves every
-    message live (``live.py``; imported only then, so recording without it
-    pays nothing); the server starts before the file is made, so a port in
-    use leaves no file behind (raises WriterError)."""
-    from whiztap.sniffer.record.writer import RecordingFile
-
-    args = (config["path"], config["metadata"])
-    options = {"split_size": config.get("split_size"), "split_duration_ns": config.get("split_duration_ns"),
-               "overwrite": config.get("overwrite", True)}
-    if not config.get("foxglove"):
-        return RecordingFile(*args, **options), {}
-    from whiztap.sniffer.record.live import LiveRecordingFile, LiveServer, LiveServerError
-
-    try:
-        live = LiveServer(*config["foxglove"])
-    except LiveServerError as e:
-        raise WriterError(str(e)) from None
-    return LiveRecordingFile(live, *args, **options), {"foxglove": live.url}
-
-
-def _run(config: dict[str, Any]) -> int:
-    from whiztap.analyzer.analysis.throughput import tune_gc
-    from whiztap.sniffer.record.recorder import Recorder
-    from whiztap.sniffer.record.writer import RecordingWriteError
-
-    tune_gc()  # bulk work on millions of short-lived tuples, like the batch commands
-    stop_requested = False
-
-    def on_term(signum: int, frame: object) -> None:
-        nonlocal stop_requested
-        stop_requested = True
-
-    os.nice(WRITER_NICE)
-    _ignore_signals(on_term)
-    try:
-        file, ready = _recording_file(config)
-    except WriterError as e:
-        _say({"type": "error", "message": str(e)})
-        return EXIT_WRITE_ERROR
-    recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
-                        checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
-                        on_violation=_violation_report if config.get("analyze") else None)
-    reported = 0
-    try:
-        recorder.start(config["start_ns"], **config.get("started", {}))
-        _say({"type": "ready", "path": file.current_path, **ready})
-        buf = bytearray()
-        stop: RecordingStopped | None = None
-        while stop is None and not stop_requested:
-            if select.select([0], [], [], TICK_S)[0]:
-                chunk = os.read(0, 4 << 20)
-                if not chunk:
-                    break
-                buf += chunk
-                stop = _apply(recorder, buf)
-            recorder.tick(time.time_ns())
-            for path in file.finished[reported:]:
-                _say({"type": "file", "path": path})
-            reported = len(file.finished)
-        if stop is None:  # no stop record: the proxy is gone, or SIGTERM came
-            stop = RecordingStopped(time.time_ns(), detail="writer terminated" if stop_requested else "proxy gone")
-        summary = recorder.stop(stop.t_ns, stop.detail)
-    except RecordingWriteError as e:
-        _say({"type": "error", "message": str(e)})
-        return EXIT_WRITE_ERROR
-    _say({"type": "summary", **summary.as_dict(), "size": sum(os.path.getsize(p) for p in summary.files)})
-    return 0
-
-
-def main() -> None:
-    sys.exit(_run(json.loads(sys.argv[1])))
-
-
-if __name__ == "__main__":
-    main()

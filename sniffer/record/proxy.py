@@ -37,11 +37,15 @@ import itertools
 import socket
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened, UpstreamConnected, UpstreamFailed
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.record.consumers import Consumer
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.mitm.controller import Controller
 
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
@@ -81,8 +85,9 @@ class _Leg(asyncio.Protocol):
     def may_read(self) -> bool:
         """The rule for reading this side (see the module docstring)."""
         target = self.target
+        middle = self.conn.middle
         return (target is not None and target.get_write_buffer_size() <= TRANSPORT_HIGH_WATER
-                and not self.conn.held and not self.eof)
+                and not self.conn.held and not self.eof and (middle is None or middle.may_read(self.direction)))
 
     def sync(self) -> None:
         """Read, or not, as the rule says now (both calls are no-ops when already so)."""
@@ -103,6 +108,8 @@ class _Leg(asyncio.Protocol):
         transport.set_write_buffer_limits(high=TRANSPORT_HIGH_WATER)  # type: ignore[attr-defined]
         if self.direction is S2C:  # the client is connected before its upstream
             self.target = self.peer.transport  # type: ignore[union-attr]
+            if self.conn.middle is not None:
+                self.conn.middle.lanes[S2C].target = self.target
         else:
             self.conn.client_made(transport)  # type: ignore[arg-type]
         asyncio.get_running_loop().call_soon(self.sync)  # once reading has started
@@ -111,6 +118,13 @@ class _Leg(asyncio.Protocol):
         conn = self.conn
         proxy = conn.proxy
         t = proxy.clock()
+        if conn.middle is not None:  # in the middle: the lane decides what is written, and when
+            self.received += len(data)
+            proxy.receive(Data(conn.id, self.direction, t, data))
+            conn.middle.lanes[self.direction].feed(data, t)
+            if not self.lost and not self.may_read():
+                self.transport.pause_reading()  # type: ignore[union-attr]
+            return
         target = self.target
         if target is not None:
             target.write(data)
@@ -148,6 +162,7 @@ class Connection:
         self.client.peer, self.upstream.peer = self.upstream, self.client
         self.client_addr = "?"
         self.held = False  # by the recorder: see RecordingProxy.hold
+        self.middle = None  # a Middle (sniffer/mitm) when the proxy stands in the middle
         self.closed_by: str | None = None
         self.detail = ""
         self.opened_ns = 0
@@ -161,6 +176,8 @@ class Connection:
         self.client_addr = address(transport.get_extra_info("peername"))
         self.opened_ns = proxy.clock()
         proxy.receive(Opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text))
+        if proxy.controller is not None:
+            self.middle = proxy.controller.open(self)
         if proxy.on_opened is not None:
             proxy.on_opened(self)
         self._connect = asyncio.get_running_loop().create_task(self._open_upstream())
@@ -187,6 +204,12 @@ class Connection:
             return
         local = address(self.upstream.transport.get_extra_info("sockname"))  # type: ignore[union-attr]
         proxy.receive(UpstreamConnected(self.id, proxy.clock(), f"from {local}"))
+        if self.middle is not None:
+            lane = self.middle.lanes[C2S]
+            lane.target = self.client.target = self.upstream.transport
+            lane.pump()  # what the client sent meanwhile, and its FIN
+            self.client.sync()
+            return
         for data in self.client.early:
             self.upstream.transport.write(data)  # type: ignore[union-attr]
         self.client.early.clear()
@@ -202,10 +225,18 @@ class Connection:
         self.proxy.receive(HalfClosed(self.id, self.proxy.clock(), leg.direction))
         if self.closed_by is None:
             self.closed_by, self.detail = leg.direction.sender, "closed"
+        if self.middle is not None:  # the FIN follows what the lane still holds
+            self.middle.lanes[leg.direction].end(self.proxy.clock())
+            return
+        self.pass_eof(leg)
+
+    def pass_eof(self, leg: _Leg) -> None:
+        """Pass ``leg``'s FIN on to the other side (both done sending: close)."""
         peer = leg.peer
         if peer.lost or peer.transport is None:  # type: ignore[union-attr]
             return  # gone, or still connecting (which passes the FIN on)
-        if peer.eof:  # type: ignore[union-attr]
+        middle = self.middle
+        if peer.eof and (middle is None or middle.lanes[peer.direction].eof_passed):  # type: ignore[union-attr]
             self.close_both()  # both sides are done sending
         elif peer.transport.can_write_eof():  # type: ignore[union-attr]
             peer.transport.write_eof()  # type: ignore[union-attr]
@@ -216,6 +247,8 @@ class Connection:
             self.detail = f"reset ({exc})" if exc is not None else "closed"
         if self._connect is not None and not self._connect.done():
             self._connect.cancel()
+        if self.middle is not None:
+            self.middle.closing()
         peer = leg.peer
         if peer.transport is not None and not peer.lost:  # type: ignore[union-attr]
             peer.transport.close()  # type: ignore[union-attr]  # after sending what it holds
@@ -248,12 +281,16 @@ class RecordingProxy:
 
     Two hooks, for the person running it: ``on_opened(connection)`` when a
     client connects, ``on_closed(connection)`` when both of its sides are done.
+    With a ``controller`` (sniffer/mitm) the proxy stands in the middle: each
+    connection's bytes go through its lanes (faults, scripts, interception)
+    and what each side received is told as ``Delivered`` events.
     """
 
     def __init__(self, listen_host: str, listen_port: int, upstream_host: str, upstream_port: int,
                  consumer: Consumer, *, connect_timeout: float = 5.0,
                  on_opened: Callable[[Connection], None] | None = None,
-                 on_closed: Callable[[Connection], None] | None = None) -> None:
+                 on_closed: Callable[[Connection], None] | None = None,
+                 controller: Controller | None = None) -> None:
         self.listen_host, self.listen_port = listen_host, listen_port
         self.upstream_host, self.upstream_port = upstream_host, upstream_port
         self.upstream_text = address((upstream_host, upstream_port))
@@ -262,6 +299,9 @@ class RecordingProxy:
         self.on_opened = on_opened
         self.on_closed = on_closed
         self.clock = Clock()
+        self.controller = controller
+        if controller is not None:
+            controller.attach(self.clock, self.receive)
         self.connections: dict[int, Connection] = {}
         self._ids = itertools.count(1)
         self._server: asyncio.AbstractServer | None = None
@@ -290,6 +330,8 @@ class RecordingProxy:
 
     def forget(self, conn: Connection) -> None:
         self.connections.pop(conn.id, None)
+        if self.controller is not None:
+            self.controller.closed(conn.id)
         if self.on_closed is not None:
             self.on_closed(conn)
 

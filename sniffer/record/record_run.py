@@ -7,15 +7,45 @@ event loop, and so the command module stays cheap to import.
 from __future__ import annotations
 
 import asyncio
+import json
+import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.sniffer.record.consumers import Consumer, Consumers
 from whiztap.sniffer.record.feed import WriterError, WriterProcess
 from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.record.proxy import Connection, RecordingProxy
+from whiztap.sniffer.nettext import show_address
 from whiztap.sniffer.record.summary import clock_text
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.mitm.controller import Controller
+
+
+class StartError(Exception):
+    """The recording could not start (beyond the writer and the listening
+    address, which raise their own); one line for the user."""
+
+
+@dataclass(frozen=True)
+class MiddleSettings:
+    """The proxy as the man in the middle (docs/faults.md): faults (parsed
+    SPECs), fault files, the control API's address, scripts, the seed for
+    chance and the hold timeout."""
+
+    faults: tuple = ()
+    fault_files: tuple[str, ...] = ()
+    control: tuple[str, int] | None = None
+    scripts: tuple[str, ...] = ()
+    seed: int | None = None
+    hold_timeout: float = 60.0
+
+    @property
+    def wanted(self) -> bool:
+        return bool(self.faults or self.fault_files or self.control or self.scripts)
 
 
 @dataclass(frozen=True)
@@ -37,6 +67,7 @@ class RecordSettings:
     when_behind: str = "pause"  # what happens to the connections that put the writer behind: "pause" or "gap"
     # (host, port): also serve the recording live to the Foxglove app (sniffer/record/live.py); port 0 picks one
     foxglove: tuple[str, int] | None = None
+    middle: MiddleSettings = MiddleSettings()
 
 
 class Recording:
@@ -47,12 +78,16 @@ class Recording:
     """
 
     def __init__(self, settings: RecordSettings, echo: Callable[[str], None] | None = None,
-                 consumers: Iterable[Consumer] = ()) -> None:
+                 consumers: Iterable[Consumer] = (), warn: Callable[[str], None] | None = None) -> None:
         """``consumers`` receive every traffic event the file gets, from the
         first (the TUI's tap), each isolated: one that raises is reported once
         and cut off, and the recording goes on."""
         self.settings = settings
         self.echo = echo or (lambda line: None)
+        self.warn = warn or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.controller: Controller | None = None
+        self.control_url: str | None = None
+        self._control = None
         self.consumers = Consumers(self._consumer_failed)
         self._extra = tuple(consumers)
         self.stopped = asyncio.Event()
@@ -72,15 +107,16 @@ class Recording:
     async def start(self) -> None:
         """Bind, start the writer, accept.  Raises WriterError or OSError (bind)."""
         s = self.settings
+        self.controller = self._controller()
         self.proxy = proxy = RecordingProxy(*s.listen, *s.upstream, self.consumers,
                                             connect_timeout=s.connect_timeout, on_opened=self._opened,
-                                            on_closed=self._closed)
+                                            on_closed=self._closed, controller=self.controller)
         await proxy.start(serving=False)
         start_ns = proxy.clock()
         listen = proxy.listen_text
         metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
                                  upstream=proxy.upstream_text, split_size=s.split_size,
-                                 split_duration=s.split_duration)
+                                 split_duration=s.split_duration, **self._middle_metadata())
         config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
                   "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
                   "limits": s.limits.as_dict(),
@@ -97,16 +133,64 @@ class Recording:
             self.consumers.add(consumer)
         try:
             await writer.start()
-        except WriterError:
+            await self._serve_control()
+        except (WriterError, StartError):
             await proxy.close()
+            await writer.stop(proxy.clock(), "could not start")
             raise
         await proxy.serve()
 
     async def stop(self, detail: str = "recording stopped") -> dict | None:
         """Close every connection, finish the file; the writer's summary."""
+        if self._control is not None:
+            await self._control.stop()
         await self.proxy.close(detail)  # type: ignore[union-attr]
+        if self.controller is not None:
+            self.controller.stop()
         self.summary = await self.writer.stop(self.proxy.clock(), detail)  # type: ignore[union-attr]
         return self.summary
+
+    def _controller(self) -> Controller | None:
+        """The control layer, when the proxy is to stand in the middle.
+        Raises FaultSpecError (a fault file), ScriptError (a script that does not load)."""
+        middle = self.settings.middle
+        if not middle.wanted:
+            return None
+        from whiztap.sniffer.mitm.controller import Controller, load_fault_file
+
+        s = self.settings
+        controller = Controller(seed=middle.seed, hold_timeout=middle.hold_timeout, checksum_rule=s.checksum_rule,
+                                limits=s.limits, report=self.warn)
+        for path in middle.fault_files:
+            load_fault_file(controller, path)
+        for spec in middle.faults:
+            controller.add_fault(spec)
+        if middle.scripts:
+            from whiztap.sniffer.mitm.scripts import load_script
+
+            for path in middle.scripts:
+                controller.add_script(load_script(path, controller))
+        return controller
+
+    def _middle_metadata(self) -> dict[str, str]:
+        """What a replay needs to re-apply the faults (``--faults-from-recording``)."""
+        if self.controller is None:
+            return {}
+        faults = [{"name": f.spec.name, "spec": f.spec.text} for f in self.controller.faults]
+        return {"middle": "yes", "faults": json.dumps(faults), "seed": str(self.settings.middle.seed or "")}
+
+    async def _serve_control(self) -> None:
+        address = self.settings.middle.control
+        if address is None or self.controller is None:
+            return
+        from whiztap.sniffer.mitm.http_api import ControlServer
+
+        self._control = ControlServer(self.controller, *address)
+        try:
+            await self._control.start()
+        except OSError as e:
+            raise StartError(f"cannot serve the control API on {show_address(*address)}: {e.strerror or e}") from None
+        self.control_url = self._control.url
 
     def _opened(self, conn: Connection) -> None:
         self.echo(f"#{conn.id} opened from {conn.client_addr}")

@@ -40,9 +40,19 @@ from whiztap.analyzer.recording.encode import (
     encode_plots,
     encode_read,
     encode_violation,
+    intervention_message,
     run_message,
 )
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_FRAMES, TOPIC_LOG, TOPIC_READS, TOPIC_VIOLATIONS
+from whiztap.analyzer.recording.format import (
+    MASK_BYTE,
+    TOPIC_DELIVERED,
+    TOPIC_EVENTS,
+    TOPIC_FRAMES,
+    TOPIC_INTERVENTIONS,
+    TOPIC_LOG,
+    TOPIC_READS,
+    TOPIC_VIOLATIONS,
+)
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, Redactor
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
@@ -52,8 +62,10 @@ from whiztap.analyzer.traffic import (
     ConnectionEvent,
     Continued,
     Data,
+    Delivered,
     Gap,
     HalfClosed,
+    Intervention,
     Opened,
     RecordingStarted,
     RecordingStopped,
@@ -81,6 +93,7 @@ class _Conn:
     received: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
     written: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})  # less while reads wait
     framed: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})
+    delivered: dict[Direction, int] = field(default_factory=lambda: {C2S: 0, S2C: 0})  # with the proxy in the middle
 
 
 class _ReadNote(NamedTuple):
@@ -130,7 +143,8 @@ class Recorder:
         self._inputs: dict[type, Callable[[Any], Work]] = {
             Opened: self._input_opened, UpstreamConnected: self._input_upstream_connected,
             UpstreamFailed: self._input_upstream_failed, HalfClosed: self._input_half_closed,
-            Gap: self._input_gap, Closed: self._input_closed}
+            Gap: self._input_gap, Closed: self._input_closed, Delivered: self._input_delivered,
+            Intervention: self._input_intervention}
         self._frames = FrameEncoder()
         self._frame_counts = {C2S: 0, S2C: 0}
         self._bytes = {C2S: 0, S2C: 0}  # of closed connections
@@ -171,7 +185,7 @@ class Recorder:
             return
         t = self._clock(event.t_ns)
         if t != event.t_ns:
-            event = replace(event, t_ns=t)
+            event = event._replace(t_ns=t) if type(event) is Delivered else replace(event, t_ns=t)  # type: ignore[union-attr,type-var]
         work = self._inputs[type(event)](event)
         if self._redactor is not None:
             self._redactor.tell(event)  # type: ignore[arg-type]
@@ -229,6 +243,31 @@ class Recorder:
         self._bytes[e.direction] -= length  # counted as received at close; never seen
         gap = replace(e, offset=offset, length=length)
         return lambda: self._gap(c, gap)
+
+    def _input_delivered(self, e: Delivered) -> Work:
+        """What the proxy wrote toward one side when it stands in the middle:
+        /tcp/delivered, in that side's stream offsets (a password masked)."""
+        c = self._conns.get(e.conn)
+        if c is None:  # after its connection closed: nothing more is delivered on it
+            return lambda: None
+        offset = c.delivered[e.direction]
+        c.delivered[e.direction] = offset + len(e.data)
+        masked = e.secret and not self.keep_secrets
+
+        def work() -> None:
+            self._at(e.t_ns)
+            data = MASK_BYTE * len(e.data) if masked else e.data
+            spans = [(0, len(data))] if masked else None
+            self.file.write_late(TOPIC_DELIVERED, e.t_ns, encode_read(e.conn, DIR_TEXT[e.direction], e.t_ns, offset,
+                                                                       data, spans))
+        return work
+
+    def _input_intervention(self, e: Intervention) -> Work:
+        def work() -> None:
+            self._at(e.t_ns)
+            self.file.write_late(TOPIC_INTERVENTIONS, e.t_ns,
+                                 encode(intervention_message(e, not self.keep_secrets)))
+        return work
 
     def _input_closed(self, e: Closed) -> Work:
         c = self._conns.pop(e.conn)

@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable
 
 from whiztap.analyzer.recording.format import (
-    CHANNEL_TOPICS,
+    LATE_TOPICS,
     MESSAGE_ENCODING,
     METADATA_NAME,
     PROFILE,
@@ -244,7 +244,7 @@ class RecordingFile:
     def _define(self, topic: str) -> None:
         """Define ``topic``'s schema (once per part) and channel in the current part."""
         writer = self._writer
-        schema = TOPICS.get(topic) or CHANNEL_TOPICS[topic]
+        schema = TOPICS.get(topic) or LATE_TOPICS[topic]
         schema_id = self._schema_ids.get(schema)
         if schema_id is None:
             schema_id = self._schema_ids[schema] = writer.register_schema(  # type: ignore[union-attr]
@@ -271,13 +271,18 @@ class RecordingFile:
         """The id of a plot topic (``/sensors/12``) not in ``channel_ids`` yet,
         which it joins; each part defines it on its first message there.  A
         topic the format does not know raises KeyError."""
-        if topic not in CHANNEL_TOPICS:
-            raise KeyError(f"{topic} is no plot topic of the recording format")
+        if topic not in LATE_TOPICS:
+            raise KeyError(f"{topic} is no late topic of the recording format")
         channel_id = self._channels.get(topic)
         if channel_id is None:
             channel_id = self._channels[topic] = len(self._channels) + 1
             self._topics[channel_id] = topic
         return channel_id
+
+    def write_late(self, topic: str, t_ns: int, data: bytes) -> None:
+        """``write`` to a topic defined on its first message (``LATE_TOPICS``)."""
+        channel_id = self._channels.get(topic)
+        self.write_all([(channel_id if channel_id is not None else self.channel_id(topic), t_ns, data)])
 
     def write(self, topic: str, t_ns: int, data: bytes) -> None:
         """Add one message (its JSON bytes) at ``t_ns``."""

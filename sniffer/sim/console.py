@@ -10,15 +10,15 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-from whiztap.analyzer.protocol.codec import EXTERNAL_SCRIPTS, decode
+from whiztap.analyzer.protocol import messages as m
+from whiztap.analyzer.protocol.codec import decode
+from whiztap.analyzer.protocol.frame_text import CONSOLE_WORDS, HEADERS, FrameTextError, message_from_words
 from whiztap.analyzer.protocol.framing import Item
-from whiztap.analyzer.protocol.messages import SetConfigEntry
 from whiztap.analyzer.recording.output_rule import OutputRefused, check_output, create_mode
 from whiztap.analyzer.protocol.text import escape, unescape
-from whiztap.sniffer.sim.channels import ChannelSpecError, format_channels, parse_channels
+from whiztap.sniffer.sim.channels import format_channels
 from whiztap.sniffer.sim.client import Client
 
-DEFAULT_DEVICE = 12  # the spec's default Dev#
 RAW_WAIT = 0.5  # seconds to collect whatever a raw frame brings back
 
 HELP = """commands:
@@ -42,16 +42,6 @@ class CommandError(Exception):
     """The words are not a command; the message says why."""
 
 
-def _int(word: str, what: str) -> int:
-    try:
-        value = int(word)
-    except ValueError:
-        raise CommandError(f"{what} must be a whole number, got {word!r}") from None
-    if value < 0:
-        raise CommandError(f"{what} must not be negative, got {value}")
-    return value
-
-
 def _arity(words: list[str], *counts: int) -> None:
     if len(words) - 1 not in counts:
         raise CommandError(f"wrong arguments for {words[0]!r}; try 'help'")
@@ -66,7 +56,7 @@ def item_line(item: Item) -> str:
 def split_line(line: str) -> list[str]:
     """Words of a line; a raw frame keeps its bytes (spaces, backslashes) as typed."""
     text = line.strip()
-    if text.startswith(("rr1-", "sr1-", "cr1-")):
+    if text.startswith(HEADERS):
         return [text]
     head, _, rest = text.partition(" ")
     if head.lower() == "raw":
@@ -79,36 +69,19 @@ async def run(client: Client, words: list[str]) -> str:
     if not words:
         raise CommandError("no command; try 'help'")
     name = words[0].lower()
-    if name.startswith(("rr1-", "sr1-", "cr1-")):
+    if name.startswith(HEADERS):
         return await _raw(client, " ".join(words))
     match name:
         case "help":
             return HELP
-        case "config":
-            _arity(words, 0)
-            config = await client.fetch_configuration()
-            return f"Configuration Settings: {len(config.channels)} channels: {format_channels(config.channels)}"
-        case "camera":
+        case "camera":  # its options are the console's; the frame is the word table's
             return await _camera(client, words)
-        case "sensor":
-            _arity(words, 1)
-            channel = _int(words[1], "channel")
-            return f"sensor {channel} = {await client.sensor(channel)}"
-        case "servo" if len(words) == 2:
-            channel = _int(words[1], "channel")
-            position = await client.servo_position(channel)
-            return f"servo {channel} position {position:g} (data {round(position * 4)})"
-        case "servo" | "send":
-            _arity(words, 2)
-            channel, value = _int(words[1], "channel"), _int(words[2], "value")
-            await client.normal_send(channel, value)
-            return f"Normal Send: channel {channel} -> {value}"
-        case "switch":
-            return await _switch(client, words)
-        case "script":
-            return await _script(client, words)
-        case "setconfig":
-            return await _setconfig(client, words)
+        case _ if name in CONSOLE_WORDS:
+            try:
+                message = message_from_words(words)
+            except FrameTextError as e:
+                raise CommandError(str(e)) from None
+            return await _carry_out(client, message)
         case "raw":
             if len(words) < 2:
                 raise CommandError("raw needs the bytes to send")
@@ -151,50 +124,43 @@ async def _camera(client: Client, words: list[str]) -> str:
     return f"camera: {len(image)} bytes {kind}, saved to {target}"
 
 
-async def _switch(client: Client, words: list[str]) -> str:
-    _arity(words, 2)
-    channel = _int(words[1], "channel")
-    state = words[2].lower()
-    if state in ("on", "1", "close"):
-        await client.activate_switch(channel)
-    elif state in ("off", "0", "open"):
-        await client.deactivate_switch(channel)
-    else:
-        raise CommandError(f"switch state must be on or off, got {words[2]!r}")
-    return f"switch {channel} {'on' if state in ('on', '1', 'close') else 'off'}"
-
-
-async def _script(client: Client, words: list[str]) -> str:
-    if len(words) >= 2 and words[1].lower() == "stop":
-        which = words[2].lower() if len(words) == 3 else ""
-        if which == "internal":
+async def _carry_out(client: Client, message: m.Message) -> str:
+    """Send what the console's words mean (through the client, which awaits the
+    answer a request asks for); the line to print."""
+    match message:
+        case m.FetchConfiguration():
+            config = await client.fetch_configuration()
+            return f"Configuration Settings: {len(config.channels)} channels: {format_channels(config.channels)}"
+        case m.SensorRequest(channel=channel):
+            return f"sensor {channel} = {await client.sensor(channel)}"
+        case m.ServoPositionRequest(channel=channel):
+            position = await client.servo_position(channel)
+            return f"servo {channel} position {position:g} (data {round(position * 4)})"
+        case m.NormalSend(channel=channel, value=value):
+            await client.normal_send(channel, value)
+            return f"Normal Send: channel {channel} -> {value}"
+        case m.ActivateSwitch(channel=channel):
+            await client.activate_switch(channel)
+            return f"switch {channel} on"
+        case m.DeactivateSwitch(channel=channel):
+            await client.deactivate_switch(channel)
+            return f"switch {channel} off"
+        case m.PlayInternalScript(script=number):
+            await client.play_internal_script(number)
+            return f"play internal script {number}"
+        case m.PlayExternalScript(script=number):
+            await client.play_external_script(number)
+            return f"play external script {number}"
+        case m.StopInternalScript():
             await client.stop_internal_script()
-        elif which == "external":
+            return "stop internal script"
+        case m.StopExternalScript():
             await client.stop_external_script()
-        else:
-            raise CommandError("usage: script stop internal|external")
-        return f"stop {which} script"
-    _arity(words, 1)
-    number = _int(words[1], "script number")
-    if number in EXTERNAL_SCRIPTS:
-        await client.play_external_script(number)
-        return f"play external script {number}"
-    await client.play_internal_script(number)
-    return f"play internal script {number}"
-
-
-async def _setconfig(client: Client, words: list[str]) -> str:
-    _arity(words, 1, 2)
-    try:
-        channels = parse_channels(words[1])
-    except ChannelSpecError as e:
-        raise CommandError(str(e)) from None
-    entries = tuple(SetConfigEntry(DEFAULT_DEVICE, port, c.unit_type) for port, c in enumerate(channels))
-    checksum = _int(words[2], "checksum") if len(words) == 3 else None
-    if checksum is not None and checksum > 255:
-        raise CommandError(f"checksum is one byte (0-255), got {checksum}")
-    await client.set_configuration(entries, checksum)
-    return f"Set Configuration: {len(entries)} entries sent"
+            return "stop external script"
+        case m.SetConfiguration(entries=entries, checksum=checksum):
+            await client.set_configuration(entries, checksum)
+            return f"Set Configuration: {len(entries)} entries sent"
+    raise CommandError(f"the console cannot send {message.title}")
 
 
 async def _raw(client: Client, text: str) -> str:

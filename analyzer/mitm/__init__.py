@@ -1,0 +1,1 @@
+"""Faults whiztap puts into traffic on purpose, as a man in the middle: what to do to which frames."""

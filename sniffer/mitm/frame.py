@@ -1,0 +1,102 @@
+"""One frame on its way through the proxy's stages, and what they decided.
+
+Every stage (the faults, the scripts, the person intercepting) sees the same
+``Frame``: what the sender sent, decoded, and what is to be delivered so far.
+A stage changes the delivery through the methods here, each of which also
+notes an ``Intervention`` (the recording's account of every change: what
+changed it, the frame before and after).  The lane (``lane.py``) then carries
+out the final decision, in order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from whiztap.analyzer.protocol.framing import Item, ItemKind
+from whiztap.analyzer.protocol.observations import Direction, Observation
+from whiztap.analyzer.traffic import Intervention
+
+MS = 1_000_000
+
+
+@dataclass
+class Frame:
+    """A framer item of one direction of connection ``conn``, and its fate.
+
+    ``data`` is what will be delivered (``None``: nothing, it was dropped);
+    ``copies`` how many times; ``delay_ns`` how much later than now;
+    ``slices``/``pause_ns`` in writes of how many bytes, how far apart;
+    ``hold`` whether a person must let it go first; ``end`` a connection action
+    (``"reset"`` or ``"close"``) carried out after the frame."""
+
+    conn: int
+    direction: Direction
+    item: Item
+    observation: Observation
+    t_ns: int
+    opened_ns: int = 0  # when its connection opened (faults' clocks start there)
+    data: bytes | None = None
+    copies: int = 1
+    delay_ns: int = 0
+    slices: tuple[int, int] | None = None
+    pause_ns: int = MS
+    hold: str | None = None  # why it is held (the intercept filter), or None
+    end: str | None = None
+    interventions: list[Intervention] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.data is None:
+            self.data = self.item.raw
+
+    @property
+    def kind(self) -> ItemKind:
+        return self.item.kind
+
+    @property
+    def raw(self) -> bytes:
+        """The bytes the sender sent."""
+        return self.item.raw
+
+    @property
+    def dropped(self) -> bool:
+        return self.data is None
+
+    def note(self, action: str, cause: str, before: bytes | None, after: bytes | None, detail: str = "") -> None:
+        """Record a change (``None`` bytes are recorded as empty)."""
+        self.interventions.append(Intervention(self.conn, self.t_ns, self.direction, action, cause, before or b"",
+                                               after or b"", self.item.kind.value, detail))
+
+    # -- what a stage may do --------------------------------------------------------------
+
+    def drop(self, cause: str, action: str = "drop") -> None:
+        if self.data is not None:
+            self.note(action, cause, self.data, None)
+            self.data = None
+
+    def replace(self, data: bytes, cause: str, action: str = "replace") -> None:
+        if self.data is not None and data != self.data:
+            self.note(action, cause, self.data, data)
+            self.data = data
+
+    def duplicate(self, cause: str) -> None:
+        if self.data is not None:
+            self.copies += 1
+            self.note("dup", cause, self.data, self.data * self.copies, f"delivered {self.copies} times")
+
+    def delay(self, delay_ns: int, cause: str) -> None:
+        if self.data is not None and delay_ns > 0:
+            self.delay_ns += delay_ns
+            self.note("delay", cause, self.data, self.data, f"delayed {delay_ns / MS:g} ms")
+
+    def slice(self, smallest: int, largest: int, pause_ns: int, cause: str, action: str = "slice") -> None:
+        if self.data is not None:
+            self.slices, self.pause_ns = (smallest, largest), pause_ns
+            size = str(smallest) if smallest == largest else f"{smallest}-{largest}"
+            self.note(action, cause, self.data, self.data, f"in writes of {size} bytes, {pause_ns / MS:g} ms apart")
+
+    def end_connection(self, how: str, cause: str) -> None:
+        """``how``: "reset" (both sides get a TCP reset now) or "close" (both
+        get a normal close once what is before it is delivered)."""
+        if self.end is None:
+            self.end = how
+            self.note(how, cause, self.data, self.data, f"the proxy {how}s the connection")

@@ -1,0 +1,76 @@
+"""The proxy's stages, each call isolated, in the manner of mitmproxy's addons.
+
+A stage is anything with some of the named hooks ``frame(frame)``,
+``opened(conn)`` and ``closed(conn)``.  ``Stages`` calls them in order; when a
+hook raises, what that call did to the frame is undone (the frame passes as
+the stages before it left it), the failure is reported once per stage with its
+traceback, and every other stage and the proxy go on.
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections.abc import Callable
+from dataclasses import fields
+from typing import Any
+
+from whiztap.sniffer.mitm.frame import Frame
+
+Report = Callable[[str], None]
+_STATE = tuple(f.name for f in fields(Frame) if f.name not in ("conn", "direction", "item", "observation", "t_ns",
+                                                              "interventions"))
+
+
+def stage_name(stage: Any) -> str:
+    return getattr(stage, "name", None) or type(stage).__name__
+
+
+class Stages:
+    """The stages a frame goes through, in order (faults, scripts, interception)."""
+
+    def __init__(self, report: Report) -> None:
+        self.report = report
+        self.items: list[Any] = []
+        self._reported: set[int] = set()
+
+    def add(self, stage: Any, first: bool = False) -> None:
+        if first:
+            self.items.insert(0, stage)
+        else:
+            self.items.append(stage)
+
+    def remove(self, stage: Any) -> None:
+        self.items = [s for s in self.items if s is not stage]
+
+    def frame(self, frame: Frame) -> None:
+        for stage in self.items:
+            hook = getattr(stage, "frame", None)
+            if hook is None:
+                continue
+            saved = tuple(getattr(frame, name) for name in _STATE)
+            noted = len(frame.interventions)
+            try:
+                hook(frame)
+            except Exception:  # noqa: BLE001 - a failing stage never touches the frame or the proxy
+                for name, value in zip(_STATE, saved):
+                    setattr(frame, name, value)
+                del frame.interventions[noted:]
+                self._failed(stage, "frame")
+
+    def call(self, hook_name: str, *args: Any) -> None:
+        """``opened``/``closed`` and any other hook, isolated the same way."""
+        for stage in self.items:
+            hook = getattr(stage, hook_name, None)
+            if hook is None:
+                continue
+            try:
+                hook(*args)
+            except Exception:  # noqa: BLE001
+                self._failed(stage, hook_name)
+
+    def _failed(self, stage: Any, hook: str) -> None:
+        if id(stage) in self._reported:
+            return
+        self._reported.add(id(stage))
+        self.report(f"{stage_name(stage)}: its '{hook}' hook raised; the frame passes untouched and the proxy "
+                    f"goes on (reported once)\n{traceback.format_exc().rstrip()}")
