@@ -7,8 +7,9 @@ overtakes the one before it, so a delayed or held frame holds back everything
 behind it in its direction.  Bytes that no frame owns yet are held until their
 item is complete, with two exceptions that keep a session from waiting on
 itself: a password (the server's verdict is what ends it, so it cannot wait
-for the verdict) and bytes that stay incomplete for ``STALL_S`` are passed on
-as they are, untouched; the framer's items for them are then only observed.
+for the verdict), bytes that stay incomplete for ``STALL_S`` and an item that
+grows past ``HIGH_WATER`` (a camera picture) are passed on as they come,
+untouched; the framer's items for them are then only observed.
 
 What is written is told to the consumers as ``Delivered`` events, each
 change as an ``Intervention``.  The lane holds at most what its sender sent
@@ -22,15 +23,12 @@ from __future__ import annotations
 import asyncio
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 from whiztap.analyzer.protocol.codec import decode
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.traffic import Delivered, Intervention
-
-if TYPE_CHECKING:
-    from whiztap.sniffer.mitm.middle import Middle
 
 HIGH_WATER = 256 << 10
 STALL_S = 0.2
@@ -52,7 +50,7 @@ class _Out:
 
 
 class Lane:
-    def __init__(self, middle: Middle, direction: Direction, framer: Framer) -> None:
+    def __init__(self, middle: Any, direction: Direction, framer: Framer) -> None:
         self.middle = middle
         self.direction = direction
         self.framer = framer
@@ -82,6 +80,8 @@ class Lane:
         else:
             self._pending += data
             self._consume(self.framer.feed(data, t_ns), t_ns)
+            if len(self._pending) >= HIGH_WATER:  # a large item (a picture): it flows on as it comes
+                self._pass_raw(bytes(self._pending), t_ns)
             self._watch_stall()
         self.pump()
 
@@ -141,9 +141,7 @@ class Lane:
                 out = _Out(frame.data, at, frame.slices, frame.pause_ns, secret=item.kind is ItemKind.PASSWORD)
                 middle.hold(self, out, frame)
                 self._append(out)
-        if frame.end == "reset":
-            middle.reset()
-        elif frame.end is not None:
+        if frame.end is not None:  # after what comes before it, and the frame if it is delivered
             self._append(_Out(b"", at, end=frame.end))
 
     def _append(self, out: _Out) -> None:

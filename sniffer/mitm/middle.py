@@ -14,17 +14,13 @@ from __future__ import annotations
 import asyncio
 import socket
 import struct
-from typing import TYPE_CHECKING
+from typing import Any
 
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Intervention
 from whiztap.sniffer.mitm.frame import Frame
 from whiztap.sniffer.mitm.lane import HIGH_WATER, Lane, _Out
-
-if TYPE_CHECKING:
-    from whiztap.sniffer.mitm.controller import Controller
-    from whiztap.sniffer.record.proxy import Connection
 
 C2S, S2C = Direction.C2S, Direction.S2C
 _ASKS = b"sendchkpass"
@@ -33,7 +29,10 @@ _LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP 
 
 
 class Middle:
-    def __init__(self, controller: Controller, connection: Connection) -> None:
+    def __init__(self, controller: Any, connection: Any) -> None:
+        """``controller``: the Controller (controller.py); ``connection``: the
+        proxy's Connection (sniffer/record/proxy.py), which this package does
+        not import: the proxy builds on it, not the other way round."""
         self.controller = controller
         self.connection = connection
         self.conn_id = connection.id

@@ -15,15 +15,12 @@ import asyncio
 import importlib.util
 import itertools
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.protocol.frame_text import frame_from_text
 from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.mitm.frame import Frame
-
-if TYPE_CHECKING:
-    from whiztap.sniffer.mitm.controller import Controller
 
 HOOKS = ("frame", "opened", "closed")
 _modules = itertools.count(1)
@@ -78,7 +75,7 @@ class Flow:
 class Script:
     """One loaded script: a stage whose hooks call the script's functions."""
 
-    def __init__(self, path: Path, module: Any, controller: Controller) -> None:
+    def __init__(self, path: Path, module: Any, controller: Any) -> None:
         self.path = path
         self.name = path.name
         self.module = module
@@ -100,7 +97,7 @@ class Script:
             hook(conn)
 
 
-def load_script(path: str | Path, controller: Controller) -> Script:
+def load_script(path: str | Path, controller: Any) -> Script:
     """Load a script file; ScriptError if it is missing, does not run, or has no hook."""
     path = Path(path)
     if not path.is_file():
