@@ -12,6 +12,7 @@ refused unless ``force`` is given, so the spec is broken only on purpose.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import random
 from collections.abc import Callable
 from pathlib import Path
@@ -49,6 +50,7 @@ class Controller:
         self.emit: Callable[[object], None] = lambda event: None
         self.held = HeldFrames(hold_timeout, lambda: self.clock(), lambda event: self.emit(event))
         self.middles: dict[int, Middle] = {}
+        self._fault_ids = itertools.count(1)
         self._expiry: asyncio.Task | None = None
         self._restage()
 
@@ -103,9 +105,11 @@ class Controller:
         """Add a fault (FaultSpecError if the text does not parse; ControlError if the name is taken)."""
         if isinstance(spec, str):
             spec = parse_fault(spec, name)
+        if spec.name.isdigit():
+            raise ControlError(f"a fault's name cannot be a number ({spec.name!r}): numbers are fault ids")
         if spec.name and any(f.name == spec.name for f in self.faults):
             raise ControlError(f"a fault named {spec.name!r} is already in force")
-        fault = Fault(spec, self.rng, self.clock())
+        fault = Fault(spec, self.rng, self.clock(), id=next(self._fault_ids))
         self.faults.append(fault)
         self._restage()
         for middle in self.middles.values():
@@ -156,10 +160,12 @@ class Controller:
         return held.as_dict(self.clock())
 
     def drop(self, held_id: int) -> dict:
-        if held_id not in self.held.frames:
+        held = self.held.frames.get(held_id)
+        if held is None:
             raise ControlError(f"no held frame #{held_id} (it was released, dropped or timed out)")
-        held = self.held.release(held_id, drop=True, cause="hand drop")
-        return held.as_dict(self.clock())
+        dropped = held.as_dict(self.clock())  # before the release empties it: the answer names what was dropped
+        self.held.release(held_id, drop=True, cause="hand drop")
+        return dropped
 
     def release_all(self) -> int:
         ids = list(self.held.frames)

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from whiztap.analyzer.protocol.framing import Item, ItemKind
+from whiztap.analyzer.protocol.codec import decode
+from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.traffic import Intervention
 
@@ -27,7 +28,8 @@ class Frame:
     ``copies`` how many times; ``delay_ns`` how much later than now;
     ``slices``/``pause_ns`` in writes of how many bytes, how far apart;
     ``hold`` whether a person must let it go first; ``end`` a connection action
-    (``"reset"`` or ``"close"``) carried out after the frame."""
+    (``"reset"`` or ``"close"``) carried out after the frame; ``injections``
+    other frames sent once it is decided."""
 
     conn: int
     direction: Direction
@@ -42,6 +44,8 @@ class Frame:
     pause_ns: int = MS
     hold: str | None = None  # why it is held (the intercept filter), or None
     end: str | None = None
+    # frames to send after this one: (direction, bytes, cause); a tuple, so a failed stage's are undone with it
+    injections: tuple[tuple[Direction, bytes, str], ...] = ()
     interventions: list[Intervention] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -94,9 +98,28 @@ class Frame:
             size = str(smallest) if smallest == largest else f"{smallest}-{largest}"
             self.note(action, cause, self.data, self.data, f"in writes of {size} bytes, {pause_ns / MS:g} ms apart")
 
+    def inject(self, direction: Direction, data: bytes, cause: str) -> None:
+        """Send ``data`` toward the receiver of ``direction`` once this frame
+        is decided: in this frame's direction it goes right behind the frame
+        (and waits as long as the frame does); the lane notes the injection."""
+        self.injections += ((direction, data, cause),)
+
     def end_connection(self, how: str, cause: str) -> None:
         """``how``: "reset" (both sides get a TCP reset now) or "close" (both
         get a normal close once what is before it is delivered)."""
         if self.end is None:
             self.end = how
             self.note(how, cause, self.data, self.data, f"the proxy {how}s the connection")
+
+
+def observation_of(item: Item, direction: Direction, index: int) -> Observation:
+    """What an item means on its own (the proxy judges frames one by one, not as a session)."""
+    decoded = decode(item.kind, item.raw, item.reason)
+    return Observation(index, direction, item, decoded.message, decoded.candidates, decoded.violations)
+
+
+def observe_bytes(data: bytes, direction: Direction, index: int = 0) -> Observation:
+    """What typed or edited bytes mean (the first item they frame as)."""
+    framer = Framer()
+    items = framer.feed(data, 0) + framer.end(0)
+    return observation_of(items[0] if items else Item(ItemKind.UNFRAMED, data, 0, 0), direction, index)

@@ -19,7 +19,7 @@ from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.traffic import Intervention
-from whiztap.sniffer.mitm.frame import Frame
+from whiztap.sniffer.mitm.frame import Frame, observe_bytes
 
 
 class Intercept:
@@ -37,7 +37,10 @@ class Intercept:
         self.text = text or ""
 
     def frame(self, frame: Frame) -> None:
-        if self.filter is not None and frame.data is not None and self.filter.accepts(frame.conn, frame.observation, 0):
+        """Mark ``frame`` to hold if the filter takes it; its ``since:``/``until:``
+        count from the opening of the frame's connection, as a fault's clock does."""
+        if self.filter is not None and frame.data is not None and \
+                self.filter.accepts(frame.conn, frame.observation, frame.opened_ns):
             frame.hold = f"intercept {self.text}"
 
 
@@ -59,8 +62,12 @@ class Held:
         return self.out.data  # type: ignore[attr-defined]
 
     def as_dict(self, now_ns: int) -> dict:
-        return {"id": self.id, "conn": self.conn, "dir": self.direction.value, "kind": self.observation.item.kind.value,
-                "text": escape(self.data), "meaning": meaning(self.observation),
+        """Its state, its meaning that of the bytes it holds now (an edit's, once edited)."""
+        observation = self.observation
+        if self.data != observation.item.raw:
+            observation = observe_bytes(self.data, self.direction, observation.index)
+        return {"id": self.id, "conn": self.conn, "dir": self.direction.value, "kind": observation.item.kind.value,
+                "text": escape(self.data), "meaning": meaning(observation),
                 "waited_s": round((now_ns - self.since_ns) / 1e9, 3), "cause": self.cause}
 
 
@@ -97,9 +104,7 @@ class HeldFrames:
             action, after = "release", before
         self.emit(Intervention(held.conn, now, held.direction, action, f"{cause} (held #{held.id})", before, after,
                                kind, ""))
-        out.data = after  # type: ignore[attr-defined]
-        out.held = None  # type: ignore[attr-defined]
-        held.lane.pump()  # type: ignore[attr-defined]
+        held.lane.let_go(out, after)  # type: ignore[attr-defined]
         return held
 
     def expire(self) -> None:
@@ -109,6 +114,10 @@ class HeldFrames:
             self.release(held.id, cause=f"hold timeout after {self.timeout_ns / 1e9:g} s")
 
     def forget_conn(self, conn: int) -> None:
-        """The connection ended: its held frames went out with it."""
+        """The connection is ending: its held frames go out as they are (the
+        lane delivers what it holds before closing), and the recording says so."""
         for held_id in [i for i, h in self.frames.items() if h.conn == conn]:
-            del self.frames[held_id]
+            held = self.frames.pop(held_id)
+            self.emit(Intervention(conn, self.clock(), held.direction, "release",
+                                   f"connection ending (held #{held_id})", held.data, held.data,
+                                   held.observation.item.kind.value, ""))
