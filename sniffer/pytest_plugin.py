@@ -16,10 +16,16 @@ whiztap has it.  docs/pytest-plugin.md has the full guide; in short:
 - ``whiztap_target``: the live server for recording and replaying ("HOST:PORT"
   from the marker or ``--whiztap-target``); override it in a conftest to start
   one, e.g. the simulator in a ``BackgroundLoop``.
+- ``whiztap_proxy``: the recording proxy in the middle between the client under
+  test and the target (docs/faults.md): faults for a ``with`` block, injected
+  frames, and what the proxy changed, to assert on.
 
 Servers run on an event loop in a background thread, so they serve synchronous
 tests and asyncio tests alike.  Only pytest and the standard library are
-imported until a fixture is used: the plugin loads in every pytest run.
+imported until a fixture is used: the plugin loads in every pytest run of
+every project that installs whiztap, most of which never use it, and the
+proxy, the writer and the session model would cost them their import time
+(and could break a run over a dependency it never needed).
 """
 
 from __future__ import annotations
@@ -31,9 +37,12 @@ import threading
 from collections.abc import Coroutine, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import pytest
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.pytest_proxy import WhiztapProxy
 
 MODES = ("none", "once", "all")
 T = TypeVar("T")
@@ -324,3 +333,26 @@ def _replay_options(options: dict[str, Any], target: tuple[str, int], password: 
 def whiztap_replay(request: pytest.FixtureRequest) -> ReplayCheck:
     """Replay the test's recording against ``whiztap_target`` and fail on a difference."""
     return ReplayCheck(request)
+
+
+
+# -- the proxy in the middle ------------------------------------------------------------------------
+
+
+@pytest.fixture
+def whiztap_proxy(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[WhiztapProxy]:
+    """The recording proxy in the middle between the client under test and
+    ``whiztap_target``, recording into ``tmp_path``: faults, injected frames
+    and what it changed, for the test to assert on (docs/pytest-plugin.md)."""
+    target = request.getfixturevalue("whiztap_target")
+    if target is None:
+        pytest.fail("whiztap: whiztap_proxy needs a live server: give the marker target=HOST:PORT, "
+                    "--whiztap-target, or a whiztap_target fixture", pytrace=False)
+    from whiztap.sniffer.pytest_proxy import WhiztapProxy
+
+    with BackgroundLoop() as background:
+        proxy = WhiztapProxy(background.run, tmp_path / "whiztap-proxy.mcap", _address(target)).start()
+        try:
+            yield proxy
+        finally:
+            proxy.stop()

@@ -14,7 +14,6 @@ runner in ``stages.py`` isolates each call).
 
 from __future__ import annotations
 
-import itertools
 import random
 from dataclasses import dataclass, field
 
@@ -23,9 +22,6 @@ from whiztap.analyzer.protocol.codec import checksum_offset
 from whiztap.sniffer.mitm.frame import Frame
 
 CONNECTION_ACTIONS = ("reset", "close")
-_ids = itertools.count(1)
-
-
 @dataclass
 class _Count:
     """One connection's view of one fault."""
@@ -34,6 +30,7 @@ class _Count:
     seen: int = 0  # matching frames, before after:N let them through
     matched: int = 0  # matching frames while active (nth/every count these)
     active_from_ns: int | None = None
+    free_ns: dict[str, int] = field(default_factory=dict)  # bandwidth: when each direction's link is free
 
 
 @dataclass
@@ -43,7 +40,7 @@ class Fault:
     spec: FaultSpec
     rng: random.Random
     added_ns: int
-    id: int = field(default_factory=lambda: next(_ids))
+    id: int = 0  # given by the controller: 1, 2, ... in the order added
     enabled: bool = True
     hits: int = 0
     _counts: dict[int, _Count] = field(default_factory=dict)
@@ -82,7 +79,7 @@ class Fault:
             count = self._counts[frame.conn] = _Count(max(opened_ns, self.added_ns))
         if not self._active(count, frame.t_ns):
             return
-        if spec.action in CONNECTION_ACTIONS and spec.after_frames is not None:
+        if spec.action in CONNECTION_ACTIONS and spec.after_frames:  # after:0 acts on the first frame
             if count.seen == spec.after_frames:  # the Nth has just passed _active: end after it
                 self._hit()
                 frame.end_connection(spec.action, self.cause)
@@ -101,7 +98,7 @@ class Fault:
         spec = self.spec
         if spec.after_ns is not None and t_ns < count.since_ns + spec.after_ns:
             return False
-        if spec.after_frames is not None:
+        if spec.after_frames:
             count.seen += 1
             if spec.action in CONNECTION_ACTIONS:
                 return count.seen == spec.after_frames
@@ -141,9 +138,17 @@ class Fault:
         frame.slice(low, high, self.spec.pause_ns, self.cause)
 
     def _bandwidth(self, frame: Frame) -> None:
-        """A rate as small writes at a steady pace: ``rate / 100`` bytes every 10 ms."""
-        size = max(1, (self.spec.rate or 1) // 100)
-        pause = max(1, size * 1_000_000_000 // (self.spec.rate or 1))
+        """A rate as small writes at a steady pace: ``rate / 100`` bytes every
+        10 ms.  The link is shared by the frames of a direction: a frame starts
+        once the ones before it had their time, so small frames (shorter than
+        one write) are paced too rather than sent back to back at full speed."""
+        rate = self.spec.rate or 1
+        size = max(1, rate // 100)
+        pause = max(1, size * 1_000_000_000 // rate)
+        free = self._counts[frame.conn].free_ns
+        start = max(frame.t_ns + frame.delay_ns, free.get(frame.direction.value, 0))
+        free[frame.direction.value] = start + len(frame.data or b"") * 1_000_000_000 // rate
+        frame.delay_ns = start - frame.t_ns
         frame.slice(size, size, pause, self.cause, "bandwidth")
 
     def _end(self, frame: Frame) -> None:

@@ -25,10 +25,10 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-from whiztap.analyzer.protocol.codec import decode
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.traffic import Delivered, Intervention
+from whiztap.sniffer.mitm.frame import observation_of
 
 HIGH_WATER = 256 << 10
 STALL_S = 0.2
@@ -75,7 +75,7 @@ class Lane:
 
     def feed(self, data: bytes, t_ns: int) -> None:
         if self.framer._password_mode:  # noqa: SLF001 - the framer's own flag: a password cannot wait
-            self._pass_raw(bytes(self._pending) + data, t_ns)
+            self._pass_raw(bytes(self._pending) + data, t_ns, secret=True)
             self._consume(self.framer.feed(data, t_ns), t_ns)
         else:
             self._pending += data
@@ -106,6 +106,9 @@ class Lane:
     # -- deciding ------------------------------------------------------------------------------
 
     def _consume(self, items: list[Item], t_ns: int) -> None:
+        """Decide each item, in order; the pending bytes they took go at the end
+        (once per read: a read of thousands of frames stays linear)."""
+        used = 0
         for item in items:
             n = len(item.raw)
             if self._skip:
@@ -113,16 +116,17 @@ class Lane:
                 self._skip -= taken
                 self._observe(item)
                 if taken < n:  # the rest of an item begun raw: it passes as it is
-                    del self._pending[:n - taken]
-                    self._append(_Out(item.raw[taken:], max(self._last_at, t_ns)))
+                    used += n - taken
+                    self._append(_Out(item.raw[taken:], max(self._last_at, t_ns),
+                                      secret=item.kind is ItemKind.PASSWORD))
                 continue
-            del self._pending[:n]
+            used += n
             self._decide(item, t_ns)
+        if used:
+            del self._pending[:used]
 
     def _observe(self, item: Item) -> Observation:
-        decoded = decode(item.kind, item.raw, item.reason)
-        observation = Observation(self.index, self.direction, item, decoded.message, decoded.candidates,
-                                  decoded.violations)
+        observation = observation_of(item, self.direction, self.index)
         self.index += 1
         self.middle.saw(self, item)
         return observation
@@ -141,6 +145,8 @@ class Lane:
                 out = _Out(frame.data, at, frame.slices, frame.pause_ns, secret=item.kind is ItemKind.PASSWORD)
                 middle.hold(self, out, frame)
                 self._append(out)
+        for direction, data, cause in frame.injections:
+            middle.inject(direction, data, cause)
         if frame.end is not None:  # after what comes before it, and the frame if it is delivered
             self._append(_Out(b"", at, end=frame.end))
 
@@ -149,12 +155,16 @@ class Lane:
         self._queued += len(out.data)
         self._last_at = max(self._last_at, out.at_ns)
 
-    def _pass_raw(self, data: bytes, t_ns: int) -> None:
-        """Bytes no item owns yet, on their way untouched (see the module docstring)."""
+    def _pass_raw(self, data: bytes, t_ns: int, secret: bool = False) -> None:
+        """Bytes no item owns yet, on their way untouched (see the module
+        docstring).  A client's, before its login is over, may be a password
+        sent early: they are marked secret (masked in the recording unless
+        secrets are kept), as is anything sent while a password is expected."""
         self._pending.clear()
         if data:
             self._skip += len(data)
-            self._append(_Out(data, max(self._last_at, t_ns)))
+            secret = secret or (self.direction is Direction.C2S and not self.middle.past_login)
+            self._append(_Out(data, max(self._last_at, t_ns), secret=secret))
 
     def _watch_stall(self) -> None:
         if self._stall is not None:
@@ -202,7 +212,8 @@ class Lane:
                 chunk = data
                 queue.popleft()
             self._queued -= len(chunk)
-            self._write(chunk, now, out.secret)
+            if chunk:  # a frame replaced by nothing is no delivery
+                self._write(chunk, now, out.secret)
         if not queue and self._eof and self.target is not None and not middle.gone:
             self._eof = False
             self.eof_passed = True
@@ -220,6 +231,14 @@ class Lane:
             out.at_ns = 0
             out.slices = None
         self._queue = deque(o for o in self._queue if o.end is None)
+        self.pump()
+
+    def let_go(self, out: _Out, data: bytes) -> None:
+        """A held frame may go, as ``data`` (empty: dropped); flow control
+        counts what it holds now."""
+        self._queued += len(data) - len(out.data)
+        out.data = data
+        out.held = None
         self.pump()
 
     def stop_timers(self) -> None:

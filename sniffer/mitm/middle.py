@@ -25,6 +25,7 @@ from whiztap.sniffer.mitm.lane import HIGH_WATER, Lane, _Out
 C2S, S2C = Direction.C2S, Direction.S2C
 _ASKS = b"sendchkpass"
 _VERDICTS = (b"readytogo", b"Failed Validation")
+_CLIENT_FRAMES = (ItemKind.COMMAND, ItemKind.SET_CONFIG)
 _LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP reset
 
 
@@ -43,6 +44,7 @@ class Middle:
         limits = controller.limits
         self.lanes = {d: Lane(self, d, Framer(limits.max_frame, limits.max_image)) for d in (C2S, S2C)}
         self.gone = False
+        self.past_login = False  # a verdict was seen, or the client sent a frame of its own: no password to come
         self._timers: list[asyncio.TimerHandle] = []
 
     def emit(self, event: object) -> None:
@@ -62,8 +64,12 @@ class Middle:
             c2s = self.lanes[C2S]
             if item.raw == _ASKS:
                 c2s.framer.expect_password()
+                self.past_login = False
             elif item.raw in _VERDICTS:
                 c2s.password_closed(item.t_end_ns)
+                self.past_login = True
+        elif lane.direction is C2S and item.kind in _CLIENT_FRAMES:
+            self.past_login = True
 
     def new_frame(self, lane: Lane, item: Item, observation: object, t_ns: int) -> Frame:
         return Frame(self.conn_id, lane.direction, item, observation, t_ns, self.opened_ns)  # type: ignore[arg-type]

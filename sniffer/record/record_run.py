@@ -177,7 +177,7 @@ class Recording:
         if self.controller is None:
             return {}
         faults = [{"name": f.spec.name, "spec": f.spec.text} for f in self.controller.faults]
-        return {"middle": "yes", "faults": json.dumps(faults), "seed": str(self.settings.middle.seed or "")}
+        return {"middle": "yes", "faults": json.dumps(faults), "seed": "" if self.settings.middle.seed is None else str(self.settings.middle.seed)}
 
     async def _serve_control(self) -> None:
         address = self.settings.middle.control
