@@ -74,25 +74,14 @@ class _Interventions:
             self.events.append(event)
 
 
-class _MiddleRecording(Recording):
-    """A recording whose proxy stands in the middle from the start with no
-    fault at all (``whiztap record`` does only when asked for one), so that a
-    test can add them while it runs."""
-
-    def _controller(self) -> Controller:
-        s = self.settings
-        return Controller(seed=s.middle.seed, hold_timeout=s.middle.hold_timeout, checksum_rule=s.checksum_rule,
-                          limits=s.limits, report=self.warn)
-
-
 class WhiztapProxy:
     """The recording proxy in the middle; ``start`` it on the background loop."""
 
     def __init__(self, run: Run, path: Path, target: tuple[str, int]) -> None:
         self._run = run
         self._kept = _Interventions()
-        settings = RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True, middle=MiddleSettings(seed=SEED))
-        self._recording = _MiddleRecording(settings, consumers=[self._kept])
+        settings = RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True, middle=MiddleSettings(seed=SEED, always=True))
+        self._recording = Recording(settings, consumers=[self._kept])
         self.recording = path
         self.host, self.port = "127.0.0.1", 0
         self.stopped = False

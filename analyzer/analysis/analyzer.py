@@ -6,27 +6,41 @@ connection events.  It runs one ``Session`` per connection over the raw bytes
 does not grow with the recording: per-connection summaries, violations (every
 one counted, the first ``max_violations`` kept in full), latency statistics,
 Set Configuration checksums, and down-sampled series for plots.
+
+For a recording made with the proxy in the middle (``middle=True``), each
+connection it changed is judged by what each side did (``sides``), and the
+changes are counted by cause and action.
 """
 
 from __future__ import annotations
 
-from collections import Counter, defaultdict
-from dataclasses import dataclass, field
+from collections import Counter
 from functools import partial
 
+from whiztap.analyzer.analysis.facts import (
+    NS,
+    RAW_KEPT,
+    Analysis,
+    ConnectionSummary,
+    SetConfigCheck,
+    Series,
+    ViolationRecord,
+    cause_group,
+)
+from whiztap.analyzer.analysis.sides import Settled, Sides, Verdict, side_of
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.messages import ChannelConfig, ServoPositionRequest, SetConfiguration
-from whiztap.analyzer.protocol.rules import RULES, Severity
+from whiztap.analyzer.protocol.messages import ServoPositionRequest, SetConfiguration
 from whiztap.analyzer.protocol.observations import Event, LateViolation, Observation
 from whiztap.analyzer.protocol.session import Limits, Session
-from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.analyzer.traffic import (
     Closed,
     ConnectionEvent,
     Continued,
     Data,
+    Delivered,
     Gap,
+    Intervention,
     Opened,
     RecordingStarted,
     RecordingStopped,
@@ -35,127 +49,7 @@ from whiztap.analyzer.traffic import (
     UpstreamFailed,
 )
 
-NS = 1_000_000_000
-RAW_KEPT = 2048  # bytes of a violating item kept for the report: every frame whole; an image or garbage cut
-
-
-@dataclass(slots=True)
-class ViolationRecord:
-    rule_id: str
-    file: str
-    conn: int
-    direction: str | None
-    t_ns: int
-    raw: bytes  # the frame's bytes (first RAW_KEPT)
-    detail: str
-    late: bool = False
-    cut: bool = False  # the item was longer than RAW_KEPT
-
-    @property
-    def severity(self) -> Severity:
-        return RULES[self.rule_id].severity
-
-
-@dataclass(slots=True)
-class SetConfigCheck:
-    file: str
-    conn: int
-    t_ns: int
-    checksum: int
-    expected: int  # under the rule in use
-    satisfies: tuple[str, ...]  # every candidate rule the checksum fits
-
-
-class Series:
-    """A time series down-sampled to at most ``2 * limit`` points: when full,
-    every other point goes and only every ``stride``-th new one is kept."""
-
-    __slots__ = ("points", "limit", "stride", "_skip")
-
-    def __init__(self, limit: int = 1000) -> None:
-        self.points: list[tuple[int, float]] = []
-        self.limit = limit
-        self.stride = 1
-        self._skip = 0
-
-    def add(self, t_ns: int, value: float) -> None:
-        self._skip += 1
-        if self._skip < self.stride:
-            return
-        self._skip = 0
-        self.points.append((t_ns, value))
-        if len(self.points) >= 2 * self.limit:
-            del self.points[1::2]
-            self.stride *= 2
-
-
-@dataclass(slots=True)
-class ConnectionSummary:
-    file: str
-    conn: int
-    client: str = ""
-    upstream: str = ""
-    first_ns: int | None = None
-    last_ns: int | None = None
-    mode: str = "unknown"
-    handshake: str = "not started"
-    frames: Counter = field(default_factory=Counter)  # (dir, kind) -> count
-    violations: Counter = field(default_factory=Counter)  # rule id -> count
-    channel_map: dict[int, ChannelConfig] = field(default_factory=dict)
-    closed_by: str = ""
-    notes: list[str] = field(default_factory=list)  # upstream failures, capture gaps
-
-
-@dataclass
-class Analysis:
-    """Everything a report says, for one file or merged over several."""
-
-    files: list[str]
-    checksum_rule: str
-    connections: list[ConnectionSummary] = field(default_factory=list)
-    violations: list[ViolationRecord] = field(default_factory=list)
-    violation_counts: Counter = field(default_factory=Counter)
-    latencies: dict[str, LatencyStats] = field(default_factory=lambda: defaultdict(LatencyStats))
-    unanswered: Counter = field(default_factory=Counter)  # request title -> count
-    set_configs: list[SetConfigCheck] = field(default_factory=list)
-    frames_per_second: dict[int, Counter] = field(default_factory=lambda: defaultdict(Counter))
-    values: dict[tuple[str, int], Series] = field(default_factory=dict)  # ("sensor"|"servo", ch)
-    first_ns: int | None = None
-    last_ns: int | None = None
-    frames: int = 0
-    max_violations: int = 10_000
-
-    @property
-    def duration_s(self) -> float:
-        if self.first_ns is None or self.last_ns is None:
-            return 0.0
-        return (self.last_ns - self.first_ns) / NS
-
-    def worst(self, ignore: frozenset[str] = frozenset()) -> Severity | None:
-        levels = [RULES[r].severity for r, n in self.violation_counts.items() if n and r not in ignore]
-        return max(levels, default=None)
-
-    def merge(self, other: Analysis) -> None:
-        self.files += other.files
-        self.connections += other.connections
-        room = self.max_violations - len(self.violations)
-        self.violations += other.violations[:max(room, 0)]
-        self.violation_counts.update(other.violation_counts)
-        for title, stats in other.latencies.items():
-            self.latencies[title].merge(stats)
-        self.unanswered.update(other.unanswered)
-        self.set_configs += other.set_configs
-        for second, counts in other.frames_per_second.items():
-            self.frames_per_second[second].update(counts)
-        for key, series in other.values.items():
-            mine = self.values.setdefault(key, Series(series.limit))
-            for t, v in series.points:
-                mine.add(t, v)
-        self.frames += other.frames
-        for t in (other.first_ns, other.last_ns):
-            if t is not None:
-                self.first_ns = t if self.first_ns is None else min(self.first_ns, t)
-                self.last_ns = t if self.last_ns is None else max(self.last_ns, t)
+MIDDLE_NOTE = "the proxy stood in the middle: each side judged by what it sent and what it received"
 
 
 class Analyzer:
@@ -163,9 +57,15 @@ class Analyzer:
     and gathers the facts of a report."""
 
     def __init__(self, file: str = "", checksum_rule: str = DEFAULT_CHECKSUM_RULE,
-                 limits: Limits = Limits(), max_violations: int = 10_000, every_event: bool = True) -> None:
+                 limits: Limits = Limits(), max_violations: int = 10_000, every_event: bool = True,
+                 middle: bool = False) -> None:
         """``every_event=False``: ``receive()`` may leave out clean commands (see
-        ``Session``), for a report, which needs only what they add up to."""
+        ``Session``), for a report, which needs only what they add up to.
+        ``middle``: the recording was made with the proxy in the middle (its
+        metadata says so), so each connection the proxy changed is judged by
+        what each side did; it costs two more sessions per connection, so
+        only such recordings pay for it.  Without it, what each side received
+        is left aside and the changes are only counted."""
         self.file = file
         self._rule = get_rule(checksum_rule)
         self.traffic = Traffic(partial(limits.session, self._rule.name, every_event), self._ended)
@@ -175,6 +75,8 @@ class Analyzer:
         self._counted: dict[int, Counter] = {}  # per connection: counts already put in a bin
         self._bin_second = 0
         self._next_second = -1
+        self._sides = Sides(partial(limits.session, self._rule.name, False), self._record,
+                            max_violations) if middle else None
 
     def receive(self, event: TrafficEvent) -> list[Event]:
         """One traffic event; returns the session's events (for views like ``cat``)."""
@@ -188,12 +90,17 @@ class Analyzer:
         events = self.traffic.receive(event)
         if events:
             self._collect(conn, events)
+        if self._sides is not None:
+            self._sides.receive(event)
         return events
 
     def _connection_event(self, event: ConnectionEvent) -> list[Event]:
         """Names, notes and closes; a gap ends the session (``Traffic``)."""
         kind = type(event)
         if kind is RecordingStarted or kind is RecordingStopped:
+            return []
+        if kind is Delivered or kind is Intervention:
+            self._middle_event(event)  # type: ignore[arg-type]
             return []
         summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
         if kind is Opened or kind is Continued:
@@ -214,12 +121,16 @@ class Analyzer:
             summary.closed_by = event.by or ""  # type: ignore[union-attr]
         events = self.traffic.receive(event)
         self._collect(event.conn, events)
+        sides = self._sides
+        if sides is not None:
+            sides.receive(event)
+            if kind is Closed or kind is Gap:
+                self._settle(event.conn, sides.settle(event.conn, closed=kind is Closed))
         return events
 
     def finish(self) -> Analysis:
         """Close what is still open (a recording cut short) and return the facts."""
-        for conn, events in self.traffic.finish():
-            self._collect(conn, events)
+        self.close_all()
         self.result.connections = [self.summaries[c] for c in sorted(self.summaries)]
         return self.result
 
@@ -228,6 +139,12 @@ class Analyzer:
         out = self.traffic.finish()
         for conn, events in out:
             self._collect(conn, events)
+        if self._sides is not None:
+            for conn, settled in self._sides.finish():
+                self._settle(conn, settled)
+            # connections are settled as they end: the report lists their violations in time order
+            self.result.violations.sort(key=lambda v: v.t_ns)
+            self.result.effects.sort(key=lambda v: v.t_ns)
         return out
 
     # -- internals ---------------------------------------------------------------------
@@ -246,11 +163,14 @@ class Analyzer:
             summary.mode = str(session.mode)
             summary.handshake = session.handshake_outcome
         summary.frames.update({(str(d), str(k)): n for (d, k), n in session.counts.items()})
-        summary.violations.update(session.violation_counts)
         summary.channel_map.update(session.channel_map)
         result = self.result
-        for title, stats in session.latencies.items():
-            result.latencies[title].merge(stats)
+        sides = self._sides
+        if sides is None:
+            summary.violations.update(session.violation_counts)
+        if sides is None or not sides.is_middle(conn):  # else the server's own view says (_settle)
+            for title, stats in session.latencies.items():
+                result.latencies[title].merge(stats)
         result.frames += sum(session.counts.values())
         for t_edge in (session.first_t_ns, session.last_t_ns):
             if t_edge is not None:
@@ -282,10 +202,10 @@ class Analyzer:
         response, set_config = ItemKind.RESPONSE, ItemKind.SET_CONFIG
         for e in events:
             if e.__class__ is LateViolation:
-                self._violation(conn, e.violation.rule_id, e.violation.detail, e.about, e.t_ns, late=True)
+                title = None
                 if e.violation.rule_id == "PW-PAIR-UNANSWERED":
                     title = e.about.message.title if e.about.message is not None else "request"
-                    result.unanswered[title] += 1
+                self._violation(conn, e.violation.rule_id, e.violation.detail, e.about, e.t_ns, True, title)
                 continue
             if e.violations:
                 for v in e.violations:
@@ -306,10 +226,68 @@ class Analyzer:
                     self.file, conn, e.item.t_end_ns, m.checksum, self._rule.compute(m.entries),
                     satisfied_rules(m.entries, m.checksum)))
 
-    def _violation(self, conn: int, rule_id: str, detail: str, about: Observation, t: int, late: bool) -> None:
+    def _violation(self, conn: int, rule_id: str, detail: str, about: Observation, t: int, late: bool,
+                   unanswered: str | None = None) -> None:
+        """One violation of the one session (``unanswered``: the title of the
+        request it says was never answered); in the middle, held until the
+        connection shows whether the proxy changed it."""
+        if self._sides is not None:
+            self._sides.single(conn, (self._record(conn, rule_id, detail, about, t, late), unanswered))
+            return
         result = self.result
         result.violation_counts[rule_id] += 1
+        if unanswered is not None:
+            result.unanswered[unanswered] += 1
         if len(result.violations) < result.max_violations:
-            raw = about.item.raw
-            result.violations.append(ViolationRecord(
-                rule_id, self.file, conn, str(about.direction), t, raw[:RAW_KEPT], detail, late, len(raw) > RAW_KEPT))
+            result.violations.append(self._record(conn, rule_id, detail, about, t, late))
+
+    def _record(self, conn: int, rule_id: str, detail: str, about: Observation, t: int, late: bool) -> ViolationRecord:
+        raw = about.item.raw
+        direction = str(about.direction)
+        return ViolationRecord(rule_id, self.file, conn, direction, t, raw[:RAW_KEPT], detail, late,
+                               len(raw) > RAW_KEPT, side_of(rule_id, direction))
+
+    # -- the proxy in the middle ---------------------------------------------------------
+
+    def _middle_event(self, event: Delivered | Intervention) -> None:
+        """What a side received, or a change the proxy made: counted, and in
+        the middle handed to the views."""
+        summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
+        if type(event) is Intervention:
+            self.result.interventions[(cause_group(event.cause), event.action)] += 1
+            summary.interventions += 1
+        if self._sides is not None:
+            if not summary.middle:
+                summary.middle = True
+                summary.notes.append(MIDDLE_NOTE)
+            self._sides.receive(event)
+
+    def _settle(self, conn: int, settled: Settled) -> None:
+        """A connection's sessions ended: its violations as judged go into the
+        summary and the result, and its intervention effects beside them."""
+        verdicts, more, effects, latencies = settled
+        summary = self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
+        result = self.result
+        for verdict in verdicts:
+            self._add(summary, verdict)
+        for (rule_id, _side, title), n in more.items():
+            summary.violations[rule_id] += n
+            result.violation_counts[rule_id] += n
+            if title is not None:
+                result.unanswered[title] += n
+        for record in effects:
+            result.effect_counts[record.rule_id] += 1
+            if len(result.effects) < result.max_violations:
+                result.effects.append(record)
+        for title, stats in (latencies or {}).items():
+            result.latencies[title].merge(stats)
+
+    def _add(self, summary: ConnectionSummary, verdict: Verdict) -> None:
+        record, unanswered = verdict
+        result = self.result
+        summary.violations[record.rule_id] += 1
+        result.violation_counts[record.rule_id] += 1
+        if unanswered is not None:
+            result.unanswered[unanswered] += 1
+        if len(result.violations) < result.max_violations:
+            result.violations.append(record)

@@ -33,13 +33,18 @@ TEXT_SHOWN = 200  # characters of an item's escaped bytes on a line of 'cat'; lo
 @click.option("--since", type=float, default=None, help="Seconds from the start of the recording.")
 @click.option("--until", type=float, default=None, help="Seconds from the start of the recording (exclusive).")
 @click.option("--violations-only", is_flag=True, help="Only items that break a rule.")
+@click.option("--interventions", "changes", type=click.Choice(["show", "hide", "only"]), default="show",
+              show_default=True,
+              help="Lines for the changes the proxy made when it stood in the middle (~ #N): shown among the "
+                   "items, hidden, or shown alone.  They follow --conn, --dir, --kind, --since, --until and "
+                   "free text (in the cause or the frame); --channel and --violations-only leave them out.")
 @click.option("--follow", "-f", is_flag=True,
               help="Tail a recording being written (its .mcap.part, then each later part) until it is finished.")
 @checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
 @limits_options
 def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, filter_text: str,
                 conns: tuple[int, ...], direction: str | None, kinds: tuple[str, ...], channels: tuple[int, ...],
-                since: float | None, until: float | None, violations_only: bool, follow: bool,
+                since: float | None, until: float | None, violations_only: bool, changes: str, follow: bool,
                 checksum_rule: str, answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Print every item of a recording in time order, decoded and checked.
 
@@ -48,6 +53,7 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
     lines appear at once, and memory stays flat however long the recording is.
     """
     from whiztap.analyzer.analysis.analyzer import Analyzer
+    from whiztap.analyzer.traffic import Data, Intervention
 
     item_filter = _cat_filter(filter_text, conns, direction, kinds, channels, since, until, violations_only)
     limits = limits_from(answer_timeout, max_frame, max_image)
@@ -67,8 +73,14 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
     with output_stream(output, force) as out:
         printer = _CatPrinter(fmt, item_filter, out)
         for event in records:
-            printer.show(event.conn, analyzer.receive(event))
-        for conn, events in analyzer.close_all():
+            if type(event) is Intervention:
+                if changes != "hide":
+                    printer.change(event)
+            elif changes != "only":
+                printer.show(event.conn, analyzer.receive(event))
+            elif type(event) is Data:
+                printer.start_at(event.t_ns)  # times count from the first traffic, as when items are shown
+        for conn, events in analyzer.close_all() if changes != "only" else ():
             printer.show(conn, events)
 
 
@@ -122,6 +134,7 @@ class _CatPrinter:
         self._printable = printable  # a line says what files and peers said: shown, never obeyed
         self._out = out
         self._colour = out.isatty()
+        self._changes = 0  # interventions seen: each line's number
 
     def show(self, conn: int, events: list) -> None:  # noqa: ANN001
         from whiztap.analyzer.protocol.observations import LateViolation
@@ -138,6 +151,10 @@ class _CatPrinter:
         if self.start is None:
             self.start = t_ns
         return self.start
+
+    def start_at(self, t_ns: int) -> None:
+        """Traffic at ``t_ns`` that no line shows: times count from the first."""
+        self._start(t_ns)
 
     def _item(self, conn: int, e) -> None:  # noqa: ANN001
         item = e.item
@@ -169,3 +186,52 @@ class _CatPrinter:
             return
         rel = (e.t_ns - (self.start or 0)) / 1e9
         self._out.write(self._printable(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}") + "\n")
+
+    def change(self, e) -> None:  # noqa: ANN001 - an Intervention
+        """A change the proxy made, numbered in order: ``~ #N``, the direction,
+        the action, the frame (before -> after when it was changed) and why."""
+        self._changes += 1
+        if not _shows_change(self.filter, e, self._start(e.t_ns)):
+            return
+        if self.fmt == "jsonl":
+            import base64
+            import json
+
+            self._out.write(json.dumps({
+                "t_ns": e.t_ns, "conn": e.conn, "dir": str(e.direction), "kind": "intervention", "raw_b64": None,
+                "fields": {"number": self._changes, "action": e.action, "cause": e.cause, "item_kind": e.kind,
+                           "before_b64": base64.b64encode(e.before).decode(),
+                           "after_b64": base64.b64encode(e.after).decode(), "detail": e.detail},
+                "violations": []}) + "\n")
+            return
+        rel = (e.t_ns - (self.start or 0)) / 1e9
+        why = f"{e.cause}; {e.detail}" if e.detail else e.cause
+        line = self._printable(f"{rel:12.6f} c{e.conn} ~ #{self._changes} {e.direction} {e.action}  "
+                               f"{self._shorten(_change_text(e, self._escape), TEXT_SHOWN)}  ({why})")
+        self._out.write((click.style(line, fg="cyan") if self._colour else line) + "\n")
+
+
+def _change_text(e, escape) -> str:  # noqa: ANN001
+    """The frame an intervention is about: before -> after when it changed, else the one there is."""
+    if e.before and e.after and e.before != e.after:
+        return f"{escape(e.before)} -> {escape(e.after)}"
+    return escape(e.before or e.after)
+
+
+def _shows_change(item_filter, e, start_ns: int) -> bool:  # noqa: ANN001
+    """Whether an intervention's line passes the filter: the words that fit a
+    change (connection, direction, the frame's kind, time, text in its cause or
+    frame) apply; those only items have (channel, violations) leave it out."""
+    from whiztap.analyzer.analysis.item_filter import NS
+    from whiztap.analyzer.protocol.text import escape
+
+    f = item_filter
+    rel = (e.t_ns - start_ns) / NS
+    if f.channels or f.violations_only or (f.conns and e.conn not in f.conns):
+        return False
+    if (f.direction and str(e.direction) != f.direction) or (f.kinds and e.kind not in f.kinds):
+        return False
+    if (f.since_s is not None and rel < f.since_s) or (f.until_s is not None and rel >= f.until_s):
+        return False
+    needle = f.text.lower()
+    return not needle or any(needle in text.lower() for text in (e.cause, e.action, escape(e.before), escape(e.after)))

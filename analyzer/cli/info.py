@@ -13,9 +13,10 @@ from whiztap.analyzer.cli.reading import one_recording
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True)
 def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     """File-level facts: format version, session metadata, time span,
-    connections, messages per topic, size, and whether the file is complete.
-    A split recording (its first part, folder or a glob) is shown as one, with
-    its parts listed."""
+    connections, messages per topic, size, and whether the file is complete;
+    for a recording made with the proxy in the middle, that it was and how
+    many interventions it holds.  A split recording (its first part, folder or
+    a glob) is shown as one, with its parts listed."""
     from whiztap.analyzer.recording.info import set_info
     from whiztap.analyzer.protocol.text import printable
 
@@ -27,6 +28,13 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
         fail(f"{path_}: cannot read ({e.strerror})")
     except ValueError as e:
         fail(f"{path_}: {e}")
+    from whiztap.analyzer.recording.format import TOPIC_INTERVENTIONS
+
+    interventions = info["topics"].get(TOPIC_INTERVENTIONS, 0)
+    middle = info["metadata"].get("middle") == "yes" or interventions > 0
+    if middle:  # only then: the facts of any other recording stay as they were
+        info["middle"] = True
+        info["interventions"] = interventions
     if fmt == "json":
         import json
 
@@ -45,6 +53,9 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
         click.echo(f"  {printable(key):14} {printable(value)}")
     click.echo(f"time span       {info['start']} .. {info['end']} ({info['duration_s']:.3f} s)")
     click.echo(f"connections     {info['connections']}")
+    if middle:
+        click.echo(f"in the middle   yes: the proxy changed the traffic {interventions:,} "
+                   f"time{'s' * (interventions != 1)} (whiztap cat --interventions only lists them)")
     click.echo("messages per topic")
     for topic, n in info["topics"].items():
         click.echo(f"  {topic:16} {n:,}")

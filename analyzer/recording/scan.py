@@ -2,7 +2,8 @@
 
 ``RecordingScan`` walks an MCAP file's records once, in file order, and gives
 the messages of the topics asked for; ``traffic()`` turns the TCP reads and
-connection events into typed traffic events.  ``read_metadata`` reads only as
+connection events into typed traffic events, and in a recording made with the
+proxy in the middle what each side received and each change the proxy made.  ``read_metadata`` reads only as
 far as the "whiztap" metadata record, ``is_finished`` only the file's last
 bytes.  Every failure is a ``RecordingError`` whose message is one line for the
 user, naming the record's offset.
@@ -24,8 +25,17 @@ from collections.abc import Iterable, Iterator
 from typing import IO
 
 from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.protocol.text import parse_size
-from whiztap.analyzer.recording.format import METADATA_NAME, TOPIC_EVENTS, TOPIC_READS, misfit
+from whiztap.analyzer.protocol.text import parse_size, unescape
+from whiztap.analyzer.recording.format import (
+    MASK_BYTE,
+    METADATA_NAME,
+    REDACTED,
+    TOPIC_DELIVERED,
+    TOPIC_EVENTS,
+    TOPIC_INTERVENTIONS,
+    TOPIC_READS,
+    misfit,
+)
 from whiztap.analyzer.recording.mcap import (
     FILE_END,
     LOG_TIME_AT,
@@ -51,7 +61,7 @@ from whiztap.analyzer.recording.mcap import (
     read_metadata_record,
     read_string,
 )
-from whiztap.analyzer.traffic import Data, TrafficError, TrafficEvent, from_json
+from whiztap.analyzer.traffic import Data, Delivered, Intervention, TrafficError, TrafficEvent, from_json
 
 MAX_CHUNK_ENV = "WHIZTAP_MAX_CHUNK"
 DEFAULT_MAX_CHUNK = 256 << 20
@@ -62,7 +72,7 @@ _OP_NAMES = {OP_CHUNK: "chunk", OP_MESSAGE_INDEX: "message index", OP_METADATA: 
 _DIRECTIONS = {b"c2s": Direction.C2S, b"s2c": Direction.S2C}
 _READ_JSON = re.compile(
     rb'\{"conn":(\d{1,19}),"dir":"(c2s|s2c)","t_ns":(\d{1,19}),"offset":(\d{1,19}),"size":\d+,'
-    rb'(?:"redacted":\[[\d,\[\]]*\],)?"data":"([A-Za-z0-9+/=]*)"\}')
+    rb'(?:"redacted":(\[[\d,\[\]]*\]),)?"data":"([A-Za-z0-9+/=]*)"\}')
 
 Record = tuple[int, str, bytes, int, int]  # log time, topic, buffer, start, end: the message is buffer[start:end]
 
@@ -340,16 +350,19 @@ class RecordingScan:
     def traffic(self) -> Iterator[TrafficEvent]:
         """The recording's traffic as typed events in file (= arrival) order:
         each /tcp/reads message as ``Data``, each /tcp/events message as its
-        connection event (``traffic.from_json``).  Other topics are skipped."""
+        connection event (``traffic.from_json``), each /tcp/delivered message
+        as ``Delivered`` and each /interventions message as ``Intervention``
+        (when the scan was asked for those topics).  Other topics are skipped."""
         match = _READ_JSON.match
         b64 = binascii.a2b_base64  # what base64.b64decode calls, without its Python layer
         directions = _DIRECTIONS
+        topic = TOPIC_READS
         try:
             for _t, topic, buf, start, stop in self.records():
                 if topic == TOPIC_READS:
                     m = match(buf, start, stop)
                     if m is not None and m.end() == stop:
-                        conn, direction, t_ns, _offset, data = m.groups()
+                        conn, direction, t_ns, _offset, _spans, data = m.groups()
                         yield Data(int(conn), directions[direction], int(t_ns), b64(data))
                     else:
                         d = self.decode(topic, buf, start, stop)
@@ -359,10 +372,49 @@ class RecordingScan:
                         yield from_json(self.decode(topic, buf, start, stop))
                     except TrafficError as e:
                         raise self._invalid(topic, str(e)) from None
+                elif topic == TOPIC_DELIVERED:
+                    yield self._delivered(buf, start, stop)
+                elif topic == TOPIC_INTERVENTIONS:
+                    yield self._intervention(self.decode(topic, buf, start, stop))
         except ValueError as e:  # binascii.Error: data that is not base64 (or not ASCII)
             if isinstance(e, RecordingError):
                 raise
-            raise self._invalid(TOPIC_READS, f"its data is not base64: {e}") from None
+            raise self._invalid(topic, f"its data is not base64: {e}") from None
+
+    def _delivered(self, buf: bytes, start: int, stop: int) -> Delivered:
+        """A /tcp/delivered message (a read's layout): what one side received;
+        ``secret`` when it holds a masked password."""
+        m = _READ_JSON.match(buf, start, stop)
+        if m is not None and m.end() == stop:
+            conn, direction, t_ns, _offset, spans, data = m.groups()
+            return Delivered(int(conn), _DIRECTIONS[direction], int(t_ns), binascii.a2b_base64(data),
+                             spans is not None and spans != b"[]")
+        d = self.decode(TOPIC_DELIVERED, buf, start, stop)
+        return Delivered(d["conn"], _DIRECTIONS[d["dir"].encode()], d["t_ns"], binascii.a2b_base64(d["data"]),
+                         bool(d.get("redacted")))
+
+    def _intervention(self, d: dict) -> Intervention:
+        """An /interventions message: the frame before and after as bytes again."""
+        redacted = d.get("redacted") is True
+        return Intervention(d["conn"], d["t_ns"], _DIRECTIONS[d["dir"].encode()], d["action"], d["cause"],
+                            self._frame_bytes(d, "before", redacted), self._frame_bytes(d, "after", redacted),
+                            d.get("kind", ""), d.get("detail", ""))
+
+    def _frame_bytes(self, d: dict, key: str, redacted: bool) -> bytes:
+        """A frame an /interventions message holds as escaped text; a password
+        the recorder left out (``<redacted>``) as mask bytes of its size, which
+        may be no larger than a record may be."""
+        text = d[key]
+        if redacted and text == REDACTED:
+            size = d.get(f"{key}_size")
+            limit = max_chunk_setting() if self._max_chunk is None else self._max_chunk
+            if size is None or size > limit:
+                raise self._invalid(TOPIC_INTERVENTIONS, f"a redacted {key!r} without a size up to {limit}")
+            return MASK_BYTE * size
+        try:
+            return unescape(text)
+        except ValueError as e:  # a lone surrogate cannot be encoded
+            raise self._invalid(TOPIC_INTERVENTIONS, f"{key!r} is not escaped text ({e})") from None
 
     def messages(self) -> Iterator[tuple[str, int, dict]]:
         """(topic, log_time, decoded JSON) of each wanted message, file order."""

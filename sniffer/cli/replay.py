@@ -10,11 +10,11 @@ import sys
 
 import click
 
-from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.output import check_output, recording_output, say
 from whiztap.analyzer.cli.params import force_option
 from whiztap.analyzer.cli.reading import one_recording
-from whiztap.sniffer.cli.params import Address
+from whiztap.sniffer.cli.params import Address, FaultSpecParam
 from whiztap.sniffer.cli.run import run, stop_signals
 
 PACES = ["recorded", "lockstep", "max"]
@@ -86,6 +86,17 @@ def _password(text: str | None) -> bytes | None:
 @click.option("--end", "end_s", type=float, default=None, metavar="S", help="... until S seconds (exclusive).")
 @click.option("--kind", "kinds", multiple=True, metavar="KIND",
               help="Only client items of this kind; repeatable (see docs/replay.md for the names).")
+@click.option("--faults-from-recording", "from_recording", is_flag=True,
+              help="Re-apply the faults the recording was made under (those given to 'whiztap record' and "
+                   "those added while it ran), through a proxy in the middle, with its seed.  Default: no "
+                   "faults.  Holds, hand edits, injections and scripts are not re-applied.")
+@click.option("--fault", "faults", type=FaultSpecParam(), multiple=True,
+              help="A fault to apply through a proxy in the middle, as 'whiztap record --fault' takes it "
+                   "(e.g. 'drop dir:s2c kind:response every:2'); repeatable, and after the recording's "
+                   "with --faults-from-recording.")
+@click.option("--seed", type=int, default=None,
+              help="Seed for the faults' prob:, jitter: and slice ranges (default: the recording's, with "
+                   "--faults-from-recording).")
 @click.option("--dry-run", is_flag=True, help="Print what would be sent, and send nothing.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Write the replayed session as a recording.")
@@ -97,8 +108,9 @@ def _password(text: str | None) -> bytes | None:
 def replay_command(path: str, target: tuple[str, int] | None, password: str | None, conns: tuple[int, ...], pace: str,
                    rate: float, segments: str, mode: str, tolerances: tuple[str, ...], ignore_fields: tuple[str, ...],
                    ignore_kinds: tuple[str, ...], timeout: float, connect_timeout: float, loop: int,
-                   start_s: float | None, end_s: float | None, kinds: tuple[str, ...], dry_run: bool,
-                   output: str | None, force: bool, verbose: bool, quiet: bool, fmt: str) -> None:
+                   start_s: float | None, end_s: float | None, kinds: tuple[str, ...], from_recording: bool,
+                   faults: tuple, seed: int | None, dry_run: bool, output: str | None, force: bool, verbose: bool,
+                   quiet: bool, fmt: str) -> None:
     """Replay a recording's client side against a server and compare its answers.
 
     Exit status 0 when every answer matched, 1 on any difference, 2 when the
@@ -114,6 +126,8 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
         fail(f"--kind: unknown kind {unknown[0]!r}; kinds are {', '.join(KINDS)}")
     if start_s is not None and end_s is not None and end_s <= start_s:
         fail("--end must be after --start")
+    if seed is not None and not (faults or from_recording):
+        fail("--seed seeds faults: give --fault or --faults-from-recording")
     try:
         rules = CompareRules.parse(mode, tolerances, ignore_fields, ignore_kinds)
     except CompareError as e:
@@ -122,11 +136,12 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     found = _find(path)
     check_output(output, found.parts, force=force, recording=True)
     recording = _load(path, found)
+    faults, seed = _faults(found, recording.metadata, faults, from_recording, seed)
     if dry_run:
         plans = plan(recording, selection, segments == "exact")
         if not plans:
             fail("nothing to replay: no connection is selected")
-        for line in dry_run_lines(plans, recording.start_ns):
+        for line in _fault_lines(faults, seed) + dry_run_lines(plans, recording.start_ns):
             _echo(line)
         return
     if target is None:
@@ -134,7 +149,7 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     options = ReplayOptions(target=target, password=_password(password), pace=Pace(pace),
                             rate=rate, segments=segments == "exact", rules=rules, timeout=timeout,
                             connect_timeout=connect_timeout, loop=loop, selection=selection, output=output,
-                            checksum_rule=recording.checksum_rule)
+                            checksum_rule=recording.checksum_rule, faults=faults, fault_seed=seed)
     try:
         result = run(_replay(recording, options, verbose, quiet, fmt == "json"))
     except ReplayError as e:
@@ -144,6 +159,35 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     if result.stopped:
         fail("interrupted")
     sys.exit(result.exit_status)
+
+
+def _faults(found, metadata: dict[str, str], typed: tuple, from_recording: bool,  # noqa: ANN001 - a RecordingSet
+            seed: int | None) -> tuple[tuple, int | None]:
+    """The faults to replay under, and their seed: none by default; with
+    --faults-from-recording the recording's (a note when it has none), then
+    those typed in with --fault."""
+    if not from_recording:
+        return tuple(typed), seed
+    from whiztap.sniffer.replay.faults import recorded_faults
+    from whiztap.sniffer.replay.options import ReplayError
+
+    try:
+        recorded = recorded_faults(found.parts, metadata)
+    except ReplayError as e:
+        fail(str(e))
+    if not recorded.faults:
+        warn(f"note: {found} was recorded without faults: there are none to re-apply")
+    return recorded.faults + tuple(typed), recorded.seed if seed is None else seed
+
+
+def _fault_lines(faults: tuple, seed: int | None) -> list[str]:
+    """The faults a replay goes through, one line each, for people."""
+    from whiztap.sniffer.replay.faults import fault_text
+
+    if not faults:
+        return []
+    return [f"through a proxy in the middle (seed {'none' if seed is None else seed}):"] + \
+        [f"  {fault_text(f)}" for f in faults]
 
 
 async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool):  # noqa: ANN001, ANN202
@@ -157,6 +201,8 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
         _echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
                    + f", {options.rules.describe()}")
+        for line in _fault_lines(options.faults, options.fault_seed):
+            _echo(line)
     with stop_signals(replay.stop):
         result = await replay.run()
     if result.error:
@@ -170,7 +216,9 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
                                    "mode": str(options.rules.mode), "tolerances": dict(options.rules.tolerances),
                                    "ignore_fields": sorted(options.rules.ignore_fields),
                                    "ignore_kinds": sorted(options.rules.ignore_kinds)},
-                               "output": options.output, **result.as_dict()}, indent=2))
+                               "faults": [{"name": f.name, "spec": f.text} for f in options.faults],
+                               "fault_seed": options.fault_seed, "output": options.output, **result.as_dict()},
+                              indent=2))
         return result
     _echo(result.summary())
     if result.drift is not None:

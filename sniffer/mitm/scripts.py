@@ -11,14 +11,15 @@ script on stderr, the frame passes as it came, and the proxy goes on.
 
 from __future__ import annotations
 
-import asyncio
 import importlib.util
 import itertools
 from pathlib import Path
 from typing import Any
 
+from whiztap.analyzer.analysis.item_filter import channel_of
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.protocol.frame_text import frame_from_text
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.mitm.frame import Frame
 
@@ -36,7 +37,6 @@ class Flow:
     def __init__(self, frame: Frame, script: Script) -> None:
         self._frame = frame
         self._cause = f"script {script.name}"
-        self._controller = script.controller
 
     conn = property(lambda self: self._frame.conn, doc="the connection id")
     direction = property(lambda self: self._frame.direction.value, doc='"c2s" or "s2c"')
@@ -49,7 +49,9 @@ class Flow:
 
     @property
     def channel(self) -> int | None:
-        return getattr(self.message, "channel", None)
+        """The channel it is about, also when the bytes alone do not say which
+        message it is (``rr1-12--0--0-ss1`` is a Sensor Request or a switch off)."""
+        return channel_of(self._frame.observation)
 
     def drop(self) -> None:
         self._frame.drop(self._cause)
@@ -66,10 +68,8 @@ class Flow:
         """Send another frame on this connection (toward the server for
         "c2s", the client for "s2c"; default: this frame's way), after this one."""
         data = frame if isinstance(frame, bytes) else frame_from_text(frame)
-        middle = self._controller.middles[self.conn]
-        way = self._frame.direction if direction is None else type(self._frame.direction)(direction)
-        # after this frame: the lane is deciding it now, so the injection waits its turn
-        asyncio.get_running_loop().call_soon(middle.lanes[way].inject, data, self._cause, middle.clock())
+        way = self._frame.direction if direction is None else Direction(direction)
+        self._frame.inject(way, data, self._cause)
 
 
 class Script:

@@ -42,10 +42,11 @@ class MiddleSettings:
     scripts: tuple[str, ...] = ()
     seed: int | None = None
     hold_timeout: float = 60.0
+    always: bool = False  # in the middle from the start with nothing configured (the TUI, the pytest fixture)
 
     @property
     def wanted(self) -> bool:
-        return bool(self.faults or self.fault_files or self.control or self.scripts)
+        return bool(self.always or self.faults or self.fault_files or self.control or self.scripts)
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,13 @@ open at their recorded times and run side by side.  ``lockstep`` sends a write,
 then waits for the answers it expects (or ``timeout``); ``max`` writes as fast
 as the server reads.  In both, connections run one after another.
 
+Faults (``options.faults``, parsed SPECs as ``whiztap record --fault`` takes
+them): the replay connects through a proxy in the middle
+(``whiztap.sniffer.replay.faults``) that applies them between it and the
+target, seeded with ``options.fault_seed``; answers are judged as the replay
+receives them, after the faults, against the recorded answers, which are what
+the recorded server sent.
+
 The options and the error are in ``whiztap.sniffer.replay.options``, the
 events and the result in ``whiztap.sniffer.replay.events``.
 """
@@ -69,6 +76,7 @@ from whiztap.analyzer.recording.format import MASK_BYTE
 from whiztap.analyzer.traffic import Opened, Traffic, UpstreamConnected
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.replay.connection import ReplayedConnection
+from whiztap.sniffer.replay.faults import FaultProxy
 from whiztap.sniffer.replay.events import ConnectionClosed, ConnectionOpened, Event, Finished, ReplayResult
 from whiztap.sniffer.replay.options import Pace, ReplayError, ReplayOptions
 from whiztap.sniffer.replay.output import OutputRecording
@@ -97,6 +105,8 @@ class Replay:
         self._output = OutputRecording(options, recording.path, on_error=self.stop)
         self._next_conn = 1
         self._tasks: set[asyncio.Task] = set()
+        self._middle: FaultProxy | None = None  # with faults, while running
+        self._connect_to = options.target
 
     def check(self) -> None:
         """Raise ReplayError for what would stop a replay before it starts."""
@@ -154,6 +164,7 @@ class Replay:
         error = None
         ticker = None
         try:
+            await self._start_middle()
             if self.options.output is not None:
                 self._output.open()
                 ticker = asyncio.create_task(self._output.tick())
@@ -164,6 +175,8 @@ class Replay:
         except ReplayError as e:
             error = str(e)
         finally:
+            if self._middle is not None:
+                await self._middle.close()  # its last events, before the output is finished
             if ticker is not None:
                 ticker.cancel()
             try:
@@ -173,6 +186,16 @@ class Replay:
         result = self._tally.result(self.options.pace is Pace.RECORDED, self._pacer.stopped, error)
         self._tally.emit(Finished(result))
         return result
+
+    async def _start_middle(self) -> None:
+        """With faults: the proxy that applies them, where connections go instead
+        of the target; its events are what an output records, on its clock."""
+        if not self.options.faults:
+            return
+        output = self._output
+        self._middle = FaultProxy(self.options, output.record if self.options.output is not None else None)
+        output.clock = self._middle.clock
+        self._connect_to = await self._middle.start()
 
     async def _run_once(self, loop: int) -> None:
         """One pass over the plans: side by side on the recorded schedule, or
@@ -253,7 +276,9 @@ class Replay:
                 await c.wait(c.answered(c.waiting_for(send, lockstep=True)), self.options.timeout)
 
     async def _connect(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-        host, port = self.options.target  # type: ignore[misc]
+        """A connection to the target (with faults, through the proxy, once it
+        has reached the target: one that cannot be reached fails here alike)."""
+        host, port = self._connect_to  # type: ignore[misc]
         try:
             reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port),
                                                     self.options.connect_timeout)
@@ -264,6 +289,12 @@ class Replay:
         sock = writer.get_extra_info("socket")
         if sock is not None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if self._middle is not None:
+            try:
+                await self._middle.reached(show_address(*writer.get_extra_info("sockname")[:2]))
+            except ReplayError:
+                writer.transport.abort()
+                raise
         return reader, writer
 
     async def _handshake(self, c: ReplayedConnection, recorded: bool) -> bool:

@@ -8,10 +8,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 from whiztap.analyzer.analysis.compare import CompareRules
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.sniffer.replay.plan import Selection
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.mitm.spec import FaultSpec
 
 
 class Pace(StrEnum):
@@ -53,3 +57,7 @@ class ReplayOptions:
     selection: Selection = Selection()
     output: str | None = None  # write the replayed session here as a recording
     checksum_rule: str = DEFAULT_CHECKSUM_RULE
+    # faults to apply between the replay and the target, through a proxy in the
+    # middle (sniffer/replay/faults.py); none: the replay connects to the target itself
+    faults: tuple[FaultSpec, ...] = ()
+    fault_seed: int | None = None  # for the faults' prob:, jitter: and slice ranges

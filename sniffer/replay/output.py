@@ -4,6 +4,13 @@ A replay is a producer of traffic events like the proxy: what it wrote and
 what the server answered, on the clock a recording uses.  With no output
 asked for, the events go nowhere.  A write that fails stops the replay
 (``on_error``) and the run ends with its message.
+
+With faults the replay goes through a proxy in the middle
+(``whiztap.sniffer.replay.faults``), and it is the proxy's events that are
+recorded (``record``), on the proxy's clock, as ``whiztap record --fault``
+would have: what the target sent, what each side was delivered, and each
+intervention; the replay's own view (``receive``) would only repeat the
+client's half of it, without the faults.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ from whiztap.sniffer.nettext import show_address
 from whiztap.sniffer.record.proxy import Clock
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
+from whiztap.sniffer.replay.faults import middle_metadata
 from whiztap.sniffer.replay.options import ReplayError, ReplayOptions
 
 TICK_S = 0.2  # how often the output recording is flushed
@@ -30,7 +38,8 @@ class OutputRecording:
     def __init__(self, options: ReplayOptions, replay_of: str, on_error: Callable[[], None]) -> None:
         self.options = options
         self.replay_of = replay_of
-        self.clock = Clock()  # the time of the replay's traffic events
+        self.clock: Callable[[], int] = Clock()  # the time of the recorded events (the proxy's, with faults)
+        self.proxied = bool(options.faults)  # the proxy's events are recorded, not the replay's
         self._on_error = on_error
         self._recorder: Recorder | None = None
         self._error: str | None = None
@@ -39,8 +48,9 @@ class OutputRecording:
         options = self.options
         start = self.clock()
         target = show_address(*options.target)  # type: ignore[misc]
+        middle = middle_metadata(options) if self.proxied else {}
         metadata = base_metadata("replay", False, options.checksum_rule, start, replay_of=self.replay_of,
-                                 target=target, pace=str(options.pace), rate=options.rate)
+                                 target=target, pace=str(options.pace), rate=options.rate, **middle)
         recorder = Recorder(RecordingFile(options.output, metadata),  # type: ignore[arg-type]
                             checksum_rule=options.checksum_rule)
         try:
@@ -50,7 +60,12 @@ class OutputRecording:
         self._recorder = recorder
 
     def receive(self, event: TrafficEvent) -> None:
-        """Write a traffic event of the replay (nothing when there is no output)."""
+        """A traffic event of the replay itself: written, unless the proxy's are."""
+        if not self.proxied:
+            self.record(event)
+
+    def record(self, event: TrafficEvent) -> None:
+        """Write a traffic event (nothing when there is no output)."""
         recorder = self._recorder
         if recorder is None:
             return

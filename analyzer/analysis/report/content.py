@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from whiztap.analyzer import __version__
-from whiztap.analyzer.analysis.analyzer import NS, Analysis, ConnectionSummary, ViolationRecord
+from whiztap.analyzer.analysis.facts import NS, Analysis, ConnectionSummary, ViolationRecord
 from whiztap.analyzer.protocol.checksum import get_rule
 from whiztap.analyzer.protocol.rules import RULES, Severity
 from whiztap.analyzer.protocol.text import escape
@@ -56,6 +56,8 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         report["unreadable"] = list(unreadable)
     if nothing is not None:
         report["nothing_judged"] = nothing
+    if analysis.interventions or any(c.middle for c in analysis.connections):
+        report["interventions"] = _interventions(analysis, start)
     return report
 
 
@@ -80,7 +82,9 @@ def _summary(analysis: Analysis, counts: dict[str, int]) -> dict[str, Any]:
 
 
 def _connection(c: ConnectionSummary, ignore: frozenset[str]) -> dict[str, Any]:
-    return {
+    """One connection; one the proxy stood in the middle of also says how
+    many changes it made (the key is there only then)."""
+    connection = {
         "file": c.file, "conn": c.conn, "client": c.client, "upstream": c.upstream,
         "mode": c.mode, "handshake": c.handshake, "first_ns": c.first_ns, "last_ns": c.last_ns,
         "frames": sum(c.frames.values()),
@@ -90,16 +94,45 @@ def _connection(c: ConnectionSummary, ignore: frozenset[str]) -> dict[str, Any]:
                         for ch, cfg in sorted(c.channel_map.items())},
         "closed_by": c.closed_by, "notes": list(c.notes),
     }
+    if c.middle:
+        connection["interventions"] = c.interventions
+    return connection
 
 
 def _violation(v: ViolationRecord, start: int) -> dict[str, Any]:
-    """One violation; ``t_rel_s`` counts from ``start``, the first traffic."""
+    """One violation; ``t_rel_s`` counts from ``start``, the first traffic;
+    ``side``: whose conduct it is about (client or server)."""
     return {
         "rule_id": v.rule_id, "severity": str(v.severity), "section": RULES[v.rule_id].section,
         "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
         "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
         "detail": v.detail,
         "late": v.late,
+        "side": v.side,
+    }
+
+
+def _interventions(analysis: Analysis, start: int) -> dict[str, Any]:
+    """What the proxy changed when it stood in the middle: each cause (a
+    fault's name and SPEC, a script, a hand edit, an injection) with its
+    counts by action, and the effects: violations one side saw that the other
+    did not commit (a frame the proxy broke), which count against neither."""
+    causes: dict[str, dict[str, int]] = {}
+    for (cause, action), n in analysis.interventions.items():
+        causes.setdefault(cause, {})[action] = n
+    effects = []
+    for v in analysis.effects:
+        effect = _violation(v, start)
+        effect["seen_by"] = effect.pop("side")
+        effects.append(effect)
+    return {
+        "count": sum(analysis.interventions.values()),
+        "connections": sum(1 for c in analysis.connections if c.middle),
+        "causes": [{"cause": cause, "count": sum(actions.values()), "actions": dict(sorted(actions.items()))}
+                   for cause, actions in causes.items()],
+        "effect_counts": {r: analysis.effect_counts[r] for r in RULES if analysis.effect_counts.get(r)},
+        "effects": effects,
+        "effects_not_listed": sum(analysis.effect_counts.values()) - len(analysis.effects),
     }
 
 

@@ -9,8 +9,9 @@ import html
 import io
 from typing import Any
 
-from whiztap.analyzer.analysis.analyzer import NS, Analysis
+from whiztap.analyzer.analysis.facts import NS, Analysis
 from whiztap.analyzer.analysis.report.text import duration, headline, verdict
+from whiztap.analyzer.analysis.report.words import EFFECTS_HEADING, intervention_lines
 from whiztap.analyzer.protocol.text import printable
 
 _CSS = """
@@ -98,6 +99,34 @@ def _escaped(value: object) -> str:
     return html.escape(printable(str(value)))
 
 
+def _violations(report: dict[str, Any], violations: list[dict[str, Any]]) -> str:
+    """A table of violations (or effects); with a side column when the proxy stood in the middle."""
+    e = _escaped
+    middle = "interventions" in report
+    rows = []
+    for v in violations:
+        row = [f"<code>{e(v['rule_id'])}</code>", f"<span class='{e(v['severity'])}'>{e(v['severity'])}</span>",
+               e(v["section"]), str(v["conn"])]
+        if middle:
+            row.append(e(v.get("side") or f"seen by the {v['seen_by']}"))
+        rows.append(row + [f"{v['t_rel_s']:.3f}", f"<code>{e(v['frame'][:200])}</code>", e(v["detail"])])
+    return _table(["rule", "severity", "section", "conn"] + (["side"] if middle else []) + ["t (s)", "frame", "detail"],
+                  rows)
+
+
+def _interventions(report: dict[str, Any]) -> list[str]:
+    e = _escaped
+    heading, rows = intervention_lines(report)
+    parts = ["<h2>Interventions</h2>", f"<p>{e(heading)}.</p>",
+             _table(["cause", "count", "actions"], [[f"<code>{e(c)}</code>", str(n), e(a)] for c, n, a in rows])]
+    section = report["interventions"]
+    if section["effects"]:
+        parts += [f"<p>{e(EFFECTS_HEADING)}:</p>", _violations(report, section["effects"])]
+    if section["effects_not_listed"]:
+        parts.append(f"<p>… and {section['effects_not_listed']} more effects not listed.</p>")
+    return parts
+
+
 def render_html(report: dict[str, Any], analysis: Analysis) -> str:
     """Every value from the report goes through ``_escaped`` (numbers are formatted here)."""
     e = _escaped
@@ -116,13 +145,11 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
     ]
     for title, svg in _plots(analysis):
         parts.append(f"<figure><figcaption><b>{e(title)}</b></figcaption>{svg}</figure>")
+    if "interventions" in report:
+        parts += _interventions(report)
     parts.append("<h2>Violations</h2>")
     if report["violations"]:
-        parts.append(_table(
-            ["rule", "severity", "section", "conn", "t (s)", "frame", "detail"],
-            [[f"<code>{e(v['rule_id'])}</code>", f"<span class='{e(v['severity'])}'>{e(v['severity'])}</span>",
-              e(v["section"]), str(v["conn"]), f"{v['t_rel_s']:.3f}", f"<code>{e(v['frame'][:200])}</code>",
-              e(v["detail"])] for v in report["violations"]]))
+        parts.append(_violations(report, report["violations"]))
         if report["violations_not_listed"]:
             parts.append(f"<p>… and {report['violations_not_listed']} more not listed.</p>")
     else:

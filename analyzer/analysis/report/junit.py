@@ -5,7 +5,9 @@ Each rule has one case per connection that broke it (named ``RULE: summary
 [file conn N]``), and one case for the whole recording when nothing broke it,
 so a clean run still lists every rule.  Violations of rules below the severity
 threshold do not fail their case (the report passes with them); they are
-listed in its system-out instead.  Inputs that could not be read make one more
+listed in its system-out instead.  When the proxy stood in the middle, each
+violation says whose side it is about, and the suite's properties and
+system-out list the interventions and their effects (which fail no case).  Inputs that could not be read make one more
 case, in error; a report on nothing to judge makes one more failing case.
 """
 
@@ -17,6 +19,7 @@ import xml.etree.ElementTree as ET
 from collections import Counter, defaultdict
 from typing import Any
 
+from whiztap.analyzer.analysis.report.words import EFFECTS_HEADING, intervention_lines, side_words
 from whiztap.analyzer.protocol.rules import RULES, Severity
 from whiztap.analyzer.protocol.text import printable as _x  # XML 1.0 forbids most control characters; terminals obey them
 
@@ -31,9 +34,13 @@ def render_junit(report: dict[str, Any]) -> str:
     for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
                         ("severity_threshold", report["severity_threshold"])):
         ET.SubElement(props, "property", name=name, value=_x(value))
+    if "interventions" in report:
+        ET.SubElement(props, "property", name="interventions", value=str(report["interventions"]["count"]))
     tally: Counter[str] = Counter()  # tests, failures, errors, skipped
     _rule_cases(suite, report, tally)
     _input_cases(suite, report, tally)
+    if "interventions" in report:
+        ET.SubElement(suite, "system-out").text = _interventions_text(report)
     for element in (suites, suite):
         element.set("tests", str(tally["tests"]))
         element.set("failures", str(tally["failures"]))
@@ -70,8 +77,7 @@ def _rule_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) 
                                  name=_x(f"{rule_id}: {rule.summary} [{file} conn {conn}]"))
             tally["tests"] += 1
             shown = listed.get((rule_id, file, conn), [])
-            texts = [_x(f"{v['file']} conn {v['conn']} {v['dir'] or ''} at +{v['t_rel_s']:.6f}s") + "\n"
-                     + _x(f"frame: {v['frame']}") + "\n" + _x(v["detail"]) for v in shown]
+            texts = [_violation_text(report, v) for v in shown]
             if not fails:
                 if texts:
                     ET.SubElement(case, "system-out").text = "\n\n".join(texts)
@@ -81,6 +87,24 @@ def _rule_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) 
                 ET.SubElement(case, "failure", type=v["severity"], message=_x(v["detail"])).text = text
             if n > len(shown):
                 ET.SubElement(case, "failure", type=str(rule.severity), message=f"{n - len(shown)} more not listed")
+
+
+def _violation_text(report: dict[str, Any], v: dict[str, Any]) -> str:
+    return (_x(f"{v['file']} conn {v['conn']} {v['dir'] or ''}{side_words(report, v)} at +{v['t_rel_s']:.6f}s")
+            + "\n" + _x(f"frame: {v['frame']}") + "\n" + _x(v["detail"]))
+
+
+def _interventions_text(report: dict[str, Any]) -> str:
+    """The interventions section as the suite's system-out: causes, then effects."""
+    heading, rows = intervention_lines(report)
+    lines = [_x(heading)] + [_x(f"  {cause}: {n} ({actions})") for cause, n, actions in rows]
+    section = report["interventions"]
+    if section["effects"]:
+        lines += ["", _x(EFFECTS_HEADING)] + [f"{v['rule_id']}: " + _violation_text(report, v).replace("\n", "; ")
+                                              for v in section["effects"]]
+    if section["effects_not_listed"]:
+        lines.append(f"... and {section['effects_not_listed']} more effects not listed")
+    return "\n".join(lines)
 
 
 def _input_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) -> None:

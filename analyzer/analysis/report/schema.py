@@ -5,6 +5,26 @@ _NS_OR_NULL = {"type": ["integer", "null"]}
 _STR = {"type": "string"}
 _SEVERITY = {"type": "string", "enum": ["error", "warning", "info"]}
 _COUNTS = {"type": "object", "additionalProperties": _INT}
+_SIDE = {"type": "string", "enum": ["client", "server"],
+         "description": "whose conduct the violation is about (docs/analyze.md, Judging each side)"}
+
+_INTERVENTIONS = {
+    "type": "object",
+    "required": ["count", "connections", "causes", "effect_counts", "effects", "effects_not_listed"],
+    "properties": {
+        "count": _INT, "connections": _INT,
+        "causes": {"type": "array", "items": {
+            "type": "object", "required": ["cause", "count", "actions"],
+            "properties": {"cause": _STR, "count": _INT, "actions": _COUNTS}}},
+        "effect_counts": _COUNTS,
+        "effects": {"type": "array", "items": {
+            "type": "object",
+            "required": ["rule_id", "severity", "section", "file", "conn", "dir", "t_ns", "t_rel_s", "frame",
+                         "detail", "late", "seen_by"],
+            "properties": {"rule_id": _STR, "seen_by": _SIDE}}},
+        "effects_not_listed": _INT,
+    },
+}
 
 REPORT_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -52,6 +72,8 @@ REPORT_SCHEMA = {
                     "type": "object", "required": ["unit_type", "unused", "switch_type"],
                     "properties": {"unit_type": _INT, "unused": _INT, "switch_type": _INT}}},
                 "closed_by": _STR, "notes": {"type": "array", "items": _STR},
+                # only for a connection the proxy stood in the middle of: the changes it made
+                "interventions": _INT,
             },
         }},
         "rule_counts": _COUNTS,
@@ -65,7 +87,7 @@ REPORT_SCHEMA = {
                 "dir": {"type": ["string", "null"], "enum": ["c2s", "s2c", None]},
                 "t_ns": _INT, "t_rel_s": {"type": "number"},
                 "frame": {"type": "string", "description": "the frame's bytes, escaped"},
-                "detail": _STR, "late": {"type": "boolean"},
+                "detail": _STR, "late": {"type": "boolean"}, "side": _SIDE,
             },
         }},
         "violations_not_listed": _INT,
@@ -87,6 +109,8 @@ REPORT_SCHEMA = {
         }},
         # only when there was no traffic to judge: why (the report does not pass, unless --allow-empty)
         "nothing_judged": _STR,
+        # only when the proxy stood in the middle: what it changed, and what that made a side see
+        "interventions": _INTERVENTIONS,
         # only when some input could not be read: the report covers the others
         "unreadable": {"type": "array", "minItems": 1, "items": {
             "type": "object", "required": ["file", "error"], "additionalProperties": False,

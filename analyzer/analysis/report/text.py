@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from whiztap.analyzer.analysis.report.words import EFFECTS_HEADING, intervention_lines, side_words
 from whiztap.analyzer.protocol.text import printable, shorten
 
 _STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
@@ -92,6 +93,8 @@ def render_text(report: dict[str, Any], console: Console) -> None:
     if report["ignored_rules"]:
         console.print(_plain(console, f"Ignored rules: {', '.join(report['ignored_rules'])}"))
     _text_traffic(report, console)
+    if "interventions" in report:
+        _text_interventions(report, console)
     if report["violations"]:
         _text_violations(report, console)
     _text_latency_and_checksums(report, console)
@@ -129,17 +132,37 @@ def _text_traffic(report: dict[str, Any], console: Console) -> None:
                           for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"]))]))
 
 
+def _text_interventions(report: dict[str, Any], console: Console) -> None:
+    heading, rows = intervention_lines(report)
+    console.print(Text("Interventions", style="bold"))
+    console.print(_plain(console, heading))
+    console.print(_table("", [("cause", "left"), ("count", "right"), ("actions", "left")], [list(row) for row in rows]))
+    section = report["interventions"]
+    if section["effects"]:
+        console.print(Text(EFFECTS_HEADING, style="bold"))
+        for v in section["effects"]:
+            _text_violation(report, v, console)
+    if section["effects_not_listed"]:
+        console.print(_plain(console, f"… and {section['effects_not_listed']} more effects not listed"))
+
+
+def _text_violation(report: dict[str, Any], v: dict[str, Any], console: Console) -> None:
+    """A violation (or an intervention's effect) in two lines: what, where and why; the frame."""
+    line = Text()
+    line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
+    line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''}{side_words(report, v)} "
+                          f"+{v['t_rel_s']:.3f}s  "))
+    line.append(printable(v["detail"]))
+    console.print(line)
+    frame = shorten(v["frame"], TEXT_FRAME)
+    console.print(Text(printable(f"    {frame}"), style="dim"), _plain(console, f"  ({v['section']})"),
+                  overflow="fold")
+
+
 def _text_violations(report: dict[str, Any], console: Console) -> None:
     console.print(Text("Violations", style="bold"))
     for v in report["violations"]:
-        line = Text()
-        line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
-        line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''} +{v['t_rel_s']:.3f}s  "))
-        line.append(printable(v["detail"]))
-        console.print(line)
-        frame = shorten(v["frame"], TEXT_FRAME)
-        console.print(Text(printable(f"    {frame}"), style="dim"), _plain(console, f"  ({v['section']})"),
-                      overflow="fold")
+        _text_violation(report, v, console)
     if report["violations_not_listed"]:
         console.print(_plain(console, f"… and {report['violations_not_listed']} more not listed"))
     console.print(_table("Violations by rule", [("rule", "left"), ("count", "right")],
@@ -209,12 +232,11 @@ def render_markdown(report: dict[str, Any]) -> str:
     for c in report["connections"]:
         out.append(f"| {t(c['file'])} | {c['conn']} | {t(c['client'] or '-')} | {t(c['mode'])} | {t(c['handshake'])} "
                    f"| {c['frames']} | {sum(c['violations'].values())} |")
+    if "interventions" in report:
+        out += _md_interventions(report)
     out += ["", "## Violations", ""]
     if report["violations"]:
-        out += ["| rule | severity | conn | t (s) | frame | detail |", "|---|---|---:|---:|---|---|"]
-        for v in report["violations"]:
-            out.append(f"| {md_code(v['rule_id'])} | {t(v['severity'])} | {v['conn']} | {v['t_rel_s']:.3f} | "
-                       f"{md_code(shorten(v['frame'], MD_FRAME))} | {t(v['detail'])} |")
+        out += _md_violation_rows(report, report["violations"])
         if report["violations_not_listed"]:
             out.append(f"\n… and {report['violations_not_listed']} more not listed.")
     else:
@@ -235,3 +257,27 @@ def render_markdown(report: dict[str, Any]) -> str:
         out += ["", "## Not in this report (could not be read)", ""]
         out += [f"- {t(u['error'])}" for u in report["unreadable"]]
     return "\n".join(out) + "\n"
+
+
+def _md_violation_rows(report: dict[str, Any], violations: list[dict[str, Any]]) -> list[str]:
+    """A table of violations (or effects); with a side column when the proxy stood in the middle."""
+    middle = "interventions" in report
+    rows = ["| rule | severity | conn |" + (" side |" if middle else "") + " t (s) | frame | detail |",
+            "|---|---|---:|" + ("---|" if middle else "") + "---:|---|---|"]
+    for v in violations:
+        side = f" {md_text(v.get('side') or 'seen by the ' + v['seen_by'])} |" if middle else ""
+        rows.append(f"| {md_code(v['rule_id'])} | {md_text(v['severity'])} | {v['conn']} |{side} {v['t_rel_s']:.3f} | "
+                    f"{md_code(shorten(v['frame'], MD_FRAME))} | {md_text(v['detail'])} |")
+    return rows
+
+
+def _md_interventions(report: dict[str, Any]) -> list[str]:
+    heading, rows = intervention_lines(report)
+    out = ["", "## Interventions", "", f"{md_text(heading)}.", "", "| cause | count | actions |", "|---|---:|---|"]
+    out += [f"| {md_code(cause)} | {n} | {md_text(actions)} |" for cause, n, actions in rows]
+    section = report["interventions"]
+    if section["effects"]:
+        out += ["", f"{md_text(EFFECTS_HEADING)}:", ""] + _md_violation_rows(report, section["effects"])
+    if section["effects_not_listed"]:
+        out.append(f"\n… and {section['effects_not_listed']} more effects not listed.")
+    return out
