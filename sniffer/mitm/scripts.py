@@ -75,11 +75,10 @@ class Flow:
 class Script:
     """One loaded script: a stage whose hooks call the script's functions."""
 
-    def __init__(self, path: Path, module: Any, controller: Any) -> None:
+    def __init__(self, path: Path, module: Any) -> None:
         self.path = path
         self.name = path.name
         self.module = module
-        self.controller = controller
 
     def frame(self, frame: Frame) -> None:
         hook = getattr(self.module, "frame", None)
@@ -97,7 +96,7 @@ class Script:
             hook(conn)
 
 
-def load_script(path: str | Path, controller: Any) -> Script:
+def load_script(path: str | Path) -> Script:
     """Load a script file; ScriptError if it is missing, does not run, or has no hook."""
     path = Path(path)
     if not path.is_file():
@@ -112,4 +111,4 @@ def load_script(path: str | Path, controller: Any) -> Script:
         raise ScriptError(f"script {path} failed to load: {type(e).__name__}: {e}") from None
     if not any(callable(getattr(module, hook, None)) for hook in HOOKS):
         raise ScriptError(f"script {path} defines none of the hooks {', '.join(HOOKS)}")
-    return Script(path, module, controller)
+    return Script(path, module)

@@ -170,7 +170,7 @@ class Recording:
             from whiztap.sniffer.mitm.scripts import load_script
 
             for path in middle.scripts:
-                controller.add_script(load_script(path, controller))
+                controller.add_script(load_script(path))
         return controller
 
     def _middle_metadata(self) -> dict[str, str]:
