@@ -49,6 +49,13 @@ class _Out:
     secret: bool = False
 
 
+def _joinable(out: _Out, now: int, secret: bool) -> bool:
+    """``out`` can go in the same write as the one before it: due, whole, not
+    held, no connection's end, as secret as it."""
+    return (out.at_ns <= now and out.held is None and out.end is None and out.secret is secret
+            and (out.slices is None or len(out.data) <= 1))
+
+
 class Lane:
     def __init__(self, middle: Any, direction: Direction, framer: Framer) -> None:
         self.middle = middle
@@ -209,8 +216,13 @@ class Lane:
                 else:
                     queue.popleft()
             else:
-                chunk = data
                 queue.popleft()
+                chunk = data
+                if queue and _joinable(queue[0], now, out.secret):  # one write for a run of due frames
+                    parts = [data]
+                    while queue and _joinable(queue[0], now, out.secret):
+                        parts.append(queue.popleft().data)
+                    chunk = b"".join(parts)
             self._queued -= len(chunk)
             if chunk:  # a frame replaced by nothing is no delivery
                 self._write(chunk, now, out.secret)
