@@ -117,8 +117,10 @@ def _violations(report: dict[str, Any], violations: list[dict[str, Any]]) -> str
 def _interventions(report: dict[str, Any]) -> list[str]:
     e = _escaped
     heading, rows = intervention_lines(report)
-    parts = ["<h2>Interventions</h2>", f"<p>{e(heading)}.</p>",
-             _table(["cause", "count", "actions"], [[f"<code>{e(c)}</code>", str(n), e(a)] for c, n, a in rows])]
+    parts = ["<h2>Interventions</h2>", f"<p>{e(heading)}.</p>"]
+    if rows:
+        parts.append(_table(["cause", "count", "actions"],
+                            [[f"<code>{e(c)}</code>", str(n), e(a)] for c, n, a in rows]))
     section = report["interventions"]
     if section["effects"]:
         parts += [f"<p>{e(EFFECTS_HEADING)}:</p>", _violations(report, section["effects"])]

@@ -6,7 +6,7 @@ _STR = {"type": "string"}
 _SEVERITY = {"type": "string", "enum": ["error", "warning", "info"]}
 _COUNTS = {"type": "object", "additionalProperties": _INT}
 _SIDE = {"type": "string", "enum": ["client", "server"],
-         "description": "whose conduct the violation is about (docs/analyze.md, Judging each side)"}
+         "description": "whose conduct the violation is about"}
 
 _INTERVENTIONS = {
     "type": "object",

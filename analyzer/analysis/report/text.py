@@ -136,7 +136,9 @@ def _text_interventions(report: dict[str, Any], console: Console) -> None:
     heading, rows = intervention_lines(report)
     console.print(Text("Interventions", style="bold"))
     console.print(_plain(console, heading))
-    console.print(_table("", [("cause", "left"), ("count", "right"), ("actions", "left")], [list(row) for row in rows]))
+    if rows:
+        console.print(_table("", [("cause", "left"), ("count", "right"), ("actions", "left")],
+                             [list(row) for row in rows]))
     section = report["interventions"]
     if section["effects"]:
         console.print(Text(EFFECTS_HEADING, style="bold"))
@@ -273,8 +275,10 @@ def _md_violation_rows(report: dict[str, Any], violations: list[dict[str, Any]])
 
 def _md_interventions(report: dict[str, Any]) -> list[str]:
     heading, rows = intervention_lines(report)
-    out = ["", "## Interventions", "", f"{md_text(heading)}.", "", "| cause | count | actions |", "|---|---:|---|"]
-    out += [f"| {md_code(cause)} | {n} | {md_text(actions)} |" for cause, n, actions in rows]
+    out = ["", "## Interventions", "", f"{md_text(heading)}."]
+    if rows:
+        out += ["", "| cause | count | actions |", "|---|---:|---|"]
+        out += [f"| {md_code(cause)} | {n} | {md_text(actions)} |" for cause, n, actions in rows]
     section = report["interventions"]
     if section["effects"]:
         out += ["", f"{md_text(EFFECTS_HEADING)}:", ""] + _md_violation_rows(report, section["effects"])

@@ -1,0 +1,263 @@
+"""Judging each side by what it did, when the proxy stood in the middle.
+
+With faults, scripts, interception or injection the proxy changes what each
+side receives, so what the client sent is not what the server got.  One
+session over what both sides *sent* (/tcp/reads) would blame the server for an
+answer the proxy dropped, or the client for a checksum the proxy broke.  So a
+connection the proxy stood in the middle of (it has a /tcp/delivered or an
+/interventions message) is judged in two more sessions:
+
+- the server-side view: what the server received (delivered c2s) and what it
+  sent (read s2c);
+- the client-side view: what the client sent (read c2s) and what it received
+  (delivered s2c).
+
+Each view is kept for the violations about its own side: the server's view
+for the server's frames and for the answering (a request never answered, an
+answer to nothing: the server's duty), the client's view for the client's
+frames.  What a view sees about the other side is matched against that side's
+own view: a copy (the same rule on the same bytes) is the other side's
+violation, reported once; what is left is the proxy's doing.  Left in the
+client's view, an answering violation is the client's experience (the proxy
+dropped, delayed or added an answer), reported on the client side; any other
+is an intervention's effect, a violation of neither side.
+
+A connection without any of those messages is judged by the one session of
+``Analyzer`` as before: its violations are held here until it ends and then
+handed back unchanged.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from whiztap.analyzer.analysis.facts import ViolationRecord, cause_group
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.session import Session
+from whiztap.analyzer.protocol.stats import LatencyStats
+from whiztap.analyzer.traffic import (
+    Closed,
+    Data,
+    Delivered,
+    Gap,
+    HalfClosed,
+    Intervention,
+    Traffic,
+    TrafficEvent,
+    UpstreamFailed,
+)
+
+SERVER, CLIENT = "server", "client"
+ANSWERING = frozenset({"PW-PAIR-UNANSWERED", "PW-PAIR-UNSOLICITED"})
+"""The rules about the answering rather than about one frame: the server's duty."""
+CAUSES_SHOWN = 3  # causes named in the detail of a violation only the client saw
+
+Verdict = tuple[ViolationRecord, str | None]  # a violation, and the title of the request it says was never answered
+MakeRecord = Callable[[int, str, str, Observation, int, bool], ViolationRecord]
+_Key = tuple[str, str, int, int]  # rule, direction, the frame's length and hash: the same violation in both views
+
+
+def side_of(rule_id: str, direction: str | None) -> str:
+    """Whose conduct a violation is about: the answering rules are the
+    server's; every other rule is about the frame it was found on, so about
+    the side that sent it (a rule that mostly concerns one side's frames, such
+    as a malformed Set Configuration, still blames whoever sent that frame)."""
+    return SERVER if rule_id in ANSWERING or direction == "s2c" else CLIENT
+
+
+class Settled(NamedTuple):
+    """A connection's judgement, once its sessions ended: the verdicts and,
+    past the records kept, the rest counted by (rule, side, request title);
+    the interventions' effects; and the server's latencies when they come
+    from its view (None: the one session's stand)."""
+
+    verdicts: list[Verdict]
+    more: Counter
+    effects: list[ViolationRecord]
+    latencies: dict[str, LatencyStats] | None
+
+
+@dataclass(slots=True)
+class _Connection:
+    """One connection's bookkeeping until its sessions end."""
+
+    middle: bool = False
+    causes: dict[str, None] = field(default_factory=dict)  # what intervened, in order
+    held: int = 0  # verdicts held in full; past the cap only counted
+    single: list[Verdict] = field(default_factory=list)  # the one session's, for a connection not in the middle
+    kept: list[Verdict] = field(default_factory=list)  # each view's verdicts on its own side
+    more: Counter = field(default_factory=Counter)  # past the cap: (rule, side, title) -> count
+    single_more: Counter = field(default_factory=Counter)
+    published: dict[str, Counter] = field(default_factory=lambda: {SERVER: Counter(), CLIENT: Counter()})
+    waiting: dict[str, dict[_Key, deque[Verdict]]] = field(default_factory=lambda: {SERVER: {}, CLIENT: {}})
+    latencies: dict[str, LatencyStats] = field(default_factory=dict)  # the server view's
+
+
+class Sides:
+    """The two views of every connection of a recording made in the middle,
+    and the reconciling of what they found.
+
+    ``receive`` takes every traffic event; ``single`` takes the violations the
+    analyzer's own session found; ``settle`` (when a connection's sessions
+    ended: closed, or cut by a gap) and ``finish`` (at the end) say how each
+    connection is judged.  Violations are held per connection until then, the
+    first ``cap`` in full, the rest counted (past the cap, what a view sees of
+    the other side is no longer matched: it is left out)."""
+
+    def __init__(self, new_session: Callable[[], Session], record: MakeRecord, cap: int) -> None:
+        self._record = record
+        self._cap = cap
+        self._conns: dict[int, _Connection] = {}
+        self._views = {SERVER: Traffic(new_session, self._server_ended), CLIENT: Traffic(new_session)}
+
+    def is_middle(self, conn: int) -> bool:
+        c = self._conns.get(conn)
+        return c is not None and c.middle
+
+    def receive(self, event: TrafficEvent) -> None:
+        """One traffic event, into the views it belongs to."""
+        kind = type(event)
+        if kind is Data:
+            self._feed(SERVER if event.direction is Direction.S2C else CLIENT, event)  # type: ignore[union-attr]
+        elif kind is Delivered:
+            c = self._conn(event.conn)
+            c.middle = True
+            conn, direction, t_ns, data, _secret = event  # type: ignore[misc]
+            self._feed(SERVER if direction is Direction.C2S else CLIENT, Data(conn, direction, t_ns, data))
+        elif kind is Intervention:
+            c = self._conn(event.conn)
+            c.middle = True
+            c.causes[cause_group(event.cause)] = None  # type: ignore[union-attr]
+        elif kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
+            # a sender's FIN ends the stream in both views: the proxy passes it on once it has
+            # delivered what it holds, and the recording has no time of its own for that
+            self._feed(SERVER, event)
+            self._feed(CLIENT, event)
+
+    def single(self, conn: int, verdict: Verdict) -> None:
+        """A violation the analyzer's one session found: held until the
+        connection is settled, then handed back if it was not in the middle."""
+        c = self._conn(conn)
+        if c.held < self._cap:
+            c.held += 1
+            c.single.append(verdict)
+        else:
+            record, title = verdict
+            c.single_more[(record.rule_id, record.side, title)] += 1
+
+    def settle(self, conn: int, closed: bool) -> Settled:
+        """How the connection's sessions that just ended are judged; ``closed``:
+        the connection is over (else a gap cut its sessions, and it goes on)."""
+        c = self._conns.pop(conn, None) if closed else self._conns.get(conn)
+        if c is None:
+            return Settled([], Counter(), [], None)
+        if not closed:
+            self._conns[conn] = _Connection(c.middle, c.causes)
+        if not c.middle:
+            return Settled(c.single, c.single_more, [], None)
+        verdicts = list(c.kept)
+        effects: list[ViolationRecord] = []
+        for held in c.waiting[SERVER].values():
+            effects += [record for record, _ in held]
+        for held in c.waiting[CLIENT].values():
+            for record, title in held:
+                if record.rule_id in ANSWERING:
+                    verdicts.append((self._experienced(record, c), title))
+                else:
+                    effects.append(record)
+        effects.sort(key=lambda r: r.t_ns)
+        return Settled(verdicts, c.more, effects, c.latencies)
+
+    def finish(self) -> list[tuple[int, Settled]]:
+        """End every view still open (traffic cut short) and settle every connection."""
+        for side, view in self._views.items():
+            for conn, events in view.finish():
+                self._judge(side, conn, events)
+        return [(conn, self.settle(conn, closed=True)) for conn in list(self._conns)]
+
+    # -- internals ---------------------------------------------------------------------
+
+    def _conn(self, conn: int) -> _Connection:
+        c = self._conns.get(conn)
+        if c is None:
+            c = self._conns[conn] = _Connection()
+        return c
+
+    def _feed(self, side: str, event: TrafficEvent) -> None:
+        events = self._views[side].receive(event)
+        if events:
+            self._judge(side, event.conn, events)
+
+    def _server_ended(self, conn: int, session: Session) -> None:
+        """The server's view ended: its latencies are the server's own (a
+        delay the proxy added is not the server's)."""
+        latencies = self._conn(conn).latencies
+        for title, stats in session.latencies.items():
+            latencies.setdefault(title, LatencyStats()).merge(stats)
+
+    def _judge(self, view: str, conn: int, events: list[Event]) -> None:
+        for e in events:
+            if type(e) is LateViolation:
+                self._found(view, conn, e.violation.rule_id, e.violation.detail, e.about, e.t_ns, True)
+            elif type(e) is Observation:
+                for v in e.violations:
+                    self._found(view, conn, v.rule_id, v.detail, e, e.item.t_end_ns, False)
+
+    def _found(self, view: str, conn: int, rule_id: str, detail: str, about: Observation, t: int,
+               late: bool) -> None:
+        """A violation one view found: kept if it is about the view's own side
+        (and noted, so that the other view's copy is known as one), else held
+        until the other side's view shows whether that side did it too."""
+        c = self._conn(conn)
+        direction = str(about.direction)
+        owner = side_of(rule_id, direction)
+        raw = about.item.raw
+        key = (rule_id, direction, len(raw), hash(raw))
+        other = CLIENT if view == SERVER else SERVER
+        title = _unanswered_title(rule_id, about)
+        if owner == view:
+            waiting = c.waiting[other].get(key)
+            if waiting:
+                waiting.popleft()  # the other view's copy: this side's violation, reported once
+                c.held -= 1
+            else:
+                c.published[view][key] += 1
+            if c.held < self._cap:
+                c.held += 1
+                record = self._record(conn, rule_id, detail, about, t, late)
+                record.side = owner
+                c.kept.append((record, title))
+            else:
+                c.more[(rule_id, owner, title)] += 1
+        elif c.published[other][key]:
+            published = c.published[other]
+            published[key] -= 1
+            if not published[key]:
+                del published[key]
+        elif c.held < self._cap:
+            c.held += 1
+            record = self._record(conn, rule_id, detail, about, t, late)
+            record.side = view
+            c.waiting[view].setdefault(key, deque()).append((record, title))
+
+    @staticmethod
+    def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:
+        """An answering violation only the client's view has: what the client
+        went through because the proxy intervened, never the server's doing."""
+        causes = list(c.causes)
+        named = "; ".join(causes[:CAUSES_SHOWN]) + (f"; and {len(causes) - CAUSES_SHOWN} more"
+                                                    if len(causes) > CAUSES_SHOWN else "")
+        record.side = CLIENT
+        record.detail = (f"{record.detail} (the client's experience only: the proxy intervened on this "
+                         f"connection{': ' + named if named else ''}; the server's view has no such violation)")
+        return record
+
+
+def _unanswered_title(rule_id: str, about: Observation) -> str | None:
+    """The request title a report counts as never answered (None: another rule)."""
+    if rule_id != "PW-PAIR-UNANSWERED":
+        return None
+    return about.message.title if about.message is not None else "request"
