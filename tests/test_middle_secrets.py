@@ -4,14 +4,15 @@ delivered copy of a password was written in clear)."""
 
 from __future__ import annotations
 
-import asyncio
 import json
+
+import pytest
 
 from whiztap.analyzer.mitm.spec import parse_fault
 from whiztap.sniffer.record.record_run import MiddleSettings
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, read_all, recording
+from tests.record_support import LOCAL, StepServer, play_client, read_all, recording
 
 PASSWORD = "progwhiz"
 MIDDLE = MiddleSettings(faults=(parse_fault("delay:5ms dir:s2c"), parse_fault("dup dir:c2s kind:password")))
@@ -43,21 +44,19 @@ async def test_a_password_through_the_middle_is_masked_everywhere(tmp_path):
     assert PASSWORD not in _everything(path)
 
 
-async def test_a_password_sent_before_the_server_asks_is_masked_too(tmp_path):
-    """The early password reaches the proxy before sendchkpass: it passes as
-    raw bytes, which are secret until the login is over."""
+@pytest.mark.parametrize("early", [b"", b"rr1-12--0--0-ss1"], ids=["alone", "run-into-by-a-command"])
+async def test_a_password_sent_before_the_server_asks_is_masked_too(tmp_path, early):
+    """The server asks only once the client's bytes are in, so the proxy sees
+    the password before sendchkpass: alone, it passes as raw bytes after a
+    stall; followed by a command, it is an unframed item before it.  Either
+    way it is secret, the login not being over."""
+    sent = PASSWORD.encode() + early
+    server = StepServer([("recv", len(sent)), ("send", b"sendchkpass"), ("send", b"readytogo")])
     path = tmp_path / "early.mcap"
-    async with Simulator(port=0, mode="winsock", password=PASSWORD, seed=7) as sim:
-        async with recording(sim.port, path, middle=MIDDLE) as rec:
-            reader, writer = await asyncio.open_connection(LOCAL, rec.proxy.port)
-            writer.write(PASSWORD.encode())
-            await writer.drain()
-            got = b""
-            while b"readytogo" not in got and b"Failed" not in got:
-                chunk = await asyncio.wait_for(reader.read(100), 5)
-                assert chunk, got
-                got += chunk
-            writer.close()
+    async with server:
+        async with recording(server.port, path, middle=MIDDLE) as rec:
+            got = await play_client(rec.proxy.port, [("send", sent), ("recv", len(b"sendchkpassreadytogo"))])
+    assert got == b"sendchkpassreadytogo" and bytes(server.received).startswith(sent)
     assert PASSWORD not in _everything(path)
 
 

@@ -31,6 +31,7 @@ from whiztap.analyzer.traffic import Delivered, Intervention
 from whiztap.sniffer.mitm.frame import observation_of
 
 HIGH_WATER = 256 << 10
+_CLIENT_FRAMES = (ItemKind.COMMAND, ItemKind.SET_CONFIG)
 STALL_S = 0.2
 NS = 1_000_000_000
 
@@ -149,13 +150,19 @@ class Lane:
         at = max(self._last_at, t_ns + frame.delay_ns)
         if frame.data is not None:
             for _ in range(frame.copies):
-                out = _Out(frame.data, at, frame.slices, frame.pause_ns, secret=item.kind is ItemKind.PASSWORD)
+                out = _Out(frame.data, at, frame.slices, frame.pause_ns, secret=self._secret(item))
                 middle.hold(self, out, frame)
                 self._append(out)
         for direction, data, cause in frame.injections:
             middle.inject(direction, data, cause)
         if frame.end is not None:  # after what comes before it, and the frame if it is delivered
             self._append(_Out(b"", at, end=frame.end))
+
+    def _secret(self, item: Item) -> bool:
+        """A password, or what a client sends before its login is over that is
+        none of its frames (a password sent early, run into by a command)."""
+        return item.kind is ItemKind.PASSWORD or (
+            self.direction is Direction.C2S and not self.middle.past_login and item.kind not in _CLIENT_FRAMES)
 
     def _append(self, out: _Out) -> None:
         self._queue.append(out)

@@ -20,12 +20,11 @@ from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Intervention
 from whiztap.sniffer.mitm.frame import Frame
-from whiztap.sniffer.mitm.lane import HIGH_WATER, Lane, _Out
+from whiztap.sniffer.mitm.lane import _CLIENT_FRAMES, HIGH_WATER, Lane, _Out
 
 C2S, S2C = Direction.C2S, Direction.S2C
 _ASKS = b"sendchkpass"
 _VERDICTS = (b"readytogo", b"Failed Validation")
-_CLIENT_FRAMES = (ItemKind.COMMAND, ItemKind.SET_CONFIG)
 _LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP reset
 
 
