@@ -334,8 +334,10 @@ def _normalized(output: str) -> str:
 def test_reports_on_recordings_without_interventions_are_as_before():
     """tests/data/reports-before-middle.json: the output of analyze (every
     format but HTML, whose plots differ from run to run) and cat before
-    recordings could hold interventions.  The one change: each violation in
-    the JSON says its side."""
+    recordings could hold interventions (made by the tree of 9591b36, the commit
+    before the man in the middle, on the files in tests/data, which stay as
+    they are when samples are regenerated).  The one change: each violation
+    in the JSON says its side."""
     before = json.loads((DATA / "reports-before-middle.json").read_text())
     runner = CliRunner()
     for command, expected in before.items():
