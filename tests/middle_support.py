@@ -64,12 +64,15 @@ class Middle:
 async def middle(path: Path, *faults: str | FaultSpec, seed: int | None = 1,
                  scripts: tuple[str, ...] = ()) -> AsyncIterator[Middle]:
     """The simulator (VPN mode, seed 7) and a recording proxy in front of it
-    with ``faults`` and ``scripts``, recording to ``path``; finished on exit."""
+    with ``faults`` and ``scripts``, recording to ``path``; finished on exit.
+    Secrets are kept: these tests compare the bytes each side got, and a
+    client's bytes before its login is over are masked otherwise
+    (tests/test_middle_secrets.py)."""
     specs = tuple(parse_fault(f) if isinstance(f, str) else f for f in faults)
     loop = asyncio.get_running_loop()
     handler = loop.get_exception_handler()
     async with Simulator(port=0, mode="vpn", seed=7) as sim:
-        settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(path),
+        settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(path), keep_secrets=True,
                                   middle=MiddleSettings(faults=specs, scripts=scripts, seed=seed))
         warnings: list[str] = []
         mid = Middle(sim, Recording(settings, warn=warnings.append), path, warnings)
