@@ -106,13 +106,20 @@ class Recording:
         return self.writer.ready.get("foxglove") if self.writer is not None else None
 
     async def start(self) -> None:
-        """Bind, start the writer, accept.  Raises WriterError or OSError (bind)."""
+        """Bind, serve the control API (if asked), start the writer, accept.
+        Raises WriterError, StartError (the control API), OSError (bind),
+        FaultSpecError or ScriptError (a fault file or script that does not load)."""
         s = self.settings
         self.controller = self._controller()
         self.proxy = proxy = RecordingProxy(*s.listen, *s.upstream, self.consumers,
                                             connect_timeout=s.connect_timeout, on_opened=self._opened,
                                             on_closed=self._closed, controller=self.controller)
         await proxy.start(serving=False)
+        try:
+            await self._serve_control()  # before the writer: a taken port leaves no recording behind
+        except StartError:
+            await proxy.close()
+            raise
         start_ns = proxy.clock()
         listen = proxy.listen_text
         metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
@@ -134,10 +141,10 @@ class Recording:
             self.consumers.add(consumer)
         try:
             await writer.start()
-            await self._serve_control()
-        except (WriterError, StartError):
+        except WriterError:
             await proxy.close()
-            await writer.stop(proxy.clock(), "could not start")
+            if self._control is not None:
+                await self._control.stop()
             raise
         await proxy.serve()
 
