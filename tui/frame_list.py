@@ -1,7 +1,8 @@
 """The frame list: every frame of a FrameView, one line each, rendered on demand.
 
-A line: a mark coloured by the worst violation's severity, the time from the
-first frame, the connection, the direction, the item kind, the exact bytes
+A line: a mark coloured by the worst violation's severity, a glyph for what
+the proxy in the middle did to the frame (marks.py), the time from the first
+frame, the connection, the direction, the item kind, the exact bytes
 (escaped, cut to fit) and the decoded meaning.
 
 A line is built from the store only when it comes into view (and then kept in
@@ -17,6 +18,7 @@ from textual.binding import Binding
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
+from whiztap.tui.marks import GLYPHS, MARK_KINDS, worst
 from whiztap.tui.store import FrameStore
 from whiztap.tui.view import FrameView
 from whiztap.tui.virtual_list import VirtualList
@@ -37,6 +39,7 @@ class FrameList(VirtualList):
     COMPONENT_CLASSES = {
         "framelist--time", "framelist--conn", "framelist--c2s", "framelist--s2c", "framelist--kind",
         "framelist--bytes", "framelist--error", "framelist--warning", "framelist--info",
+        *(f"framelist--{kind}" for kind in MARK_KINDS),
     }
     DEFAULT_CSS = """
     FrameList {
@@ -49,6 +52,12 @@ class FrameList(VirtualList):
         & > .framelist--error { color: $error; text-style: bold; }
         & > .framelist--warning { color: $warning; text-style: bold; }
         & > .framelist--info { color: $primary; }
+        & > .framelist--held { color: $accent; text-style: bold; }
+        & > .framelist--injected { color: $success; text-style: bold; }
+        & > .framelist--edited { color: $secondary; text-style: bold; }
+        & > .framelist--dropped { color: $error; text-style: bold; }
+        & > .framelist--delayed { color: $warning; }
+        & > .framelist--faulted { color: $warning; text-style: bold; }
     }
     """
 
@@ -58,6 +67,7 @@ class FrameList(VirtualList):
         self.view = view
         self.counts_new = live
         self._late_seen = 0
+        self._marks_seen = 0
 
     def row_count(self) -> int:
         return len(self.view)
@@ -78,10 +88,10 @@ class FrameList(VirtualList):
 
     def sync(self) -> bool:
         """Take in new rows; True when a late violation changed how frames look."""
-        marked = len(self.store.late_marked)
-        changed = marked != self._late_seen
+        marked, middle = len(self.store.late_marked), len(self.store.marked)
+        changed = marked != self._late_seen or middle != self._marks_seen
         if changed:
-            self._late_seen = marked
+            self._late_seen, self._marks_seen = marked, middle
             self.clear_strips()
         super().sync()
         return changed
@@ -126,8 +136,14 @@ class FrameList(VirtualList):
         if len(text) > BYTES_WIDTH or store.size(n) > BYTES_WIDTH:
             text = text[:BYTES_WIDTH - 1] + "…"
         mark = style(SEVERITY_CLASS[severity]) if severity else Style()
+        marks = store.marks.get(n)
+        if marks:  # what the proxy in the middle did to it: a glyph and a colour per kind
+            kind = worst(marks)
+            head = [(MARKS[severity], mark), (GLYPHS[kind], style(f"framelist--{kind}"))]
+        else:
+            head = [(MARKS[severity] + " ", mark)]
         return [
-            (MARKS[severity] + " ", mark),
+            *head,
             (f"{store.relative_s(n):11.6f} ", style("framelist--time")),
             (f"#{store.conn[n]:<3} ", style("framelist--conn")),
             ("→ " if c2s else "← ", style("framelist--c2s" if c2s else "framelist--s2c")),

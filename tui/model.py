@@ -16,8 +16,11 @@ from whiztap.analyzer.analysis.analyzer import Analyzer, Series
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.stats import LatencyStats
-from whiztap.analyzer.traffic import TrafficEvent
+from whiztap.analyzer.traffic import Delivered, Intervention, TrafficEvent
+from whiztap.tui.middle import MiddleView
 from whiztap.tui.store import FrameStore
+
+_MIDDLE_ONLY = (Delivered, Intervention)
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,12 +44,21 @@ class TrafficModel:
         self.store = FrameStore(redact_passwords)
         self.lock = self.store.lock
         self.finished = False  # no more traffic will come (the file ended, the proxy stopped)
+        self.middle: MiddleView | None = None  # the proxy stands in the middle: see middle.py
+
+    def in_the_middle(self, redact: bool) -> None:
+        """From now on, traffic is that of a proxy in the middle (a recording
+        whose metadata says so, or the live proxy with its controller)."""
+        self.middle = MiddleView(self.analyzer.receive, self.store, redact)
 
     # -- feeding (one worker thread) --------------------------------------------------------
 
     def receive(self, event: TrafficEvent) -> None:
         with self.lock:
-            self.store.add(event.conn, self.analyzer.receive(event))
+            if self.middle is not None:
+                self.middle.receive(event)
+            elif type(event) not in _MIDDLE_ONLY:  # they mean something only in the middle
+                self.store.add(event.conn, self.analyzer.receive(event))
 
     def finish(self) -> None:
         """End every open session: requests still unanswered become violations."""

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import IO, Protocol
 
 from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
-from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
+from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, made_in_the_middle
 from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
 from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.traffic import Continued, Data, RecordingStopped, TrafficEvent
@@ -72,6 +72,8 @@ class FileSource:
             gc.set_threshold(*threshold)
 
     def _read(self, model: TrafficModel, stop: threading.Event) -> None:
+        if made_in_the_middle(str(self.recording.name)):
+            model.in_the_middle(self.redact_passwords)
         receive = model.receive
         try:
             for event in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):  # noqa: SIM115
@@ -134,6 +136,8 @@ class FollowSource:
             try:
                 with open(path, "rb") as f:
                     scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
+                    if model.middle is None and made_in_the_middle(path):
+                        model.in_the_middle(self.redact_passwords)
                     stopped = _feed_scan(scan, model, skip_continued=moved_on)
             except Stopped:
                 return
@@ -276,6 +280,8 @@ class LiveSource:
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         queue = self.queue
+        if self.recording.controller is not None:
+            model.in_the_middle(self.redact_passwords)
         take = _Redacting(model) if self.redact_passwords else _Plain(model)
         while True:
             while queue:

@@ -26,6 +26,7 @@ from whiztap.analyzer.protocol.describe import fields, meaning
 from whiztap.analyzer.protocol.framing import Item, ItemKind, Unframed
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.tui.marks import Mark
 
 NS = 1_000_000_000
 KINDS: tuple[ItemKind, ...] = tuple(ItemKind)
@@ -63,6 +64,8 @@ class FrameStore:
         self._by_conn: dict[int, array] = {}  # conn -> frame id by session index
         self._second = -1  # the second the last frame fell in, and its counts
         self._counts = [0, 0]
+        self.marks: dict[int, list[Mark]] = {}  # what the proxy in the middle did to a frame
+        self.marked: list[int] = []  # frames given a mark after they were stored (lines to redraw)
 
     # -- writing (the ingest worker) ------------------------------------------------------
 
@@ -144,6 +147,37 @@ class FrameStore:
             self.start_ns = self.t_start.get(first, self.t_end[first])
         self.count = n
 
+    def add_unseen(self, conn: int, direction: Direction, kind: ItemKind, raw: bytes, t_ns: int, mark: Mark) -> int:
+        """A frame no session saw, with what happened to it: one the proxy
+        dropped before the server got it, or injected toward the client.
+        It pairs with nothing; its row id is returned."""
+        n = self.count
+        self.flags.append(KIND_CODE[kind] | (S2C_BIT if direction is Direction.S2C else 0))
+        self.choice.append(NO_MEANING if len(decode(kind, raw).candidates) != 1 else 0)
+        self.t_end.append(t_ns)
+        self.conn.append(conn)
+        self.session_index.append(0)
+        self.pair.append(-1)
+        self.raws += raw[:self.raw_cap]
+        self.raw_end.append(len(self.raws))
+        self.marks[n] = [mark]
+        if self.start_ns is None:
+            self.start_ns = t_ns
+        self.count = n + 1
+        return n
+
+    def mark(self, n: int, mark: Mark) -> None:
+        """Add what the proxy did to frame ``n`` (its line is drawn again)."""
+        self.marks.setdefault(n, []).append(mark)
+        self.marked.append(n)
+
+    def last_frames(self, conn: int, direction: Direction, within: int = 256) -> Iterable[int]:
+        """The connection's most recent frames in ``direction``, newest first."""
+        index = self._by_conn.get(conn)
+        if index is None:
+            return ()
+        return (n for n in reversed(index[-within:]) if n >= 0 and self.direction(n) is direction)
+
     def _unusual_raw(self, n: int, e: Observation) -> bytes:
         """What is kept of a password (masked) or of a large item (its head)."""
         raw = e.item.raw
@@ -158,12 +192,15 @@ class FrameStore:
         about = e.about.index
         if about >= len(index) or index[about] < 0:
             return
-        n = index[about]
+        self.add_violation(index[about], e.violation)
+
+    def add_violation(self, n: int, violation: Violation) -> None:
+        """A violation found after frame ``n`` was stored (its line is drawn again)."""
         before = self.violations.get(n, ())
-        self.violations[n] = before + (e.violation,)
+        self.violations[n] = before + (violation,)
         if not before:
             insort(self.violating, n)
-        severity = max(self.severity(n), e.violation.severity)
+        severity = max(self.severity(n), violation.severity)
         self.flags[n] = (self.flags[n] & ~(3 << SEVERITY_SHIFT)) | severity << SEVERITY_SHIFT
         self.late_marked.append(n)
 

@@ -23,6 +23,11 @@ def with_connection(item_filter: ItemFilter, conn: int | None) -> ItemFilter:
     return item_filter if conn is None else replace(item_filter, conns=frozenset({conn}))
 
 
+def _marked(store: FrameStore, n: int, kinds: frozenset[str]) -> bool:
+    """Frame ``n`` has a mark of one of ``kinds`` (``held``, ``injected``, ...)."""
+    return any(mark.kind in kinds for mark in store.marks.get(n, ()))
+
+
 class FrameView:
     """Rows of the frame list: row -> frame id."""
 
@@ -62,8 +67,9 @@ class FrameView:
                 break
             start_ns = store.start_ns or 0
             observation, conn = store.observation, store.conn
+            wanted = self.filter.interventions
             for n in range(self.judged, end):
-                if accepts(conn[n], observation(n), start_ns):
+                if accepts(conn[n], observation(n), start_ns) and (not wanted or _marked(store, n, wanted)):
                     rows.append(n)
             self.judged = end
         self._rejudge_late_marks()

@@ -30,6 +30,7 @@ class ItemFilter:
     until_s: float | None = None
     violations_only: bool = False
     text: str = ""  # a substring of the item's escaped bytes or meaning (the TUI's free text)
+    interventions: frozenset[str] = frozenset()  # held, injected, ...: judged by the TUI from its marks
 
     def accepts(self, conn: int, observation: Observation, start_ns: int, late: bool = False) -> bool:
         item = observation.item
@@ -57,8 +58,10 @@ class ItemFilter:
         return True
 
 
-FILTER_HELP = ("conn:N[,N]  dir:c2s|s2c  kind:K[,K]  ch:N[,N]  since:S  until:S  "
-               "violations (or !)  and any other words: text in the bytes or the meaning")
+FILTER_HELP = ("conn:N[,N]  dir:c2s|s2c  kind:K[,K]  ch:N[,N]  since:S  until:S  violations (or !)  "
+               "held injected edited dropped delayed faulted  and any other words: text in the bytes or the meaning")
+INTERVENTION_WORDS = ("held", "injected", "edited", "dropped", "delayed", "faulted")
+"""What the proxy in the middle did to a frame, as filter words (the TUI's mark kinds)."""
 
 
 class FilterSyntaxError(ValueError):
@@ -118,5 +121,15 @@ def parse_filter(text: str) -> ItemFilter:
     except ValueError as e:
         raise FilterSyntaxError(str(e)) from None
     options: dict[str, Any] = {}
-    free = [word for word in words if not parse_word(word, options)]
+    free = [word for word in words if not parse_word(word, options) and not _intervention_word(word, options)]
     return ItemFilter(text=" ".join(free), **options)
+
+
+def _intervention_word(word: str, options: dict[str, Any]) -> bool:
+    """``held``, ``injected``, ... (``INTERVENTION_WORDS``): the frames the proxy
+    in the middle did that to.  Only the TUI knows (its marks); ``accepts``
+    leaves them to it."""
+    if word.lower() not in INTERVENTION_WORDS:
+        return False
+    options["interventions"] = options.get("interventions", frozenset()) | {word.lower()}
+    return True

@@ -32,29 +32,18 @@ def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgr
     made with the proxy in the middle (its metadata says so) has each side
     judged by what it did (``whiztap.analyzer.analysis.sides``)."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
+    from whiztap.analyzer.recording.scan import made_in_the_middle
     from whiztap.analyzer.recording.sets import RecordingSet
     from whiztap.analyzer.protocol.session import Limits
 
     if not isinstance(recording, RecordingSet):
         recording = RecordingSet((Path(recording),))
     analyzer = Analyzer(str(recording.name), checksum_rule, limits or Limits(), every_event=False,
-                        middle=_made_in_the_middle(recording.name))
+                        middle=made_in_the_middle(str(recording.name)))
     receive = analyzer.receive
     for event in scan_recording(recording, progress):
         receive(event)
     return analyzer.finish()
-
-
-def _made_in_the_middle(path: Path) -> bool:
-    """Whether the recording's metadata says the proxy stood in the middle.  A
-    file that cannot tell is read as one that was not: the scan that follows
-    says what is wrong with it, in its own words."""
-    from whiztap.analyzer.recording.scan import RecordingError, read_metadata
-
-    try:
-        return read_metadata(str(path)).get("middle") == "yes"
-    except (OSError, RecordingError):
-        return False
 
 
 def _analyse_or_say_why(recording, checksum_rule: str, limits, progress: ByteProgress | None = None):  # noqa: ANN001

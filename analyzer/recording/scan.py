@@ -422,6 +422,16 @@ class RecordingScan:
             yield topic, t, self.decode(topic, buf, start, stop)
 
 
+def made_in_the_middle(path: str) -> bool:
+    """Whether a recording's metadata says the proxy stood in the middle
+    (docs/faults.md).  A file that cannot tell is read as one that was not:
+    whatever reads it next says what is wrong with it, in its own words."""
+    try:
+        return read_metadata(path).get("middle") == "yes"
+    except (OSError, RecordingError):
+        return False
+
+
 def read_metadata(path: str, max_chunk: int | None = None) -> dict[str, str]:
     """The "whiztap" metadata record of a recording ({} if it has none).
 
