@@ -48,10 +48,10 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
     plt = _pyplot()
     start = analysis.first_ns or 0
     plots: list[tuple[str, str]] = []
-    if analysis.frames_per_second:
+    kinds = sorted({k for c in analysis.frames_per_second.values() for k in c})
+    if kinds:  # seconds that counted no item draw nothing: no plot, no legend without lines
         fig, ax = plt.subplots(figsize=(9, 3))
         seconds = sorted(analysis.frames_per_second)
-        kinds = sorted({k for c in analysis.frames_per_second.values() for k in c})
         xs = [s - start / NS for s in seconds]
         for kind in kinds:
             ax.plot(xs, [analysis.frames_per_second[s].get(kind, 0) for s in seconds], label=kind, marker=".")
