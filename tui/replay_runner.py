@@ -6,12 +6,18 @@ it gets a loop of its own: ``run()`` is the worker thread's body, control
 calls go to that loop with ``call_soon_threadsafe`` (as the engine's docstring
 prescribes), and the engine's events land in plain lists the screen reads on
 its timer.
+
+With ``faults_from_recording`` the faults the recording was made under
+(``whiztap.sniffer.replay.faults.recorded_faults``, its seed too) replace the
+options' faults, read here in the worker thread: finding those added at run
+time means reading the whole file.
 """
 
 from __future__ import annotations
 
 import asyncio
 import threading
+from dataclasses import replace
 
 from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.sniffer.replay.engine import Replay
@@ -24,9 +30,12 @@ CONTROLS = ("pause", "resume", "step", "stop")
 class ReplayRunner:
     """One replay of a recording; ``state`` is loading, running, paused, finished, stopped or failed."""
 
-    def __init__(self, path: str, options: ReplayOptions, start_paused: bool = False) -> None:
+    def __init__(self, path: str, options: ReplayOptions, start_paused: bool = False,
+                 faults_from_recording: bool = False) -> None:
         self.path = path
         self.options = options
+        self.faults_from_recording = faults_from_recording
+        self.note = ""  # about the faults, for the screen
         self.comparisons: list[ResponseCompared] = []  # appended by the replay's thread only
         self.sent = 0
         self.connections = 0
@@ -55,14 +64,28 @@ class ReplayRunner:
 
         try:
             recording = load_exchanges(self.path)
+            if self.faults_from_recording:
+                self._take_recorded_faults(recording.metadata)
         except (OSError, RecordingError) as e:
             self._fail(f"{self.path}: {getattr(e, 'strerror', None) or e}")
+            return
+        except ReplayError as e:  # a recorded fault or seed that does not read
+            self._fail(str(e))
             return
         loop = asyncio.new_event_loop()
         try:
             loop.run_until_complete(self._replay_on(loop, recording))
         finally:
             loop.close()
+
+    def _take_recorded_faults(self, metadata: dict[str, str]) -> None:
+        """Replay under the faults (and seed) the recording was made under."""
+        from whiztap.sniffer.replay.faults import recorded_faults
+
+        recorded = recorded_faults(recording_parts(self.path), metadata)
+        if not recorded.faults:
+            self.note = "the recording was made without faults: there are none to re-apply"
+        self.options = replace(self.options, faults=recorded.faults, fault_seed=recorded.seed)
 
     async def _replay_on(self, loop: asyncio.AbstractEventLoop, recording) -> None:  # noqa: ANN001
         try:
@@ -107,3 +130,13 @@ class ReplayRunner:
             loop, replay = self._loop, self._replay
         if loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(getattr(replay, what))
+
+
+def recording_parts(path: str) -> tuple[str, ...]:
+    """The files of the recording ``path`` names (a split one's parts, in order)."""
+    from whiztap.analyzer.recording.sets import RecordingInputError, find_one
+
+    try:
+        return tuple(str(p) for p in find_one((path,)).parts)
+    except RecordingInputError:
+        return (path,)

@@ -6,11 +6,19 @@ answer the server gives appears beside the recorded one, differences marked;
 the selected row's side-by-side diff shows below.  With "save as" the replayed
 session is written as a recording too.  The replay runs in a worker thread on
 its own event loop (``ReplayRunner``); the list reads its results on a timer.
+
+Faults: none (the default), those the recording was made under (as
+``whiztap replay --faults-from-recording``: read by the runner, in its
+thread), or SPECs typed in as ``whiztap record --fault`` takes them, several
+separated by ``;`` outside quotes (the field is one line; a quoted ``;``, as
+in ``replace:'a;b'``, belongs to its SPEC).  A typed SPEC that does not read
+is said on the field itself before anything starts.
 """
 
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 from rich.style import Style
 from rich.text import Text
@@ -24,8 +32,12 @@ from textual.widgets import Button, Footer, Header, Input, Label, Select, Static
 from whiztap.analyzer.protocol.text import escape, printable
 from whiztap.tui.virtual_list import VirtualList
 
+if TYPE_CHECKING:
+    from whiztap.analyzer.mitm.spec import FaultSpec
+
 TICK_S = 0.1
 DEFAULT_TARGET = "127.0.0.1:5000"  # where `whiztap sim` listens by default
+FAULT_CHOICES = (("none", "none"), ("from the recording", "recording"), ("typed", "typed"))
 MARKS = {"match": "✔", "mismatch": "✘", "missing": "?", "extra": "+", "ignored": "·", "unanswered": " "}
 STATUS_STYLES = {"match": "green", "mismatch": "bold red", "missing": "yellow", "extra": "magenta",
                  "ignored": "dim", "unanswered": "dim"}
@@ -79,6 +91,7 @@ class ReplayScreen(Screen):
     ReplayScreen .form > Input { width: 1fr; }
     ReplayScreen .form > Select { width: 18; }
     ReplayScreen #rate { width: 8; }
+    ReplayScreen #faults { width: 26; }
     ReplayScreen .buttons { height: 3; }
     ReplayScreen .buttons > Button { margin-right: 1; }
     ReplayScreen #replay-status { height: 2; padding: 0 1; }
@@ -90,6 +103,7 @@ class ReplayScreen(Screen):
         super().__init__()
         self.path = path
         self.runner = None
+        self._shown_finished = None  # the finished runner whose end is on screen
         self.comparisons = ComparisonList(id="comparisons")
 
     def compose(self) -> ComposeResult:
@@ -111,6 +125,12 @@ class ReplayScreen(Screen):
             yield Label("Compare")
             yield Select([(m, m) for m in ("structure", "exact", "none")], value="structure",
                          allow_blank=False, id="compare")
+        with Horizontal(classes="form"):
+            yield Label("Faults")
+            yield Select(FAULT_CHOICES, value="none", allow_blank=False, id="faults")
+            yield Label("SPECs (; between)")
+            yield Input("", id="fault-specs", disabled=True,
+                        placeholder="as record --fault: drop dir:s2c every:2; delay:200ms")
         with Horizontal(classes="buttons"):
             yield Button("Start (F5)", id="start", variant="primary")
             yield Button("Pause (F6)", id="pause", disabled=True)
@@ -149,22 +169,28 @@ class ReplayScreen(Screen):
         if output is not None:
             self._check_output(output)
         password = self.query_one("#password", Input).value
+        faults = self._typed_faults() if self.query_one("#faults", Select).value == "typed" else ()
         return ReplayOptions(target=target, password=password.encode() if password else None,
                              pace=Pace(str(self.query_one("#pace", Select).value)), rate=rate, rules=rules,
-                             output=output)
+                             output=output, faults=faults)
+
+    def _typed_faults(self) -> tuple[FaultSpec, ...]:
+        """The typed SPECs, parsed; FaultSpecError (a ValueError) for the first that does not read."""
+        from whiztap.analyzer.mitm.spec import FaultSpecError, parse_fault
+
+        specs = split_specs(self.query_one("#fault-specs", Input).value)
+        if not specs:
+            raise FaultSpecError("type a SPEC, such as drop dir:s2c kind:response every:2, or choose no faults")
+        return tuple(parse_fault(spec) for spec in specs)
 
     def _check_output(self, output: str) -> None:
         """The output rule (whiztap.analyzer.recording.output_rule): never the recording being
         replayed, and never an existing file (there is no --force here)."""
         from whiztap.analyzer.recording.output_rule import OutputRefused, check_output
-        from whiztap.analyzer.recording.sets import RecordingInputError, find_one
+        from whiztap.tui.replay_runner import recording_parts
 
         try:
-            parts = find_one((self.path,)).parts
-        except RecordingInputError:
-            parts = (self.path,)
-        try:
-            check_output(output, parts, recording=True)
+            check_output(output, recording_parts(self.path), recording=True)
         except OutputRefused as e:
             if e.existing is not None:
                 raise ValueError(f"save as: {e.existing} exists; choose another name "
@@ -174,15 +200,20 @@ class ReplayScreen(Screen):
     # -- actions -------------------------------------------------------------------------------
 
     def _start(self, paused: bool) -> bool:
+        from whiztap.analyzer.mitm.spec import FaultSpecError
         from whiztap.tui.replay_runner import ReplayRunner
 
         output = self.query_one("#output", Input).value.strip() or None
         try:
             options = self._options(output)
+        except FaultSpecError as e:
+            self._fault_error(str(e))
+            return False
         except ValueError as e:
             self.notify(str(e), severity="error", timeout=6, markup=False)
             return False
-        self.runner = ReplayRunner(self.path, options, start_paused=paused)
+        from_recording = self.query_one("#faults", Select).value == "recording"
+        self.runner = ReplayRunner(self.path, options, start_paused=paused, faults_from_recording=from_recording)
         self.comparisons.runner = self.runner
         self.comparisons.tail = True
         self.comparisons.reset()
@@ -226,6 +257,27 @@ class ReplayScreen(Screen):
     def _on_button(self, event: Button.Pressed) -> None:
         getattr(self, f"action_{event.button.id}")()
 
+    @on(Select.Changed, "#faults")
+    def _on_faults_chosen(self, event: Select.Changed) -> None:
+        specs = self.query_one("#fault-specs", Input)
+        specs.disabled = event.value != "typed"
+        self._fault_error("")
+        if not specs.disabled:
+            specs.focus()
+
+    @on(Input.Changed, "#fault-specs")
+    def _on_specs_typed(self) -> None:
+        self._fault_error("")
+
+    def _fault_error(self, error: str) -> None:
+        """Say on the SPEC field what is wrong with it (or nothing)."""
+        specs = self.query_one("#fault-specs", Input)
+        specs.set_class(bool(error), "-invalid")
+        specs.border_subtitle = Text(error) if error else None  # quotes what was typed: never markup
+        if error:
+            specs.focus()
+            self.query_one("#replay-status", Static).update(Text(f"faults: {error}", style="red"))
+
     @on(VirtualList.Moved, "#comparisons")
     def _on_moved(self, message: VirtualList.Moved) -> None:
         self._show_diff(message.row)
@@ -235,14 +287,25 @@ class ReplayScreen(Screen):
     def _tick(self) -> None:
         self.comparisons.sync()
         runner = self.runner
-        if runner is None:
+        if runner is None or runner is self._shown_finished:
             return
+        if runner.done:  # shown one last time: what is said since (a SPEC's error) stays
+            self._shown_finished = runner
         state = runner.state
         running = not runner.done
         self.query_one("#pause", Button).disabled = not running
         self.query_one("#stop", Button).disabled = not running
         self.query_one("#pause", Button).label = "Resume (F6)" if state == "paused" else "Pause (F6)"
         self.query_one("#replay-status", Static).update(self._status_text(runner))
+        self.comparisons.border_subtitle = self._faults_text(runner)
+
+    @staticmethod
+    def _faults_text(runner) -> Text | None:  # noqa: ANN001 - a ReplayRunner
+        """The faults the replay goes through, or why there are none."""
+        faults = runner.options.faults
+        if faults:
+            return Text(f"through faults: {'; '.join(printable(f.text) for f in faults)}")
+        return Text(runner.note) if runner.note else None
 
     @staticmethod
     def _status_text(runner) -> Text:  # noqa: ANN001 - a ReplayRunner
@@ -276,6 +339,28 @@ class ReplayScreen(Screen):
         replayed = escape(c.replayed) if c.replayed is not None else "(no answer)"
         diff.update(Text(f"{c.status}: {c.request_text}\n  recorded {escape(c.recorded or b'')}\n"
                          f"  replayed {replayed}"))
+
+
+def split_specs(text: str) -> list[str]:
+    """SPECs separated by ``;`` outside quotes: a SPEC is words split as a
+    shell splits them, so a quoted ``;`` (``replace:'a;b'``) is part of it.
+    A quote left open is left for parse_fault to name."""
+    specs: list[str] = []
+    start, quote, escaped = 0, "", False
+    for i, ch in enumerate(text):
+        if escaped:
+            escaped = False
+        elif ch == "\\" and quote != "'":
+            escaped = True
+        elif quote:
+            quote = "" if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == ";":
+            specs.append(text[start:i])
+            start = i + 1
+    specs.append(text[start:])
+    return [spec.strip() for spec in specs if spec.strip()]
 
 
 def open_replay(app: App) -> None:
