@@ -15,6 +15,11 @@
   at each tick that shows new frames, how long the oldest of them waited
   since it arrived at the proxy; the backlog is what the proxy had passed on
   and the model had not taken yet.
+- Live while frames are held: the same, with an intercept filter (``ch:20``)
+  that the load's frames all go through and a second connection's
+  ``HELD`` Sensor Requests on channel 20 match, so that many frames wait at
+  the proxy (shown after the list's rows, their wait counted each tick)
+  for the whole run; the same delays, p99 first.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ from pathlib import Path
 FRAMES = 1_000_000
 LIVE_RATE = 5_000  # requests a second; as many answers come back
 LIVE_SECONDS = 6.0
+HELD = 50  # frames the intercept filter holds during the live run with interception
+HELD_FILTER = "ch:20"  # the load asks for channel 12: only the second connection's frames match
 _PAINTED: dict[int, float] = {}  # frame id -> when a row showing it was first painted
 _CURSOR: dict[int, float] = {}  # frame id -> when it was first painted under the cursor
 
@@ -161,7 +168,19 @@ async def _drive(port: int, rate: int, seconds: float) -> None:
     print(sent)
 
 
-async def _live(tmp: str) -> dict:
+async def _hold(app, port: int, held: int) -> asyncio.StreamWriter:  # noqa: ANN001 - a WhiztapApp
+    """Intercept ``HELD_FILTER`` and have a second client send ``held`` frames it matches."""
+    controller = app.source.controller
+    controller.set_intercept(HELD_FILTER)
+    _, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(b"rr1-20--0--0-ss1" * held)
+    await writer.drain()
+    while len(controller.held.frames) < held:
+        await asyncio.sleep(0.01)
+    return writer
+
+
+async def _live(tmp: str, held: int = 0) -> dict:
     from whiztap.sniffer.record.record_run import RecordSettings
     from whiztap.tui.app import WhiztapApp
     from whiztap.tui.sources import LiveSource, ProxyRig
@@ -176,6 +195,7 @@ async def _live(tmp: str) -> dict:
             while app.source.recording is None or app.source.recording.proxy is None:
                 await pilot.pause(0.05)
             port = app.source.recording.proxy.port
+            holder = await _hold(app, port, held) if held else None
             backlog = 0
             driver = await asyncio.create_subprocess_exec(
                 sys.executable, "-c", f"import asyncio; from benchmarks.bench_tui import _drive; "
@@ -194,6 +214,10 @@ async def _live(tmp: str) -> dict:
             await pilot.pause(0.5)
             lags = sorted(app.lags)
             frames = app.model.store.count
+            still_held = len(app.source.controller.held.frames)
+            if holder is not None:
+                app.source.controller.release_all()
+                holder.close()
             await pilot.press("q")
             while app.is_running:
                 await pilot.pause(0.05)
@@ -202,7 +226,7 @@ async def _live(tmp: str) -> dict:
         sim.wait()
     pick = lambda q: lags[min(len(lags) - 1, int(q * len(lags)))] / 1e6  # noqa: E731
     return {"sent_requests": sent, "frames_shown": frames, "lag_p50_ms": pick(0.5), "lag_p99_ms": pick(0.99),
-            "lag_max_ms": lags[-1] / 1e6, "backlog_max": backlog, "ticks": len(lags)}
+            "lag_max_ms": lags[-1] / 1e6, "backlog_max": backlog, "ticks": len(lags), "held": still_held}
 
 
 def main() -> None:
@@ -227,6 +251,12 @@ def main() -> None:
           f"{live['frames_shown']:,} shown; longest wait from arrival to screen per tick: p50 {live['lag_p50_ms']:.0f} ms, "
           f"p99 {live['lag_p99_ms']:.0f} ms, max {live['lag_max_ms']:.0f} ms; "
           f"largest backlog {live['backlog_max']:,} reads")
+    with tempfile.TemporaryDirectory() as tmp:
+        held = asyncio.run(_live(tmp, HELD))
+    print(f"live at {2 * LIVE_RATE:,} frames/s, intercepting {HELD_FILTER} with {held['held']} frames held "
+          f"throughout: {held['frames_shown']:,} shown; p99 wait from arrival to screen per tick "
+          f"{held['lag_p99_ms']:.0f} ms (p50 {held['lag_p50_ms']:.0f} ms, max {held['lag_max_ms']:.0f} ms); "
+          f"largest backlog {held['backlog_max']:,} reads")
 
 
 if __name__ == "__main__":

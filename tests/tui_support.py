@@ -25,7 +25,7 @@ async def until(pilot, condition: Callable[[], bool], what: str = "condition") -
 async def loaded(pilot) -> None:  # noqa: ANN001
     """Until the recording is read and the list shows all of it."""
     app = pilot.app
-    await until(pilot, lambda: app.fed and app.frames.rows == len(app.frames.view) and app.frames.view.complete,
+    await until(pilot, lambda: app.fed and app.frames.store_rows == len(app.frames.view) and app.frames.view.complete,
                 "the recording to load")
     await pilot.pause()
 

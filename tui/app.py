@@ -29,9 +29,13 @@ from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.text import printable
 from whiztap.analyzer.analysis.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
 from whiztap.tui.connections import ConnectionsPane
+from whiztap.tui.controls import Controls
 from whiztap.tui.detail import DetailPane
+from whiztap.tui.faults_pane import FaultsPane
 from whiztap.tui.frame_list import FrameList
 from whiztap.tui.help import HelpScreen
+from whiztap.tui.inject import InjectScreen, target_connection
+from whiztap.tui.intercept_bar import InterceptBar
 from whiztap.tui.model import TrafficModel
 from whiztap.tui.sources import LiveSource, Source, SourceError
 from whiztap.tui.stats import StatsPane
@@ -42,6 +46,7 @@ TICK_S = 0.1  # new frames show within this (plus the time to decode them)
 LOADING_TICK_S = 0.5  # while a recording loads: each look repaints the screen, which slows the loading
 FOLLOWING_DETAIL_S = 0.5  # while following, the detail pane shows the newest frame this often
 SLOW_TICK_S = 1.0  # connections and statistics
+MIDDLE_ACTIONS = frozenset({"intercept", "inject", "faults"})  # keys of the live proxy in the middle
 JUDGE_IDLE_S = 0.05  # a filter worker with nothing to judge looks again after this
 FEED_SWITCH_S = 0.0005  # the interpreter's switch interval while a source feeds the model
 
@@ -74,6 +79,10 @@ class WhiztapApp(App):
         Binding("s", "pane('stats')", "Stats"),
         Binding("z", "wide", "Wide list"),
         Binding("r", "replay", "Replay"),
+        Binding("b", "bisect", "Bisect", show=False),
+        Binding("i", "intercept", "Intercept"),
+        Binding("I", "inject", "Inject"),
+        Binding("f", "faults", "Faults"),
         Binding("escape", "leave", show=False),
     ]
 
@@ -84,6 +93,7 @@ class WhiztapApp(App):
         self.live = source.live
         self.model = TrafficModel(getattr(source, "path", ""), checksum_rule, source.redact_passwords, limits)
         self.quit_after = quit_after
+        self.controls = Controls(source)  # the live proxy's Controller: held frames, faults, injection
         self.error: str | None = None  # why the app ended early (the CLI prints it)
         self.fed = False
         self.lags: deque[int] = deque(maxlen=10_000)  # live, per tick: ns the oldest new frame waited to show
@@ -102,9 +112,11 @@ class WhiztapApp(App):
         would look in whichever screen (help, replay) is on top."""
         store = self.model.store
         self.connections = ConnectionsPane(id="connections")
-        self.frames = FrameList(store, FrameView(store), live=self.live, id="frames")
+        self.frames = FrameList(store, FrameView(store), live=self.live, controls=self.controls, id="frames")
         self.tabs = TabbedContent(id="side")
-        self.detail = DetailPane(store, id="detail-pane")
+        self.detail = DetailPane(store, self.controls, id="detail-pane")
+        self.faults = FaultsPane(self.controls, id="faults-pane")
+        self.intercept_bar = InterceptBar(self.controls, id="intercept")
         self.stats = StatsPane(self.model, self.live, id="stats-pane")
         self.filter_bar = Input(placeholder=FILTER_HELP, id="filter")
         self.status = Static("", id="status")
@@ -117,7 +129,11 @@ class WhiztapApp(App):
                     yield self.detail
                 with TabPane("Stats", id="stats"):
                     yield self.stats
+                if self.controls.available:
+                    with TabPane("Faults", id="faults"):
+                        yield self.faults
         yield self.filter_bar
+        yield self.intercept_bar
         yield self.status
         yield Footer()
 
@@ -200,12 +216,13 @@ class WhiztapApp(App):
         self._last_sync = now
         if self.live and self.sub_title != self.source.title:
             self.sub_title = self.source.title  # a followed recording moved on to its next part
-        before = frames.rows
+        self.controls.poll()
+        before = frames.store_rows
         if frames.sync():
             self.detail.refresh_frame()
         if self._detail_due != self.detail.frame and now - self._detail_at >= FOLLOWING_DETAIL_S:
             self._show_detail()
-        if self.live and frames.rows > before:
+        if self.live and frames.store_rows > before:
             # the frame that waited longest to be shown: the first of those new now
             self.lags.append(time.time_ns() - self.model.store.t_end[frames.view[before]])
         if not self.live:
@@ -298,10 +315,12 @@ class WhiztapApp(App):
 
     # -- actions -----------------------------------------------------------------------------
 
-    MAIN_SCREEN_ACTIONS = frozenset({"filter", "connections", "pane", "wide", "replay", "leave"})
+    MAIN_SCREEN_ACTIONS = frozenset({"filter", "connections", "pane", "wide", "replay", "leave", "bisect"})
 
     def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
         """The main screen's keys do nothing while another screen (help, replay) is on top."""
+        if action in MIDDLE_ACTIONS:
+            return self.controls.available and len(self.screen_stack) == 1  # live, in the middle only
         if action in self.MAIN_SCREEN_ACTIONS and len(self.screen_stack) > 1:
             return False
         return True
@@ -339,6 +358,30 @@ class WhiztapApp(App):
         from whiztap.tui.replay_screen import open_replay
 
         open_replay(self)
+
+    def action_bisect(self) -> None:
+        """The first frame with a violation of a rule, or where two connections part (tui/bisect.py)."""
+        from whiztap.tui.bisect import open_bisect
+
+        open_bisect(self)
+
+    def action_intercept(self) -> None:
+        self.intercept_bar.open()
+
+    def action_inject(self) -> None:
+        """A frame into the selected frame's connection (or the pane's choice, or the only one open)."""
+        if self.controls.controller is None:
+            return
+        conn = target_connection(self.frames, self.chosen_conn, self.controls)
+        if conn is None:
+            self.notify("which connection? select one of its frames, or choose it in the connections pane (c)",
+                        severity="warning", timeout=4)
+            return
+        self.push_screen(InjectScreen(self.controls, conn))
+
+    def action_faults(self) -> None:
+        self.action_pane("faults")
+        self.faults.focus_table()
 
     async def action_quit(self) -> None:
         """Quit; a live recording is finished (connections closed, file indexed) first."""

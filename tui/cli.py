@@ -8,6 +8,7 @@ file, a bad address, a port in use) is one line and exit status 2.
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import click
 
@@ -15,7 +16,14 @@ from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
 from whiztap.analyzer.cli.reading import one_recording
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
-from whiztap.sniffer.cli.params import Address, check_recording_output, foxglove_option
+from whiztap.sniffer.cli.params import (
+    Address,
+    check_recording_output,
+    foxglove_option,
+    middle_given,
+    middle_options,
+    middle_settings,
+)
 
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
@@ -89,10 +97,12 @@ def _command_name() -> str:
 @click.option("--force", is_flag=True, help="Live: write over a recording of the same name (never over an input).")
 @checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
 @foxglove_option
+@middle_options
 @limits_options
 def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] | None, listen: tuple[str, int],
                 output: str | None, keep_secrets: bool, force: bool, checksum_rule: str,
-                foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int) -> None:
+                foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
+                **middle: Any) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
     recording being written.
 
@@ -102,12 +112,19 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
                                                         live, through the proxy
     whiztap tui --follow FILE.mcap.part                 follow 'whiztap record'
 
+    Live, the proxy stands in the middle: i holds frames for you to accept,
+    edit or drop, I injects one, f lists the faults in force and adds more
+    (--fault, --faults, --script start with some; docs/faults.md).
+
     Press ? in the app for its keys.
     """
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
     if foxglove is not None and upstream is None:
         fail("--foxglove serves live traffic: it goes with --upstream HOST:PORT")
+    if middle_given(**middle) and upstream is None:
+        fail("--fault, --faults, --control, --script, --seed and --hold-timeout drive the live proxy: "
+             "they go with --upstream HOST:PORT")
     rule = checksum_rule
     limits = limits_from(answer_timeout, max_frame, max_image)
     from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
@@ -125,7 +142,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
         check_recording_output(output, split=False, force=force)
         settings = RecordSettings(listen, upstream, output,
                                   keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits,
-                                  foxglove=foxglove)
+                                  foxglove=foxglove, middle=middle_settings(**middle, always=True))
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")
     from whiztap.tui.app import WhiztapApp
@@ -147,8 +164,9 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
               help="The recording to write.")
 @force_option
 @foxglove_option
+@middle_options
 def demo_command(headless: bool, seconds: float | None, output: str, force: bool,
-                 foxglove: tuple[str, int] | None) -> None:
+                 foxglove: tuple[str, int] | None, **middle: Any) -> None:
     """The whole tool on an embedded robot: the simulator, the recording proxy in
     front of it, and a scripted client using every command of the spec (with a
     few deliberate violations), shown live in the TUI and recorded.
@@ -156,21 +174,27 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
     Without a terminal (or with --headless) it runs for a few seconds and prints
     the conformance report.  Exit status 0 when the demo ran, whatever the
     report says (its violations are deliberate); 2 when it could not run.
+
+    The proxy stands in the middle, as in 'whiztap tui --upstream': --fault,
+    --faults and --script act on the demo's traffic, and the TUI's keys hold,
+    edit, drop and inject frames (docs/faults.md).
     """
     check_output(output, force=force, recording=True)
+    settings = middle_settings(**middle, always=True)
     if not headless and not (sys.stdin.isatty() and sys.stdout.isatty()):
         seconds = seconds or HEADLESS_SECONDS
         click.echo(f"whiztap demo: no terminal, so no TUI: running headless for {seconds:g} s "
                    f"(whiztap demo --headless)")
         headless = True
     if headless:
-        _headless(output, seconds or HEADLESS_SECONDS, foxglove)
+        _headless(output, seconds or HEADLESS_SECONDS, foxglove, settings)
         return
     from whiztap.tui.app import WhiztapApp
     from whiztap.tui.demo import PASSWORD, DemoRig
     from whiztap.tui.sources import LiveSource
 
-    app = WhiztapApp(LiveSource(DemoRig(output, foxglove), "demo", redact_passwords=True), quit_after=seconds)
+    app = WhiztapApp(LiveSource(DemoRig(output, foxglove, settings), "demo", redact_passwords=True),
+                     quit_after=seconds)
     app.run()
     if app.error:
         fail(app.error)
@@ -178,19 +202,22 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
         click.echo(line)
 
 
-def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None) -> None:
+def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, middle) -> None:  # noqa: ANN001 - a MiddleSettings
     import asyncio
     from pathlib import Path
 
     from whiztap.analyzer.cli.analyze import analyse_file, render
     from whiztap.analyzer.analysis.report.content import build
+    from whiztap.analyzer.mitm.spec import FaultSpecError
+    from whiztap.sniffer.mitm.scripts import ScriptError
     from whiztap.sniffer.record.feed import WriterError
+    from whiztap.sniffer.record.record_run import StartError
     from whiztap.tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
 
     try:
-        client_error = asyncio.run(run_headless(output, seconds, foxglove,
+        client_error = asyncio.run(run_headless(output, seconds, foxglove, middle,
                                                 announce=lambda url: click.echo(f"whiztap demo: foxglove: {url}")))
-    except WriterError as e:
+    except (WriterError, FaultSpecError, ScriptError, StartError) as e:
         fail(str(e))
     except OSError as e:
         fail(f"the demo could not start: {e.strerror or e}")

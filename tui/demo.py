@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 from collections.abc import Callable
 
 from whiztap.sniffer.sim.client import Client, ClientError
@@ -93,11 +94,17 @@ async def demo_client(port: int, stop: asyncio.Event) -> None:
 
 
 class DemoRig:
-    """Simulator, recording proxy and demo client: ``start()`` returns the Recording."""
+    """Simulator, recording proxy and demo client: ``start()`` returns the Recording.
 
-    def __init__(self, output: str, foxglove: tuple[str, int] | None = None) -> None:
+    The proxy always stands in the middle (``middle``, with ``always`` set),
+    so the TUI's keys can hold, edit, drop and inject the demo's frames."""
+
+    def __init__(self, output: str, foxglove: tuple[str, int] | None = None, middle=None) -> None:  # noqa: ANN001 - a MiddleSettings
+        from whiztap.sniffer.record.record_run import MiddleSettings
+
         self.output = output
         self.foxglove = foxglove  # (host, port): serve it live to the Foxglove app too
+        self.middle = dataclasses.replace(middle or MiddleSettings(), always=True)
         self.simulator = None
         self.recording = None
         self.client: asyncio.Task | None = None
@@ -111,7 +118,7 @@ class DemoRig:
         self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
         await self.simulator.start()
         self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
-                                                  quiet=True, foxglove=self.foxglove),
+                                                  quiet=True, foxglove=self.foxglove, middle=self.middle),
                                    consumers=[tap] if tap is not None else [])
         try:
             await self.recording.start()
@@ -145,11 +152,12 @@ class DemoRig:
         return summary
 
 
-async def run_headless(output: str, seconds: float, foxglove: tuple[str, int] | None = None,
+async def run_headless(output: str, seconds: float, foxglove: tuple[str, int] | None = None, middle=None,  # noqa: ANN001
                        announce: Callable[[str], None] | None = None) -> str | None:
     """The demo without a screen for ``seconds``; the client's error, if it had
-    one.  With ``foxglove``, ``announce`` is told where the Foxglove app connects."""
-    rig = DemoRig(output, foxglove)
+    one.  With ``foxglove``, ``announce`` is told where the Foxglove app
+    connects; ``middle`` (a MiddleSettings) adds faults or scripts."""
+    rig = DemoRig(output, foxglove, middle)
     recording = await rig.start(tap=None)
     if recording.foxglove_url and announce is not None:
         announce(recording.foxglove_url)

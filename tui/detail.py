@@ -28,15 +28,22 @@ from whiztap.analyzer.protocol.codec import (
     MAX_SENSOR_DATA,
     MAX_SERVO_DATA,
 )
-from whiztap.analyzer.protocol.describe import response_meaning
+from whiztap.analyzer.protocol.describe import fields, meaning, response_meaning
+from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import CameraImage
 from whiztap.analyzer.protocol.observations import Observation
 from whiztap.analyzer.protocol.rules import RULES, Violation
 from whiztap.analyzer.protocol.text import escape, printable
+from whiztap.tui.controls import Controls, HeldKey
+from whiztap.tui.marks import GLYPHS, Mark
 from whiztap.tui.store import NS, FrameStore
+from whiztap.tui.typed import TypedFrame, judge_bytes
 
 HEX_WIDTH = 8  # bytes per hex line: fits the side pane
 HEX_LINES = 128  # 1 KiB of hex; an image shows its head
+MARK_BYTES = 256  # of a frame before and after an intervention
+MARK_STYLES = {"held": "bold cyan", "injected": "bold green", "edited": "bold magenta", "dropped": "bold red",
+               "delayed": "yellow", "faulted": "bold yellow"}
 SEVERITY_STYLE = {1: "blue", 2: "yellow", 3: "bold red"}
 UNITS = {0: "servo", 1: "switch", 2: "sensor"}
 
@@ -79,7 +86,7 @@ def _data_range(observation_as: str | None) -> str:
     return f"0-{MAX_SENSOR_DATA} sensor, 0-{MAX_SERVO_DATA} servo"
 
 
-def _field_rows(values: dict[str, Any], answered_as: str | None) -> list[tuple[str, str, str]]:
+def field_rows(values: dict[str, Any], answered_as: str | None) -> list[tuple[str, str, str]]:
     rows: list[tuple[str, str, str]] = []
     title = values.get("message", "")
     for name, value in values.items():
@@ -130,15 +137,19 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
         paired_latency = abs(store.t_end[n] - store.t_end[paired]) if paired >= 0 else 0
         conn = store.conn[n]
         relative = store.relative_s(n)
+        marks = list(store.marks.get(n, ()))
+        secret = store.redact_passwords and obs.item.kind is ItemKind.PASSWORD
     parts: list[RenderableType] = [_heading(obs, meaning, conn, relative)]
     if obs.message is None and obs.candidates:
         parts.append(Text(printable("may mean: " + " / ".join(c.describe() for c in obs.candidates)),
                           style="yellow"))
-    rows = _field_rows(values, response_meaning(obs))
+    rows = field_rows(values, response_meaning(obs))
     if rows:
-        parts.append(_fields_table(rows))
+        parts.append(fields_table(rows))
     if obs.violations:
-        parts.append(_violations_text(obs.violations))
+        parts.append(violations_text(obs.violations))
+    if marks:
+        parts.append(marks_text(marks, secret))
     if paired >= 0:
         pairing = Text("Pairing\n", style="bold")
         what = "answers" if obs.direction.sender == "server" else "answered by"
@@ -163,7 +174,7 @@ def _heading(obs: Observation, meaning: str, conn: int, relative: float) -> Text
     return head
 
 
-def _fields_table(rows: list[tuple[str, str, str]]) -> Table:
+def fields_table(rows: list[tuple[str, str, str]]) -> Table:
     table = Table(title="Fields", title_justify="left", expand=True, show_edge=False, pad_edge=False)
     table.add_column("field", style="cyan", no_wrap=True)
     table.add_column("value")
@@ -173,7 +184,7 @@ def _fields_table(rows: list[tuple[str, str, str]]) -> Table:
     return table
 
 
-def _violations_text(found: Iterable[Violation]) -> Text:
+def violations_text(found: Iterable[Violation]) -> Text:
     violations = Text("Violations\n", style="bold")
     for v in found:
         rule = RULES[v.rule_id]
@@ -181,6 +192,61 @@ def _violations_text(found: Iterable[Violation]) -> Text:
         violations.append(f" ({rule.severity}, {rule.section})\n", style="dim")
         violations.append(f"  {rule.summary}\n  {printable(v.detail)}\n")
     return violations
+
+
+def marks_text(marks: list[Mark], secret: bool = False) -> Text:
+    """What the proxy in the middle did to the frame, each thing on its own:
+    the kind (as the list's glyph), the action and its cause, the frame before
+    and after as escaped text, and how (a delay's length, a hold's number)."""
+    text = Text("What the proxy did\n", style="bold")
+    for mark in marks:
+        text.append(f"{GLYPHS[mark.kind]} {mark.action}", style=MARK_STYLES[mark.kind])
+        text.append(f"  {printable(mark.cause)}\n")
+        for label, data in (("before", mark.before), ("after", mark.after)):
+            shown = "<redacted>" if secret and data else escape(data[:MARK_BYTES]) if data else "(nothing)"
+            text.append(f"  {label:<7}", style="dim")
+            text.append(shown + ("…" if len(data) > MARK_BYTES else "") + "\n")
+        if mark.detail:
+            text.append(f"  {printable(mark.detail)}\n", style="dim")
+    return text
+
+
+def describe_typed(typed: TypedFrame) -> RenderableType:
+    """A typed frame as the dialogs show it beside the text: what it means,
+    its bytes and fields, and the rules it breaks (or that it breaks none)."""
+    if typed.data is None:
+        hint = "type a frame: escaped text (rr1-12--0--0-ss1) or console words (sensor 12, servo 3 1500)"
+        return Text(printable(typed.error or hint), style="bold red" if typed.error else "dim")
+    parts: list[RenderableType] = []
+    obs = typed.observation
+    if obs is not None:
+        parts.append(Text(printable(meaning(obs)), style="bold"))
+    shown = Text(f"{len(typed.data)} bytes: ", style="dim")
+    shown.append(escape(typed.data[:1024]) + ("…" if len(typed.data) > 1024 else ""), style="bold")
+    parts.append(shown)
+    rows = field_rows(fields(obs), None) if obs is not None else []
+    if rows:
+        parts.append(fields_table(rows))
+    if typed.error:
+        parts.append(Text(printable(typed.error), style="bold red"))
+    elif typed.violations:
+        parts.append(violations_text(typed.violations))
+    else:
+        parts.append(Text("Breaks no rule (judged alone: the handshake, the channel map and the pairing "
+                          "need the session)", style="green"))
+    return Group(*parts)
+
+
+def describe_held(held: Any, now_ns: int, checksum_rule: str) -> RenderableType:
+    """A frame the proxy holds (a ``Held``): where it goes, why it waits, the
+    keys that let it go, and the frame as the editor would judge it."""
+    state = held.as_dict(now_ns)
+    sender = held.direction.sender
+    head = Text(f"Held #{held.id}, waiting {state['waited_s']:.1f} s", style="bold cyan")
+    head.append("\n" + printable(f"conn #{held.conn}, {sender} → {'server' if sender == 'client' else 'client'}, "
+                                  f"{state['kind']}; {state['cause']}"), style="dim")
+    head.append("\na accept · x drop · e edit · A accept all", style="bold")
+    return Group(head, describe_typed(judge_bytes(held.data, held.direction, checksum_rule)))
 
 
 def _bytes_parts(kept: bytes, size: int) -> list[RenderableType]:
@@ -201,21 +267,34 @@ class DetailPane(VerticalScroll):
     DetailPane > Static { width: 100%; }
     """
 
-    def __init__(self, store: FrameStore, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, store: FrameStore, controls: Controls | None = None, *, id: str | None = None) -> None:  # noqa: A002
         super().__init__(id=id)
         self.store = store
-        self.frame: int | None = None
+        self.controls = controls
+        self.frame: int | HeldKey | None = None
 
     def compose(self):  # noqa: ANN201
         yield Static("No frame yet.", id="detail-body")
 
-    def show(self, frame: int | None) -> None:
+    def show(self, frame: int | HeldKey | None) -> None:
+        """Show a stored frame, or a frame the proxy holds (the list's rows after its own)."""
         if frame == self.frame:
             return
         self.frame = frame
         body = self.query_one("#detail-body", Static)
-        body.update("No frame yet." if frame is None else describe_frame(self.store, frame))
+        body.update(self._describe(frame))
         self.scroll_home(animate=False)
+
+    def _describe(self, frame: int | HeldKey | None) -> RenderableType:
+        if frame is None:
+            return "No frame yet."
+        if not isinstance(frame, HeldKey):
+            return describe_frame(self.store, frame)
+        controls = self.controls
+        held = controls.find(frame.id) if controls is not None else None
+        if held is None or controls is None:
+            return Text(f"Held #{frame.id} has been let go.")
+        return describe_held(held, controls.now_ns, controls.checksum_rule)
 
     def refresh_frame(self) -> None:
         """Show the frame again: a late violation may have marked it."""

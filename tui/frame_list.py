@@ -9,15 +9,26 @@ A line is built from the store only when it comes into view (and then kept in
 the strip cache, keyed by frame id: a frame's line never changes, except when
 a late violation marks it).  Besides moving, the list jumps to the next or
 previous violation in view (n / N) and to a frame's paired request or response (p).
+
+Live, with the proxy in the middle, the frames it holds for a person follow
+the view's rows: they are not in the store until delivered, so they are
+pseudo-rows drawn from the Controller's held frames (``Controls``, polled each
+tick), each with how long it has waited; the border's title counts them.  On
+one, ``a`` lets it go, ``x`` drops it, ``e`` edits it; ``A`` lets every one go.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 from rich.style import Style
+from rich.text import Text
 from textual.binding import Binding
 
 from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.protocol.text import escape
+from whiztap.analyzer.protocol.text import escape, printable
+from whiztap.tui.controls import Controls, HeldKey
+from whiztap.tui.held import HeldActions
 from whiztap.tui.marks import GLYPHS, MARK_KINDS, worst
 from whiztap.tui.store import FrameStore
 from whiztap.tui.view import FrameView
@@ -28,13 +39,26 @@ MARKS = {0: " ", 1: "·", 2: "▲", 3: "●"}
 SEVERITY_CLASS = {1: "framelist--info", 2: "framelist--warning", 3: "framelist--error"}
 
 
-class FrameList(VirtualList):
-    """Rows of a FrameView; the cursor's frame is the one the detail pane shows."""
+def _bytes_text(raw: bytes, size: int) -> str:
+    """A frame's bytes escaped, cut to the column's width."""
+    text = escape(raw[:BYTES_WIDTH])
+    if len(text) > BYTES_WIDTH or size > BYTES_WIDTH:
+        text = text[:BYTES_WIDTH - 1] + "…"
+    return text
+
+
+class FrameList(HeldActions, VirtualList):
+    """Rows of a FrameView, then the frames held at the proxy; the cursor's
+    frame is the one the detail pane shows."""
 
     BINDINGS = [
         Binding("n", "violation(1)", "Next violation"),
         Binding("N", "violation(-1)", "Prev violation"),
         Binding("p", "pair", "Paired frame"),
+        Binding("a", "accept", "Accept held"),
+        Binding("x", "drop", "Drop held"),
+        Binding("e", "edit", "Edit held"),
+        Binding("A", "accept_all", "Accept all held"),
     ]
     COMPONENT_CLASSES = {
         "framelist--time", "framelist--conn", "framelist--c2s", "framelist--s2c", "framelist--kind",
@@ -61,24 +85,43 @@ class FrameList(VirtualList):
     }
     """
 
-    def __init__(self, store: FrameStore, view: FrameView, *, live: bool, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, store: FrameStore, view: FrameView, *, live: bool, controls: Controls | None = None,
+                 id: str | None = None) -> None:  # noqa: A002
         super().__init__(id=id)
         self.store = store
         self.view = view
+        self.controls = controls
         self.counts_new = live
         self._late_seen = 0
         self._marks_seen = 0
+        # as of the last row count: rows are read against these until the next
+        # one, however the view and the held frames changed meanwhile
+        self.store_rows = 0  # the view's rows
+        self._held: list[Any] = []
+        self._title: tuple[str, int] = ("", 0)
+        self._held_bindings = (False, False)  # (on a held frame, any held): the footer's keys
 
     def row_count(self) -> int:
-        return len(self.view)
+        self.store_rows = len(self.view)
+        self._held = self.controls.held if self.controls is not None else []
+        return self.store_rows + len(self._held)
 
-    def row_key(self, row: int) -> int:
-        return self.view[row]
+    def row_key(self, row: int) -> int | HeldKey:
+        if row < self.store_rows:
+            return self.view[row]
+        return self.controls.key(self._held[row - self.store_rows])  # type: ignore[union-attr]
 
     @property
     def frame(self) -> int | None:
-        """The frame under the cursor."""
-        return self.current  # type: ignore[return-value]
+        """The stored frame under the cursor (None on a held frame)."""
+        key = self.current
+        return key if isinstance(key, int) else None
+
+    @property
+    def held_frame(self) -> Any:
+        """The held frame (a Controller's ``Held``) under the cursor, or None."""
+        at = self.cursor - self.store_rows
+        return self._held[at] if 0 <= at < len(self._held) else None
 
     def set_view(self, view: FrameView) -> None:
         """Show another view, keeping the cursor on the same frame (or the next one)."""
@@ -93,14 +136,50 @@ class FrameList(VirtualList):
         if changed:
             self._late_seen, self._marks_seen = marked, middle
             self.clear_strips()
+        was_held, on = bool(self._held), self.current
         super().sync()
+        if self._held or was_held:
+            if isinstance(on, HeldKey) and not self.tail:
+                self._stay_on(on.id)
+            self.refresh()  # the held rows show how long they have waited
+        self.show_held()
         return changed
+
+    def _stay_on(self, held_id: int) -> None:
+        """Keep the cursor on the held frame it was on, as rows come before it."""
+        for at, held in enumerate(self._held):
+            if held.id == held_id:
+                if self.store_rows + at != self.cursor:
+                    self._place(self.store_rows + at)
+                return
+
+    def show_held(self) -> None:
+        """The border's title: the intercept filter in force and how many frames wait;
+        the footer: the keys that let them go."""
+        intercept = self.controls.intercept if self.controls is not None else ""
+        title = (intercept, len(self._held))
+        if title != self._title:
+            self._title = title
+            text = "Frames"
+            if intercept:
+                text += f" · intercepting {printable(intercept)}"
+            if self._held:
+                text += f" · {len(self._held)} held"
+            self.border_title = Text(text)  # the filter's words: never markup
+        state = (self.held_frame is not None, bool(self._held))
+        if state != self._held_bindings:
+            self._held_bindings = state
+            self.refresh_bindings()
+
+    def on_virtual_list_moved(self, message: VirtualList.Moved) -> None:
+        """On or off a held frame: the footer shows or hides its keys (the message goes on to the app)."""
+        self.show_held()
 
     # -- jumps ------------------------------------------------------------------------------------
 
     def _jump(self, frame: int) -> bool:
         row = self.view.row_of(frame)
-        if row < self.rows and self.view[row] == frame:
+        if row < min(self.rows, self.store_rows) and self.view[row] == frame:
             self.move_to(row)
             return True
         return False
@@ -127,14 +206,14 @@ class FrameList(VirtualList):
     # -- rendering --------------------------------------------------------------------------------
 
     def row_cells(self, row: int) -> list[tuple[str, Style]]:
+        if row >= self.store_rows:
+            return self._held_cells(self._held[row - self.store_rows])
         n = self.view[row]
         store = self.store
         style = self.get_component_rich_style
         severity = store.severity(n)
         c2s = store.direction(n) is Direction.C2S
-        text = escape(store.raw(n)[:BYTES_WIDTH])
-        if len(text) > BYTES_WIDTH or store.size(n) > BYTES_WIDTH:
-            text = text[:BYTES_WIDTH - 1] + "…"
+        text = _bytes_text(store.raw(n), store.size(n))
         mark = style(SEVERITY_CLASS[severity]) if severity else Style()
         marks = store.marks.get(n)
         if marks:  # what the proxy in the middle did to it: a glyph and a colour per kind
@@ -150,4 +229,22 @@ class FrameList(VirtualList):
             (f"{store.kind(n):<10} ", style("framelist--kind")),
             (f"{text:<{BYTES_WIDTH}} ", style("framelist--bytes")),
             (store.meaning(n), mark if severity >= 2 else Style()),
+        ]
+
+    def _held_cells(self, held: Any) -> list[tuple[str, Style]]:
+        """A frame waiting at the proxy: where the time goes, that it is held;
+        where the meaning goes, its number and how long it has waited."""
+        style = self.get_component_rich_style
+        state = held.as_dict(self.controls.now_ns)  # type: ignore[union-attr]
+        c2s = held.direction is Direction.C2S
+        waiting = style("framelist--held")
+        return [
+            ("  ", Style()),
+            (f"{GLYPHS['held']} held".rjust(11) + " ", waiting),
+            (f"#{held.conn:<3} ", style("framelist--conn")),
+            ("→ " if c2s else "← ", style("framelist--c2s" if c2s else "framelist--s2c")),
+            (f"{state['kind']:<10} ", style("framelist--kind")),
+            (f"{_bytes_text(held.data, len(held.data)):<{BYTES_WIDTH}} ", style("framelist--bytes")),
+            (f"#{held.id} waiting {state['waited_s']:.1f} s: ", waiting),
+            (state["meaning"], Style()),
         ]

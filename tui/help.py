@@ -34,6 +34,32 @@ they pass.  A mark before a frame means it breaks a rule: **●** error,
 - `Tab`: next pane
 - `?`: this help (`Esc` closes it)
 - `q` (`Ctrl+q` in a text field): quit; a live recording is finished first
+- `b`: bisect: a rule id (`PW-PAIR-UNANSWERED`), a family (`PW-PAIR`) or a severity (`error`)
+  goes to the first frame in view with such a violation; two connections (`1 2`) show where they
+  first differ, side by side (`Esc` returns on the first's frame there)
+
+## The proxy in the middle (live and `whiztap demo`)
+
+The same control layer as `whiztap ctl` (docs/faults.md); what the proxy did
+shows as a glyph before the time (⏸ held, + injected, ✎ edited, ✗ dropped,
+⏱ delayed, ⚡ faulted) and in the detail pane, and the filter words `held`,
+`injected`, `edited`, `dropped`, `delayed`, `faulted` select those frames.
+
+- `i`: intercept: hold the frames these filter words choose (`Enter` sets it; empty holds nothing
+  more; `Esc` leaves it).  Held frames wait after the list's rows, with how long they have waited;
+  the list's title counts them
+- on a held frame: `a` let it go as it is, `x` drop it, `e` edit it; `A` let every held frame go
+- `e`, the editor: the frame as escaped text (or console words, `sensor 13`), its fields and the
+  rules it breaks beside it as you type; `Enter` lets it go as typed (a frame that breaks a rule
+  asks once: `Enter` again sends it anyway); `Esc` leaves it held
+- `I`: inject a frame into the selected frame's connection (or the one chosen with `c`): escaped
+  text or console words (`sensor 12`, `servo 3 1500`), judged as you type; `Ctrl+T` toward the
+  server or the client; `↑` / `↓` what was injected before; `Enter` sends (asks once before
+  breaking a rule)
+- `f`: the faults pane: the faults in force and the frames each has hit.  In it `a` adds one (a
+  SPEC such as `drop dir:s2c kind:response every:2`; `Right` or `Tab` completes a word, the error
+  shows as you type, `Enter` applies it), `d` removes the selected fault, `space` switches it off
+  and on, `Esc` leaves the line, then the pane
 
 ## Modes
 

@@ -74,10 +74,18 @@ class MiddleView:
     def _attach(self, n: int, pending: list[Mark]) -> None:
         """A request the server received: the waiting marks that made it."""
         raw = self.store.raw(n)
-        mine = [m for m in pending if m.after == raw or (m.action == "dup" and m.before == raw)]
+        mine: list[Mark] = []
+        causes: set[str] = set()
+        for m in pending:  # one mark per cause: the oldest, as frames with the same bytes go out in order
+            if m.action != "hold" and m.cause not in causes and \
+                    (m.after == raw or (m.action == "dup" and m.before == raw)):
+                mine.append(m)
+                causes.add(m.cause)
+        # a hold goes with the frame its release (or edit) went out as, by its number: held frames
+        # with the same bytes are let go in any order
         held = {m.cause[m.cause.index(_HELD):] for m in mine if _HELD in m.cause}
-        mine += [m for m in pending if m.action == "hold" and any(f"(held #{m.detail.rsplit('#', 1)[-1]})" == h
-                                                                  for h in held)]
+        mine += [m for m in pending if m.action == "hold" and f"(held #{m.detail.rsplit('#', 1)[-1]})" in held]
+        mine.sort(key=lambda m: m.t_ns)
         for mark in mine:
             self.store.mark(n, mark)
             pending.remove(mark)

@@ -10,6 +10,7 @@ where the proxy lives.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import gc
 import os
 import threading
@@ -23,7 +24,7 @@ from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, made_in_the_middle
 from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
 from whiztap.analyzer.recording.redaction import Redactor
-from whiztap.analyzer.traffic import Continued, Data, RecordingStopped, TrafficEvent
+from whiztap.analyzer.traffic import Closed, Continued, Data, RecordingStopped, TrafficEvent
 from whiztap.tui.model import TrafficModel
 
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
@@ -202,10 +203,12 @@ class Rig(Protocol):
 
 
 class ProxyRig:
-    """The recording proxy alone, in front of an upstream server."""
+    """The recording proxy alone, in front of an upstream server, always in
+    the middle (its ``MiddleSettings`` get ``always``): the TUI's keys drive
+    its Controller, as ``whiztap ctl`` does."""
 
     def __init__(self, settings) -> None:  # noqa: ANN001 - whiztap.sniffer.record.record_run.RecordSettings
-        self.settings = settings
+        self.settings = dataclasses.replace(settings, middle=dataclasses.replace(settings.middle, always=True))
         self.output = settings.output
         self.recording = None
 
@@ -243,17 +246,25 @@ class LiveSource:
         self._watcher: asyncio.Task | None = None
 
     @property
+    def controller(self):  # noqa: ANN201 - a whiztap.sniffer.mitm.controller.Controller, or None before start
+        """The proxy's control layer (faults, interception, injection), once started."""
+        return self.recording.controller if self.recording is not None else None
+
+    @property
     def backlog(self) -> int:
         """Reads and events the proxy passed on that the model has not taken yet."""
         return len(self.queue)
 
     async def start(self) -> None:
         """Start the proxy (and whatever the rig runs with it); raises SourceError."""
+        from whiztap.analyzer.mitm.spec import FaultSpecError
+        from whiztap.sniffer.mitm.scripts import ScriptError
         from whiztap.sniffer.record.feed import WriterError
+        from whiztap.sniffer.record.record_run import StartError
 
         try:
             self.recording = await self.rig.start(Tap(self.queue))
-        except WriterError as e:
+        except (WriterError, FaultSpecError, ScriptError, StartError) as e:
             raise SourceError(str(e)) from None
         except OSError as e:
             raise SourceError(f"cannot listen: {e.strerror or e}") from None
@@ -261,6 +272,8 @@ class LiveSource:
         self.title = f"{self.title}: {proxy.listen_text} -> {proxy.upstream_text}, recording {self.rig.output}"
         if self.recording.foxglove_url:
             self.title += f", foxglove {self.recording.foxglove_url}"
+        if self.recording.control_url:
+            self.title += f", control {self.recording.control_url}"
         self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
 
     async def _watch_writer(self) -> None:
@@ -314,33 +327,47 @@ class _Plain:
 class _Redacting:
     """The tap's events into the model through the recorder's redaction: held
     while undecided (at most ``HOLD_LIMIT_S``, as in the writer), then masked
-    or shown."""
+    or shown.
+
+    One Redactor per connection, not one for all as the file has: the file
+    keeps every stream in one order, the screen needs each connection's only,
+    and with one queue a connection whose first request the proxy holds (so
+    its server has said nothing that decides whether a password comes) kept
+    every other connection off the screen for those two seconds."""
 
     def __init__(self, model: TrafficModel) -> None:
         self.model = model
-        self.redactor: Redactor[TrafficEvent] = Redactor()
+        self.redactors: dict[int, Redactor[TrafficEvent]] = {}
 
     def __call__(self, event: TrafficEvent) -> None:
-        redactor = self.redactor
+        conn = event.conn
+        redactor = self.redactors.get(conn)
+        if redactor is None:
+            redactor = self.redactors[conn] = Redactor()
         if type(event) is Data:
-            redactor.read(event.conn, event.direction, event.data, event, time.monotonic())
+            redactor.read(conn, event.direction, event.data, event, time.monotonic())
         else:
             redactor.tell(event)  # type: ignore[arg-type]
-            redactor.event(event.conn, event)
-        self._release()
+            redactor.event(conn, event)
+        self._release(redactor)
+        if type(event) is Closed and redactor.idle:
+            del self.redactors[conn]
 
     def idle(self) -> None:
         """Nothing new came: let what was held too long out, masked."""
-        self.redactor.tick(time.monotonic())
-        self._release()
+        now = time.monotonic()
+        for redactor in list(self.redactors.values()):
+            redactor.tick(now)
+            self._release(redactor)
 
     def finish(self) -> None:
-        self.redactor.finish()
-        self._release()
+        for redactor in self.redactors.values():
+            redactor.finish()
+            self._release(redactor)
 
-    def _release(self) -> None:
+    def _release(self, redactor: Redactor[TrafficEvent]) -> None:
         receive = self.model.receive
-        for r in self.redactor.released():
+        for r in redactor.released():
             receive(r.record if r.direction is None else r.record._replace(data=r.data))
 
 

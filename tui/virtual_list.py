@@ -113,7 +113,8 @@ class VirtualList(ScrollView, can_focus=True):
         self.refresh()
 
     def sync(self) -> None:
-        """Take in rows that arrived since the last look."""
+        """Take in rows that arrived since the last look (or went: a subclass's
+        rows after the data's own, such as frames held at the proxy)."""
         rows = self.row_count()
         if rows == self.rows:
             return
@@ -122,10 +123,10 @@ class VirtualList(ScrollView, can_focus=True):
         if self.tail:
             self._follow()
         else:
-            self.new_rows += rows - before
-            if before == 0:
-                self._place(0)
-            if before < self.scroll_offset.y + self.size.height:
+            self.new_rows = max(0, self.new_rows + rows - before)
+            if before == 0 or self.cursor >= rows:
+                self._place(min(self.cursor, rows - 1) if before else 0)
+            if min(before, rows) < self.scroll_offset.y + self.size.height:
                 self.refresh()
         self._update_subtitle()
 

@@ -36,6 +36,7 @@ class Address(click.ParamType):
 
 
 FOXGLOVE_DEFAULT = "127.0.0.1:8765"
+HOLD_TIMEOUT_S = 60.0  # a held frame nobody acts on goes on as it is after this
 
 
 def foxglove_option(f: Callable) -> Callable:
@@ -112,8 +113,26 @@ def middle_options(f: Callable) -> Callable:
         click.option("--script", "scripts", type=click.Path(dir_okay=False), multiple=True, metavar="FILE.py",
                      help="Hooks (frame, opened, closed) that may pass, drop, replace, delay or inject."),
         click.option("--seed", type=int, default=None, help="Seed for prob:, jitter: and slice ranges."),
-        click.option("--hold-timeout", type=click.FloatRange(min=0.01), default=60.0, show_default=True,
+        click.option("--hold-timeout", type=click.FloatRange(min=0.01), default=HOLD_TIMEOUT_S, show_default=True,
                      metavar="SECONDS", help="Release a held frame as it is after this long."),
     ]):
         f = option(f)
     return f
+
+
+def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: tuple[str, int] | None,
+                    scripts: tuple[str, ...], seed: int | None, hold_timeout: float,
+                    always: bool = False):  # noqa: ANN201 - a MiddleSettings, imported lazily
+    """The ``middle_options`` as the recording's MiddleSettings; ``always``
+    puts the proxy in the middle even with none of them given (the TUI's live
+    mode and the demo, whose keys drive it)."""
+    from whiztap.sniffer.record.record_run import MiddleSettings
+
+    return MiddleSettings(tuple(faults), tuple(fault_files), control, tuple(scripts), seed, hold_timeout, always)
+
+
+def middle_given(faults: tuple, fault_files: tuple[str, ...], control: tuple[str, int] | None,
+                 scripts: tuple[str, ...], seed: int | None, hold_timeout: float) -> bool:
+    """Whether any of the ``middle_options`` was given (a command that takes
+    them only in one of its modes refuses them in the others)."""
+    return bool(faults or fault_files or control or scripts or seed is not None or hold_timeout != HOLD_TIMEOUT_S)

@@ -20,6 +20,7 @@ from whiztap.sniffer.cli.params import (
     check_recording_output,
     foxglove_option,
     middle_options,
+    middle_settings,
     recording_options,
 )
 from whiztap.sniffer.cli.run import run, stop_signals
@@ -41,13 +42,16 @@ from whiztap.sniffer.record.summary import summary_lines
               help="When the recording falls behind the traffic, the connections causing it: pause them "
                    "(the recording stays complete), or keep them flowing and record a gap event "
                    "with the count of bytes left out.")
+@click.option("--meta", "meta", multiple=True, metavar="KEY=VALUE",
+              help="Write this key into the recording's metadata (robot=r7, firmware=2.3), for "
+                   "'whiztap analyze --group-by KEY'; repeatable.")
 @foxglove_option
 @middle_options
 @limits_options
 def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: str, split_size: int | None,
                    split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool, analyze: bool,
-                   connect_timeout: float, when_behind: str, foxglove: tuple[str, int] | None, answer_timeout: float,
-                   max_frame: int, max_image: int, **middle: Any) -> None:
+                   connect_timeout: float, when_behind: str, meta: tuple[str, ...], foxglove: tuple[str, int] | None,
+                   answer_timeout: float, max_frame: int, max_image: int, **middle: Any) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -61,13 +65,19 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
     asked, records every change on /interventions and what each side
     received on /tcp/delivered (docs/faults.md).
     """
+    from whiztap.sniffer.record.metadata import MetadataError, user_metadata
+
+    try:
+        keys = user_metadata(meta)
+    except MetadataError as e:
+        fail(str(e))
     check_recording_output(output, split_size is not None or split_duration is not None, force)
     from whiztap.sniffer.record.record_run import RecordSettings
 
     settings = RecordSettings(listen, upstream, output, split_size, split_duration, keep_secrets, checksum_rule,
                               quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
                               overwrite=force, when_behind=when_behind, foxglove=foxglove,
-                              middle=middle_settings(**middle))
+                              middle=middle_settings(**middle), meta=tuple(keys.items()))
     error = run(_record(settings))
     if error:
         fail(error)
@@ -104,14 +114,6 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     return recording.error
 
 
-def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: tuple[str, int] | None,
-                    scripts: tuple[str, ...], seed: int | None, hold_timeout: float):  # noqa: ANN201 - lazily imported type
-    """The ``middle_options`` as the recording's MiddleSettings."""
-    from whiztap.sniffer.record.record_run import MiddleSettings
-
-    return MiddleSettings(tuple(faults), tuple(fault_files), control, tuple(scripts), seed, hold_timeout)
-
-
 @click.command("recover")
 @click.argument("path", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
@@ -139,7 +141,8 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
 @click.option("--pcap", "pcap", type=click.Path(dir_okay=False), default=None,
               help="Read a capture file (pcap or pcapng) made by tcpdump or Wireshark.")
 @click.option("--iface", default=None, help="Capture live on this interface (needs root or CAP_NET_RAW).")
-@click.option("--port", type=click.IntRange(1, 65535), required=True, help="The server's TCP port.")
+@click.option("--port", type=click.IntRange(1, 65535), default=None,
+              help="The server's TCP port (default: find Progwhiz conversations on any port by their content).")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
 @recording_options
 @click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
@@ -147,7 +150,7 @@ def recover_command(path: str, output: str | None, force: bool) -> None:
 @click.option("--timeout", type=click.FloatRange(min=0.01), default=None, metavar="SECONDS",
               help="Live: stop after this long.")
 @limits_options
-def capture_command(pcap: str | None, iface: str | None, port: int, output: str, split_size: int | None,
+def capture_command(pcap: str | None, iface: str | None, port: int | None, output: str, split_size: int | None,
                     split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool,
                     force: bool, count: int | None, timeout: float | None, answer_timeout: float, max_frame: int,
                     max_image: int) -> None:
@@ -157,6 +160,11 @@ def capture_command(pcap: str | None, iface: str | None, port: int, output: str,
     (retransmissions and reordering handled; bytes missing from the capture are
     recorded as gap events, never filled in) and written in the same layout as
     'whiztap record'.
+
+    Without --port, every TCP conversation whose first bytes are Progwhiz (a
+    frame header such as rr1- or cr1-, or a handshake word such as
+    sendchkpass) is recorded, whatever its port; the side that sent them tells
+    which is the server (docs/wireshark.md).
     """
     if (pcap is None) == (iface is None):
         fail("give exactly one of --pcap FILE or --iface NAME")

@@ -69,6 +69,8 @@ class RecordSettings:
     # (host, port): also serve the recording live to the Foxglove app (sniffer/record/live.py); port 0 picks one
     foxglove: tuple[str, int] | None = None
     middle: MiddleSettings = MiddleSettings()
+    # the user's own metadata keys (--meta KEY=VALUE, already checked by user_metadata), for fleet reports
+    meta: tuple[tuple[str, str], ...] = ()
 
 
 class Recording:
@@ -124,7 +126,7 @@ class Recording:
         listen = proxy.listen_text
         metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
                                  upstream=proxy.upstream_text, split_size=s.split_size,
-                                 split_duration=s.split_duration, **self._middle_metadata())
+                                 split_duration=s.split_duration, user=dict(s.meta), **self._middle_metadata())
         config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
                   "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
                   "limits": s.limits.as_dict(),

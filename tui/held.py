@@ -1,0 +1,69 @@
+"""What the frame list's keys do to a frame the proxy holds.
+
+``a`` lets the frame under the cursor go as it is, ``x`` drops it, ``e`` opens
+it in the editor, ``A`` lets every held frame go: through the Controller, as
+``whiztap ctl release``, ``drop`` and ``release-all`` do, so the recording
+says the same whichever was used.  The keys show in the footer only where they
+act (on a held frame; ``A`` while any is held).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from whiztap.sniffer.mitm.controller import ControlError
+from whiztap.tui.controls import Controls
+from whiztap.tui.editor import EditorScreen
+
+_ON_HELD = frozenset({"accept", "drop", "edit"})
+
+
+class HeldActions:
+    """The held frames' keys, mixed into the frame list (which has
+    ``controls``, ``held_frame``, ``sync`` and a widget's ``notify``)."""
+
+    controls: Controls | None
+    held_frame: Any
+
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        if action in _ON_HELD:
+            return self.held_frame is not None
+        if action == "accept_all":
+            return bool(self.controls is not None and self.controls.held)
+        return super().check_action(action, parameters)  # type: ignore[misc]
+
+    def _let_go(self, how: Callable[[Any, int], object], done: str) -> None:
+        held = self.held_frame
+        if held is None or self.controls is None:
+            return
+        try:
+            how(self.controls.controller, held.id)
+        except ControlError as e:
+            self.notify(str(e), severity="error", timeout=5, markup=False)  # type: ignore[attr-defined]
+            return
+        self.notify(f"held #{held.id} {done}", timeout=2, markup=False)  # type: ignore[attr-defined]
+        self._taken_in()
+
+    def _taken_in(self) -> None:
+        """Show the change now, not at the next tick."""
+        self.controls.poll()  # type: ignore[union-attr]
+        self.sync()  # type: ignore[attr-defined]
+
+    def action_accept(self) -> None:
+        self._let_go(lambda controller, held_id: controller.release(held_id), "let go as it was")
+
+    def action_drop(self) -> None:
+        self._let_go(lambda controller, held_id: controller.drop(held_id), "dropped")
+
+    def action_accept_all(self) -> None:
+        if self.controls is None or self.controls.controller is None:
+            return
+        released = self.controls.controller.release_all()
+        self.notify(f"{released} held frame(s) let go", timeout=2)  # type: ignore[attr-defined]
+        self._taken_in()
+
+    def action_edit(self) -> None:
+        held = self.held_frame
+        if held is not None and self.controls is not None:
+            self.app.push_screen(EditorScreen(self.controls, held))  # type: ignore[attr-defined]

@@ -1,0 +1,62 @@
+"""``i``: the intercept filter, typed like the filter bar, in the filter bar's words.
+
+From Enter on, every frame the words choose waits at the proxy for a person
+(``Controller.set_intercept``, as ``whiztap ctl intercept`` sets it); an empty
+line holds nothing more (frames held already stay held).  A filter that does
+not parse is reported and the one in force stays.
+"""
+
+from __future__ import annotations
+
+from rich.text import Text
+from textual import on
+from textual.binding import Binding
+from textual.widgets import Input
+
+from whiztap.analyzer.analysis.item_filter import FILTER_HELP
+from whiztap.sniffer.mitm.controller import ControlError
+from whiztap.tui.controls import Controls
+
+
+class InterceptBar(Input):
+    BINDINGS = [Binding("escape", "close", "Leave", show=False)]
+    DEFAULT_CSS = """
+    InterceptBar { display: none; border: round $warning; }
+    InterceptBar.shown { display: block; }
+    """
+
+    def __init__(self, controls: Controls, *, id: str | None = None) -> None:  # noqa: A002
+        super().__init__(placeholder=FILTER_HELP, id=id)
+        self.controls = controls
+        self.border_title = Text("Intercept: hold the frames these words choose (Enter sets; empty holds nothing)")
+
+    def open(self) -> None:
+        """Show the filter in force, ready to be changed."""
+        controller = self.controls.controller
+        if controller is None:
+            self.notify("the proxy is not running yet", severity="warning", timeout=3)
+            return
+        self.value = controller.intercept.text
+        self.add_class("shown")
+        self.focus()
+
+    @on(Input.Submitted)
+    def _set(self, event: Input.Submitted) -> None:
+        event.stop()
+        text = event.value.strip()
+        try:
+            self.controls.controller.set_intercept(text)
+        except ControlError as e:
+            self.notify(str(e), severity="error", timeout=6, markup=False)
+            return
+        if text:
+            self.notify(f"intercepting {text}: a lets a held frame go, x drops it, e edits it", timeout=4,
+                        markup=False)
+        else:
+            self.notify("intercept off: nothing more is held", timeout=3)
+        self.controls.poll()
+        self.action_close()
+
+    def action_close(self) -> None:
+        self.remove_class("shown")
+        self.app.action_leave()  # type: ignore[attr-defined]
