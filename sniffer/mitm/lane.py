@@ -11,8 +11,9 @@ for the verdict), bytes that stay incomplete for ``STALL_S`` and an item that
 grows past ``HIGH_WATER`` (a camera picture) are passed on as they come,
 untouched; the framer's items for them are then only observed.
 
-What is written is told to the consumers as ``Delivered`` events, each
-change as an ``Intervention``.  The lane holds at most what its sender sent
+What is written is told to the consumers as ``Delivered`` events (by the
+``Middle``, which decides which client bytes are secret), each change as an
+``Intervention``.  The lane holds at most what its sender sent
 beyond ``HIGH_WATER`` plus one read: past it the sender is not read
 (``Middle.sync``), so a delay fault under a client that keeps sending keeps
 memory bounded.
@@ -27,11 +28,10 @@ from typing import Any
 
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Observation
-from whiztap.analyzer.traffic import Delivered, Intervention
+from whiztap.analyzer.traffic import Intervention
 from whiztap.sniffer.mitm.frame import observation_of
 
 HIGH_WATER = 256 << 10
-_CLIENT_FRAMES = (ItemKind.COMMAND, ItemKind.SET_CONFIG)
 STALL_S = 0.2
 NS = 1_000_000_000
 
@@ -47,14 +47,12 @@ class _Out:
     pause_ns: int = 0
     end: str | None = None
     held: object | None = None  # a Held (intercept.py) while it waits
-    secret: bool = False
 
 
-def _joinable(out: _Out, now: int, secret: bool) -> bool:
+def _joinable(out: _Out, now: int) -> bool:
     """``out`` can go in the same write as the one before it: due, whole, not
-    held, no connection's end, as secret as it."""
-    return (out.at_ns <= now and out.held is None and out.end is None and out.secret is secret
-            and (out.slices is None or len(out.data) <= 1))
+    held, no connection's end."""
+    return out.at_ns <= now and out.held is None and out.end is None and (out.slices is None or len(out.data) <= 1)
 
 
 class Lane:
@@ -83,7 +81,7 @@ class Lane:
 
     def feed(self, data: bytes, t_ns: int) -> None:
         if self.framer._password_mode:  # noqa: SLF001 - the framer's own flag: a password cannot wait
-            self._pass_raw(bytes(self._pending) + data, t_ns, secret=True)
+            self._pass_raw(bytes(self._pending) + data, t_ns)
             self._consume(self.framer.feed(data, t_ns), t_ns)
         else:
             self._pending += data
@@ -95,6 +93,8 @@ class Lane:
 
     def end(self, t_ns: int) -> None:
         """The sender sent its FIN: everything pending becomes items; the FIN follows them."""
+        if self.direction is Direction.S2C:
+            self.middle.server_ended()
         self._consume(self.framer.end(t_ns), t_ns)
         if self._pending:
             self._pass_raw(bytes(self._pending), t_ns)
@@ -125,8 +125,7 @@ class Lane:
                 self._observe(item)
                 if taken < n:  # the rest of an item begun raw: it passes as it is
                     used += n - taken
-                    self._append(_Out(item.raw[taken:], max(self._last_at, t_ns),
-                                      secret=item.kind is ItemKind.PASSWORD))
+                    self._append(_Out(item.raw[taken:], max(self._last_at, t_ns)))
                 continue
             used += n
             self._decide(item, t_ns)
@@ -150,7 +149,7 @@ class Lane:
         at = max(self._last_at, t_ns + frame.delay_ns)
         if frame.data is not None:
             for _ in range(frame.copies):
-                out = _Out(frame.data, at, frame.slices, frame.pause_ns, secret=self._secret(item))
+                out = _Out(frame.data, at, frame.slices, frame.pause_ns)
                 middle.hold(self, out, frame)
                 self._append(out)
         for direction, data, cause in frame.injections:
@@ -158,27 +157,17 @@ class Lane:
         if frame.end is not None:  # after what comes before it, and the frame if it is delivered
             self._append(_Out(b"", at, end=frame.end))
 
-    def _secret(self, item: Item) -> bool:
-        """A password, or what a client sends before its login is over that is
-        none of its frames (a password sent early, run into by a command)."""
-        return item.kind is ItemKind.PASSWORD or (
-            self.direction is Direction.C2S and not self.middle.past_login and item.kind not in _CLIENT_FRAMES)
-
     def _append(self, out: _Out) -> None:
         self._queue.append(out)
         self._queued += len(out.data)
         self._last_at = max(self._last_at, out.at_ns)
 
-    def _pass_raw(self, data: bytes, t_ns: int, secret: bool = False) -> None:
-        """Bytes no item owns yet, on their way untouched (see the module
-        docstring).  A client's, before its login is over, may be a password
-        sent early: they are marked secret (masked in the recording unless
-        secrets are kept), as is anything sent while a password is expected."""
+    def _pass_raw(self, data: bytes, t_ns: int) -> None:
+        """Bytes no item owns yet, on their way untouched (see the module docstring)."""
         self._pending.clear()
         if data:
             self._skip += len(data)
-            secret = secret or (self.direction is Direction.C2S and not self.middle.past_login)
-            self._append(_Out(data, max(self._last_at, t_ns), secret=secret))
+            self._append(_Out(data, max(self._last_at, t_ns)))
 
     def _watch_stall(self) -> None:
         if self._stall is not None:
@@ -225,23 +214,23 @@ class Lane:
             else:
                 queue.popleft()
                 chunk = data
-                if queue and _joinable(queue[0], now, out.secret):  # one write for a run of due frames
+                if queue and _joinable(queue[0], now):  # one write for a run of due frames
                     parts = [data]
-                    while queue and _joinable(queue[0], now, out.secret):
+                    while queue and _joinable(queue[0], now):
                         parts.append(queue.popleft().data)
                     chunk = b"".join(parts)
             self._queued -= len(chunk)
             if chunk:  # a frame replaced by nothing is no delivery
-                self._write(chunk, now, out.secret)
+                self._write(chunk, now)
         if not queue and self._eof and self.target is not None and not middle.gone:
             self._eof = False
             self.eof_passed = True
             middle.pass_eof(self)
         middle.sync()
 
-    def _write(self, chunk: bytes, now: int, secret: bool) -> None:
+    def _write(self, chunk: bytes, now: int) -> None:
         self.target.write(chunk)  # type: ignore[union-attr]
-        self.middle.emit(Delivered(self.middle.conn_id, self.direction, now, chunk, secret))
+        self.middle.delivered(self.direction, chunk, now)
 
     def flush(self) -> None:
         """The connection is ending: write everything queued now (held frames as they are)."""

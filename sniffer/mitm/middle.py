@@ -18,9 +18,10 @@ from typing import Any
 
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.traffic import Intervention
+from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, LoginMask
+from whiztap.analyzer.traffic import Delivered, Intervention
 from whiztap.sniffer.mitm.frame import Frame
-from whiztap.sniffer.mitm.lane import _CLIENT_FRAMES, HIGH_WATER, Lane, _Out
+from whiztap.sniffer.mitm.lane import HIGH_WATER, Lane, _Out
 
 C2S, S2C = Direction.C2S, Direction.S2C
 _ASKS = b"sendchkpass"
@@ -43,7 +44,9 @@ class Middle:
         limits = controller.limits
         self.lanes = {d: Lane(self, d, Framer(limits.max_frame, limits.max_image)) for d in (C2S, S2C)}
         self.gone = False
-        self.past_login = False  # a verdict was seen, or the client sent a frame of its own: no password to come
+        self.login = LoginMask()  # the recorder's rule for passwords, over what the server received
+        self._undecided: list[tuple[int, bytes, int]] = []  # (offset, bytes, time) delivered to the server, not yet told
+        self._login_timer: asyncio.TimerHandle | None = None
         self._timers: list[asyncio.TimerHandle] = []
 
     def emit(self, event: object) -> None:
@@ -63,12 +66,59 @@ class Middle:
             c2s = self.lanes[C2S]
             if item.raw == _ASKS:
                 c2s.framer.expect_password()
-                self.past_login = False
             elif item.raw in _VERDICTS:
                 c2s.password_closed(item.t_end_ns)
-                self.past_login = True
-        elif lane.direction is C2S and item.kind in _CLIENT_FRAMES:
-            self.past_login = True
+
+    # -- what each side received: Delivered events, a password kept secret ---------------------
+
+    def delivered(self, direction: Direction, data: bytes, t_ns: int) -> None:
+        """The proxy wrote ``data`` toward the receiver of ``direction``.  What
+        the server receives is judged by the recorder's own rule for passwords
+        (``LoginMask``, the rule /tcp/reads is masked by), over the bytes the
+        server received and sent; the event waits until the rule has decided,
+        so the recording and the TUI mask exactly the bytes they mask in what
+        the client sent."""
+        if direction is S2C:
+            self.emit(Delivered(self.conn_id, S2C, t_ns, data))
+            return
+        login = self.login
+        self._undecided.append((login.received, data, t_ns))
+        login.client(data)
+        self._tell_decided()
+        if self._undecided and self._login_timer is None:
+            self._login_timer = asyncio.get_running_loop().call_later(HOLD_LIMIT_S, self._undecided_too_long)
+
+    def server_bytes(self, data: bytes) -> None:
+        self.login.server(data)
+        self._tell_decided()
+
+    def server_ended(self) -> None:
+        """The server sent its FIN: it will say nothing more about a login."""
+        self.login.server_ended()
+        self._tell_decided()
+
+    def _undecided_too_long(self) -> None:
+        """As the recorder does: what only a clock decides is masked, never shown."""
+        self._login_timer = None
+        self.login.force()
+        self._tell_decided()
+
+    def _tell_decided(self) -> None:
+        login, undecided = self.login, self._undecided
+        while undecided and login.decided >= undecided[0][0] + len(undecided[0][1]):
+            offset, data, t_ns = undecided.pop(0)
+            _, spans = login.apply(offset, data)
+            at = 0
+            for start, length in spans:  # the masked runs are secret, the rest (line breaks, after) is not
+                if start > at:
+                    self.emit(Delivered(self.conn_id, C2S, t_ns, data[at:start]))
+                self.emit(Delivered(self.conn_id, C2S, t_ns, data[start:start + length], True))
+                at = start + length
+            if at < len(data):
+                self.emit(Delivered(self.conn_id, C2S, t_ns, data[at:]))
+        if not undecided and self._login_timer is not None:
+            self._login_timer.cancel()
+            self._login_timer = None
 
     def new_frame(self, lane: Lane, item: Item, observation: object, t_ns: int) -> Frame:
         return Frame(self.conn_id, lane.direction, item, observation, t_ns, self.opened_ns)  # type: ignore[arg-type]
@@ -140,9 +190,13 @@ class Middle:
         for lane in self.lanes.values():
             if lane.target is not None and not lane.target.is_closing():
                 lane.flush()
+        self.login.end()  # undecided client bytes are masked
+        self._tell_decided()
 
     def close(self) -> None:
         self.gone = True
+        self.login.end()
+        self._tell_decided()
         for timer in self._timers:
             timer.cancel()
         for lane in self.lanes.values():

@@ -120,6 +120,8 @@ class _Leg(asyncio.Protocol):
         t = proxy.clock()
         if conn.middle is not None:  # in the middle: the lane decides what is written, and when
             self.received += len(data)
+            if self.direction is S2C:  # what the server says may decide the delivered client bytes told before
+                conn.middle.server_bytes(data)
             proxy.receive(Data(conn.id, self.direction, t, data))
             conn.middle.lanes[self.direction].feed(data, t)
             if not self.lost and not self.may_read():
