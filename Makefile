@@ -24,7 +24,7 @@ demo: $(STAMP)
 test: $(STAMP) test-deps
 	$(BIN)/pytest -q
 
-# Debian and npm packages some tests use (tcpdump, socat, @mcap/core); idempotent.
+# Debian and npm packages some tests use (tcpdump, socat, tshark, @mcap/core); idempotent.
 test-deps:
 	@bash .ci/install-test-deps
 

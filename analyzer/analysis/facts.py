@@ -120,6 +120,8 @@ class Analysis:
     # not a violation of either side (the first max_violations kept, all counted)
     effects: list[ViolationRecord] = field(default_factory=list)
     effect_counts: Counter = field(default_factory=Counter)  # rule id -> count
+    # file -> its "whiztap" metadata record: what a fleet report groups by (robot, firmware, start time)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -156,3 +158,4 @@ class Analysis:
         room = self.max_violations - len(self.effects)
         self.effects += other.effects[:max(room, 0)]
         self.effect_counts.update(other.effect_counts)
+        self.metadata.update(other.metadata)

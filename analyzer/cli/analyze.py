@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,36 +27,48 @@ EXIT_NOTHING = 3  # analyze: the recordings hold no traffic to judge
 UNWRAPPED = 10_000  # the width text reports are laid out in when not on a terminal
 
 
-def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgress | None = None):  # noqa: ANN001
-    """One recording (a ``RecordingSet`` or a path) analysed in this process;
-    ``limits``: an ``whiztap.analyzer.protocol.session.Limits``.  A recording
-    made with the proxy in the middle (its metadata says so) has each side
-    judged by what it did (``whiztap.analyzer.analysis.sides``)."""
+def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgress | None = None,  # noqa: ANN001
+                 label: str | None = None):  # noqa: ANN201 - an Analysis, imported lazily
+    """One recording (a ``RecordingSet``, a path or a URL's part) analysed in
+    this process; ``limits``: an ``whiztap.analyzer.protocol.session.Limits``;
+    ``label``: the name the report gives it (default: its first part's), for a
+    cluster's worker that reads it by another name.  A recording made with the
+    proxy in the middle (its metadata says so) has each side judged by what it
+    did (``whiztap.analyzer.analysis.sides``).  Its metadata goes along, for
+    the fleet tables."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
-    from whiztap.analyzer.recording.scan import made_in_the_middle
-    from whiztap.analyzer.recording.sets import RecordingSet
     from whiztap.analyzer.protocol.session import Limits
+    from whiztap.analyzer.recording.scan import RecordingError, made_in_the_middle, read_metadata
+    from whiztap.analyzer.recording.sets import RecordingSet
 
     if not isinstance(recording, RecordingSet):
-        recording = RecordingSet((Path(recording),))
-    analyzer = Analyzer(str(recording.name), checksum_rule, limits or Limits(), every_event=False,
-                        middle=made_in_the_middle(str(recording.name)))
+        recording = RecordingSet((recording if not isinstance(recording, str) else Path(recording),))
+    label = label or str(recording.name)
+    analyzer = Analyzer(label, checksum_rule, limits or Limits(), every_event=False,
+                        middle=made_in_the_middle(recording.name))
     receive = analyzer.receive
     for event in scan_recording(recording, progress):
         receive(event)
-    return analyzer.finish()
+    analysis = analyzer.finish()
+    try:
+        analysis.metadata[label] = read_metadata(recording.name)
+    except (OSError, RecordingError):  # the scan read the file, so only a file gone since: no keys to group by
+        analysis.metadata[label] = {}
+    return analysis
 
 
-def _analyse_or_say_why(recording, checksum_rule: str, limits, progress: ByteProgress | None = None):  # noqa: ANN001
+def _analyse_or_say_why(recording, checksum_rule: str, limits, progress: ByteProgress | None = None,  # noqa: ANN001
+                        label: str | None = None):  # noqa: ANN201 - an Analysis or a line
     """``analyse_file``, or the one-line reason it could not be read."""
     try:
-        return analyse_file(recording, checksum_rule, limits, progress)
+        return analyse_file(recording, checksum_rule, limits, progress, label)
     except WhiztapError as e:
         return e.format_message()
 
 
-def _analyse_in_worker(args: tuple):
-    """Entry point of a worker process: errors travel back as text, not tracebacks."""
+def _analyse_in_worker(args: tuple):  # noqa: ANN201 - an Analysis or a line
+    """Entry point of a worker process, or of a task on a Dask worker:
+    errors travel back as text, not tracebacks."""
     from whiztap.analyzer.analysis.throughput import tune_gc
 
     tune_gc()
@@ -63,7 +76,7 @@ def _analyse_in_worker(args: tuple):
 
 
 @click.command("analyze")
-@click.argument("inputs", nargs=-1, required=False, metavar="FILE_OR_FOLDER...")
+@click.argument("inputs", nargs=-1, required=False, metavar="PATH_OR_URL...")
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default="text",
               show_default=True, help="Report format; text is coloured on a terminal.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
@@ -75,16 +88,26 @@ def _analyse_in_worker(args: tuple):
               help="Exit 1 when a violation at or above this severity remains.")
 @checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
 @click.option("-j", "--jobs", type=click.IntRange(1, 64), default=None,
-              help="Processes for several files [default: one per core when there are many].")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+              help="Processes for several files [default: one per core when there are many]; "
+                   "with --dask local, its workers.")
+@click.option("--dask", "dask", default=None, metavar="SCHEDULER",
+              help="Run each file as a task on a Dask cluster: its scheduler's address (tcp://HOST:8786), "
+                   "or 'local' for a LocalCluster on this machine (docs/fleet.md).")
+@click.option("--group-by", "group_by", multiple=True, metavar="KEY[,KEY...]",
+              help="Add a fleet table: violations grouped by these metadata keys (robot, firmware, host) "
+                   "and by day; repeatable.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, no cluster line.")
 @click.option("--allow-empty", is_flag=True,
               help="Pass a report on no traffic (no connection, or no server ever reached) instead of exit 3.")
 @limits_options
 def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, list_rules: bool,
                     ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str,
-                    jobs: int | None, quiet: bool, allow_empty: bool, answer_timeout: float, max_frame: int,
-                    max_image: int) -> None:
+                    jobs: int | None, dask: str | None, group_by: tuple[str, ...], quiet: bool, allow_empty: bool,
+                    answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Check recordings against the spec and report how the sessions behaved.
+
+    PATH_OR_URL: .mcap files, folders, globs, or URLs that fsspec reads
+    (file://, s3://, gs://; docs/fleet.md).
 
     \b
     Exit status:
@@ -103,24 +126,49 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
             click.echo(f"{r.id:28} {str(r.severity):8} {r.section}")
         return
     if not inputs:
-        fail("no recording given: name one or more .mcap files or folders (see --help)")
+        fail("no recording given: name one or more .mcap files, folders or URLs (see --help)")
     unknown = [r for r in ignore if r not in RULES]
     if unknown:
         fail(f"unknown rule {unknown[0]!r} in --ignore; 'whiztap analyze --rules' lists them")
-    rule_name = checksum_rule
+    keys = _group_keys(group_by)
+    if dask is not None and dask != "local" and jobs is not None:
+        fail(f"-j sets the processes of this machine; with --dask {dask} the cluster's workers do the work")
     limits = limits_from(answer_timeout, max_frame, max_image)
-    found = recordings(inputs)
-    check_output(output, [p for r in found for p in r.parts], force=force)
+    found = recordings(inputs, urls=True)
+    parts = [p for r in found for p in r.parts]
+    check_output(output, parts, force=force)
     tune_gc()
-    with ByteProgress([p for r in found for p in r.parts], enabled=not quiet) as progress:
-        analysis, unreadable = _analyse_all(found, rule_name, limits, jobs, progress)
+    with ByteProgress(parts, enabled=not quiet) as progress:
+        analysis, unreadable = _analyse_all(found, checksum_rule, limits, jobs, progress, dask, quiet)
+    _finish(analysis, unreadable, Severity.parse(severity_threshold), frozenset(ignore), keys, fmt, output, force,
+            allow_empty)
+
+
+def _group_keys(group_by: tuple[str, ...]) -> list[tuple[str, ...]]:
+    """Each --group-by as its keys; one line and exit 2 for one that is no key."""
+    from whiztap.analyzer.analysis.fleet import GroupByError, parse_group_by
+
+    try:
+        return [parse_group_by(text) for text in group_by]
+    except GroupByError as e:
+        fail(str(e))
+
+
+def _finish(analysis, unreadable: list[dict[str, str]], threshold, ignore: frozenset[str],  # noqa: ANN001
+            keys: list[tuple[str, ...]], fmt: str, output: str | None, force: bool, allow_empty: bool) -> None:
+    """The report written, and the exit status it calls for."""
     for u in unreadable:
         warn(u["error"])
     if analysis is None:
         sys.exit(EXIT_USAGE)
+    from whiztap.analyzer.analysis.fleet import keys_found
     from whiztap.analyzer.analysis.report.content import build
 
-    report = build(analysis, Severity.parse(severity_threshold), frozenset(ignore), unreadable, allow_empty)
+    for group in keys:
+        if not keys_found(analysis, group):
+            warn(f"no recording carries the metadata key {' or '.join(group)}: "
+                 "its fleet table has one group, (none) ('whiztap info' shows a recording's keys)")
+    report = build(analysis, threshold, ignore, unreadable, allow_empty, keys)
     to_stdout = output is None or output == "-"
     report_text = render(report, analysis, fmt, to_terminal=to_stdout and sys.stdout.isatty())
     with output_stream(output, force) as out:
@@ -131,32 +179,69 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
     sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
 
-def _analyse_all(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress):  # noqa: ANN001
+def _analyse_all(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress,  # noqa: ANN001
+                 dask: str | None = None, quiet: bool = True):  # noqa: ANN201 - (Analysis | None, list)
     """(the merged analysis of the files that could be read, or None if none
     could; {"file", "error"} of those that could not): one bad file among many
-    costs only itself."""
+    costs only itself.  However the files are shared out (this process, local
+    processes, a Dask cluster), results are merged by one ``Merger``, in input
+    order, so the report is the same."""
+    from whiztap.analyzer.analysis.merge import Merger
+
+    merger = Merger([str(p.name) for p in paths])
+    if dask is not None:
+        results = _on_cluster(paths, rule_name, limits, jobs, progress, dask, quiet)
+    else:
+        results = _on_this_machine(paths, rule_name, limits, jobs, progress)
+    for index, result in results:
+        merger.add(index, result)
+    return merger.finish()
+
+
+def _on_this_machine(paths: list, rule_name: str, limits, jobs: int | None,  # noqa: ANN001
+                     progress: ByteProgress) -> Iterator[tuple[int, Any]]:
+    """(index, result) of each file: here, or in local processes (one per
+    core by default when there are four files or more)."""
     workers = jobs if jobs is not None else (min(len(paths), os.cpu_count() or 1) if len(paths) >= 4 else 1)
     if workers <= 1 or len(paths) == 1:
-        results = [_analyse_or_say_why(p, rule_name, limits, progress) for p in paths]
-    else:
-        from concurrent.futures import ProcessPoolExecutor
+        for index, path in enumerate(paths):
+            yield index, _analyse_or_say_why(path, rule_name, limits, progress)
+        return
+    from concurrent.futures import ProcessPoolExecutor
 
-        results = []
-        with ProcessPoolExecutor(workers) as pool:
-            # in order, so the report does not depend on which worker finished first;
-            # the bar moves by each file's size as its result comes back
-            for path, result in zip(paths, pool.map(_analyse_in_worker, [(p, rule_name, limits) for p in paths])):
-                results.append(result)
-                for part in path.parts:
-                    progress.done(part)
-    unreadable = [{"file": str(p.name), "error": r} for p, r in zip(paths, results) if isinstance(r, str)]
-    analyses = [r for r in results if not isinstance(r, str)]
-    if not analyses:
-        return None, unreadable
-    merged = analyses[0]
-    for other in analyses[1:]:
-        merged.merge(other)
-    return merged, unreadable
+    with ProcessPoolExecutor(workers) as pool:
+        # the bar moves by each file's size as its result comes back
+        for index, (path, result) in enumerate(zip(paths, pool.map(_analyse_in_worker,
+                                                                   [(p, rule_name, limits) for p in paths]))):
+            progress.done_all(path.parts)
+            yield index, result
+
+
+def _on_cluster(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress,  # noqa: ANN001
+                dask: str, quiet: bool) -> Iterator[tuple[int, Any]]:
+    """(index, result) of each file, as a task on a Dask cluster (``cluster``);
+    local paths go as absolute ones (the workers share the files, not this
+    process's folder), each labelled as the user named it."""
+    from whiztap.analyzer.cluster import ClusterError, Lost, dask_client, describe, run_tasks
+
+    jobs_args = [(_absolute(p), rule_name, limits, None, str(p.name)) for p in paths]
+    try:
+        with dask_client(dask, jobs) as client:
+            if not quiet:
+                click.echo(describe(client), err=True)
+            for index, result in run_tasks(client, _analyse_in_worker, jobs_args):
+                progress.done_all(paths[index].parts)
+                yield index, f"{paths[index]}: {result.reason}" if isinstance(result, Lost) else result
+    except ClusterError as e:
+        fail(str(e))
+
+
+def _absolute(recording):  # noqa: ANN001, ANN202 - a RecordingSet, imported lazily
+    """A recording whose local parts are named from the root."""
+    from dataclasses import replace
+
+    return replace(recording, parts=tuple(Path(os.path.abspath(p)) if isinstance(p, Path) else p
+                                          for p in recording.parts))
 
 
 def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str:

@@ -13,13 +13,14 @@ from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.progress import ByteProgress
 
 
-def recordings(inputs: tuple[str, ...]):  # noqa: ANN201 - list[RecordingSet], imported lazily
+def recordings(inputs: tuple[str, ...], urls: bool = False):  # noqa: ANN201 - list[RecordingSet], imported lazily
     """What the user named, as recordings (a split one's parts together);
-    a line on stderr for each whose parts are not all there."""
+    a line on stderr for each whose parts are not all there.  ``urls``: names
+    like ``s3://...`` are URLs read through fsspec (``analyze``)."""
     from whiztap.analyzer.recording.sets import RecordingInputError, find_recordings
 
     try:
-        found = find_recordings(inputs)
+        found = find_recordings(inputs, urls)
     except RecordingInputError as e:
         fail(str(e))
     for recording in found:
@@ -33,18 +34,23 @@ def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[
     recorded order, across its parts.
 
     Raises ``click`` errors with one-line messages for files that are not
-    readable recordings, or end before their footer.
+    readable recordings, end before their footer, or fail to read (a URL's
+    connection lost in the middle).
     """
+    from whiztap.analyzer.recording.remote import open_part
     from whiztap.analyzer.recording.sets import PartError, RecordingSet, scan_set
 
     if not isinstance(recording, RecordingSet):
         recording = RecordingSet((Path(recording),))
-    opener = progress.open if progress is not None else (lambda p: open(p, "rb"))  # noqa: SIM115
     try:
-        yield from scan_set(recording, opener)
+        yield from scan_set(recording, progress.open if progress is not None else open_part)
+    except OSError as e:
+        fail(f"{recording}: cannot read ({e.strerror or e})")
     except PartError as e:
         from whiztap.analyzer.recording.sets import being_written
 
+        if not isinstance(e.path, Path):  # a URL: what the reader said is all there is to say
+            fail(str(e))
         if being_written(e.path):
             fail(f"{e.path} is being written by a running recorder: 'whiztap cat --follow {e.path}' shows it "
                  "as it grows; analyze it once the recorder has finished")

@@ -22,6 +22,7 @@ import os
 import re
 import struct
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import IO
 
 from whiztap.analyzer.protocol.observations import Direction
@@ -61,6 +62,7 @@ from whiztap.analyzer.recording.mcap import (
     read_metadata_record,
     read_string,
 )
+from whiztap.analyzer.recording.remote import RemotePart, open_part
 from whiztap.analyzer.traffic import Data, Delivered, Intervention, TrafficError, TrafficEvent, from_json
 
 MAX_CHUNK_ENV = "WHIZTAP_MAX_CHUNK"
@@ -422,7 +424,7 @@ class RecordingScan:
             yield topic, t, self.decode(topic, buf, start, stop)
 
 
-def made_in_the_middle(path: str) -> bool:
+def made_in_the_middle(path: str | Path | RemotePart) -> bool:
     """Whether a recording's metadata says the proxy stood in the middle
     (docs/faults.md).  A file that cannot tell is read as one that was not:
     whatever reads it next says what is wrong with it, in its own words."""
@@ -432,14 +434,15 @@ def made_in_the_middle(path: str) -> bool:
         return False
 
 
-def read_metadata(path: str, max_chunk: int | None = None) -> dict[str, str]:
-    """The "whiztap" metadata record of a recording ({} if it has none).
+def read_metadata(path: str | Path | RemotePart, max_chunk: int | None = None) -> dict[str, str]:
+    """The "whiztap" metadata record of a recording ({} if it has none); ``path``
+    may be a URL's ``RemotePart``.
 
     Recorders write it before the first chunk, so this walks only as far as
     that record, looking inside nothing else.  Raises RecordingError for a file
     that is no MCAP file or whose records do not add up.
     """
-    with open(path, "rb") as f:
+    with open_part(path, head=True) as f:
         scan = RecordingScan(f, (), max_chunk=max_chunk)
         for _ in scan.records(until_metadata=METADATA_NAME):
             pass  # no topic is wanted: nothing comes; the walk notes the metadata

@@ -23,6 +23,7 @@ from typing import IO
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
+from whiztap.analyzer.recording.remote import RemoteInputError, RemotePart, is_url, open_part, remote_parts
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
 from whiztap.analyzer.traffic import Continued, Gap, RecordingStopped, TrafficEvent
 
@@ -56,13 +57,13 @@ def part_path(path: str, part: int | None) -> str:
 
 @dataclass(frozen=True)
 class RecordingSet:
-    """The files of one recording, in part order."""
+    """The files of one recording, in part order (a URL's: ``RemotePart``)."""
 
-    parts: tuple[Path, ...]
+    parts: tuple[Path | RemotePart, ...]
     missing: tuple[int, ...] = ()  # part numbers absent between the first and last found
 
     @property
-    def name(self) -> Path:
+    def name(self) -> Path | RemotePart:
         return self.parts[0]
 
     def __str__(self) -> str:
@@ -106,12 +107,12 @@ def _part_number(metadata: dict[str, str]) -> int | None:
     return int(part) if _PART_NUMBER.fullmatch(part) else None
 
 
-def _part_key(path: Path) -> tuple[str, int] | None:
+def _part_key(path: Path | RemotePart) -> tuple[str, int] | None:
     """(session id, part number) of a part of a split recording, else None."""
     if _PART_NAME.match(path.name) is None:
         return None
     try:
-        meta = read_metadata(str(path))
+        meta = read_metadata(path)
     except (OSError, RecordingError):
         return None
     part = _part_number(meta)
@@ -120,7 +121,7 @@ def _part_key(path: Path) -> tuple[str, int] | None:
     return meta["session_id"], part
 
 
-def group(paths: Iterable[Path]) -> list[RecordingSet]:
+def group(paths: Iterable[Path | RemotePart]) -> list[RecordingSet]:
     """Files as recordings: parts of one split recording together, in order."""
     sets: dict[object, dict[int, Path]] = {}
     for path in paths:
@@ -156,14 +157,20 @@ def _siblings(path: Path) -> list[Path]:
     return [Path(p) for p in numbered_parts(str(path.parent / m["stem"]) + m["ext"]) if not p.endswith(".part")]
 
 
-def find_recordings(inputs: Iterable[str]) -> list[RecordingSet]:
+def find_recordings(inputs: Iterable[str], urls: bool = False) -> list[RecordingSet]:
     """What the user named, as recordings: files, folders (every .mcap below),
-    globs (expanded here too, for a quoted pattern), each split recording once.
+    globs (expanded here too, for a quoted pattern), each split recording once;
+    with ``urls``, also URLs that fsspec reads (``remote``), named the same ways.
     Raises RecordingInputError for a name that matches nothing."""
-    files: list[Path] = []
+    files: list[Path | RemotePart] = []
     for name in inputs:
         path = Path(name)
-        if path.is_dir():
+        if urls and is_url(name):
+            try:
+                files += remote_parts(name)
+            except RemoteInputError as e:
+                raise RecordingInputError(str(e)) from None
+        elif path.is_dir():
             found = sorted(p for p in path.rglob("*") if p.suffix == ".mcap" and p.is_file())
             if not found:
                 raise RecordingInputError(f"{name}: no .mcap recordings in this folder")
@@ -195,8 +202,8 @@ def find_one(inputs: Iterable[str]) -> RecordingSet:
     return found[0]
 
 
-def _open_binary(path: Path) -> IO[bytes]:
-    return open(path, "rb")  # noqa: SIM115 - closed by the caller
+def _open_binary(path: Path | RemotePart) -> IO[bytes]:
+    return open_part(path)
 
 
 def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[TrafficEvent]:  # noqa: ANN001

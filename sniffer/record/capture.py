@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from whiztap.analyzer.protocol.session import Limits
+from whiztap.sniffer.record.detect import ContentDetector
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.tcpreasm import DLT_EN10MB, DLT_RAW, Reassembler, parse_frame
 from whiztap.sniffer.record.writer import STOP_SIGNALS, RecordingFile, RecordingWriteError
@@ -33,7 +34,7 @@ class CaptureError(Exception):
 
 @dataclass(frozen=True)
 class CaptureSettings:
-    port: int
+    port: int | None  # None: find Progwhiz conversations on any port by their content
     output: str
     split_size: int | None = None
     split_duration: float | None = None
@@ -56,6 +57,19 @@ def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: ob
                     limits=settings.limits)
 
 
+def _follower(settings: CaptureSettings, recorder: Recorder) -> Reassembler | ContentDetector:
+    """What turns TCP segments into the recorder's traffic: a reassembler for
+    the server's port, or, without one, for every Progwhiz conversation found."""
+    if settings.port is None:
+        return ContentDetector(recorder)
+    return Reassembler(settings.port, recorder)
+
+
+def _what_is_captured(settings: CaptureSettings) -> str:
+    """The traffic a capture records, in words."""
+    return "Progwhiz conversations on any TCP port" if settings.port is None else f"tcp port {settings.port}"
+
+
 def _summary(recorder: Recorder, t_ns: int, detail: str) -> dict:
     import os
 
@@ -71,9 +85,9 @@ def _timestamp(meta, nano: bool) -> int:  # noqa: ANN001 - scapy's PacketMetadat
 
 
 def import_pcap(path: str, settings: CaptureSettings, progress: Callable[[int], None] | None = None) -> dict:
-    """Record the traffic to ``settings.port`` in a pcap or pcapng file; the
-    summary.  ``progress`` is told how far into the file the reading is, now
-    and then and at the end."""
+    """Record the traffic to ``settings.port`` (None: every Progwhiz
+    conversation) in a pcap or pcapng file; the summary.  ``progress`` is told
+    how far into the file the reading is, now and then and at the end."""
     from scapy.error import Scapy_Exception
     from scapy.utils import RawPcapReader
 
@@ -100,7 +114,7 @@ def import_pcap(path: str, settings: CaptureSettings, progress: Callable[[int], 
                 if recorder is None:
                     recorder = _recorder(settings, "pcap", t, pcap=path)
                     recorder.start(t, detail=f"import of {path}")
-                    reassembler = Reassembler(settings.port, recorder)
+                    reassembler = _follower(settings, recorder)
                 linktype = getattr(meta, "linktype", None)
                 segment = parse_frame(reader.linktype if linktype is None else linktype, frame, t)
                 if segment is not None:
@@ -131,7 +145,7 @@ def _live_linktype(frame: bytes) -> int:
     return DLT_RAW
 
 
-def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
+def _open_live(iface: str, port: int | None):  # noqa: ANN202 - a scapy SuperSocket
     import logging
 
     import scapy.arch  # noqa: F401 - sets conf.L2listen for this platform
@@ -141,7 +155,7 @@ def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
     logging.getLogger("scapy.runtime").setLevel(logging.ERROR)  # no "unable to guess type" noise
 
     try:
-        return conf.L2listen(iface=iface, filter=f"tcp port {port}")
+        return conf.L2listen(iface=iface, filter="tcp" if port is None else f"tcp port {port}")
     except PermissionError:
         raise CaptureError(
             f"live capture on {iface} needs root or the CAP_NET_RAW capability "
@@ -158,8 +172,9 @@ def _open_live(iface: str, port: int):  # noqa: ANN202 - a scapy SuperSocket
 
 def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = None,
                  timeout: float | None = None, announce: Callable[[str], None] | None = None) -> dict:
-    """Record traffic to ``settings.port`` seen on ``iface`` until Ctrl-C, SIGTERM, SIGHUP,
-    ``count`` packets or ``timeout`` seconds; the summary.
+    """Record traffic to ``settings.port`` (None: every Progwhiz conversation)
+    seen on ``iface`` until Ctrl-C, SIGTERM, SIGHUP, ``count`` packets or
+    ``timeout`` seconds; the summary.
 
     The signals (a closed terminal sends SIGHUP) only set a flag, so a packet is
     never half processed; the packets the kernel has already queued for the
@@ -176,10 +191,10 @@ def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = N
     previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
     t = start
     try:
-        recorder.start(start, detail=f"live capture on {iface}, port {settings.port}")
-        reassembler = Reassembler(settings.port, recorder)
+        recorder.start(start, detail=f"live capture on {iface}, {_what_is_captured(settings)}")
+        reassembler = _follower(settings, recorder)
         if announce is not None:
-            announce(f"capturing tcp port {settings.port} on {iface} into {settings.output} (Ctrl-C to stop)")
+            announce(f"capturing {_what_is_captured(settings)} on {iface} into {settings.output} (Ctrl-C to stop)")
         seen = 0
         deadline = None if timeout is None else time.monotonic() + timeout
         while not stop and (count is None or seen < count) and (deadline is None or time.monotonic() < deadline):
@@ -201,7 +216,7 @@ def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = N
         sock.close()
 
 
-def _live_packet(sock, reassembler: Reassembler, t: int, seen: int) -> tuple[int, int]:  # noqa: ANN001
+def _live_packet(sock, reassembler: Reassembler | ContentDetector, t: int, seen: int) -> tuple[int, int]:  # noqa: ANN001
     """Read one packet; the time of the latest, and how many TCP segments so far."""
     _cls, frame, ts = sock.recv_raw(SNAP)
     if frame is None:

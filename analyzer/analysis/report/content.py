@@ -15,11 +15,13 @@ REPORT_VERSION = 1
 
 
 def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
-          unreadable: list[dict[str, str]] | None = None, allow_empty: bool = False) -> dict[str, Any]:
+          unreadable: list[dict[str, str]] | None = None, allow_empty: bool = False,
+          group_by: list[tuple[str, ...]] | None = None) -> dict[str, Any]:
     """The report as plain data (the JSON format, documented in docs/analyze.md).
     ``unreadable``: {"file", "error"} of the inputs left out because they could
     not be read (the key is there only when there are some).  A report on no
-    traffic (``nothing_judged`` says why) does not pass unless ``allow_empty``."""
+    traffic (``nothing_judged`` says why) does not pass unless ``allow_empty``.
+    ``group_by``: the fleet tables' key sets (``fleet``, docs/fleet.md), only when asked."""
     counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
     failing = any(RULES[r].severity >= threshold for r, n in counts.items() if n)
     nothing = nothing_judged(analysis)
@@ -58,6 +60,10 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         report["nothing_judged"] = nothing
     if analysis.interventions or any(c.middle for c in analysis.connections):
         report["interventions"] = _interventions(analysis, start)
+    if group_by:
+        from whiztap.analyzer.analysis.fleet import fleet_tables
+
+        report["fleet"] = fleet_tables(analysis, group_by, threshold, ignore)
     return report
 
 

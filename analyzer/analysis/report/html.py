@@ -11,7 +11,14 @@ from typing import Any
 
 from whiztap.analyzer.analysis.facts import NS, Analysis
 from whiztap.analyzer.analysis.report.text import duration, headline, verdict
-from whiztap.analyzer.analysis.report.words import EFFECTS_HEADING, intervention_lines
+from whiztap.analyzer.analysis.report.text import FLEET_COLUMNS, FLEET_DAY_COLUMNS, fleet_rows
+from whiztap.analyzer.analysis.report.words import (
+    EFFECTS_HEADING,
+    fleet_headings,
+    fleet_key,
+    group_name,
+    intervention_lines,
+)
 from whiztap.analyzer.protocol.text import printable
 
 _CSS = """
@@ -32,6 +39,8 @@ def _pyplot():
     except ImportError:
         raise MissingPlotLibrary("the HTML report needs matplotlib: pip install 'whiztap[html]'") from None
     matplotlib.use("Agg")
+    # the same report twice is the same file: SVG ids from a fixed salt, no date in the metadata
+    matplotlib.rcParams["svg.hashsalt"] = "whiztap"
     import matplotlib.pyplot as plt
 
     return plt
@@ -39,7 +48,7 @@ def _pyplot():
 
 def _svg(fig) -> str:
     buf = io.StringIO()
-    fig.savefig(buf, format="svg", bbox_inches="tight")
+    fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None})
     text = buf.getvalue()
     return text[text.index("<svg"):]
 
@@ -85,6 +94,81 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
         plots.append((f"{label} per channel", _svg(fig)))
         plt.close(fig)
     return plots
+
+
+_TOP_RULES = 8  # rules drawn one by one in the fleet's bars; the rest are one "other rules" bar
+_MAX_LABELS = 40  # tick labels on a fleet plot's axis; more are thinned out
+
+
+def _fleet_plots(table: dict[str, Any]) -> list[tuple[str, str]]:
+    """A fleet table drawn: violations per group stacked by rule, and per group
+    per day as a heat map (one row per group, one column per day)."""
+    plt = _pyplot()
+    groups = table["groups"]
+    if not groups:
+        return []
+    names = [group_name(table, g) for g in groups]
+    key = fleet_key(table)
+    totals: dict[str, int] = {}
+    for g in groups:
+        for r in g["rules"]:
+            totals[r["rule_id"]] = totals.get(r["rule_id"], 0) + r["count"]
+    top = sorted(totals, key=lambda r: -totals[r])[:_TOP_RULES]
+    height = min(0.3 * len(groups) + 1.2, 12)
+    fig, ax = plt.subplots(figsize=(9, height))
+    left = [0] * len(groups)
+    for rule_id in top + ["other rules"]:
+        counts = [sum(r["count"] for r in g["rules"] if (r["rule_id"] == rule_id) or
+                      (rule_id == "other rules" and r["rule_id"] not in top)) for g in groups]
+        if any(counts):
+            ax.barh(range(len(groups)), counts, left=left, label=rule_id)
+            left = [a + b for a, b in zip(left, counts)]
+    _labels(ax.set_yticks, ax.set_yticklabels, names)
+    ax.invert_yaxis()
+    ax.set_xlabel("violations")
+    if totals:
+        ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1))  # beside the bars, never on them
+    plots = [(f"Violations by {key}, by rule", _svg(fig))]
+    plt.close(fig)
+    days = sorted({d["day"] for g in groups for d in g["days"] if d["day"] is not None})
+    if days:
+        column = {day: i for i, day in enumerate(days)}
+        grid = [[float("nan")] * len(days) for _ in groups]  # no recording that day: drawn grey
+        for row, g in enumerate(groups):
+            for d in g["days"]:
+                if d["day"] is not None:
+                    grid[row][column[d["day"]]] = d["violations"]
+        fig, ax = plt.subplots(figsize=(9, height))
+        colours = plt.get_cmap("Reds").copy()
+        colours.set_bad("#dddddd")
+        image = ax.imshow(grid, aspect="auto", cmap=colours, interpolation="nearest", vmin=0)
+        fig.colorbar(image, ax=ax, label="violations")
+        _labels(ax.set_yticks, ax.set_yticklabels, names)
+        _labels(ax.set_xticks, ax.set_xticklabels, days, rotation=45)
+        plots.append((f"Violations per day (UTC), by {key} (grey: no recording that day)", _svg(fig)))
+        plt.close(fig)
+    return plots
+
+
+def _labels(set_ticks, set_labels, labels: list[str], **style: Any) -> None:  # noqa: ANN001 - axis methods
+    """Tick labels on an axis, at most ``_MAX_LABELS`` of them, evenly spaced."""
+    step = max(1, -(-len(labels) // _MAX_LABELS))
+    ticks = list(range(0, len(labels), step))
+    set_ticks(ticks)
+    set_labels([labels[i] for i in ticks], fontsize="small", **style)
+
+
+def _fleet(table: dict[str, Any]) -> list[str]:
+    """A fleet table, its table by day and its plots."""
+    e = _escaped
+    title, by_day = fleet_headings(table)
+    groups, days = fleet_rows(table)
+    key = fleet_key(table)
+    parts = [f"<h2>{e(title)}</h2>", _table([key, *FLEET_COLUMNS], [[e(cell) for cell in row] for row in groups])]
+    for caption, svg in _fleet_plots(table):
+        parts.append(f"<figure><figcaption><b>{e(caption)}</b></figcaption>{svg}</figure>")
+    parts += [f"<h2>{e(by_day)}</h2>", _table([key, *FLEET_DAY_COLUMNS], [[e(cell) for cell in row] for row in days])]
+    return parts
 
 
 def _table(headers: list[str], rows: list[list[str]]) -> str:
@@ -140,6 +224,10 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
         f"<p>{e(headline(report))}. Spec Rev {e(report['spec_revision'])}; checksum rule "
         f"<code>{e(rule['name'])}</code> ({e(rule['description'])}).</p>",
         f"<p class='{'pass' if report['passed'] else 'fail'}'><b>{e(verdict(report))}</b></p>",
+    ]
+    for table in report.get("fleet", ()):
+        parts += _fleet(table)
+    parts += [
         "<h2>Connections</h2>",
         _table(["file", "conn", "client", "mode", "handshake", "items", "violations"],
                [[e(c["file"]), str(c["conn"]), e(c["client"] or "-"), e(c["mode"]), e(c["handshake"]),

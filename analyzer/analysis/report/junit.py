@@ -19,7 +19,16 @@ import xml.etree.ElementTree as ET
 from collections import Counter, defaultdict
 from typing import Any
 
-from whiztap.analyzer.analysis.report.words import EFFECTS_HEADING, intervention_lines, side_words
+from whiztap.analyzer.analysis.report.words import (
+    EFFECTS_HEADING,
+    fleet_headings,
+    fleet_key,
+    group_name,
+    intervention_lines,
+    rule_counts_words,
+    rules_since,
+    side_words,
+)
 from whiztap.analyzer.protocol.rules import RULES, Severity
 from whiztap.analyzer.protocol.text import printable as _x  # XML 1.0 forbids most control characters; terminals obey them
 
@@ -41,13 +50,47 @@ def render_junit(report: dict[str, Any]) -> str:
     _input_cases(suite, report, tally)
     if "interventions" in report:
         ET.SubElement(suite, "system-out").text = _interventions_text(report)
-    for element in (suites, suite):
-        element.set("tests", str(tally["tests"]))
-        element.set("failures", str(tally["failures"]))
-        element.set("errors", str(tally["errors"]))
-    suite.set("skipped", str(tally["skipped"]))
+    _set_tally(suite, tally)
+    total = Counter(tally)
+    for table in report.get("fleet", ()):
+        total.update(_fleet_suite(suites, report, table))
+    _set_tally(suites, total)
     ET.indent(suites)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(suites, encoding="unicode") + "\n"
+
+
+def _set_tally(element: ET.Element, tally: Counter[str]) -> None:
+    for name in ("tests", "failures", "errors"):
+        element.set(name, str(tally[name]))
+    if element.tag == "testsuite":
+        element.set("skipped", str(tally["skipped"]))
+
+
+def _fleet_suite(suites: ET.Element, report: dict[str, Any], table: dict[str, Any]) -> Counter[str]:
+    """A fleet table as a suite of its own: a case per group, failing when the
+    group has a violation at or above the threshold; the case's system-out
+    holds its rules (count, since) and its days, the suite's the table."""
+    title, by_day = fleet_headings(table)
+    suite = ET.SubElement(suites, "testsuite", name=_x(f"whiztap {title.lower()}"),
+                          timestamp=_timestamp(report), hostname=socket.gethostname())
+    tally: Counter[str] = Counter()
+    key = fleet_key(table)
+    for g in table["groups"]:
+        name = group_name(table, g)
+        case = ET.SubElement(suite, "testcase", classname=_x(f"whiztap.fleet.{key}"), name=_x(f"{key} {name}"))
+        tally["tests"] += 1
+        lines = [f"{g['recordings']} recordings, {g['connections']} connections, {g['frames']} items, "
+                 f"{g['violations']} violations: {rules_since(g)}", f"{by_day}:"]
+        lines += [f"  {d['day'] or 'unknown'}: {d['recordings']} recordings, {d['violations']} violations "
+                  f"({rule_counts_words(d['rule_counts'])})" for d in g["days"]]
+        if not g["passed"]:
+            sev = g["violations_by_severity"]
+            ET.SubElement(case, "failure", type="fleet",
+                          message=_x(f"{sev['error']} errors, {sev['warning']} warnings: {rules_since(g)}"))
+            tally["failures"] += 1
+        ET.SubElement(case, "system-out").text = "\n".join(_x(line) for line in lines)
+    _set_tally(suite, tally)
+    return tally
 
 
 def _rule_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) -> None:

@@ -26,6 +26,36 @@ _INTERVENTIONS = {
     },
 }
 
+_DAY = {"type": ["string", "null"], "description": "YYYY-MM-DD (UTC); null when no time is known"}
+_BY_SEVERITY = {"type": "object", "required": ["error", "warning", "info"],
+                "properties": {"error": _INT, "warning": _INT, "info": _INT}}
+_FLEET = {"type": "array", "items": {
+    "type": "object", "required": ["group_by", "day_of", "groups"], "additionalProperties": False,
+    "properties": {
+        "group_by": {"type": "array", "items": _STR, "minItems": 1},
+        "day_of": {"const": "start_time"},
+        "groups": {"type": "array", "items": {
+            "type": "object",
+            "required": ["group", "recordings", "connections", "frames", "violations", "violations_by_severity",
+                         "passed", "rules", "days"],
+            "properties": {
+                "group": {"type": "object", "additionalProperties": {"type": ["string", "null"]}},
+                "recordings": _INT, "connections": _INT, "frames": _INT, "violations": _INT,
+                "violations_by_severity": _BY_SEVERITY, "passed": {"type": "boolean"},
+                "rules": {"type": "array", "items": {
+                    "type": "object", "required": ["rule_id", "severity", "count", "since", "last"],
+                    "properties": {"rule_id": _STR, "severity": _SEVERITY, "count": _INT, "since": _DAY,
+                                   "last": _DAY}}},
+                "days": {"type": "array", "items": {
+                    "type": "object",
+                    "required": ["day", "recordings", "connections", "frames", "violations", "rule_counts"],
+                    "properties": {"day": _DAY, "recordings": _INT, "connections": _INT, "frames": _INT,
+                                   "violations": _INT, "rule_counts": _COUNTS}}},
+            },
+        }},
+    },
+}}
+
 REPORT_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "whiztap.report/1",
@@ -111,6 +141,8 @@ REPORT_SCHEMA = {
         "nothing_judged": _STR,
         # only when the proxy stood in the middle: what it changed, and what that made a side see
         "interventions": _INTERVENTIONS,
+        # only with --group-by: the fleet tables (docs/fleet.md), one per key set
+        "fleet": _FLEET,
         # only when some input could not be read: the report covers the others
         "unreadable": {"type": "array", "minItems": 1, "items": {
             "type": "object", "required": ["file", "error"], "additionalProperties": False,

@@ -9,7 +9,16 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from whiztap.analyzer.analysis.report.words import EFFECTS_HEADING, intervention_lines, side_words
+from whiztap.analyzer.analysis.report.words import (
+    EFFECTS_HEADING,
+    fleet_headings,
+    fleet_key,
+    group_name,
+    intervention_lines,
+    rule_counts_words,
+    rules_since,
+    side_words,
+)
 from whiztap.analyzer.protocol.text import printable, shorten
 
 _STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
@@ -92,6 +101,8 @@ def render_text(report: dict[str, Any], console: Console) -> None:
                                   f"({rule['description']})"))
     if report["ignored_rules"]:
         console.print(_plain(console, f"Ignored rules: {', '.join(report['ignored_rules'])}"))
+    for table in report.get("fleet", ()):
+        _text_fleet(table, console)
     _text_traffic(report, console)
     if "interventions" in report:
         _text_interventions(report, console)
@@ -130,6 +141,36 @@ def _text_traffic(report: dict[str, Any], console: Console) -> None:
                                            ("server→client", "right")],
                          [[kind, f"{kinds['c2s'].get(kind, 0):,}", f"{kinds['s2c'].get(kind, 0):,}"]
                           for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"]))]))
+
+
+def fleet_rows(table: dict[str, Any]) -> tuple[list[list[object]], list[list[object]]]:
+    """A fleet table's rows (group, recordings, connections, items, violations,
+    errors, warnings, verdict, rules since) and its rows by day (group, day,
+    recordings, violations, rules), as every table-shaped format shows them."""
+    groups, days = [], []
+    for g in table["groups"]:
+        name, sev = group_name(table, g), g["violations_by_severity"]
+        groups.append([name, g["recordings"], g["connections"], f"{g['frames']:,}", g["violations"], sev["error"],
+                       sev["warning"], "pass" if g["passed"] else "FAIL", rules_since(g)])
+        days += [[name, d["day"] or "unknown", d["recordings"], d["violations"], rule_counts_words(d["rule_counts"])]
+                 for d in g["days"]]
+    return groups, days
+
+
+FLEET_COLUMNS = ["recordings", "connections", "items", "violations", "errors", "warnings", "verdict",
+                 "rules broken (count, since)"]
+FLEET_DAY_COLUMNS = ["day", "recordings", "violations", "rules"]
+
+
+_NUMERIC = frozenset(("recordings", "connections", "items", "violations", "errors", "warnings"))
+
+
+def _text_fleet(table: dict[str, Any], console: Console) -> None:
+    title, by_day = fleet_headings(table)
+    groups, days = fleet_rows(table)
+    for heading, columns, rows in ((title, FLEET_COLUMNS, groups), (by_day, FLEET_DAY_COLUMNS, days)):
+        console.print(_table(heading, [(fleet_key(table), "left")] + [(c, "right" if c in _NUMERIC else "left")
+                                                                      for c in columns], rows))
 
 
 def _text_interventions(report: dict[str, Any], console: Console) -> None:
@@ -226,6 +267,10 @@ def render_markdown(report: dict[str, Any]) -> str:
         "",
         f"**{t(verdict(report))}**",
         "",
+    ]
+    for table in report.get("fleet", ()):
+        out += _md_fleet(table)
+    out += [
         "## Connections",
         "",
         "| file | conn | client | mode | handshake | items | violations |",
@@ -259,6 +304,18 @@ def render_markdown(report: dict[str, Any]) -> str:
         out += ["", "## Not in this report (could not be read)", ""]
         out += [f"- {t(u['error'])}" for u in report["unreadable"]]
     return "\n".join(out) + "\n"
+
+
+def _md_fleet(table: dict[str, Any]) -> list[str]:
+    title, by_day = fleet_headings(table)
+    groups, days = fleet_rows(table)
+    out = []
+    for heading, columns, rows in ((title, FLEET_COLUMNS, groups), (by_day, FLEET_DAY_COLUMNS, days)):
+        out += [f"## {md_text(heading)}", "", "| " + " | ".join(md_text(c) for c in [fleet_key(table), *columns]) + " |",
+                "|---|" + "".join("---:|" if c in _NUMERIC else "---|" for c in columns)]
+        out += ["| " + " | ".join(md_text(cell) for cell in row) + " |" for row in rows]
+        out.append("")
+    return out
 
 
 def _md_violation_rows(report: dict[str, Any], violations: list[dict[str, Any]]) -> list[str]:

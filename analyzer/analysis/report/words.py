@@ -1,5 +1,6 @@
-"""Words every rendering of a report shares about the proxy in the middle,
-kept free of any rendering library so that each format loads only its own."""
+"""Words every rendering of a report shares about the proxy in the middle and
+the fleet tables, kept free of any rendering library so that each format
+loads only its own."""
 
 from __future__ import annotations
 
@@ -27,3 +28,35 @@ def intervention_lines(report: dict[str, Any]) -> tuple[str, list[tuple[str, int
 
 
 EFFECTS_HEADING = "Effects of the interventions: what one side saw that the other side did not do (no side's violation)"
+
+
+# -- the fleet tables (docs/fleet.md) -----------------------------------------------------------
+
+
+def fleet_key(table: dict[str, Any]) -> str:
+    """What a fleet table groups by: ``robot``, ``robot / firmware``."""
+    return " / ".join(table["group_by"])
+
+
+def group_name(table: dict[str, Any], group: dict[str, Any]) -> str:
+    """A group's values as a person reads them: ``r7 / 2.3``; ``(none)`` for a
+    recording without the key."""
+    return " / ".join("(none)" if group["group"][k] is None else str(group["group"][k]) for k in table["group_by"])
+
+
+def rules_since(group: dict[str, Any]) -> str:
+    """The rules a group broke, each with its count and the first day it broke:
+    ``PW-PAIR-UNANSWERED 12 since 2026-03-02``."""
+    return ", ".join(f"{r['rule_id']} {r['count']} since {r['since'] or 'an unknown day'}"
+                     for r in group["rules"]) or "none"
+
+
+def rule_counts_words(counts: dict[str, int]) -> str:
+    """``PW-A 2, PW-B 1``; ``-`` for none."""
+    return ", ".join(f"{rule_id} {n}" for rule_id, n in counts.items()) or "-"
+
+
+def fleet_headings(table: dict[str, Any]) -> tuple[str, str]:
+    """The titles of a fleet table and of its table by day."""
+    key = fleet_key(table)
+    return f"Fleet by {key}", f"Violations by {key} and day (UTC; the day each recording began)"
