@@ -216,3 +216,28 @@ def test_the_demo_runs_in_the_middle_with_the_faults_it_is_given(tmp_path):
     assert metadata["middle"] == "yes" and metadata["seed"] == "3"
     assert json.loads(metadata["faults"]) == [{"name": "", "spec": "delay:1ms dir:s2c"}]
     assert any(i["action"] == "delay" for i in read_all(str(output))["/interventions"])
+
+
+async def test_a_script_that_raises_is_a_notice_on_the_screen_not_a_traceback_over_it(tmp_path, capfd):
+    """Live, the proxy's warnings (a script's hook that raised) go to the
+    screen: on stderr they would be written over the running app."""
+    script = tmp_path / "broken.py"
+    script.write_text("def frame(flow):\n    raise RuntimeError('broken on purpose')\n")
+    output = tmp_path / "live.mcap"
+    async with Simulator(port=0, mode="vpn", seed=7) as sim:
+        from whiztap.sniffer.record.record_run import MiddleSettings
+
+        settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(output), quiet=True,
+                                  middle=MiddleSettings(scripts=(str(script),), always=True))
+        app = WhiztapApp(LiveSource(ProxyRig(settings), "live"))
+        async with app.run_test(size=SIZE) as pilot:
+            raw = await Raw.open(await proxy_port(pilot))
+            await raw.send(sensor(12))
+            [answer] = await raw.take(1)
+            assert answer_channel(answer) == 12  # the frame passed untouched
+            await until(pilot, lambda: any("broken.py" in n.message for n in app._notifications), "the notice")
+            [notice] = [n for n in app._notifications if "broken.py" in n.message]
+            assert "RuntimeError: broken on purpose" in notice.message and notice.severity == "warning"
+            await raw.close()
+            await quit_app(pilot)
+    assert "broken on purpose" not in capfd.readouterr().err

@@ -150,6 +150,7 @@ class WhiztapApp(App):
             frames.tail = True
         if isinstance(self.source, LiveSource):
             self.source.on_failure = self._live_failed
+            self.source.on_warning = self._live_warning
             self._start_live()
         else:
             self._feed()
@@ -204,6 +205,13 @@ class WhiztapApp(App):
 
     def _live_failed(self, note: str) -> None:
         self.notify(note, severity="error", timeout=10, markup=False)  # names files: never markup
+
+    def _live_warning(self, text: str) -> None:
+        """The proxy's warning (a script that raised: its first line and its
+        traceback's last), shown once; the proxy and the screen go on."""
+        lines = text.splitlines()
+        shown = lines[0] if len(lines) < 2 else f"{lines[0]}\n{lines[-1]}"
+        self.notify(shown, severity="warning", timeout=10, markup=False)
 
     # -- ticks -------------------------------------------------------------------------------
 

@@ -119,7 +119,8 @@ class DemoRig:
         await self.simulator.start()
         self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
                                                   quiet=True, foxglove=self.foxglove, middle=self.middle),
-                                   consumers=[tap] if tap is not None else [])
+                                   consumers=[tap] if tap is not None else [],
+                                   warn=tap.warn if tap is not None else None)
         try:
             await self.recording.start()
         except BaseException:

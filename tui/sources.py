@@ -188,8 +188,11 @@ class Tap:
     bytes on the queue are as sent, and ``LiveSource`` masks them by the
     recorder's rule before the model sees them."""
 
-    def __init__(self, queue: deque) -> None:
+    def __init__(self, queue: deque, warn: Callable[[str], None] | None = None) -> None:
         self.receive = queue.append
+        # what the proxy has to say while it runs (a script that raised): to the
+        # screen, never to stderr, which would write over it
+        self.warn = warn or (lambda text: None)
 
 
 class Rig(Protocol):
@@ -215,7 +218,7 @@ class ProxyRig:
     async def start(self, tap: Tap):  # noqa: ANN201 - a whiztap.sniffer.record.record_run.Recording
         from whiztap.sniffer.record.record_run import Recording
 
-        self.recording = Recording(self.settings, consumers=[tap])
+        self.recording = Recording(self.settings, consumers=[tap], warn=tap.warn)
         await self.recording.start()
         return self.recording
 
@@ -243,6 +246,7 @@ class LiveSource:
         self.recording = None
         self.stopped = threading.Event()  # the proxy is closed: drain and finish
         self.on_failure: Callable[[str], None] | None = None  # the recording stopped on its own
+        self.on_warning: Callable[[str], None] | None = None  # the proxy has something to say (a script raised)
         self._watcher: asyncio.Task | None = None
 
     @property
@@ -263,7 +267,7 @@ class LiveSource:
         from whiztap.sniffer.record.record_run import StartError
 
         try:
-            self.recording = await self.rig.start(Tap(self.queue))
+            self.recording = await self.rig.start(Tap(self.queue, self._warn))
         except (WriterError, FaultSpecError, ScriptError, StartError) as e:
             raise SourceError(str(e)) from None
         except OSError as e:
@@ -275,6 +279,10 @@ class LiveSource:
         if self.recording.control_url:
             self.title += f", control {self.recording.control_url}"
         self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
+
+    def _warn(self, text: str) -> None:
+        if self.on_warning is not None:
+            self.on_warning(text)
 
     async def _watch_writer(self) -> None:
         await self.recording.stopped.wait()
