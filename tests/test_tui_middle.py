@@ -241,3 +241,28 @@ async def test_a_script_that_raises_is_a_notice_on_the_screen_not_a_traceback_ov
             await raw.close()
             await quit_app(pilot)
     assert "broken on purpose" not in capfd.readouterr().err
+
+
+async def test_frames_held_at_the_proxy_are_not_counted_as_new_frames(tmp_path):
+    """Away from the end, "N new (End follows)" counts frames that arrived;
+    a held frame is a row too, but not a new frame (it was counted as one)."""
+    output = tmp_path / "live.mcap"
+    async with Simulator(port=0, mode="vpn", seed=7) as sim:
+        app = live_app(sim, output)
+        async with app.run_test(size=SIZE) as pilot:
+            raw = await Raw.open(await proxy_port(pilot))
+            frames = app.frames
+            await raw.send(sensor(13))
+            await raw.take(1)
+            await until(pilot, lambda: frames.store_rows == 2, "the first exchange")
+            await pilot.press("i", *"kind:command ch:12", "enter", "g")  # away from the end: not following
+            assert not frames.tail
+            await raw.send(sensor(12))
+            await until(pilot, lambda: frames.held_frame is not None or frames.rows == 3, "the held row")
+            await pilot.pause(0.3)
+            assert frames.rows == 3 and "new" not in str(frames.border_subtitle), frames.border_subtitle
+            await pilot.press("A")  # let it go: the request and its answer are new frames
+            await until(pilot, lambda: frames.store_rows == 4, "the released request and its answer")
+            assert "2 new (End follows)" in str(frames.border_subtitle)
+            await raw.close()
+            await quit_app(pilot)

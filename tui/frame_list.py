@@ -101,6 +101,10 @@ class FrameList(HeldActions, VirtualList):
         self._title: tuple[str, int] = ("", 0)
         self._held_bindings = (False, False)  # (on a held frame, any held): the footer's keys
 
+    def counted_rows(self) -> int:
+        """Held frames are not new frames: "N new" counts the view's rows."""
+        return self.store_rows
+
     def row_count(self) -> int:
         self.store_rows = len(self.view)
         self._held = self.controls.held if self.controls is not None else []

@@ -72,6 +72,7 @@ class VirtualList(ScrollView, can_focus=True):
         self.rows = 0  # rows known to the widget (the data may already hold more)
         self.cursor = 0
         self.new_rows = 0  # rows that arrived while not following
+        self._counted = 0  # counted_rows() at the last look
         self._strips: LRUCache[tuple[Hashable, bool, int], Strip] = LRUCache(STRIP_CACHE)
         self._announced: Hashable | None = None
 
@@ -119,16 +120,22 @@ class VirtualList(ScrollView, can_focus=True):
         if rows == self.rows:
             return
         before, self.rows = self.rows, rows
+        counted, self._counted = self._counted, self.counted_rows()
         self._resize()
         if self.tail:
             self._follow()
         else:
-            self.new_rows = max(0, self.new_rows + rows - before)
+            self.new_rows = max(0, self.new_rows + self._counted - counted)
             if before == 0 or self.cursor >= rows:
                 self._place(min(self.cursor, rows - 1) if before else 0)
             if min(before, rows) < self.scroll_offset.y + self.size.height:
                 self.refresh()
         self._update_subtitle()
+
+    def counted_rows(self) -> int:
+        """The rows that count as new when they arrive (a subclass may add
+        rows of another kind after them, such as frames held at the proxy)."""
+        return self.rows
 
     def _resize(self) -> None:
         """Set the scrollable height to the row count.
