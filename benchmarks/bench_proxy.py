@@ -15,6 +15,9 @@ process.
   The bare relay forwards the way whiztap record does (uvloop, asyncio
   protocols, TCP_NODELAY, each read written on at once) and records nothing:
   it is what a relay in Python costs before recording costs anything.
+  ``whiztap record --control 0`` is the proxy in the middle with no fault
+  (every frame decided, written on and recorded on /tcp/delivered too): its
+  row and its ratio to plain ``whiztap record`` are what the middle costs.
 * Pipelined: a Fetch Configuration, its answer, then ``WHIZTAP_BENCH_PIPELINE_FRAMES``
   requests (default 200k; a realistic mix: Sensor Requests on channels 12-23
   and, one in ``BAD_EVERY``, a request for channel 99, which breaks two rules, and
@@ -24,6 +27,10 @@ process.
   parallel; then Ctrl-C, and the clock stops when the file is finished.
   Requests and responses both count as frames.  The recording is read back
   and must hold every byte and every frame.
+* Pipelined in the middle: the same requests through ``whiztap record
+  --control 0`` (no fault) to a server that reads and discards them; frames/s
+  from the first byte sent to the last byte the server received (the
+  forwarding rate of the middle, requests only, one way).
 * Memory: resident size of the proxy and its writer process sampled every
   second while the request/response client runs through it to the simulator
   without a pause, for ``WHIZTAP_BENCH_SOAK_S`` seconds (default 60, to keep
@@ -55,6 +62,7 @@ PEERS = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin"
 BAD_EVERY = int(os.environ.get("WHIZTAP_BENCH_BAD_EVERY", "10"))  # one pipelined request in this many asks channel 99: rules broken
 TARGET_PIPELINED_FPS = 250_000
 TARGET_SOCAT_RATIO = 1.0
+MIDDLE = "record --control 0"  # the proxy in the middle, no fault
 REQUEST = b"rr1-12--0--0-ss1"
 FETCH_CONFIG = b"rr1-24--0--0-ss1"
 RESPONDER = """
@@ -193,7 +201,7 @@ def _relay_round_trips(args: list[str], port: int) -> float:
 
 def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
     paths: dict[str, list[float]] = {"direct": [], "socat": [], "mitmdump": [], "bare relay": [],
-                                     "whiztap record": []}
+                                     "whiztap record": [], MIDDLE: []}
     socat, mitmdump = shutil.which("socat"), _mitmdump()
     if socat is None:
         del paths["socat"]
@@ -222,6 +230,12 @@ def round_trip_comparison(sim_port: int, tmp: Path) -> dict[str, float]:
                       "-o", str(tmp / "rt.mcap"), "--force"])
         _wait_port(port, rec)
         paths["whiztap record"].append(_round_trips(port, RT_S))
+        _stop(rec)
+        port = _free_port()
+        rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
+                      "-o", str(tmp / "rt-middle.mcap"), "--force", "--control", "0"])
+        _wait_port(port, rec)
+        paths[MIDDLE].append(_round_trips(port, RT_S))
         _stop(rec)
     return {name: statistics.median(rates) for name, rates in paths.items()}
 
@@ -281,6 +295,46 @@ def pipelined(tmp: Path) -> dict[str, float]:
             "size": out.stat().st_size}
 
 
+def middle_blast(tmp: Path) -> dict[str, float]:
+    """The pipelined requests through the proxy in the middle (``--control 0``,
+    no fault) to a server that discards them: frames/s to the last byte received."""
+    server = socket.create_server(("127.0.0.1", 0))
+    upstream_port, port = server.getsockname()[1], _free_port()
+    payload = b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
+                       for i in range(PIPELINE_FRAMES))
+    received = [0, 0.0]  # bytes, when the last came
+
+    def discard() -> None:
+        while True:  # the port probe first, then the benchmark's connection
+            conn, _ = server.accept()
+            with conn:
+                while data := conn.recv(1 << 20):
+                    received[0] += len(data)
+                    if received[0] >= len(payload):
+                        received[1] = time.perf_counter()
+                        return
+
+    sink = threading.Thread(target=discard, daemon=True)
+    sink.start()
+    out = tmp / "middle.mcap"
+    rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
+                  "-o", str(out), "--control", "0", "--keep-secrets"])  # no login: nothing to mask
+    try:
+        _wait_port(port, rec)
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            start = time.perf_counter()
+            s.sendall(payload)
+            sink.join(600)
+    finally:
+        _stop(rec)
+        server.close()
+    streams = _streams(out)
+    conn = max(c for c, _ in streams)
+    return {"frames": PIPELINE_FRAMES, "fps": PIPELINE_FRAMES / (received[1] - start) if received[1] else 0.0,
+            "lost": float(received[0] != len(payload) or streams.get((conn, "c2s")) != payload)}
+
+
 def soak(sim_port: int, tmp: Path) -> dict[str, object]:
     port = _free_port()
     rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
@@ -331,8 +385,10 @@ def main() -> None:
             rates = round_trip_comparison(sim_port, tmp)
             direct = rates["direct"]
             for name, rate in rates.items():
-                print(f"round trips/s {name:15} {rate:9,.0f}   {rate / direct:.2f} x direct")
+                print(f"round trips/s {name:18} {rate:9,.0f}   {rate / direct:.2f} x direct")
             record = rates["whiztap record"]
+            print(f"RATIO round trips {MIDDLE} / whiztap record: {rates[MIDDLE] / record:.2f} "
+                  f"(what the middle costs with no fault)")
             peers = (("socat", f"target >= {TARGET_SOCAT_RATIO}"), ("mitmdump", "the peer a user would pick"))
             for peer, target in peers:
                 if peer in rates:
@@ -346,6 +402,10 @@ def main() -> None:
                   f"{'SOME LOST' if p['lost'] else 'nothing lost'}; {p['size'] / 1e6:.1f} MB")
             print(f"FRAMES/S pipelined recording, first byte to finished file: {p['recorded_fps']:,.0f} "
                   f"(target >= {TARGET_PIPELINED_FPS:,})")
+            b = middle_blast(tmp)
+            print(f"FRAMES/S pipelined in the middle: {b['frames']:,} requests through {MIDDLE} (no fault) to "
+                  f"a discarding server, first byte sent to last byte received: {b['fps']:,.0f}; "
+                  f"{'SOME LOST' if b['lost'] else 'nothing lost, every byte recorded'}")
             s = soak(sim_port, tmp)
             print(f"memory over {s['seconds']:.0f} s of round trips ({s['round_trips']:,}): resident size after 1 s "
                   f"-> at the end: proxy {s['proxy_kib'][0]:,} -> {s['proxy_kib'][1]:,} KiB, writer "

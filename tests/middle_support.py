@@ -172,6 +172,23 @@ def actions(topics: dict[str, list[dict]], conn: int | None = None) -> list[str]
     return [i["action"] for i in topics.get("/interventions", []) if conn is None or i["conn"] == conn]
 
 
+def held_ns(topics: dict[str, list[dict]], direction: str, conn: int = 1) -> list[tuple[str, int]]:
+    """Each frame of ``direction`` (its text) and how long the proxy held it,
+    as the recording says: the t_ns of the write that delivered its first
+    byte minus the t_ns of the read it came in.  For faults that change no
+    byte (delay, bandwidth), offsets in /tcp/delivered are those of /frames.
+    A recorded gap is data, not a wall-clock race: the proxy writes a held
+    frame only once its clock has passed the frame's time plus the hold."""
+    writes = sorted((d["offset"], d["t_ns"]) for d in topics.get("/tcp/delivered", [])
+                    if d["dir"] == direction and d["conn"] == conn)
+    held = []
+    for f in topics["/frames"]:
+        if f["dir"] == direction and f["conn"] == conn:
+            [t_ns] = [t for offset, t in writes if offset <= f["offset"]][-1:]
+            held.append((f["text"], t_ns - f["t_end_ns"]))
+    return held
+
+
 def items_of(data: bytes) -> list[bytes]:
     framer = Framer()
     return [i.raw for i in framer.feed(data, 0) + framer.end(1) if i.kind is not ItemKind.EOL]

@@ -104,6 +104,33 @@ def test_a_segment_listed_after_the_ack_and_fin_that_followed_it_is_no_gap(tmp_p
     assert [(e["event"], e.get("by")) for e in events if e["conn"] == 1][-1] == ("closed", "client")
 
 
+def test_an_ack_beyond_a_fin_the_stream_reached_is_no_gap_after_the_close():
+    """The client acknowledges server bytes far past the server's FIN (a
+    confused capture); the server's FIN is reached, so nothing is owed: no event
+    may follow the connection's close (the recorder knows it no more)."""
+    from whiztap.sniffer.record.tcpreasm import ACK, FIN, SYN, Reassembler, Segment
+
+    events: list = []
+
+    class Consumer:
+        def receive(self, event) -> None:  # noqa: ANN001
+            events.append(event)
+
+    r = Reassembler(5000, Consumer())
+    for t, (src, dst, seq, ack, flags, payload) in enumerate([
+            (CLIENT, SERVER, ISN_C, 0, SYN, b""), (SERVER, CLIENT, ISN_S, ISN_C + 1, SYN | ACK, b""),
+            (CLIENT, SERVER, ISN_C + 1, ISN_S + 1, ACK, b""),
+            (SERVER, CLIENT, ISN_S + 1, ISN_C + 1, ACK, b"sr1-"),
+            (CLIENT, SERVER, ISN_C + 1, ISN_S + 10_000, ACK, b""),  # beyond anything the server sent
+            (SERVER, CLIENT, ISN_S + 5, ISN_C + 1, FIN | ACK, b""),
+            (CLIENT, SERVER, ISN_C + 9, ISN_S + 6, FIN | ACK, b"")]):  # 8 client bytes never seen
+        r.segment(Segment(t, src, dst, seq, ack, flags, payload))
+    r.finish(100)
+    kinds = [type(e).__name__ for e in events]
+    assert kinds[-1] == "Closed" and kinds.count("Closed") == 1
+    assert [(type(e).__name__, e.direction.value) for e in events if type(e).__name__ == "Gap"] == [("Gap", "c2s")]
+
+
 def test_missing_bytes_are_a_gap_never_zeros(tmp_path):
     c = [(0, C2S[:16]), (32, C2S[32:]), (16, None)]  # the middle frame never captured
     s = [(0, S2C[:5]), (5, S2C[5:]), (0, None)]

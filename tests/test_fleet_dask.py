@@ -21,7 +21,6 @@ import pytest
 from click.testing import CliRunner
 
 from tests.fleet_support import SLOW_S, DaskCluster, slow_analysis, write_fleet
-from whiztap.analyzer import cluster as cluster_module
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.formats import FORMATS
 from whiztap.analyzer.cli import analyze as analyze_cli
@@ -29,6 +28,7 @@ from whiztap.analyzer.cli.progress import ByteProgress
 from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.sets import find_recordings
+from whiztap.sniffer.fleet import cluster as cluster_module
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 WAIT = 60.0  # a bound on waiting for the cluster; never a timing assertion

@@ -25,9 +25,14 @@ from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.mitm.controller import ControlError
 from whiztap.tui.controls import Controls
 from whiztap.tui.detail import describe_typed
-from whiztap.tui.typed import read_typed
+from whiztap.tui.typed import TypedFrame, read_typed
 
 WAY = {Direction.C2S: "→ toward the server (c2s)", Direction.S2C: "← toward the client (s2c)"}
+
+
+def _rules(typed: TypedFrame) -> str:
+    """The ids of the rules a typed frame breaks, each once, in order."""
+    return ", ".join(dict.fromkeys(v.rule_id for v in typed.violations))
 
 
 class FrameDialog(ModalScreen[None]):
@@ -96,8 +101,7 @@ class FrameDialog(ModalScreen[None]):
         if typed.error:
             self.say(typed.error, "red")
         elif typed.violations:
-            rules = ", ".join(dict.fromkeys(v.rule_id for v in typed.violations))
-            self.say(f"breaks {rules}: Enter asks before sending it", "yellow")
+            self.say(f"breaks {_rules(typed)}: Enter asks before sending it", "yellow")
         else:
             self.say("")
 
@@ -114,14 +118,13 @@ class FrameDialog(ModalScreen[None]):
         event.stop()
         text = event.value
         typed = read_typed(text, self.direction, self.controls.checksum_rule)
-        if typed.data is None:
+        if typed.error:  # no frame, or an unknown checksum rule (the Controller would raise ValueError)
             self.say(typed.error, "bold red")
             return
         force = bool(typed.violations)
         if force and self._confirming != text:
             self._confirming = text
-            rules = ", ".join(dict.fromkeys(v.rule_id for v in typed.violations))
-            self.say(f"This frame breaks {rules}. Enter again sends it anyway (force); "
+            self.say(f"This frame breaks {_rules(typed)}. Enter again sends it anyway (force); "
                      f"change it, or Esc to leave it.", "bold yellow")
             return
         try:

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from whiztap.analyzer.protocol.framing import Framer, ItemKind
+from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Event
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.traffic import Data, Delivered, Intervention, TrafficEvent
+from whiztap.sniffer.mitm.frame import observe_bytes
 from whiztap.tui.marks import Mark
 from whiztap.tui.store import FrameStore
 
@@ -31,11 +32,13 @@ PENDING_MAX = 256  # marks of one connection waiting for their frame; the oldest
 _HELD = "(held #"
 
 
-def kind_of(raw: bytes) -> ItemKind:
-    """The framer's kind for bytes typed or injected on their own."""
-    framer = Framer()
-    items = framer.feed(raw, 0) + framer.end(0)
-    return items[0].kind if len(items) == 1 else ItemKind.UNFRAMED
+def kind_of(raw: bytes, direction: Direction) -> ItemKind:
+    """The kind of bytes dropped or injected on their own, framed as the proxy
+    frames typed bytes (``observe_bytes``); UNFRAMED unless they are one item.
+    (Not the Intervention's recorded ``kind``: that is the sender's frame's,
+    and an earlier stage may have changed the bytes since.)"""
+    item = observe_bytes(raw, direction).item
+    return item.kind if len(item.raw) == len(raw) else ItemKind.UNFRAMED
 
 
 class MiddleView:
@@ -107,7 +110,7 @@ class MiddleView:
                 store.mark(last, mark)
         elif event.direction is S2C:
             if not event.before:  # injected toward the client: the server never sent it
-                store.add_unseen(conn, S2C, kind_of(event.after), event.after, event.t_ns, mark)
+                store.add_unseen(conn, S2C, kind_of(event.after, S2C), event.after, event.t_ns, mark)
                 return
             for n in store.last_frames(conn, S2C):
                 if event.before.startswith(store.raw(n)):  # (a large item's row keeps its head)
@@ -116,7 +119,7 @@ class MiddleView:
                     return
         elif not event.after and event.action in ("drop", "blackhole"):  # the server never got it
             raw = b"*" * len(event.before) if self.redact and event.kind == ItemKind.PASSWORD.value else event.before
-            store.add_unseen(conn, C2S, kind_of(event.before), raw, event.t_ns, mark)
+            store.add_unseen(conn, C2S, kind_of(event.before, C2S), raw, event.t_ns, mark)
         else:
             pending = self.pending.setdefault(conn, [])
             pending.append(mark)

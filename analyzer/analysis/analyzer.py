@@ -235,11 +235,17 @@ class Analyzer:
             self._sides.single(conn, (self._record(conn, rule_id, detail, about, t, late), unanswered))
             return
         result = self.result
-        result.violation_counts[rule_id] += 1
-        if unanswered is not None:
-            result.unanswered[unanswered] += 1
+        self._tally(rule_id, unanswered)
         if len(result.violations) < result.max_violations:
             result.violations.append(self._record(conn, rule_id, detail, about, t, late))
+
+    def _tally(self, rule_id: str, unanswered: str | None, n: int = 1) -> None:
+        """A violation counted (``unanswered``: the request's title, for the
+        unanswered table), whether or not it is kept in full."""
+        result = self.result
+        result.violation_counts[rule_id] += n
+        if unanswered is not None:
+            result.unanswered[unanswered] += n
 
     def _record(self, conn: int, rule_id: str, detail: str, about: Observation, t: int, late: bool) -> ViolationRecord:
         raw = about.item.raw
@@ -272,9 +278,7 @@ class Analyzer:
             self._add(summary, verdict)
         for (rule_id, _side, title), n in more.items():
             summary.violations[rule_id] += n
-            result.violation_counts[rule_id] += n
-            if title is not None:
-                result.unanswered[title] += n
+            self._tally(rule_id, title, n)
         for record in effects:
             result.effect_counts[record.rule_id] += 1
             if len(result.effects) < result.max_violations:
@@ -286,8 +290,6 @@ class Analyzer:
         record, unanswered = verdict
         result = self.result
         summary.violations[record.rule_id] += 1
-        result.violation_counts[record.rule_id] += 1
-        if unanswered is not None:
-            result.unanswered[unanswered] += 1
+        self._tally(record.rule_id, unanswered)
         if len(result.violations) < result.max_violations:
             result.violations.append(record)

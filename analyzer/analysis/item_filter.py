@@ -58,10 +58,10 @@ class ItemFilter:
         return True
 
 
-FILTER_HELP = ("conn:N[,N]  dir:c2s|s2c  kind:K[,K]  ch:N[,N]  since:S  until:S  violations (or !)  "
-               "held injected edited dropped delayed faulted  and any other words: text in the bytes or the meaning")
 INTERVENTION_WORDS = ("held", "injected", "edited", "dropped", "delayed", "faulted")
 """What the proxy in the middle did to a frame, as filter words (the TUI's mark kinds)."""
+FILTER_HELP = ("conn:N[,N]  dir:c2s|s2c  kind:K[,K]  ch:N[,N]  since:S  until:S  violations (or !)  "
+               f"{' '.join(INTERVENTION_WORDS)}  and any other words: text in the bytes or the meaning")
 
 
 class FilterSyntaxError(ValueError):

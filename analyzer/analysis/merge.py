@@ -9,11 +9,29 @@ strictly in input order, each as soon as all before it are in, and the report
 of a run is the same whoever did the work and whenever each file finished.
 Everything else merges exactly: counts add, and latency percentiles come from
 summed histogram buckets (``LatencyStats.merge``), never from averages.
+
+A runner that shares the files out elsewhere (``analyze --dask``: the
+``whiztap.runners`` entry points, ``whiztap.sniffer.fleet.cluster``) raises
+``RunnerError`` when it cannot do the work and hands back ``Lost`` for a file
+it gave up on; both are here so that the analyzer never imports a runner.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from whiztap.analyzer.analysis.facts import Analysis
+
+
+class RunnerError(Exception):
+    """A runner cannot do the work (a cluster unreachable, no workers...); one line."""
+
+
+@dataclass(frozen=True)
+class Lost:
+    """A file's task the runner gave up on (its workers kept dying): why."""
+
+    reason: str
 
 
 class DuplicateResult(RuntimeError):

@@ -219,21 +219,32 @@ def _on_this_machine(paths: list, rule_name: str, limits, jobs: int | None,  # n
 
 def _on_cluster(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress,  # noqa: ANN001
                 dask: str, quiet: bool) -> Iterator[tuple[int, Any]]:
-    """(index, result) of each file, as a task on a Dask cluster (``cluster``);
-    local paths go as absolute ones (the workers share the files, not this
-    process's folder), each labelled as the user named it."""
-    from whiztap.analyzer.cluster import ClusterError, Lost, dask_client, describe, run_tasks
+    """(index, result) of each file, as a task on a Dask cluster (the
+    ``whiztap.runners`` entry point ``dask``: the sniffer's, which talks to the
+    scheduler); local paths go as absolute ones (the workers share the files,
+    not this process's folder), each labelled as the user named it."""
+    from whiztap.analyzer.analysis.merge import Lost, RunnerError
 
+    run = _runner("dask")
     jobs_args = [(_absolute(p), rule_name, limits, None, str(p.name)) for p in paths]
+    announce = None if quiet else (lambda line: click.echo(line, err=True))
     try:
-        with dask_client(dask, jobs) as client:
-            if not quiet:
-                click.echo(describe(client), err=True)
-            for index, result in run_tasks(client, _analyse_in_worker, jobs_args):
-                progress.done_all(paths[index].parts)
-                yield index, f"{paths[index]}: {result.reason}" if isinstance(result, Lost) else result
-    except ClusterError as e:
+        for index, result in run(dask, jobs, _analyse_in_worker, jobs_args, announce):
+            progress.done_all(paths[index].parts)
+            yield index, f"{paths[index]}: {result.reason}" if isinstance(result, Lost) else result
+    except RunnerError as e:
         fail(str(e))
+
+
+def _runner(name: str):  # noqa: ANN202 - the runner function an entry point names
+    """The ``whiztap.runners`` entry point ``name``, loaded as ``root`` loads
+    commands, so that the analyzer imports nothing above it."""
+    from importlib.metadata import entry_points
+
+    found = entry_points(group="whiztap.runners", name=name)
+    if not found:
+        fail(f"--{name} needs whiztap's {name} runner, which is not installed: reinstall whiztap")
+    return next(iter(found)).load()
 
 
 def _absolute(recording):  # noqa: ANN001, ANN202 - a RecordingSet, imported lazily

@@ -155,24 +155,11 @@ class FaultSpec:
         return self.action
 
     def _option_words(self) -> list[str]:
-        words = []
-        if self.nth is not None:
-            words.append(f"nth:{self.nth}")
-        if self.every is not None:
-            words.append(f"every:{self.every}")
-        if self.prob is not None:
-            words.append(f"prob:{self.prob!r}")
-        if self.after_frames is not None:
-            words.append(f"after:{self.after_frames}")
-        if self.after_ns is not None:
-            words.append(f"after:{_format_duration(self.after_ns)}")
-        if self.for_ns is not None:
-            words.append(f"for:{_format_duration(self.for_ns)}")
-        if self.jitter_ns:
-            words.append(f"jitter:{_format_duration(self.jitter_ns)}")
-        if self.pause_ns != DEFAULT_PAUSE_NS:
-            words.append(f"pause:{_format_duration(self.pause_ns)}")
-        return words
+        options = (("nth", self.nth, str), ("every", self.every, str), ("prob", self.prob, repr),
+                   ("after", self.after_frames, str), ("after", self.after_ns, _format_duration),
+                   ("for", self.for_ns, _format_duration), ("jitter", self.jitter_ns or None, _format_duration),
+                   ("pause", None if self.pause_ns == DEFAULT_PAUSE_NS else self.pause_ns, _format_duration))
+        return [f"{key}:{show(value)}" for key, value, show in options if value is not None]
 
 
 def _filter_words(select: ItemFilter) -> list[str]:

@@ -10,6 +10,12 @@ a ``RemotePart`` stands where a ``Path`` does, and ``open_part`` opens either.
 fsspec is the ``fleet`` extra; ``s3://`` also needs s3fs (the ``s3`` extra),
 ``gs://`` gcsfs (``gcs``).  Credentials come from where those libraries look
 (environment, config files, instance roles), on every machine that reads.
+
+This is file reading, not socket I/O of the analyzer's own: fsspec is a file
+abstraction, and what this module asks of it is what it asks of ``open()``
+(a listing, a size, bytes in order).  Whatever connections s3fs or gcsfs make
+underneath are that library's, as a network filesystem's are the kernel's;
+the analyzer listens on nothing, connects to no peer and speaks no protocol.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ nothing to load; the API's own one-line errors are shown as they come.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from typing import Any, NoReturn
 from urllib.parse import quote
 
@@ -109,6 +110,18 @@ def _key(text: str) -> str:
     return quote(text, safe="")
 
 
+def _fault_call(api: Api, method: str, path: str, body: dict[str, Any] | None, verb: str) -> None:
+    """A request whose answer is one fault, shown as ``verb`` and its line."""
+    fault = api.call(method, path, body)
+    api.show(fault, [f"{verb}fault {fault_line(fault)}"])
+
+
+def _listing(api: Api, path: str, key: str, line: Callable[[dict], str], none: str) -> None:
+    """GET ``path``, whose answer lists ``key``: one line each, or ``none``."""
+    answer = api.call("GET", path)
+    api.show(answer, [line(item) for item in answer[key]] or [none])
+
+
 # -- the commands -------------------------------------------------------------------------------
 
 
@@ -154,8 +167,7 @@ def fault_add(api: Api, spec: str, name: str) -> None:
     Example:
       whiztap ctl fault add 'drop dir:s2c kind:response ch:12 every:2' --name lossy
     """
-    fault = api.call("POST", "/faults", {"spec": spec, "name": name or None})
-    api.show(fault, [f"added fault {fault_line(fault)}"])
+    _fault_call(api, "POST", "/faults", {"spec": spec, "name": name or None}, "added ")
 
 
 @fault_group.command("list")
@@ -167,8 +179,7 @@ def fault_list(api: Api) -> None:
     Example:
       whiztap ctl fault list
     """
-    answer = api.call("GET", "/faults")
-    api.show(answer, [fault_line(f) for f in answer["faults"]] or ["no faults"])
+    _listing(api, "/faults", "faults", fault_line, "no faults")
 
 
 @fault_group.command("rm")
@@ -181,13 +192,11 @@ def fault_rm(api: Api, key: str) -> None:
     Example:
       whiztap ctl fault rm lossy
     """
-    fault = api.call("DELETE", f"/faults/{_key(key)}")
-    api.show(fault, [f"removed fault {fault_line(fault)}"])
+    _fault_call(api, "DELETE", f"/faults/{_key(key)}", None, "removed ")
 
 
 def _switch(api: Api, key: str, enabled: bool) -> None:
-    fault = api.call("POST", f"/faults/{_key(key)}/enable", {"enabled": enabled})
-    api.show(fault, [f"fault {fault_line(fault)}"])
+    _fault_call(api, "POST", f"/faults/{_key(key)}/enable", {"enabled": enabled}, "")
 
 
 @fault_group.command("on")
@@ -248,8 +257,7 @@ def held(api: Api) -> None:
     Example:
       whiztap ctl held
     """
-    answer = api.call("GET", "/held")
-    api.show(answer, [held_line(h) for h in answer["held"]] or ["no held frames"])
+    _listing(api, "/held", "held", held_line, "no held frames")
 
 
 @ctl_command.command("release")
@@ -325,8 +333,7 @@ def connections(api: Api) -> None:
     Example:
       whiztap ctl connections
     """
-    answer = api.call("GET", "/connections")
-    api.show(answer, [connection_line(c) for c in answer["connections"]] or ["no connections"])
+    _listing(api, "/connections", "connections", connection_line, "no connections")
 
 
 @ctl_command.command("state")

@@ -12,9 +12,10 @@ refused unless ``force`` is given, so the spec is broken only on purpose.
 from __future__ import annotations
 
 import asyncio
+import json
 import itertools
 import random
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +26,16 @@ from whiztap.analyzer.protocol.session import Limits
 from whiztap.sniffer.mitm.faults import Fault
 from whiztap.sniffer.mitm.intercept import HeldFrames, Intercept
 from whiztap.sniffer.mitm.middle import Middle
-from whiztap.sniffer.mitm.stages import Stages
+from whiztap.sniffer.mitm.stages import Stages, stage_name
 
 EXPIRE_S = 0.5
+
+
+def middle_metadata(faults: Iterable[FaultSpec], seed: int | None) -> dict[str, str]:
+    """The metadata of a recording made with the proxy in the middle (docs/faults.md):
+    what a replay needs to re-apply its faults (``--faults-from-recording``)."""
+    listed = [{"name": f.name, "spec": f.text} for f in faults]
+    return {"middle": "yes", "faults": json.dumps(listed), "seed": "" if seed is None else str(seed)}
 
 
 class ControlError(ValueError):
@@ -199,10 +207,14 @@ class Controller:
                 raise ControlError(f"the frame breaks a rule ({rules}); send it anyway with force")
         return data
 
+    def metadata(self) -> dict[str, str]:
+        """The metadata of a recording made through this controller (``middle_metadata``)."""
+        return middle_metadata([f.spec for f in self.faults], self.seed)
+
     def state(self) -> dict:
         return {"faults": [f.as_dict() for f in self.faults], "intercept": self.intercept.text,
                 "held": self.held_frames(), "connections": self.connections(), "seed": self.seed,
-                "scripts": [getattr(s, "name", type(s).__name__) for s in self.scripts]}
+                "scripts": [stage_name(s) for s in self.scripts]}
 
 
 def load_fault_file(controller: Controller, path: str | Path) -> None:

@@ -20,6 +20,7 @@ from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, LoginMask
 from whiztap.analyzer.traffic import Delivered, Intervention
+from whiztap.sniffer.mitm.faults import Fault
 from whiztap.sniffer.mitm.frame import Frame
 from whiztap.sniffer.mitm.lane import HIGH_WATER, Lane, _Out
 
@@ -51,9 +52,6 @@ class Middle:
 
     def emit(self, event: object) -> None:
         self.controller.emit(event)
-
-    def lane_for(self, reader: Direction) -> Lane:
-        return self.lanes[reader]
 
     def may_read(self, direction: Direction) -> bool:
         return self.lanes[direction].queued <= HIGH_WATER
@@ -161,21 +159,21 @@ class Middle:
 
     # -- timers, injection, the end --------------------------------------------------------------
 
-    def schedule(self, fault: object) -> None:
+    def schedule(self, fault: Fault) -> None:
         """A reset or close after a time (``Fault.timer_ns``) acts on a timer."""
-        at = fault.timer_ns(self.opened_ns)  # type: ignore[attr-defined]
-        spec = fault.spec  # type: ignore[attr-defined]
+        at = fault.timer_ns(self.opened_ns)
+        spec = fault.spec
         if at is None or (spec.select.conns and self.conn_id not in spec.select.conns):
             return
         delay = max(0.0, (at - self.clock()) / 1e9)
         self._timers.append(asyncio.get_running_loop().call_later(delay, self._timed_end, fault))
 
-    def _timed_end(self, fault: object) -> None:
-        if self.gone or not fault.enabled or fault not in self.controller.faults:  # type: ignore[attr-defined]
+    def _timed_end(self, fault: Fault) -> None:
+        if self.gone or not fault.enabled or fault not in self.controller.faults:
             return
-        fault.hits += 1  # type: ignore[attr-defined]
-        action = fault.spec.action  # type: ignore[attr-defined]
-        self.emit(Intervention(self.conn_id, self.clock(), C2S, action, fault.cause, b"", b"", "",  # type: ignore[attr-defined]
+        fault.hits += 1
+        action = fault.spec.action
+        self.emit(Intervention(self.conn_id, self.clock(), C2S, action, fault.cause, b"", b"", "",
                                f"the proxy {action}s the connection"))
         if action == "close":
             for lane in self.lanes.values():

@@ -33,15 +33,6 @@ class Stages:
         self.items: list[Any] = []
         self._reported: set[int] = set()
 
-    def add(self, stage: Any, first: bool = False) -> None:
-        if first:
-            self.items.insert(0, stage)
-        else:
-            self.items.append(stage)
-
-    def remove(self, stage: Any) -> None:
-        self.items = [s for s in self.items if s is not stage]
-
     def frame(self, frame: Frame) -> None:
         for stage in self.items:
             hook = getattr(stage, "frame", None)

@@ -7,7 +7,6 @@ event loop, and so the command module stays cheap to import.
 from __future__ import annotations
 
 import asyncio
-import json
 import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -126,7 +125,7 @@ class Recording:
         listen = proxy.listen_text
         metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
                                  upstream=proxy.upstream_text, split_size=s.split_size,
-                                 split_duration=s.split_duration, user=dict(s.meta), **self._middle_metadata())
+                                 split_duration=s.split_duration, user=dict(s.meta), **(self.controller.metadata() if self.controller is not None else {}))
         config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
                   "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
                   "limits": s.limits.as_dict(),
@@ -162,17 +161,21 @@ class Recording:
 
     def _controller(self) -> Controller | None:
         """The control layer, when the proxy is to stand in the middle.
-        Raises FaultSpecError (a fault file), ScriptError (a script that does not load)."""
+        Raises FaultSpecError (a fault file), StartError (a fault file's name
+        that is taken or a number), ScriptError (a script that does not load)."""
         middle = self.settings.middle
         if not middle.wanted:
             return None
-        from whiztap.sniffer.mitm.controller import Controller, load_fault_file
+        from whiztap.sniffer.mitm.controller import ControlError, Controller, load_fault_file
 
         s = self.settings
         controller = Controller(seed=middle.seed, hold_timeout=middle.hold_timeout, checksum_rule=s.checksum_rule,
                                 limits=s.limits, report=self.warn)
         for path in middle.fault_files:
-            load_fault_file(controller, path)
+            try:
+                load_fault_file(controller, path)
+            except ControlError as e:
+                raise StartError(f"{path}: {e}") from None
         for spec in middle.faults:
             controller.add_fault(spec)
         if middle.scripts:
@@ -181,13 +184,6 @@ class Recording:
             for path in middle.scripts:
                 controller.add_script(load_script(path))
         return controller
-
-    def _middle_metadata(self) -> dict[str, str]:
-        """What a replay needs to re-apply the faults (``--faults-from-recording``)."""
-        if self.controller is None:
-            return {}
-        faults = [{"name": f.spec.name, "spec": f.spec.text} for f in self.controller.faults]
-        return {"middle": "yes", "faults": json.dumps(faults), "seed": "" if self.settings.middle.seed is None else str(self.settings.middle.seed)}
 
     async def _serve_control(self) -> None:
         address = self.settings.middle.control

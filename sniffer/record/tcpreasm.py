@@ -334,6 +334,9 @@ class Reassembler:
         half = conn.halves[direction]
         if half.owed is None:
             return
+        if half.done:  # every byte up to its FIN came: an ACK beyond it owes nothing
+            half.owed = None
+            return
         if _diff(half.owed, half.next) <= 0:  # type: ignore[arg-type]
             half.owed = None  # they came after all
             return

@@ -33,6 +33,7 @@ from whiztap.analyzer.recording.format import TOPIC_INTERVENTIONS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 from whiztap.analyzer.traffic import Closed, Opened, TrafficEvent, UpstreamConnected, UpstreamFailed
 from whiztap.sniffer.mitm.controller import ControlError, Controller
+from whiztap.sniffer.mitm.controller import middle_metadata as controller_metadata  # replay's own takes options
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.record.proxy import RecordingProxy
 from whiztap.sniffer.replay.options import ReplayError, ReplayOptions
@@ -58,9 +59,7 @@ def fault_text(spec: FaultSpec) -> str:
 def middle_metadata(options: ReplayOptions) -> dict[str, str]:
     """The metadata of a recording made through the faults, as ``whiztap record``
     writes it, so that a replay's output can be replayed under them in turn."""
-    faults = [{"name": f.name, "spec": f.text} for f in options.faults]
-    seed = "" if options.fault_seed is None else str(options.fault_seed)
-    return {"middle": "yes", "faults": json.dumps(faults), "seed": seed}
+    return controller_metadata(options.faults, options.fault_seed)
 
 
 # -- what a recording was made under ----------------------------------------------------------------

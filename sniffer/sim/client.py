@@ -144,32 +144,32 @@ class Client:
         return (await self._channel_request(m.ServoPositionRequest(channel), channel, timeout)).servo_position
 
     async def normal_send(self, channel: int, value: int) -> None:
-        await self._send(m.NormalSend(channel, value))
+        await self.send(m.NormalSend(channel, value))
 
     async def activate_switch(self, channel: int) -> None:
-        await self._send(m.ActivateSwitch(channel))
+        await self.send(m.ActivateSwitch(channel))
 
     async def deactivate_switch(self, channel: int) -> None:
-        await self._send(m.DeactivateSwitch(channel))
+        await self.send(m.DeactivateSwitch(channel))
 
     async def play_internal_script(self, script: int) -> None:
-        await self._send(m.PlayInternalScript(script))
+        await self.send(m.PlayInternalScript(script))
 
     async def stop_internal_script(self) -> None:
-        await self._send(m.StopInternalScript())
+        await self.send(m.StopInternalScript())
 
     async def play_external_script(self, script: int) -> None:
-        await self._send(m.PlayExternalScript(script))
+        await self.send(m.PlayExternalScript(script))
 
     async def stop_external_script(self) -> None:
-        await self._send(m.StopExternalScript())
+        await self.send(m.StopExternalScript())
 
     async def set_configuration(self, entries: tuple[m.SetConfigEntry, ...], checksum: int | None = None,
                                 checksum_rule: str = DEFAULT_CHECKSUM_RULE) -> None:
         """Set Configuration Settings; the checksum is computed unless given."""
         if checksum is None:
             checksum = get_rule(checksum_rule).compute(entries)
-        await self._send(m.SetConfiguration(entries, checksum))
+        await self.send(m.SetConfiguration(entries, checksum))
 
     # -- raw access ------------------------------------------------------------------------
 
@@ -225,7 +225,8 @@ class Client:
                                     f"(not sent; --raw sends it anyway)")
         return data
 
-    async def _send(self, message: m.Message) -> None:
+    async def send(self, message: m.Message) -> None:
+        """Send a command that awaits no answer (checked first, with ``validate`` on)."""
         await self.send_raw(self._frame(message))
 
     async def _channel_request(self, message: m.Message, channel: int, timeout: float | None) -> m.ChannelResponse:

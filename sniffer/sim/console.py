@@ -136,31 +136,34 @@ async def _carry_out(client: Client, message: m.Message) -> str:
         case m.ServoPositionRequest(channel=channel):
             position = await client.servo_position(channel)
             return f"servo {channel} position {position:g} (data {round(position * 4)})"
-        case m.NormalSend(channel=channel, value=value):
-            await client.normal_send(channel, value)
-            return f"Normal Send: channel {channel} -> {value}"
-        case m.ActivateSwitch(channel=channel):
-            await client.activate_switch(channel)
-            return f"switch {channel} on"
-        case m.DeactivateSwitch(channel=channel):
-            await client.deactivate_switch(channel)
-            return f"switch {channel} off"
-        case m.PlayInternalScript(script=number):
-            await client.play_internal_script(number)
-            return f"play internal script {number}"
-        case m.PlayExternalScript(script=number):
-            await client.play_external_script(number)
-            return f"play external script {number}"
-        case m.StopInternalScript():
-            await client.stop_internal_script()
-            return "stop internal script"
-        case m.StopExternalScript():
-            await client.stop_external_script()
-            return "stop external script"
         case m.SetConfiguration(entries=entries, checksum=checksum):
             await client.set_configuration(entries, checksum)
             return f"Set Configuration: {len(entries)} entries sent"
-    raise CommandError(f"the console cannot send {message.title}")
+    said = _sent_line(message)
+    if said is None:
+        raise CommandError(f"the console cannot send {message.title}")
+    await client.send(message)
+    return said
+
+
+def _sent_line(message: m.Message) -> str | None:
+    """What the console prints for a command that awaits no answer; None for another message."""
+    match message:
+        case m.NormalSend(channel=channel, value=value):
+            return f"Normal Send: channel {channel} -> {value}"
+        case m.ActivateSwitch(channel=channel):
+            return f"switch {channel} on"
+        case m.DeactivateSwitch(channel=channel):
+            return f"switch {channel} off"
+        case m.PlayInternalScript(script=number):
+            return f"play internal script {number}"
+        case m.PlayExternalScript(script=number):
+            return f"play external script {number}"
+        case m.StopInternalScript():
+            return "stop internal script"
+        case m.StopExternalScript():
+            return "stop external script"
+    return None
 
 
 async def _raw(client: Client, text: str) -> str:

@@ -42,6 +42,7 @@ from whiztap.analyzer.traffic import (
     UpstreamFailed,
     from_json,
 )
+from whiztap.sniffer.nettext import parse_address
 from whiztap.sniffer.wireshark.pcapng import ACK, FIN, MAX_PAYLOAD, PSH, RST, SYN, Endpoint, PcapNgWriter, endpoint, tcp_packet
 
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -101,11 +102,11 @@ def recorded_streams(recording: RecordingSet) -> Iterator[Read | ConnectionEvent
 
 
 def _endpoint(text: str) -> Endpoint | None:
-    host, sep, port = text.rpartition(":")
+    """A recorded HOST:PORT as an endpoint; None for one that is not an IP address and a port 1-65535."""
     try:
-        number = int(port)
-        return endpoint(host, number) if sep and 0 < number < 65536 else None
-    except ValueError:
+        host, port = parse_address(text, None, "address")
+        return endpoint(host, port) if port else None
+    except ValueError:  # AddressError too
         return None
 
 

@@ -3,8 +3,11 @@
 One machine's processes (``analyze -j N``) run out on a fleet's thousands of
 recordings a day, and scheduling across machines (placement, a worker lost in
 the middle of a file, retries, a dashboard) is a solved problem: Dask's
-scheduler does it, and this module only hands it the work.  It does no socket
-I/O of its own; talking to the scheduler is the Dask client's.
+scheduler does it, and this module only hands it the work, through the Dask
+client, which talks to the scheduler over sockets: that is why it lives in the
+sniffer (the socket side), not in the analyzer.  The analyzer's ``analyze``
+command finds it through the ``whiztap.runners`` entry point ``dask``
+(``run``), so no analyzer module imports it.
 
 Each task is one recording, run by a function the caller names (it must be
 importable on the workers, which run the same whiztap).  Results come back as
@@ -14,6 +17,9 @@ handle: the scheduler gives the task to another worker, and only the run that
 finished is returned, so nothing is counted twice or lost.  A task whose
 workers keep dying (``distributed.scheduler.allowed-failures``, 3 by
 default: a recording that exhausts memory) comes back as ``Lost``.
+
+``Lost`` and ``RunnerError`` are the analyzer's (``analysis.merge``): what any
+runner may hand back or raise.
 """
 
 from __future__ import annotations
@@ -23,10 +29,10 @@ import logging
 import os
 import warnings
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from typing import Any
 
 from whiztap.analyzer import __version__
+from whiztap.analyzer.analysis.merge import Lost, RunnerError
 
 LOCAL = "local"  # --dask local: a LocalCluster on this machine
 CONNECT_S = 10  # how long to try the scheduler
@@ -34,16 +40,22 @@ WORKERS_S = 30  # how long to wait for a first worker to join it
 DASHBOARD = "127.0.0.1:8787"  # a local cluster's dashboard (another free port when taken), on this machine only
 
 
-class ClusterError(Exception):
+class ClusterError(RunnerError):
     """The cluster cannot do the work (unreachable, no workers, another
     whiztap on the workers, dask not installed); one line."""
 
 
-@dataclass(frozen=True)
-class Lost:
-    """A task Dask gave up on: the workers running it kept dying."""
-
-    reason: str
+def run(scheduler: str, workers: int | None, task: Callable[[Any], Any], jobs: list[Any],
+        announce: Callable[[str], None] | None = None) -> Iterator[tuple[int, Any]]:
+    """The ``whiztap.runners`` entry point ``dask``: (index, result) of
+    ``task(jobs[index])`` for every job, as tasks on the Dask cluster at
+    ``scheduler`` (``local``: a LocalCluster of ``workers`` processes);
+    ``announce`` gets the cluster's one line (``describe``) first.  Raises
+    ClusterError."""
+    with dask_client(scheduler, workers) as client:
+        if announce is not None:
+            announce(describe(client))
+        yield from run_tasks(client, task, jobs)
 
 
 def whiztap_version() -> str:

@@ -1,0 +1,1 @@
+"""Fleet runs (docs/fleet.md): per-file tasks on a Dask cluster, for ``analyze --dask``."""
