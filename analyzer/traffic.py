@@ -23,8 +23,10 @@ that the analyzer, the recorder's model, replay and the TUI share.
 from __future__ import annotations
 
 import base64
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from enum import StrEnum
 from typing import Any, NamedTuple
 
 from whiztap.analyzer.protocol.observations import Direction, Event
@@ -55,24 +57,121 @@ class Delivered(NamedTuple):
     secret: bool = False
 
 
+class Action(StrEnum):
+    """What the proxy in the middle did to a frame (or a connection).  A
+    ``StrEnum``: its value is the word recordings, the API and reports use."""
+
+    DROP = "drop"
+    DUP = "dup"
+    DELAY = "delay"
+    CORRUPT = "corrupt"
+    REPLACE = "replace"
+    SLICE = "slice"
+    BANDWIDTH = "bandwidth"
+    BLACKHOLE = "blackhole"
+    RESET = "reset"
+    CLOSE = "close"
+    HOLD = "hold"
+    RELEASE = "release"
+    EDIT = "edit"
+    INJECT = "inject"
+    EXPIRE = "expire"  # due after its connection closed: never delivered
+
+
+class Source(StrEnum):
+    """Who or what made the proxy intervene."""
+
+    FAULT = "fault"  # a fault SPEC (--fault, the API, the TUI's faults pane)
+    SCRIPT = "script"  # a --script's hook
+    HAND = "hand"  # a person: release, edit or drop of a held frame
+    INTERCEPT = "intercept"  # the intercept filter held the frame for a person
+    INJECTION = "injection"  # a frame typed into a connection
+    TIMEOUT = "timeout"  # a held frame nobody let go within --hold-timeout
+    CLOSING = "closing"  # the connection ended while the frame waited
+    PROXY = "proxy"  # anything else (only read from old recordings)
+
+
+@dataclass(frozen=True, slots=True)
+class Cause:
+    """Why the proxy intervened, as data: the ``source``, the fault's or
+    script's ``name`` (for a hand: what it did) and the fault's SPEC ``text``
+    (for a timeout: how long).  ``str()`` is the one line people read."""
+
+    source: Source
+    name: str = ""
+    text: str = ""
+
+    def __str__(self) -> str:
+        source, name, text = self.source, self.name, self.text
+        if source is Source.FAULT:
+            return f"fault {name}: {text}"
+        if source is Source.SCRIPT:
+            return f"script {name}"
+        if source is Source.HAND:
+            return f"hand {name}" if name else "hand"
+        if source is Source.INTERCEPT:
+            return f"intercept {text}"
+        if source is Source.TIMEOUT:
+            return f"hold timeout after {text}"
+        if source is Source.CLOSING:
+            return "connection ending"
+        return text or str(source)
+
+    @classmethod
+    def parse(cls, text: str) -> Cause:
+        """The cause a format-3 recording wrote only as text (newer ones write its fields)."""
+        text = _HELD_SUFFIX.sub("", text)
+        if text.startswith("fault ") and ": " in text:
+            name, spec = text[6:].split(": ", 1)
+            return cls(Source.FAULT, name, spec)
+        if text.startswith("script "):
+            return cls(Source.SCRIPT, text[7:])
+        if text == "hand" or text.startswith("hand "):
+            return cls(Source.HAND, text[5:])
+        if text == "injection":
+            return cls(Source.INJECTION)
+        if text.startswith("intercept "):
+            return cls(Source.INTERCEPT, text=text[10:])
+        if text.startswith("hold timeout after "):
+            return cls(Source.TIMEOUT, text=text[19:])
+        if text == "connection ending":
+            return cls(Source.CLOSING)
+        return cls(Source.PROXY, text=text)
+
+
+_HELD_SUFFIX = re.compile(r" \(held #\d+\)$")
+
+
 @dataclass(frozen=True, slots=True)
 class Intervention:
-    """The proxy changed the traffic: ``action`` (drop, dup, delay, corrupt,
-    replace, slice, bandwidth, blackhole, reset, close, hold, release, edit,
-    inject, script) on a frame of ``direction``, because of ``cause`` (a fault
-    SPEC, a script, a hand edit, an injection), turning ``before`` into
-    ``after`` (each ``b""`` where there is none).  ``kind`` is the frame's
-    framer kind, so a password can be kept out of the recording."""
+    """The proxy changed the traffic: ``action`` on a frame of ``direction``,
+    because of ``cause``, turning ``before`` into ``after`` (each ``b""``
+    where there is none).  ``kind`` is the frame's framer kind; ``index`` the
+    frame's number among the frames its sender sent in that direction (-1: no
+    sent frame, an injection or a timer) and ``offset`` where it begins in
+    the sender's stream; ``delivered`` where it begins in the stream the
+    receiver got (-1: not delivered: dropped, expired, or the intervention
+    is not about one frame); ``held`` the held frame's id (0: none).  An
+    intervention on a frame that is delivered is told when it is delivered,
+    so ``delivered`` is known; one on a frame that is not, when decided.
+    ``secret``: the frame is (part of) a password; its bytes here are
+    already masked unless the run keeps secrets, and every output that shows
+    them says ``<redacted>`` unless it keeps secrets."""
 
     conn: int
     t_ns: int
     direction: Direction
-    action: str
-    cause: str
+    action: Action
+    cause: Cause
     before: bytes = b""
     after: bytes = b""
     kind: str = ""
     detail: str = ""
+    index: int = -1
+    held: int = 0
+    secret: bool = False
+    offset: int = -1
+    delivered: int = -1
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,13 +347,17 @@ def intervention_to_json(event: Intervention) -> dict[str, Any]:
     """An intervention's fields besides its connection, direction and time,
     bytes as base64: how the proxy hands it to the writer process.  (The
     recording's /interventions message, text for people, is ``encode``'s.)"""
-    return {"action": event.action, "cause": event.cause, "kind": event.kind, "detail": event.detail,
-            "before": base64.b64encode(event.before).decode(), "after": base64.b64encode(event.after).decode()}
+    cause = event.cause
+    return {"action": event.action.value, "source": cause.source.value, "name": cause.name, "text": cause.text,
+            "kind": event.kind, "detail": event.detail, "index": event.index, "held": event.held,
+            "secret": event.secret, "offset": event.offset, "delivered": event.delivered, "before": base64.b64encode(event.before).decode(),
+            "after": base64.b64encode(event.after).decode()}
 
 
 def intervention_from_json(conn: int, direction: Direction, t_ns: int, f: dict[str, Any]) -> Intervention:
-    return Intervention(conn, t_ns, direction, f["action"], f["cause"], base64.b64decode(f["before"]),
-                        base64.b64decode(f["after"]), f["kind"], f["detail"])
+    return Intervention(conn, t_ns, direction, Action(f["action"]), Cause(Source(f["source"]), f["name"], f["text"]),
+                        base64.b64decode(f["before"]), base64.b64decode(f["after"]), f["kind"], f["detail"],
+                        f["index"], f["held"], f["secret"], f["offset"], f["delivered"])
 
 
 SessionEnded = Callable[[int, Session], None]

@@ -23,7 +23,7 @@ import pytest
 
 from whiztap.analyzer.traffic import Intervention, TrafficEvent
 from whiztap.sniffer.mitm.controller import ControlError, Controller
-from whiztap.sniffer.mitm.faults import Fault
+from whiztap.analyzer.mitm.faults import Fault
 from whiztap.sniffer.record.record_run import MiddleSettings, Recording, RecordSettings
 
 SEED = 0  # prob:, jitter: and slice ranges choose alike on every run
@@ -130,7 +130,7 @@ class WhiztapProxy:
         no handshake may be connected before the proxy has accepted it."""
         deadline = time.monotonic() + CONNECTION_WAIT_S
         while True:
-            conns = self.call(lambda: sorted(self.controller.middles))
+            conns = self.call(lambda: sorted(self.controller.cores))
             if len(conns) > 1:
                 named = ", ".join(f"#{c}" for c in conns)
                 raise ControlError(f"{len(conns)} connections are open through the proxy ({named}): "

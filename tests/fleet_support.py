@@ -18,7 +18,16 @@ from pathlib import Path
 
 from whiztap.analyzer.cli.reading import scan_recording
 from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.traffic import Data, Delivered, Intervention, RecordingStarted, RecordingStopped
+from whiztap.analyzer.traffic import (
+    Action,
+    Cause,
+    Data,
+    Delivered,
+    Intervention,
+    RecordingStarted,
+    RecordingStopped,
+    Source,
+)
 from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
@@ -70,8 +79,8 @@ def rerecord(sample: Path, path: Path, t0: int, meta: dict[str, str], middle: bo
         if middle and type(event) is Data:
             answers += event.direction is Direction.S2C
             if answers == 6 and event.direction is Direction.S2C:  # the proxy dropped this read of the server's
-                recorder.receive(Intervention(event.conn, event.t_ns, Direction.S2C, "drop",
-                                              "fault f1: drop dir:s2c every:6", event.data, b""))
+                recorder.receive(Intervention(event.conn, event.t_ns, Direction.S2C, Action.DROP,
+                                              Cause(Source.FAULT, "f1", "drop dir:s2c every:6"), event.data, b""))
             else:
                 recorder.receive(Delivered(event.conn, event.direction, event.t_ns, event.data))
         recorder.tick(event.t_ns)

@@ -37,7 +37,7 @@ from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_INTERVENTIONS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 from whiztap.analyzer.recording.sets import find_one
-from whiztap.analyzer.traffic import Closed, Data, Delivered, Intervention, Opened
+from whiztap.analyzer.traffic import Action, Cause, Closed, Data, Delivered, Intervention, Opened, Source
 from whiztap.sniffer.record.record_run import MiddleSettings
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
@@ -281,8 +281,8 @@ def _password_recording(path: Path, keep_secrets: bool) -> None:
     recorder.receive(Opened(1, T0 + MS, "c", "u"))
     recorder.receive(Data(1, Direction.S2C, T0 + 2 * MS, b"sendchkpass"))
     recorder.receive(Data(1, Direction.C2S, T0 + 3 * MS, b"hunter2"))
-    recorder.receive(Intervention(1, T0 + 3 * MS, Direction.C2S, "edit", "hand edit (held #1)", b"hunter2",
-                                  b"hunter22", "password"))
+    recorder.receive(Intervention(1, T0 + 3 * MS, Direction.C2S, Action.EDIT, Cause(Source.HAND, "edit"),
+                                  b"hunter2", b"hunter22", "password", held=1, secret=True))
     recorder.receive(Delivered(1, Direction.C2S, T0 + 4 * MS, b"hunter22", True))
     recorder.receive(Data(1, Direction.S2C, T0 + 5 * MS, b"readytogo"))
     recorder.receive(Closed(1, T0 + 6 * MS, "client"))
@@ -302,8 +302,8 @@ def test_a_password_in_an_intervention_reads_back_masked_unless_kept(tmp_path, k
     else:
         assert (change.before, change.after, delivered.data) == (b"*" * 7, b"*" * 8, b"*" * 8)
         assert delivered.secret
-    assert (change.action, change.cause, change.kind, change.direction) == (
-        "edit", "hand edit (held #1)", "password", Direction.C2S)
+    assert (change.action, change.cause, change.kind, change.direction, change.held) == (
+        Action.EDIT, Cause(Source.HAND, "edit"), "password", Direction.C2S, 1)
 
 
 @pytest.mark.parametrize("message, why", [

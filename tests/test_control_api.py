@@ -200,9 +200,15 @@ async def test_held_frames_keep_their_order_and_a_dropped_one_never_arrives(tmp_
     by_topic = read_all(str(tmp_path / "r.mcap"))
     delivered = topic_text(by_topic, "/tcp/delivered", "c2s")
     assert delivered.startswith(b"rr1-13--0--0-ss1rr1-14--0--0-ss1") and b"rr1-15" not in delivered
-    actions = [(i["action"], i["before"]) for i in by_topic["/interventions"]]
-    assert actions == [("hold", "rr1-13--0--0-ss1"), ("hold", "rr1-14--0--0-ss1"), ("release", "rr1-14--0--0-ss1"),
-                       ("release", "rr1-13--0--0-ss1"), ("hold", "rr1-15--0--0-ss1"), ("drop", "rr1-15--0--0-ss1")]
+    actions = [(i["action"], i["before"], i["held"]) for i in by_topic["/interventions"]]
+    one_id, two_id = one["id"], two["id"]
+    # a release is told when its frame is delivered (with where it went), so #14's after #13's
+    assert actions == [("hold", "rr1-13--0--0-ss1", one_id), ("hold", "rr1-14--0--0-ss1", two_id),
+                       ("release", "rr1-13--0--0-ss1", one_id), ("release", "rr1-14--0--0-ss1", two_id),
+                       ("hold", "rr1-15--0--0-ss1", held["id"]), ("drop", "rr1-15--0--0-ss1", held["id"])]
+    releases = [i for i in by_topic["/interventions"] if i["action"] == "release"]
+    assert [delivered[r["delivered"]:r["delivered"] + 16] for r in releases] == [b"rr1-13--0--0-ss1",
+                                                                                   b"rr1-14--0--0-ss1"]
 
 
 async def test_a_forgotten_held_frame_is_released_by_the_hold_timeout(tmp_path):
@@ -293,14 +299,14 @@ async def test_every_bad_request_answers_or_closes_and_the_proxy_goes_on(tmp_pat
             (("POST", "/faults", {"name": "x"}), 400, "missing field 'spec'"),
             (("POST", "/faults", {"spec": 3}), 400, "'spec' must be a string"),
             (("POST", "/faults", {"spec": "explode dir:s2c"}), 400, "explode"),
-            (("DELETE", "/faults/nosuch"), 400, "no fault 'nosuch'"),
-            (("POST", "/faults/nosuch/enable", {"enabled": True}), 400, "no fault"),
+            (("DELETE", "/faults/nosuch"), 404, "no fault 'nosuch'"),
+            (("POST", "/faults/nosuch/enable", {"enabled": True}), 404, "no fault"),
             (("POST", "/faults/1/enable", {"enabled": "yes"}), 400, "true or false"),
             (("PUT", "/intercept", {}), 400, "missing field 'filter'"),
             (("PUT", "/intercept", {"filter": "since:soon"}), 400, "intercept filter"),
-            (("POST", "/held/7/release"), 400, "no held frame #7"),
+            (("POST", "/held/7/release"), 404, "no held frame #7"),
             (("POST", "/held/seven/drop"), 400, "a number"),
-            (("POST", "/inject", {"conn": 9, "dir": "c2s", "frame": "sensor 1"}), 400, "no open connection #9"),
+            (("POST", "/inject", {"conn": 9, "dir": "c2s", "frame": "sensor 1"}), 404, "no open connection #9"),
             (("POST", "/inject", {"conn": 1, "dir": "up", "frame": "sensor 1"}), 400, "c2s or s2c"),
             (("POST", "/inject", {"conn": True, "dir": "c2s", "frame": "sensor 1"}), 400, "whole number"),
             (("POST", "/inject", {"conn": 1, "dir": "c2s", "frame": "teleport 3"}), 400, "teleport"),

@@ -28,8 +28,8 @@ from whiztap.analyzer.protocol.codec import checksum_offset, decode, encode
 from whiztap.analyzer.protocol.framing import Framer
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
-from whiztap.sniffer.mitm import lane as lane_module
-from whiztap.sniffer.mitm.lane import HIGH_WATER
+from whiztap.analyzer.mitm import lane as lane_module
+from whiztap.analyzer.mitm.lane import HIGH_WATER
 from whiztap.sniffer.sim.client import Client
 from tests.middle_support import (
     Background,
@@ -417,7 +417,7 @@ async def test_a_delay_under_a_client_that_keeps_sending_pauses_the_client(tmp_p
 
         tasks = [asyncio.create_task(keep_sending()), asyncio.create_task(keep_reading())]
         conn = mid.rec.proxy.connections[1]  # type: ignore[union-attr]
-        lane = conn.middle.lanes[Direction.C2S]
+        lane = conn.middle.core.lanes[Direction.C2S]
         queued, before = [], []
         start = time.monotonic()
         while time.monotonic() - start < 2.0:
@@ -468,7 +468,7 @@ def _as_delivered(data: bytes, specs: tuple[FaultSpec, ...]) -> tuple[bytes, dic
 
 
 def test_what_no_fault_chose_passes_untouched_and_in_order(tmp_path, monkeypatch):
-    monkeypatch.setattr(lane_module, "STALL_S", WAIT)  # an unfinished item waits for more (or the FIN)
+    monkeypatch.setattr(lane_module, "STALL_NS", int(WAIT * 1e9))  # an unfinished item waits for more (or the FIN)
     bg = Background(tmp_path / "property.mcap", _PROPERTY_FAULTS)
     specs = tuple(parse_fault(f) for f in _PROPERTY_FAULTS)
     conns = itertools.count(1)

@@ -76,7 +76,7 @@ def test_survives_a_dropped_answer(whiztap_proxy):
     assert asyncio.run(sensor_with_retry(whiztap_proxy.address, 12))[0] == 1
     [drop] = whiztap_proxy.interventions("drop")
     assert (drop.conn, drop.direction.value, drop.kind, drop.after) == (1, "s2c", "response", b"")
-    assert drop.before.startswith(b"cr1-12--") and drop.cause == f"fault {fault.name}: {fault.spec}"
+    assert drop.before.startswith(b"cr1-12--") and str(drop.cause) == f"fault {fault.name}: {fault.spec}"
 
 
 def test_survives_a_reset(whiztap_proxy):

@@ -58,7 +58,8 @@ def causes(topics: dict[str, list[dict]]) -> set[str]:
 
 async def _seen(mid: Middle, direction: Direction, count: int, conn: int = 1) -> None:
     """Wait until the proxy has decided ``count`` frames of ``direction``."""
-    lane = mid.rec.controller.middles[conn].lanes[direction]  # type: ignore[union-attr]
+    core, _ = mid.rec.controller.cores[conn]  # type: ignore[union-attr]
+    lane = core.lanes[direction]
     async with asyncio.timeout(WAIT):
         while lane.index < count:
             await asyncio.sleep(0.01)

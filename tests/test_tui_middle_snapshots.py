@@ -15,7 +15,6 @@ import pytest
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.mitm.controller import Controller
-from whiztap.sniffer.mitm.middle import Middle
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.controls import HeldKey
 from whiztap.tui.sources import FileSource
@@ -28,18 +27,13 @@ T0 = 1_700_000_000_000_000_000
 WAITED_NS = 2_500_000_000
 
 
-class _Leg:
-    def sync(self) -> None:
+class _Shell:
+    """A connection's shell that carries out nothing: the core's lanes write nowhere."""
+
+    client_addr = "127.0.0.1:40000"
+
+    def run(self, commands: list) -> None:
         pass
-
-
-class _Connection:
-    """What a Middle needs of the proxy's Connection, for lanes that write nowhere."""
-
-    def __init__(self, conn_id: int) -> None:
-        self.id = conn_id
-        self.client_addr = "127.0.0.1:40000"
-        self.client = self.upstream = _Leg()
 
 
 class BesideAController(FileSource):
@@ -56,8 +50,8 @@ def controller() -> Controller:
     controller = Controller(seed=0)
     controller.attach(lambda: now[0], lambda event: None)
     controller.set_intercept("kind:command ch:12")
-    middle = controller.middles[1] = Middle(controller, _Connection(1))
-    middle.lanes[Direction.C2S].feed(b"rr1-12--0--0-ss1", T0)  # held: the lane has nowhere to write it anyway
+    core = controller.open(1, _Shell())
+    core.received(Direction.C2S, b"rr1-12--0--0-ss1", T0)  # held: the lane has nowhere to write it anyway
     now[0] += WAITED_NS
     return controller
 

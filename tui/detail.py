@@ -246,7 +246,7 @@ def describe_held(held: Any, now_ns: int, checksum_rule: str) -> RenderableType:
     head.append("\n" + printable(f"conn #{held.conn}, {sender} → {'server' if sender == 'client' else 'client'}, "
                                   f"{state['kind']}; {state['cause']}"), style="dim")
     head.append("\na accept · x drop · e edit · A accept all", style="bold")
-    return Group(head, describe_typed(judge_bytes(held.data, held.direction, checksum_rule)))
+    return Group(head, describe_typed(judge_bytes(held.shown, held.direction, checksum_rule)))
 
 
 def _bytes_parts(kept: bytes, size: int) -> list[RenderableType]:

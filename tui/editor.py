@@ -18,7 +18,7 @@ from whiztap.tui.frame_dialog import WAY, FrameDialog
 class EditorScreen(FrameDialog):
     def __init__(self, controls: Controls, held: Any) -> None:
         """``held``: the Controller's Held frame (sniffer/mitm/intercept.py)."""
-        super().__init__(controls, escape(held.data), held.direction, f"Edit held #{held.id}")
+        super().__init__(controls, escape(held.shown), held.direction, f"Edit held #{held.id}")
         self.held = held
 
     def heading(self) -> str:

@@ -248,7 +248,7 @@ class FrameList(HeldActions, VirtualList):
             (f"#{held.conn:<3} ", style("framelist--conn")),
             ("→ " if c2s else "← ", style("framelist--c2s" if c2s else "framelist--s2c")),
             (f"{state['kind']:<10} ", style("framelist--kind")),
-            (f"{_bytes_text(held.data, len(held.data)):<{BYTES_WIDTH}} ", style("framelist--bytes")),
+            (f"{_bytes_text(held.shown, len(held.shown)):<{BYTES_WIDTH}} ", style("framelist--bytes")),
             (f"#{held.id} waiting {state['waited_s']:.1f} s: ", waiting),
             (state["meaning"], Style()),
         ]

@@ -28,7 +28,7 @@ def target_connection(frames: FrameList, chosen: int | None, controls: Controls)
         return frames.store.conn[frame]
     if chosen is not None:
         return chosen
-    open_now = list(controls.controller.middles)
+    open_now = list(controls.controller.cores)
     return open_now[0] if len(open_now) == 1 else None
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from whiztap.analyzer.protocol.frame_text import check_frame, frame_from_text
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.rules import Violation
-from whiztap.sniffer.mitm.frame import observe_bytes
+from whiztap.analyzer.mitm.frame import observe_bytes
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,6 @@ from whiztap.analyzer.analysis.facts import (
     SetConfigCheck,
     Series,
     ViolationRecord,
-    cause_group,
 )
 from whiztap.analyzer.analysis.sides import Settled, Sides, Verdict, side_of
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
@@ -260,7 +259,7 @@ class Analyzer:
         the middle handed to the views."""
         summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
         if type(event) is Intervention:
-            self.result.interventions[(cause_group(event.cause), event.action)] += 1
+            self.result.interventions[(str(event.cause), event.action.value)] += 1
             summary.interventions += 1
         if self._sides is not None:
             if not summary.middle:

@@ -8,7 +8,6 @@ importing each other.
 
 from __future__ import annotations
 
-import re
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 
@@ -18,7 +17,6 @@ from whiztap.analyzer.protocol.stats import LatencyStats
 
 NS = 1_000_000_000
 RAW_KEPT = 2048  # bytes of a violating item kept for the report: every frame whole; an image or garbage cut
-_HELD_NUMBER = re.compile(r" \(held #\d+\)$")
 
 
 @dataclass(slots=True)
@@ -89,12 +87,6 @@ class ConnectionSummary:
     notes: list[str] = field(default_factory=list)  # upstream failures, capture gaps
     middle: bool = False  # the proxy stood in the middle: each side was judged by what it did
     interventions: int = 0  # changes the proxy made to this connection's traffic
-
-
-def cause_group(cause: str) -> str:
-    """An intervention's cause as the report groups it: a held frame's number
-    left out, so "hand edit (held #3)" and "hand edit (held #7)" are one cause."""
-    return _HELD_NUMBER.sub("", cause)
 
 
 @dataclass

@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from whiztap.analyzer.analysis.facts import ViolationRecord, cause_group
+from whiztap.analyzer.analysis.facts import ViolationRecord
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.stats import LatencyStats
@@ -130,7 +130,7 @@ class Sides:
         elif kind is Intervention:
             c = self._conn(event.conn)
             c.middle = True
-            c.causes[cause_group(event.cause)] = None  # type: ignore[union-attr]
+            c.causes[str(event.cause)] = None  # type: ignore[union-attr]
         elif kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
             # a sender's FIN ends the stream in both views: the proxy passes it on once it has
             # delivered what it holds, and the recording has no time of its own for that

@@ -199,13 +199,15 @@ class _CatPrinter:
 
             self._out.write(json.dumps({
                 "t_ns": e.t_ns, "conn": e.conn, "dir": str(e.direction), "kind": "intervention", "raw_b64": None,
-                "fields": {"number": self._changes, "action": e.action, "cause": e.cause, "item_kind": e.kind,
+                "fields": {"number": self._changes, "action": e.action.value, "cause": str(e.cause),
+                           "source": e.cause.source.value, "index": e.index, "held": e.held, "item_kind": e.kind,
                            "before_b64": base64.b64encode(e.before).decode(),
                            "after_b64": base64.b64encode(e.after).decode(), "detail": e.detail},
                 "violations": []}) + "\n")
             return
         rel = (e.t_ns - (self.start or 0)) / 1e9
-        why = f"{e.cause}; {e.detail}" if e.detail else e.cause
+        cause = f"{e.cause} (held #{e.held})" if e.held else str(e.cause)
+        why = f"{cause}; {e.detail}" if e.detail else cause
         line = self._printable(f"{rel:12.6f} c{e.conn} ~ #{self._changes} {e.direction} {e.action}  "
                                f"{self._shorten(_change_text(e, self._escape), TEXT_SHOWN)}  ({why})")
         self._out.write((click.style(line, fg="cyan") if self._colour else line) + "\n")
@@ -234,4 +236,4 @@ def _shows_change(item_filter, e, start_ns: int) -> bool:  # noqa: ANN001
     if (f.since_s is not None and rel < f.since_s) or (f.until_s is not None and rel >= f.until_s):
         return False
     needle = f.text.lower()
-    return not needle or any(needle in text.lower() for text in (e.cause, e.action, escape(e.before), escape(e.after)))
+    return not needle or any(needle in text.lower() for text in (str(e.cause), e.action, escape(e.before), escape(e.after)))

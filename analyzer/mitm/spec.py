@@ -78,6 +78,7 @@ ACTIONS: dict[str, str] = {
     "close": "close  close the connection (FIN)",
 }
 ACTIONS_WITH_ARGUMENT = {"delay", "replace", "slice", "bandwidth"}
+MAX_REPLACEMENT = 64 << 10  # bytes a replace: fault may deliver in place of one frame (memory stays bounded)
 FILTER_WORDS: dict[str, str] = {
     "dir": "dir:c2s|s2c  frames of one direction",
     "kind": "kind:K[,K]  frames of these kinds (command, response, set_config, ...)",
@@ -245,9 +246,12 @@ def _slice_sizes(text: str) -> tuple[int, int]:
 
 def _replacement(text: str) -> bytes:
     try:
-        return unescape(text)
+        data = unescape(text)
     except UnicodeEncodeError:
         raise ValueError("holds a character that is no byte (a lone surrogate)") from None
+    if len(data) > MAX_REPLACEMENT:
+        raise ValueError(f"is {len(data):,} bytes; a replacement is at most {MAX_REPLACEMENT:,} (64 KiB)")
+    return data
 
 
 def _after(text: str) -> dict[str, int]:

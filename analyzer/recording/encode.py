@@ -382,14 +382,25 @@ def encode_plots(conn: int, obs: Observation) -> list[tuple[str, bytes]]:
 
 def intervention_message(event: Intervention, redact: bool) -> dict[str, Any]:
     """An /interventions message: the frame before and after as escaped text
-    (a password's as ``<redacted>`` unless secrets are kept; sizes stay)."""
-    hidden = redact and event.kind == ItemKind.PASSWORD.value
+    (a password's as ``<redacted>`` unless secrets are kept; sizes stay), the
+    cause as one line and as its fields, the frame's index and the held id."""
+    hidden = redact and (event.secret or event.kind == ItemKind.PASSWORD.value)
+    cause = event.cause
     message: dict[str, Any] = {
-        "conn": event.conn, "t_ns": event.t_ns, "dir": event.direction.value, "action": event.action,
-        "cause": event.cause, "kind": event.kind,
+        "conn": event.conn, "t_ns": event.t_ns, "dir": event.direction.value, "action": event.action.value,
+        "cause": str(cause), "source": cause.source.value, "name": cause.name, "spec": cause.text,
+        "kind": event.kind,
         "before": REDACTED if hidden and event.before else escape(event.before),
         "after": REDACTED if hidden and event.after else escape(event.after),
         "before_size": len(event.before), "after_size": len(event.after), "detail": event.detail}
+    if event.index >= 0:
+        message["index"] = event.index
+    if event.offset >= 0:
+        message["offset"] = event.offset
+    if event.delivered >= 0:
+        message["delivered"] = event.delivered
+    if event.held:
+        message["held"] = event.held
     if hidden:
         message["redacted"] = True
     return message

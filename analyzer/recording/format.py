@@ -23,8 +23,9 @@ from whiztap.analyzer.protocol.codec import MAX_CHANNEL
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.traffic import NAMES, HalfClosed
 
-FORMAT_VERSION = "3"  # 2: /log, and the plot topics per channel (/sensors/12) instead of /sensors;
-# 3: /tcp/delivered and /interventions when the proxy stands in the middle
+FORMAT_VERSION = "4"  # 2: /log, and the plot topics per channel (/sensors/12) instead of /sensors;
+# 3: /tcp/delivered and /interventions when the proxy stands in the middle;
+# 4: an intervention's cause as fields (source, name, spec), its frame's index, offsets and held id
 PROFILE = "whiztap"
 SPEC_REVISION = "1.8"
 METADATA_NAME = "whiztap"
@@ -114,8 +115,19 @@ SCHEMAS: dict[str, dict] = {
                                 "an injection): what, why, and the frame before and after.",
         {"conn": _CONN, "t_ns": _NS, "dir": _DIR,
          "action": {"type": "string", "description": "drop, dup, delay, corrupt, replace, slice, bandwidth, "
-                                                     "blackhole, reset, close, hold, release, edit, inject, script"},
+                                                     "blackhole, reset, close, hold, release, edit, inject, "
+                                                     "expire (due after its connection closed)"},
          "cause": {"type": "string", "description": "the fault (name: SPEC), script, hand edit or injection"},
+         "source": {"type": "string", "enum": ["fault", "script", "hand", "intercept", "injection", "timeout",
+                                               "closing", "proxy"], "description": "who or what intervened (format 4)"},
+         "name": {"type": "string", "description": "the fault's or script's name; for a hand, what it did"},
+         "spec": {"type": "string", "description": "the fault's SPEC; for a hold timeout, how long"},
+         "index": {"type": "integer", "description": "the frame's number among its sender's frames in its "
+                                                     "direction (absent: no sent frame: an injection, a timer)"},
+         "held": {"type": "integer", "description": "the held frame's id (absent: not a held frame)"},
+         "offset": {"type": "integer", "description": "where the frame begins in its sender's stream"},
+         "delivered": {"type": "integer", "description": "where the frame begins in the stream its receiver got "
+                                                         "(/tcp/delivered offsets; absent: not delivered)"},
          "kind": _STR, "before": _STR, "after": _STR,
          "before_size": _INT, "after_size": _INT, "detail": _STR, "redacted": {"type": "boolean"}},
         ("conn", "t_ns", "dir", "action", "cause", "before", "after")),

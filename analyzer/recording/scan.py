@@ -63,7 +63,17 @@ from whiztap.analyzer.recording.mcap import (
     read_string,
 )
 from whiztap.analyzer.recording.remote import RemotePart, open_part
-from whiztap.analyzer.traffic import Data, Delivered, Intervention, TrafficError, TrafficEvent, from_json
+from whiztap.analyzer.traffic import (
+    Action,
+    Cause,
+    Data,
+    Delivered,
+    Intervention,
+    Source,
+    TrafficError,
+    TrafficEvent,
+    from_json,
+)
 
 MAX_CHUNK_ENV = "WHIZTAP_MAX_CHUNK"
 DEFAULT_MAX_CHUNK = 256 << 20
@@ -72,6 +82,7 @@ _OP_METADATA_ONLY = frozenset((OP_METADATA,))  # what it looks inside when no to
 _OP_NAMES = {OP_CHUNK: "chunk", OP_MESSAGE_INDEX: "message index", OP_METADATA: "metadata record",
              OP_CHANNEL: "channel record", OP_MESSAGE: "message"}
 _DIRECTIONS = {b"c2s": Direction.C2S, b"s2c": Direction.S2C}
+_HELD_IN_CAUSE = re.compile(r" \(held #(\d+)\)$")  # format 3 wrote a held id only in the cause
 _READ_JSON = re.compile(
     rb'\{"conn":(\d{1,19}),"dir":"(c2s|s2c)","t_ns":(\d{1,19}),"offset":(\d{1,19}),"size":\d+,'
     rb'(?:"redacted":(\[[\d,\[\]]*\]),)?"data":"([A-Za-z0-9+/=]*)"\}')
@@ -396,11 +407,25 @@ class RecordingScan:
                          bool(d.get("redacted")))
 
     def _intervention(self, d: dict) -> Intervention:
-        """An /interventions message: the frame before and after as bytes again."""
+        """An /interventions message: the frame before and after as bytes again,
+        the cause and held id from their fields (format 3 wrote them only in
+        the cause's text, which is read for them then)."""
         redacted = d.get("redacted") is True
-        return Intervention(d["conn"], d["t_ns"], _DIRECTIONS[d["dir"].encode()], d["action"], d["cause"],
+        try:
+            action = Action(d["action"])
+            if "source" in d:
+                cause = Cause(Source(d["source"]), d.get("name", ""), d.get("spec", ""))
+                held = d.get("held", 0)
+            else:
+                cause = Cause.parse(d["cause"])
+                held = int(m.group(1)) if (m := _HELD_IN_CAUSE.search(d["cause"])) else 0
+        except (ValueError, KeyError, TypeError) as e:
+            raise self._invalid(TOPIC_INTERVENTIONS, f"not an intervention whiztap knows ({e})") from None
+        kind = d.get("kind", "")
+        return Intervention(d["conn"], d["t_ns"], _DIRECTIONS[d["dir"].encode()], action, cause,
                             self._frame_bytes(d, "before", redacted), self._frame_bytes(d, "after", redacted),
-                            d.get("kind", ""), d.get("detail", ""))
+                            kind, d.get("detail", ""), d.get("index", -1), held,
+                            redacted or kind == "password", d.get("offset", -1), d.get("delivered", -1))
 
     def _frame_bytes(self, d: dict, key: str, redacted: bool) -> bytes:
         """A frame an /interventions message holds as escaped text; a password

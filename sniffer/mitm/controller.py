@@ -2,33 +2,35 @@
 control API, ``whiztap ctl``, the pytest fixture and the TUI all drive, so
 they can never disagree.
 
-It owns the stages every frame goes through, in this order: the faults (in
-the order they were added), the scripts, then interception (so a person sees
-the frame as it is about to be sent).  Frames typed by a person (an edit, an
-injection) are checked before they are sent: one that breaks a rule is
+It owns what every connection's sans-IO core shares (``MiddleContext``: the
+stages every frame goes through, in this order: the faults in the order they
+were added, the scripts, then interception, so a person sees the frame as it
+is about to be sent; the held frames; chance) and each connection's core with
+the shell that carries out its commands.  Frames typed by a person (an edit,
+an injection) are checked before they are sent: one that breaks a rule is
 refused unless ``force`` is given, so the spec is broken only on purpose.
 """
 
 from __future__ import annotations
 
-import asyncio
 import json
-import itertools
 import random
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
+from whiztap.analyzer.mitm.commands import Closing, Command, Full
+from whiztap.analyzer.mitm.core import MiddleContext, MiddleCore
+from whiztap.analyzer.mitm.faults import MAX_DUP_FAULTS, Fault
+from whiztap.analyzer.mitm.intercept import Held, HeldFrames, Intercept
 from whiztap.analyzer.mitm.spec import FaultSpec, parse_fault
+from whiztap.analyzer.mitm.stages import Stages, stage_name
 from whiztap.analyzer.protocol.frame_text import check_frame, frame_from_text
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
-from whiztap.sniffer.mitm.faults import Fault
-from whiztap.sniffer.mitm.intercept import HeldFrames, Intercept
-from whiztap.sniffer.mitm.middle import Middle
-from whiztap.sniffer.mitm.stages import Stages, stage_name
+from whiztap.analyzer.traffic import Cause, Source
 
-EXPIRE_S = 0.5
+MAX_FAULTS = 256  # faults in force at once: every frame is weighed against each
 
 
 def middle_metadata(faults: Iterable[FaultSpec], seed: int | None) -> dict[str, str]:
@@ -39,73 +41,94 @@ def middle_metadata(faults: Iterable[FaultSpec], seed: int | None) -> dict[str, 
 
 
 class ControlError(ValueError):
-    """A control request cannot be carried out; the message says why, in one line."""
+    """A control request cannot be carried out; the message says why, in one
+    line.  ``status`` is the HTTP status the control API answers with: 400 a
+    refused request, 404 nothing by that id, 409 the connection is closing,
+    429 too much already waits to be delivered."""
+
+    def __init__(self, message: str, status: int = 400) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class Shell(Protocol):
+    """What carries out a connection's commands (``shell.MiddleShell`` on the proxy's loop)."""
+
+    client_addr: str
+
+    def run(self, commands: list[Command]) -> None: ...
 
 
 class Controller:
     def __init__(self, *, seed: int | None = None, hold_timeout: float = 60.0, checksum_rule: str = "dev-sum",
-                 limits: Limits = Limits(), report: Callable[[str], None] = print) -> None:
-        self.rng = random.Random(seed)
+                 limits: Limits = Limits(), redact: bool = True, report: Callable[[str], None] = print) -> None:
         self.seed = seed
         self.checksum_rule = checksum_rule
-        self.limits = limits
         self.report = report
-        self.stages = Stages(report)
-        self.faults: list[Fault] = []
         self.scripts: list[Any] = []
         self.intercept = Intercept()
+        self.context = MiddleContext(Stages(report), rng=random.Random(seed), limits=limits, redact=redact,
+                                     hold_timeout_ns=int(hold_timeout * 1e9))
         self.clock: Callable[[], int] = lambda: 0  # the proxy's, from attach()
         self.emit: Callable[[object], None] = lambda event: None
-        self.held = HeldFrames(hold_timeout, lambda: self.clock(), lambda event: self.emit(event))
-        self.middles: dict[int, Middle] = {}
-        self._fault_ids = itertools.count(1)
-        self._expiry: asyncio.Task | None = None
+        self.cores: dict[int, tuple[MiddleCore, Shell]] = {}
+        self._fault_ids = 0
         self._restage()
+
+    @property
+    def faults(self) -> list[Fault]:
+        return self.context.faults
+
+    @property
+    def held(self) -> HeldFrames:
+        return self.context.held
 
     def attach(self, clock: Callable[[], int], emit: Callable[[object], None]) -> None:
         """The proxy's clock and its consumers (interventions and deliveries are traffic events)."""
         self.clock, self.emit = clock, emit
 
     def _restage(self) -> None:
-        self.stages.items = [*self.faults, *self.scripts, self.intercept]
+        self.context.stages.items = [*self.faults, *self.scripts, self.intercept]
 
     # -- connections -------------------------------------------------------------------------------
 
-    def open(self, connection: Any) -> Middle:
-        middle = self.middles[connection.id] = Middle(self, connection)
+    def open(self, conn: int, shell: Shell) -> MiddleCore:
+        """A connection opened: its core, told of the timed faults in force."""
+        now = self.clock()
+        core = MiddleCore(conn, now, self.context)
+        self.cores[conn] = (core, shell)
         for fault in self.faults:
-            middle.schedule(fault)
-        self.stages.call("opened", connection.id)
-        if self._expiry is None:
-            self._expiry = asyncio.get_running_loop().create_task(self._expire())
-        return middle
+            shell.run(core.schedule(fault, now))
+        self.context.stages.call("opened", conn)
+        return core
 
-    def closed(self, conn_id: int) -> None:
-        middle = self.middles.pop(conn_id, None)
-        if middle is not None:
-            middle.close()
+    def closed(self, conn: int) -> None:
+        entry = self.cores.pop(conn, None)
+        if entry is not None:
+            core, shell = entry
+            shell.run(core.closed(self.clock()))
         for fault in self.faults:
-            fault.forget(conn_id)
-        self.held.forget_conn(conn_id)
-        self.stages.call("closed", conn_id)
-
-    async def _expire(self) -> None:
-        while True:
-            await asyncio.sleep(EXPIRE_S)
-            try:
-                self.held.expire()
-            except Exception as e:  # noqa: BLE001 - the expiry loop outlives any one frame
-                self.report(f"hold timeout: {type(e).__name__}: {e}")
-
-    def stop(self) -> None:
-        if self._expiry is not None:
-            self._expiry.cancel()
-            self._expiry = None
+            fault.forget(conn)
+        self.context.stages.call("closed", conn)
 
     def connections(self) -> list[dict]:
-        return [{"conn": m.conn_id, "client": m.connection.client_addr,
-                 "c2s_queued": m.lanes[Direction.C2S].queued, "s2c_queued": m.lanes[Direction.S2C].queued}
-                for m in self.middles.values()]
+        return [{"conn": conn, "client": shell.client_addr, "c2s_queued": core.lanes[Direction.C2S].queued,
+                 "s2c_queued": core.lanes[Direction.S2C].queued, "closing": core.closing}
+                for conn, (core, shell) in self.cores.items()]
+
+    def _run(self, conn: int, act: Callable[[MiddleCore, int], list[Command]]) -> None:
+        """A control command on connection ``conn``'s core, its commands carried out."""
+        entry = self.cores.get(conn)
+        if entry is None:
+            raise ControlError(f"no open connection #{conn}", 404)
+        core, shell = entry
+        try:
+            commands = act(core, self.clock())
+        except Closing as e:
+            raise ControlError(str(e), 409) from None
+        except Full as e:
+            raise ControlError(str(e), 429) from None
+        shell.run(commands)
 
     # -- faults ----------------------------------------------------------------------------------
 
@@ -117,18 +140,25 @@ class Controller:
             raise ControlError(f"a fault's name cannot be a number ({spec.name!r}): numbers are fault ids")
         if spec.name and any(f.name == spec.name for f in self.faults):
             raise ControlError(f"a fault named {spec.name!r} is already in force")
-        fault = Fault(spec, self.rng, self.clock(), id=next(self._fault_ids))
+        if len(self.faults) >= MAX_FAULTS:
+            raise ControlError(f"{MAX_FAULTS} faults are in force, the most there may be; remove one first")
+        if spec.action == "dup" and sum(f.spec.action == "dup" for f in self.faults) >= MAX_DUP_FAULTS:
+            raise ControlError(f"{MAX_DUP_FAULTS} dup faults are in force, the most there may be "
+                               f"(a frame goes out at most {MAX_DUP_FAULTS + 1} times)")
+        self._fault_ids += 1
+        fault = Fault(spec, self.context.rng, self.clock(), id=self._fault_ids)
         self.faults.append(fault)
         self._restage()
-        for middle in self.middles.values():
-            middle.schedule(fault)
+        now = self.clock()
+        for core, shell in self.cores.values():
+            shell.run(core.schedule(fault, now))
         return fault
 
     def fault(self, key: str | int) -> Fault:
         for fault in self.faults:
             if str(fault.id) == str(key) or fault.name == key:
                 return fault
-        raise ControlError(f"no fault {key!r} (see the fault list)")
+        raise ControlError(f"no fault {key!r} (see the fault list)", 404)
 
     def remove_fault(self, key: str | int) -> Fault:
         fault = self.fault(key)
@@ -159,27 +189,36 @@ class Controller:
         now = self.clock()
         return [h.as_dict(now) for h in self.held.frames.values()]
 
-    def release(self, held_id: int, edit: str | None = None, force: bool = False) -> dict:
-        held = self.held.frames.get(held_id)
+    def _held(self, held_id: int) -> Held:
+        held = self.held.get(held_id)
         if held is None:
-            raise ControlError(f"no held frame #{held_id} (it was released, dropped or timed out)")
+            raise ControlError(f"no held frame #{held_id} (it was released, dropped or timed out)", 404)
+        return held
+
+    def release(self, held_id: int, edit: str | None = None, force: bool = False) -> dict:
+        held = self._held(held_id)
         data = None if edit is None else self.checked(edit, held.direction, force)
-        self.held.release(held_id, data, cause="hand edit" if data is not None else "hand")
+        cause = Cause(Source.HAND, "edit" if data is not None else "")
+        self._run(held.conn, lambda core, now: core.release(held, data, False, cause, now))
+        if data is not None:
+            held.data = data
         return held.as_dict(self.clock())
 
     def drop(self, held_id: int) -> dict:
-        held = self.held.frames.get(held_id)
-        if held is None:
-            raise ControlError(f"no held frame #{held_id} (it was released, dropped or timed out)")
-        dropped = held.as_dict(self.clock())  # before the release empties it: the answer names what was dropped
-        self.held.release(held_id, drop=True, cause="hand drop")
+        held = self._held(held_id)
+        dropped = held.as_dict(self.clock())  # the answer names what was dropped
+        self._run(held.conn, lambda core, now: core.release(held, None, True, Cause(Source.HAND, "drop"), now))
         return dropped
 
     def release_all(self) -> int:
-        ids = list(self.held.frames)
-        for held_id in ids:
-            self.held.release(held_id)
-        return len(ids)
+        released = 0
+        for held in list(self.held.frames.values()):
+            try:
+                self._run(held.conn, lambda core, now, h=held: core.release(h, None, False, Cause(Source.HAND), now))
+            except ControlError:
+                continue  # its connection is closing: it goes (or expires) with it
+            released += 1
+        return released
 
     def inject(self, conn: int, direction: Direction | str, text: str, force: bool = False) -> bytes:
         """Send a typed frame on connection ``conn`` toward the server (c2s) or the client (s2c)."""
@@ -187,11 +226,11 @@ class Controller:
             direction = Direction(direction)
         except ValueError:
             raise ControlError(f"direction must be c2s or s2c, got {direction!r}") from None
-        middle = self.middles.get(int(conn))
-        if middle is None:
-            raise ControlError(f"no open connection #{conn}")
+        if int(conn) not in self.cores:
+            raise ControlError(f"no open connection #{conn}", 404)
         data = self.checked(text, direction, force)
-        middle.inject(direction, data, "injection")
+        way = direction
+        self._run(int(conn), lambda core, now: core.inject(way, data, Cause(Source.INJECTION), now))
         return data
 
     def checked(self, text: str, direction: Direction, force: bool) -> bytes:

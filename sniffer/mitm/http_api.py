@@ -21,7 +21,10 @@ POST      /inject                          {"conn": 1, "dir": "c2s"|"s2c", "fram
 ========  ===============================  =====================================================
 
 Errors are ``{"error": "one line"}``: 400 for a request the controller
-refuses, bad JSON or a missing field; 404 for an unknown path; 405 for a
+refuses, bad JSON or a missing field; 404 for an unknown path or no such
+fault, held frame or connection; 409 when the connection is closing (an
+injection, release or edit racing its FIN or reset); 429 when an injection
+would queue more than the lane may hold toward a side that is not reading; 405 for a
 method the path does not take; 413 for a body over 64 KiB.  One request per
 connection (``Connection: close``), so a client that stalls (10 s), sends
 a malformed request line or too much costs only its own connection.
@@ -43,7 +46,7 @@ from typing import Any
 from urllib.parse import unquote, urlsplit
 
 from whiztap.analyzer.protocol.text import escape
-from whiztap.sniffer.mitm.controller import Controller
+from whiztap.sniffer.mitm.controller import ControlError, Controller
 from whiztap.sniffer.nettext import show_address
 
 MAX_BODY = 64 << 10
@@ -51,8 +54,8 @@ MAX_LINE = 8 << 10  # the request line and each header line
 MAX_HEADERS = 100
 CLIENT_TIMEOUT_S = 10.0  # to send a whole request, and to take the answer
 REASONS = {200: "OK", 201: "Created", 400: "Bad Request", 404: "Not Found", 405: "Method Not Allowed",
-           408: "Request Timeout", 411: "Length Required", 413: "Content Too Large",
-           500: "Internal Server Error"}
+           408: "Request Timeout", 409: "Conflict", 411: "Length Required", 413: "Content Too Large",
+           429: "Too Many Requests", 500: "Internal Server Error"}
 
 
 class HttpError(Exception):
@@ -107,8 +110,8 @@ def field(body: dict[str, Any], name: str, kind: type, default: Any = ...) -> An
 
 
 def _held_id(text: str) -> int:
-    if not text.isdigit():
-        raise HttpError(400, f"a held frame's id is a number, got {text!r}")
+    if not text.isascii() or not text.isdigit() or len(text) > 18:
+        raise HttpError(400, f"a held frame's id is a number, got {text[:20]!r}")
     return int(text)
 
 
@@ -218,7 +221,9 @@ def answer(controller: Controller, request: Request) -> tuple[int, Any, tuple[st
         return status, payload, ()
     except HttpError as e:
         return e.status, {"error": str(e)}, e.allow
-    except ValueError as e:  # ControlError, FaultSpecError: the controller's one-line refusals
+    except ControlError as e:  # the controller's one-line refusals, with their status
+        return e.status, {"error": str(e)}, ()
+    except ValueError as e:  # FaultSpecError and the like: a request that does not parse
         return 400, {"error": str(e)}, ()
     except Exception as e:  # noqa: BLE001 - a bug here must not reach the proxy's loop
         controller.report(f"control API: {request.method} {request.path}: {type(e).__name__}: {e}")

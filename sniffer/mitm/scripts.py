@@ -4,7 +4,9 @@ A script defines any of ``frame(flow)``, ``opened(conn)`` and ``closed(conn)``
 at module level.  ``frame`` gets a ``Flow`` for each frame (in either
 direction) on its way through the proxy and may let it pass (do nothing),
 ``drop()`` it, ``replace()`` it, ``delay()`` it or ``inject()`` another frame;
-``opened``/``closed`` get the connection id.  Each script is one stage
+``opened``/``closed`` get the connection id.  A frame that may be a password
+is shown to a script masked (``raw``, ``data``, ``text``, ``meaning``) unless
+the run keeps secrets, so nothing a script logs can show it.  Each script is one stage
 (``stages.py``): when a hook raises, its traceback is reported once for the
 script on stderr, the frame passes as it came, and the proxy goes on.
 """
@@ -21,7 +23,9 @@ from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.protocol.frame_text import frame_from_text
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
-from whiztap.sniffer.mitm.frame import Frame
+from whiztap.analyzer.mitm.frame import Frame, masked
+from whiztap.analyzer.mitm.intercept import REDACTED_MEANING
+from whiztap.analyzer.traffic import Cause, Source
 
 HOOKS = ("frame", "opened", "closed")
 _modules = itertools.count(1)
@@ -36,16 +40,40 @@ class Flow:
 
     def __init__(self, frame: Frame, script: Script) -> None:
         self._frame = frame
-        self._cause = f"script {script.name}"
+        self._cause = Cause(Source.SCRIPT, script.name)
 
     conn = property(lambda self: self._frame.conn, doc="the connection id")
     direction = property(lambda self: self._frame.direction.value, doc='"c2s" or "s2c"')
     kind = property(lambda self: self._frame.kind.value, doc="command, response, config, set_config, ...")
-    raw = property(lambda self: self._frame.raw, doc="the bytes as the sender sent them")
-    data = property(lambda self: self._frame.data, doc="what will be delivered (None once dropped)")
-    text = property(lambda self: escape(self._frame.raw), doc="the sent bytes as escaped text")
-    message = property(lambda self: self._frame.observation.message, doc="the decoded message, or None")
-    meaning = property(lambda self: meaning(self._frame.observation), doc="what it means, in words")
+
+    @property
+    def raw(self) -> bytes:
+        """The bytes as the sender sent them."""
+        return self._shown(self._frame.raw)
+
+    @property
+    def data(self) -> bytes | None:
+        """What will be delivered (None once dropped)."""
+        data = self._frame.data
+        return None if data is None else self._shown(data)
+
+    @property
+    def text(self) -> str:
+        """The sent bytes as escaped text."""
+        return escape(self.raw)
+
+    @property
+    def message(self) -> object:
+        """The decoded message, or None."""
+        return None if self._frame.hidden else self._frame.observation.message
+
+    @property
+    def meaning(self) -> str:
+        """What it means, in words."""
+        return REDACTED_MEANING if self._frame.hidden else meaning(self._frame.observation)
+
+    def _shown(self, data: bytes) -> bytes:
+        return masked(data) if self._frame.hidden else data
 
     @property
     def channel(self) -> int | None:

@@ -46,6 +46,7 @@ from whiztap.sniffer.record.consumers import Consumer
 
 if TYPE_CHECKING:
     from whiztap.sniffer.mitm.controller import Controller
+    from whiztap.sniffer.mitm.shell import MiddleShell
 
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
@@ -109,7 +110,7 @@ class _Leg(asyncio.Protocol):
         if self.direction is S2C:  # the client is connected before its upstream
             self.target = self.peer.transport  # type: ignore[union-attr]
             if self.conn.middle is not None:
-                self.conn.middle.lanes[S2C].target = self.target
+                self.conn.middle.ready(S2C)
         else:
             self.conn.client_made(transport)  # type: ignore[arg-type]
         asyncio.get_running_loop().call_soon(self.sync)  # once reading has started
@@ -118,12 +119,9 @@ class _Leg(asyncio.Protocol):
         conn = self.conn
         proxy = conn.proxy
         t = proxy.clock()
-        if conn.middle is not None:  # in the middle: the lane decides what is written, and when
+        if conn.middle is not None:  # in the middle: its core decides what is written, and when (and tells the read)
             self.received += len(data)
-            if self.direction is S2C:  # what the server says may decide the delivered client bytes told before
-                conn.middle.server_bytes(data)
-            proxy.receive(Data(conn.id, self.direction, t, data))
-            conn.middle.lanes[self.direction].feed(data, t)
+            conn.middle.received(self.direction, data, t)
             if not self.lost and not self.may_read():
                 self.transport.pause_reading()  # type: ignore[union-attr]
             return
@@ -164,7 +162,7 @@ class Connection:
         self.client.peer, self.upstream.peer = self.upstream, self.client
         self.client_addr = "?"
         self.held = False  # by the recorder: see RecordingProxy.hold
-        self.middle = None  # a Middle (sniffer/mitm) when the proxy stands in the middle
+        self.middle: MiddleShell | None = None  # when the proxy stands in the middle (sniffer/mitm)
         self.closed_by: str | None = None
         self.detail = ""
         self.opened_ns = 0
@@ -179,7 +177,9 @@ class Connection:
         self.opened_ns = proxy.clock()
         proxy.receive(Opened(self.id, self.opened_ns, self.client_addr, proxy.upstream_text))
         if proxy.controller is not None:
-            self.middle = proxy.controller.open(self)
+            from whiztap.sniffer.mitm.shell import MiddleShell
+
+            self.middle = MiddleShell(proxy.controller, self, proxy.clock)
         if proxy.on_opened is not None:
             proxy.on_opened(self)
         self._connect = asyncio.get_running_loop().create_task(self._open_upstream())
@@ -207,10 +207,8 @@ class Connection:
         local = address(self.upstream.transport.get_extra_info("sockname"))  # type: ignore[union-attr]
         proxy.receive(UpstreamConnected(self.id, proxy.clock(), f"from {local}"))
         if self.middle is not None:
-            lane = self.middle.lanes[C2S]
-            lane.target = self.client.target = self.upstream.transport
-            lane.pump()  # what the client sent meanwhile, and its FIN
-            self.client.sync()
+            self.client.target = self.upstream.transport
+            self.middle.ready(C2S)  # what the client sent meanwhile, and its FIN
             return
         for data in self.client.early:
             self.upstream.transport.write(data)  # type: ignore[union-attr]
@@ -227,8 +225,8 @@ class Connection:
         self.proxy.receive(HalfClosed(self.id, self.proxy.clock(), leg.direction))
         if self.closed_by is None:
             self.closed_by, self.detail = leg.direction.sender, "closed"
-        if self.middle is not None:  # the FIN follows what the lane still holds
-            self.middle.lanes[leg.direction].end(self.proxy.clock())
+        if self.middle is not None:  # the FIN follows what the middle still holds
+            self.middle.sender_ended(leg.direction)
             return
         self.pass_eof(leg)
 
@@ -238,7 +236,7 @@ class Connection:
         if peer.lost or peer.transport is None:  # type: ignore[union-attr]
             return  # gone, or still connecting (which passes the FIN on)
         middle = self.middle
-        if peer.eof and (middle is None or middle.lanes[peer.direction].eof_passed):  # type: ignore[union-attr]
+        if peer.eof and (middle is None or middle.eof_passed(peer.direction)):
             self.close_both()  # both sides are done sending
         elif peer.transport.can_write_eof():  # type: ignore[union-attr]
             peer.transport.write_eof()  # type: ignore[union-attr]
@@ -250,7 +248,7 @@ class Connection:
         if self._connect is not None and not self._connect.done():
             self._connect.cancel()
         if self.middle is not None:
-            self.middle.closing()
+            self.middle.lost(leg.direction)
         peer = leg.peer
         if peer.transport is not None and not peer.lost:  # type: ignore[union-attr]
             peer.transport.close()  # type: ignore[union-attr]  # after sending what it holds

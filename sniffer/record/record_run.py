@@ -154,8 +154,6 @@ class Recording:
         if self._control is not None:
             await self._control.stop()
         await self.proxy.close(detail)  # type: ignore[union-attr]
-        if self.controller is not None:
-            self.controller.stop()
         self.summary = await self.writer.stop(self.proxy.clock(), detail)  # type: ignore[union-attr]
         return self.summary
 
@@ -170,7 +168,7 @@ class Recording:
 
         s = self.settings
         controller = Controller(seed=middle.seed, hold_timeout=middle.hold_timeout, checksum_rule=s.checksum_rule,
-                                limits=s.limits, report=self.warn)
+                                limits=s.limits, redact=not s.keep_secrets, report=self.warn)
         for path in middle.fault_files:
             try:
                 load_fault_file(controller, path)

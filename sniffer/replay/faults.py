@@ -216,6 +216,5 @@ class FaultProxy:
             raise ReplayError(failed)
 
     async def close(self) -> None:
-        """Close what is still open (the replay has judged it all by now) and stop the controller."""
+        """Close what is still open (the replay has judged it all by now)."""
         await self.proxy.close("replay finished")
-        self.controller.stop()

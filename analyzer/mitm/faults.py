@@ -19,9 +19,13 @@ from dataclasses import dataclass, field
 
 from whiztap.analyzer.mitm.spec import FaultSpec
 from whiztap.analyzer.protocol.codec import checksum_offset
-from whiztap.sniffer.mitm.frame import Frame
+from whiztap.analyzer.mitm.frame import Frame
+from whiztap.analyzer.traffic import Action, Cause, Source
 
 CONNECTION_ACTIONS = ("reset", "close")
+MAX_DUP_FAULTS = 64  # dup faults in force at once: each frame they all choose goes out at most 65 times
+
+
 @dataclass
 class _Count:
     """One connection's view of one fault."""
@@ -50,8 +54,12 @@ class Fault:
         return self.spec.name or f"fault-{self.id}"
 
     @property
-    def cause(self) -> str:
-        return f"fault {self.name}: {self.spec.text}"
+    def cause(self) -> Cause:
+        return Cause(Source.FAULT, self.name, self.spec.text)
+
+    @property
+    def action(self) -> Action:
+        return Action(self.spec.action)
 
     def as_dict(self) -> dict:
         return {"id": self.id, "name": self.name, "spec": self.spec.text, "action": self.spec.action,
@@ -82,7 +90,7 @@ class Fault:
         if spec.action in CONNECTION_ACTIONS and spec.after_frames:  # after:0 acts on the first frame
             if count.seen == spec.after_frames:  # the Nth has just passed _active: end after it
                 self._hit()
-                frame.end_connection(spec.action, self.cause)
+                frame.end_connection(self.action, self.cause)
             return
         count.matched += 1
         if spec.nth is not None and count.matched != spec.nth:
@@ -122,13 +130,13 @@ class Fault:
         frame.drop(self.cause)
 
     def _blackhole(self, frame: Frame) -> None:
-        frame.drop(self.cause, "blackhole")
+        frame.drop(self.cause, Action.BLACKHOLE)
 
     def _dup(self, frame: Frame) -> None:
         frame.duplicate(self.cause)
 
     def _corrupt(self, frame: Frame) -> None:
-        frame.replace(corrupted(frame.data), self.cause, "corrupt")  # type: ignore[arg-type]
+        frame.replace(corrupted(frame.data), self.cause, Action.CORRUPT)  # type: ignore[arg-type]
 
     def _replace(self, frame: Frame) -> None:
         frame.replace(self.spec.replacement or b"", self.cause)
@@ -149,11 +157,11 @@ class Fault:
         start = max(frame.t_ns + frame.delay_ns, free.get(frame.direction.value, 0))
         free[frame.direction.value] = start + len(frame.data or b"") * 1_000_000_000 // rate
         frame.delay_ns = start - frame.t_ns
-        frame.slice(size, size, pause, self.cause, "bandwidth")
+        frame.slice(size, size, pause, self.cause, Action.BANDWIDTH)
 
     def _end(self, frame: Frame) -> None:
-        frame.drop(self.cause, self.spec.action)
-        frame.end_connection(self.spec.action, self.cause)
+        frame.drop(self.cause, self.action)
+        frame.end_connection(self.action, self.cause)
 
 
 ACT = {"delay": Fault._delay, "drop": Fault._drop, "blackhole": Fault._blackhole, "dup": Fault._dup,

@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import traceback
 from collections.abc import Callable
-from dataclasses import fields
 from typing import Any
 
-from whiztap.sniffer.mitm.frame import Frame
+from whiztap.analyzer.mitm.frame import Frame
 
 Report = Callable[[str], None]
-_STATE = tuple(f.name for f in fields(Frame) if f.name not in ("conn", "direction", "item", "observation", "t_ns",
-                                                              "interventions"))
+_STATE = ("data", "copies", "delay_ns", "slices", "pause_ns", "hold", "end", "injections")  # what a stage may change
 
 
 def stage_name(stage: Any) -> str:

@@ -1,0 +1,150 @@
+"""The asyncio shell around one connection's sans-IO core (``whiztap.analyzer.mitm.core``).
+
+The proxy's ``Connection`` (sniffer/record/proxy.py) turns what its sockets do
+into the core's events (``received``, ``ready``, ``sender_ended``, ``lost``)
+and this shell carries out the commands the core answers with: a write to a
+socket, a FIN passed on, a reset or close, a traffic event for the consumers,
+one timer per connection.  Nothing is decided here.
+
+A timer's call is isolated: whatever goes wrong in it is reported once, never
+raised into the event loop (a traceback on the terminal) and never into
+another connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol
+
+from whiztap.analyzer.mitm.commands import Command, Deliver, EndConnection, PassEof, Tell, WakeAt
+from whiztap.analyzer.mitm.core import MiddleCore
+from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.traffic import Action
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.mitm.controller import Controller
+
+C2S = Direction.C2S
+_LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP reset
+
+
+class Leg(Protocol):
+    """One socket of a proxied connection (the proxy's ``_Leg``)."""
+
+    transport: Any  # asyncio.Transport | None
+    lost: bool
+
+    def sync(self) -> None: ...
+
+
+class ProxiedConnection(Protocol):
+    """What the shell needs of the proxy's ``Connection`` (sniffer/record/proxy.py),
+    which builds on this package, so this package does not import it."""
+
+    id: int
+    client_addr: str
+    client: Leg
+    upstream: Leg
+    closed_by: str | None
+    detail: str
+
+    def pass_eof(self, leg: Any) -> None: ...
+    def close_both(self, by: str | None = None, detail: str = "") -> None: ...
+    def abort(self) -> None: ...
+
+
+class MiddleShell:
+    def __init__(self, controller: Controller, connection: ProxiedConnection, clock: Callable[[], int]) -> None:
+        self.controller = controller
+        self.connection = connection
+        self.clock = clock
+        self.emit = controller.emit
+        self._timer: asyncio.TimerHandle | None = None
+        self._failed = False
+        self.core: MiddleCore = controller.open(connection.id, self)
+
+    @property
+    def client_addr(self) -> str:
+        return self.connection.client_addr
+
+    # -- events from the proxy ----------------------------------------------------------------
+
+    def received(self, direction: Direction, data: bytes, t_ns: int) -> None:
+        self.run(self.core.received(direction, data, t_ns))
+
+    def ready(self, direction: Direction) -> None:
+        self.run(self.core.ready(direction, self.clock()))
+
+    def sender_ended(self, direction: Direction) -> None:
+        self.run(self.core.sender_ended(direction, self.clock()))
+
+    def lost(self, sender: Direction) -> None:
+        self.run(self.core.lost(sender, self.clock()))
+
+    def may_read(self, direction: Direction) -> bool:
+        return self.core.may_read(direction)
+
+    def eof_passed(self, direction: Direction) -> bool:
+        return self.core.eof_passed(direction)
+
+    # -- the core's commands ------------------------------------------------------------------
+
+    def run(self, commands: list[Command]) -> None:
+        connection = self.connection
+        for command in commands:
+            kind = type(command)
+            if kind is Tell:
+                self.emit(command.event)  # type: ignore[union-attr]
+            elif kind is Deliver:
+                leg = connection.upstream if command.direction is C2S else connection.client  # type: ignore[union-attr]
+                transport = leg.transport
+                if transport is not None and not transport.is_closing():
+                    transport.write(command.data)  # type: ignore[union-attr]
+            elif kind is WakeAt:
+                self._schedule(command.t_ns)  # type: ignore[union-attr]
+            elif kind is PassEof:
+                connection.pass_eof(connection.client if command.direction is C2S else connection.upstream)  # type: ignore[union-attr]
+            elif kind is EndConnection:
+                self._end(command.how)  # type: ignore[union-attr]
+        connection.client.sync()
+        connection.upstream.sync()
+
+    def _schedule(self, t_ns: int | None) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if t_ns is not None:
+            delay = max(0.0, (t_ns - self.clock()) / 1e9)
+            self._timer = asyncio.get_running_loop().call_later(delay, self._wake)
+
+    def _wake(self) -> None:
+        self._timer = None
+        try:
+            self.run(self.core.wake(self.clock()))
+        except Exception as e:  # noqa: BLE001 - a timer never raises into the loop, nor takes another connection
+            if not self._failed:
+                self._failed = True
+                self.controller.report(f"connection {self.connection.id}: the middle's timer failed: "
+                                       f"{type(e).__name__}: {e} (reported once)")
+
+    def _end(self, how: Action) -> None:
+        connection = self.connection
+        if how is Action.CLOSE:
+            connection.close_both("proxy", "closed by a fault")
+            return
+        for leg in (connection.client, connection.upstream):  # a reset: both sides get a TCP RST
+            transport = leg.transport
+            if transport is None or leg.lost:
+                continue
+            sock = transport.get_extra_info("socket")
+            if sock is not None:
+                try:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_NOW)
+                except OSError:
+                    pass
+        if connection.closed_by is None:
+            connection.closed_by, connection.detail = "proxy", "reset by a fault"
+        connection.abort()
