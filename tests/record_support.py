@@ -21,7 +21,7 @@ from typing import NamedTuple
 import jsonschema
 from mcap.reader import make_reader
 
-from whiztap.analyzer.protocol.framing import Framer, Item
+from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind, unasked
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import SCHEMA_ENCODING, TOPIC_FRAMES, TOPIC_READS
 from whiztap.analyzer.recording.scan import RecordingScan
@@ -317,7 +317,7 @@ def check_frames(frames: list[dict], conn: int, direction: str, data: bytes) -> 
     """One direction's /frames messages are the items of framing its whole
     stream, except that a run of unframed items and line breaks may be one
     message (with ``items``, and without its raw when ``elided``)."""
-    items = framed(data)
+    items = framed(data, client=direction == "c2s")
     i = 0
     for f in frames:
         if (f["conn"], f["dir"]) != (conn, direction):
@@ -333,10 +333,16 @@ def check_frames(frames: list[dict], conn: int, direction: str, data: bytes) -> 
     assert i == len(items)
 
 
-def framed(data: bytes) -> list[tuple[str, bytes]]:
-    """What a framer makes of a whole stream (framing does not depend on chunking)."""
+def framed(data: bytes, client: bool = False) -> list[tuple[str, bytes]]:
+    """What a framer makes of a whole stream (framing does not depend on
+    chunking); a client's first line is cut as the session cuts it, and framed
+    as any other bytes (no server here asks for a password)."""
     framer = Framer()
-    items: list[Item] = framer.feed(data, 0) + framer.end(1)
+    if client:
+        framer.expect_password()
+    items: list[Item] = []
+    for item in framer.feed(data, 0) + framer.end(1):
+        items += unasked(item) if item.kind is ItemKind.PASSWORD else [item]
     return [(i.kind.value, i.raw) for i in items]
 
 

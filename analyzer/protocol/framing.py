@@ -9,55 +9,27 @@ which is what lets a recording be re-framed later with identical results.
 from __future__ import annotations
 
 import re
-from enum import StrEnum
-from typing import NamedTuple
+
+from whiztap.analyzer.protocol.images import JPEG_SOI, PNG_SIGNATURE, ImageScanning
+from whiztap.analyzer.protocol.items import NEED_MORE as _NEED_MORE
+from whiztap.analyzer.protocol.items import Item, ItemKind, Unframed
+
+__all__ = [  # the item vocabulary is items.py's; imported from here as ever
+    "DEFAULT_MAX_IMAGE", "DEFAULT_MAX_ITEM", "FRAME_HEADERS", "HANDSHAKE_WORDS", "JPEG_SOI", "MAX_PASSWORD",
+    "MIN_MAX_ITEM", "PNG_SIGNATURE", "SET_CONFIG_PREFIX", "Framer", "Item", "ItemKind", "Unframed", "unasked",
+]
 
 DEFAULT_MAX_ITEM = 64 * 1024
 MIN_MAX_ITEM = 1024  # above the longest Configuration Settings frame (255 channels)
 DEFAULT_MAX_IMAGE = 32 * 1024 * 1024  # camera pictures: the spec sets no limit
-
-
-class ItemKind(StrEnum):
-    COMMAND = "command"  # rr1-D1--D2--D3-ss1
-    RESPONSE = "response"  # cr1-D1--D2--D3-ss1
-    CONFIG = "config"  # sr1-[count] digits -ss1
-    SET_CONFIG = "set_config"  # sr1-25-- triples [chk] --0-ss1
-    HANDSHAKE = "handshake"  # sendchkpass / readytogo / Failed Validation
-    PASSWORD = "password"  # the client's answer to sendchkpass
-    IMAGE = "image"  # a JPEG or PNG byte stream
-    EOL = "eol"  # a run of CR/LF bytes between items
-    UNFRAMED = "unframed"  # anything else, with a reason
-
-
-class Unframed(StrEnum):
-    """Why bytes were emitted as an ``unframed`` item."""
-
-    GARBAGE = "garbage"  # bytes that start no known item
-    TRUNCATED = "truncated"  # a header whose item never completed
-    OVERSIZE = "oversize"  # an item grew past the framer's size limit
-
-
-class Item(NamedTuple):
-    """One framed piece of a stream.
-
-    A NamedTuple rather than a dataclass: the framer makes one per frame on the
-    hot path, and tuples are several times cheaper to build while still immutable.
-    """
-
-    kind: ItemKind
-    raw: bytes
-    t_start_ns: int  # arrival time of the chunk holding the first byte
-    t_end_ns: int  # arrival time of the chunk holding the last byte
-    reason: Unframed | None = None
-
+MAX_PASSWORD = 256  # a longer first line is no password (docs/protocol.md, A14)
 
 HANDSHAKE_WORDS = (b"sendchkpass", b"readytogo", b"Failed Validation")
+FRAME_HEADERS = (b"rr1-", b"cr1-", b"sr1-")
 TRAILER = b"-ss1"
 SET_CONFIG_PREFIX = b"sr1-25--"
 SET_CONFIG_TRAILER = b"--0-ss1"
 LAYOUT_DATA1 = 25  # Set Configuration's Data1 as one raw byte (the Layout line's reading)
-JPEG_SOI = b"\xff\xd8\xff"
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 TEXT_FRAME_MAX = 48  # longest rr1/cr1 frame considered before giving up on a trailer
 SMALL_READ = 512  # reads up to this size first try to be whole text frames
 
@@ -70,20 +42,24 @@ _SYNC = re.compile(
     rb"rr1-|cr1-|sr1-|sendchkpass|readytogo|Failed Validation|\xff\xd8\xff|\x89PNG\r\n\x1a\n|[\r\n]"
 )
 _HEADER = re.compile(rb"rr1-|cr1-|sr1-")
+_PASSWORD_END = re.compile(rb"[\r\n]|rr1-|cr1-|sr1-")
 _SYNC_TOKENS = (
-    b"rr1-", b"cr1-", b"sr1-", *HANDSHAKE_WORDS, JPEG_SOI, PNG_SIGNATURE,
+    *FRAME_HEADERS, *HANDSHAKE_WORDS, JPEG_SOI, PNG_SIGNATURE,
 )
 _SYNC_LONGEST = max(len(t) for t in _SYNC_TOKENS)
-_NEED_MORE = -1  # returned by item scanners: the item may still complete
+_FRAMES = frozenset({ItemKind.COMMAND, ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.SET_CONFIG})
 
 
-class Framer:
+class Framer(ImageScanning):
     """Frames one direction of a connection.
 
     ``feed()`` returns completed items; ``end()`` flushes what is left when the
-    stream closes.  A client-side framer can be told that the server asked for a
-    password (``expect_password()``); it then takes the leading text as the
-    password until a line break, a frame header, or ``close_password()``.
+    stream closes.  A client-side framer can be told that its next line may be
+    a password (``expect_password()``): that line, line breaks before it aside,
+    is then one ``password`` item up to its line break or the header of a frame
+    that completes, unless it begins with a frame header or runs past
+    ``MAX_PASSWORD`` bytes (docs/protocol.md, A14).  ``close_password()``
+    hands over what has come of it when the server judges it early.
     """
 
     def __init__(self, max_item: int = DEFAULT_MAX_ITEM, max_image: int = DEFAULT_MAX_IMAGE) -> None:
@@ -100,7 +76,10 @@ class Framer:
         self._buf: bytearray | bytes = bytearray()  # bytes only while a feed scans a fresh chunk
         # (offset in _buf, arrival time) for each chunk still partly in _buf
         self._marks: list[tuple[int, int]] = []
-        self._password_mode = False
+        self._password_mode = False  # a password may be coming and the server has not judged it
+        self._in_password = False  # the next line is scanned as a password (also after the verdict)
+        self._password_begun = False  # some of it has been handed over (close_password)
+        self._password_left = MAX_PASSWORD  # bytes it may still have
         self._ended = False
         self._window = 0  # end of the bytes the current scan may look at
         self._final = False  # the current scan is end()'s: nothing more will come
@@ -110,18 +89,36 @@ class Framer:
         """Bytes held for an item not yet complete."""
         return len(self._buf)
 
+    @property
+    def password_pending(self) -> bool:
+        """The server asked for a password and the framer is reading it: the
+        proxy in the middle passes these bytes on as they come."""
+        return self._password_mode
+
     def expect_password(self) -> None:
-        self._password_mode = True
+        """The next line (line breaks before it aside) may be a password."""
+        self._password_mode = self._in_password = True
+        self._password_begun = False
+        self._password_left = MAX_PASSWORD
 
     def close_password(self, t_ns: int) -> list[Item]:
-        """The server has judged the password: whatever is pending is the password."""
+        """The server has judged the password: what has come of it, up to a line
+        break or a frame header, is a password item now; the rest of its line,
+        if more comes, is one more (a server may judge at the first wrong byte)."""
         if not self._password_mode:
             return []
-        items = self._scan(t_ns, first_new=len(self._buf), final=False)
-        if self._password_mode and self._buf:
-            items.append(Item(ItemKind.PASSWORD, bytes(self._buf), self._start_time(0, t_ns), t_ns))
-            self._drop(len(self._buf))
         self._password_mode = False
+        items = self._scan(t_ns, first_new=len(self._buf), final=False)
+        buf = self._buf
+        if self._in_password and buf and buf[0] not in b"\r\n":
+            end = _PASSWORD_END.search(buf)
+            cut = end.start() if end is not None else len(buf)
+            if 0 < cut <= self._password_left:
+                items.append(Item(ItemKind.PASSWORD, bytes(buf[:cut]), self._start_time(0, t_ns), t_ns))
+                self._drop(cut)
+                self._password_begun = True
+                self._password_left -= cut
+                items += self._scan(t_ns, first_new=len(self._buf), final=False)
         return items
 
     def feed(self, data: bytes, t_ns: int) -> list[Item]:
@@ -133,7 +130,7 @@ class Framer:
         if not data:
             return []
         first_new = len(self._buf)
-        if (not first_new and len(data) <= SMALL_READ and not self._password_mode
+        if (not first_new and len(data) <= SMALL_READ and not self._in_password
                 and _TEXT_RUN.fullmatch(data) is not None):
             # the commonest read of request/response traffic: a whole frame or
             # two, nothing pending (larger reads rarely end on a frame's end)
@@ -176,7 +173,7 @@ class Framer:
         run_match = _TEXT_RUN.match
         command, response = ItemKind.COMMAND, ItemKind.RESPONSE
         while pos < n:
-            if not self._password_mode:
+            if not self._in_password:
                 # Fast path: a run of well-formed text frames.  Inside one, "-ss1"
                 # occurs only as a trailer, so a split finds every frame at C speed.
                 m = run_match(data, pos)
@@ -233,7 +230,7 @@ class Framer:
         """
         self._window = min(len(self._buf), pos + self.max_item)
         self._final = final
-        if self._password_mode:
+        if self._in_password:
             result = self._scan_password(pos, final)
         else:
             for scanner in _SCANNERS:
@@ -246,17 +243,6 @@ class Framer:
             return self._wait_or_cut(pos, final)
         return result
 
-    def _image_pending(self) -> bool:
-        """Whether the image at the start of the buffer still needs more bytes
-        (looking only at what arrived since the last look)."""
-        self._window = min(len(self._buf), self.max_item)
-        self._final = False
-        scanner = Framer._scan_jpeg if self._buf[0] == 0xFF else Framer._scan_png
-        return len(self._buf) < self.max_image and scanner(self, 0) == _NEED_MORE
-
-    def _is_image(self, pos: int) -> bool:
-        buf = self._buf
-        return buf.startswith(JPEG_SOI, pos) or buf.startswith(PNG_SIGNATURE, pos)
 
     def _wait_or_cut(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
         """An item has begun but is incomplete: wait, unless the stream ended or it is too big."""
@@ -287,33 +273,65 @@ class Framer:
             return window - pos, ItemKind.UNFRAMED, reason
         return None
 
-    def _in_partial_png(self, pos: int, at: int) -> bool:
-        """Whether the sync point at ``at`` lies inside the start of a PNG signature
-        that the data so far ends in (the signature holds CR and LF itself)."""
-        buf, window = self._buf, self._window
-        if self._final or window - pos >= self.max_item or buf[at] not in (0x0D, 0x0A):
-            return False
-        start = buf.rfind(b"\x89", max(pos + 1, at - len(PNG_SIGNATURE) + 1), at)
-        return start != -1 and PNG_SIGNATURE.startswith(bytes(buf[start:window]))
 
     def _scan_password(self, pos: int, final: bool):
-        buf, window = self._buf, self._window
-        cut = window
-        for token in (b"\r", b"\n"):
-            i = buf.find(token, pos, window)
-            if i != -1:
-                cut = min(cut, i)
-        h = _HEADER.search(buf, pos, window)
-        if h is not None:
-            cut = min(cut, h.start())
-        if cut == pos:
-            # nothing before the break or header: the password (if any) is over
-            self._password_mode = False
-            return self._scan_slow(pos, final)
-        if cut < window or final:
-            self._password_mode = False
-            return cut - pos, ItemKind.PASSWORD, None
-        return _NEED_MORE
+        """The password: the line at pos, up to its line break or the header of a
+        frame that completes.  Line breaks before it are items of their own; a
+        line that begins with a frame header, or is longer than the password may
+        be, is no password and is framed like any other bytes."""
+        buf = self._buf
+        if not self._password_begun:
+            if buf[pos] in (0x0D, 0x0A):
+                return self._scan_eol(pos)
+            head = bytes(buf[pos:pos + 4])
+            if head in FRAME_HEADERS:
+                return self._no_password(pos, final)
+            if len(head) < 4 and not final and any(h.startswith(head) for h in FRAME_HEADERS):
+                return _NEED_MORE
+        cut = self._password_cut(pos, final)
+        if cut is None:
+            return _NEED_MORE
+        if cut <= pos:  # too long, or nothing (more) before the line's end
+            return self._no_password(pos, final)
+        self._in_password = self._password_mode = False
+        return cut - pos, ItemKind.PASSWORD, None
+
+    def _no_password(self, pos: int, final: bool):
+        self._in_password = self._password_mode = False
+        return self._scan_slow(pos, final)
+
+    def _password_cut(self, pos: int, final: bool) -> int | None:
+        """Where the password from pos ends: at its first line break, or at the
+        first header before it whose frame completes (one that never does is
+        part of the password); -1 when that is past the bytes it may have;
+        None while the bytes so far do not tell."""
+        buf = self._buf
+        n = len(buf)
+        last = pos + self._password_left  # the latest it may end
+        at = pos
+        while (end := _PASSWORD_END.search(buf, at, min(n, last + 4))) is not None and end.start() <= last:
+            i = end.start()
+            if buf[i] in (0x0D, 0x0A):
+                return i
+            completes = self._frame_completes(i, final)
+            if completes is None:
+                return None
+            if completes:
+                return i
+            at = i + 1
+        if n > last + 3 or (final and n > last):
+            return -1
+        return n if final else None
+
+    def _frame_completes(self, at: int, final: bool) -> bool | None:
+        """Whether the frame whose header is at ``at`` completes (None: not yet known)."""
+        window = self._window
+        self._window = min(len(self._buf), at + self.max_item)
+        result = (Framer._scan_sr1 if self._buf[at] == 0x73 else Framer._scan_text)(self, at)
+        self._window = window
+        if result == _NEED_MORE:
+            return False if final or len(self._buf) - at >= self.max_item else None
+        return result is not None and result[1] in _FRAMES
 
     # Each scanner returns None (not its kind of item), _NEED_MORE, or
     # (length, kind, reason).  They read only self._buf[pos:self._window].
@@ -401,96 +419,14 @@ class Framer:
             return (1, ItemKind.EOL, None) if self._final else _NEED_MORE
         return (2 if buf[pos + 1] == 0x0A else 1), ItemKind.EOL, None
 
-    def _image_start(self, pos: int, signature: bytes):
-        """None (no image opening with ``signature`` at pos), _NEED_MORE, or the end of its max_image window."""
-        n = min(len(self._buf), pos + self.max_image)
-        head = bytes(self._buf[pos:min(n, pos + len(signature))])
-        if not head or not signature.startswith(head):
-            return None
-        return _NEED_MORE if len(head) < len(signature) else n
 
-    def _scan_jpeg(self, pos: int):
-        n = self._image_start(pos, JPEG_SOI)
-        if n is None or n == _NEED_MORE:
-            return n
-        phase, i = self._resume if pos == 0 and self._resume is not None else (0, pos + 2)
-        result = self._walk_jpeg(pos, n, phase, i) if phase == 0 else self._walk_entropy(pos, n, i)
-        if result != _NEED_MORE:
-            self._resume = None
-        return result
 
-    def _walk_jpeg(self, pos: int, n: int, phase: int, i: int):
-        buf = self._buf
-        # Marker segments up to Start Of Scan carry their own lengths.
-        while True:
-            if i + 2 > n:
-                self._resume = (0, i) if pos == 0 else None
-                return _NEED_MORE
-            if buf[i] != 0xFF:
-                return self._scan_garbage(pos, Unframed.GARBAGE)
-            marker = buf[i + 1]
-            if marker == 0xFF:
-                i += 1
-            elif marker == 0xD9:
-                return i + 2 - pos, ItemKind.IMAGE, None
-            elif 0xD0 <= marker <= 0xD7 or marker == 0x01:
-                i += 2
-            else:
-                if i + 4 > n:
-                    self._resume = (0, i) if pos == 0 else None
-                    return _NEED_MORE
-                seg_len = (buf[i + 2] << 8) | buf[i + 3]
-                if seg_len < 2:
-                    return self._scan_garbage(pos, Unframed.GARBAGE)
-                i += 2 + seg_len
-                if marker == 0xDA:
-                    return self._walk_entropy(pos, n, i)
-
-    def _walk_entropy(self, pos: int, n: int, i: int):
-        """Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts; any
-        other marker (a further scan's tables) carries a length again."""
-        buf = self._buf
-        while True:
-            j = buf.find(b"\xff", i, n)
-            if j == -1 or j + 1 >= n:
-                self._resume = (1, n if j == -1 else j) if pos == 0 else None
-                return _NEED_MORE
-            nxt = buf[j + 1]
-            if nxt == 0xD9:
-                return j + 2 - pos, ItemKind.IMAGE, None
-            if nxt == 0xFF:
-                i = j + 1
-            elif nxt == 0x00 or 0xD0 <= nxt <= 0xD7:
-                i = j + 2
-            else:
-                if j + 4 > n:
-                    self._resume = (1, j) if pos == 0 else None
-                    return _NEED_MORE
-                i = j + 2 + ((buf[j + 2] << 8) | buf[j + 3])
-
-    def _scan_png(self, pos: int):
-        n = self._image_start(pos, PNG_SIGNATURE)
-        if n is None or n == _NEED_MORE:
-            return n
-        buf = self._buf
-        i = self._resume[1] if pos == 0 and self._resume is not None else pos + 8
-        while True:
-            if i + 8 > n:
-                self._resume = (2, i) if pos == 0 else None
-                return _NEED_MORE
-            length = int.from_bytes(buf[i:i + 4], "big")
-            ctype = bytes(buf[i + 4:i + 8])
-            if not ctype.isalpha():
-                self._resume = None
-                return self._scan_garbage(pos, Unframed.GARBAGE)
-            if ctype == b"IEND":
-                end = i + 12 + length
-                if end > n:
-                    self._resume = (2, i) if pos == 0 else None
-                    return _NEED_MORE
-                self._resume = None
-                return end - pos, ItemKind.IMAGE, None
-            i += 12 + length
+def unasked(item: Item, max_item: int = DEFAULT_MAX_ITEM, max_image: int = DEFAULT_MAX_IMAGE) -> list[Item]:
+    """A client's first line, cut as a password item, when no password was asked
+    for: its bytes framed as any others (at the times the line came)."""
+    framer = Framer(max_item, max_image)
+    t0, t1 = item.t_start_ns, item.t_end_ns
+    return [piece._replace(t_start_ns=t0, t_end_ns=t1) for piece in framer.feed(item.raw, t0) + framer.end(t1)]
 
 
 _SCANNERS = (

@@ -15,7 +15,7 @@ from typing import NamedTuple
 from whiztap.analyzer.protocol.channels import ChannelMap, command_meaning, data_violation
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
 from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, decode, decode_cache
-from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, Unframed
+from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, unasked
 from whiztap.analyzer.protocol.handshake import SERVER_STEPS, HandshakeState, Mode, Step, advance, outcome
 from whiztap.analyzer.protocol.messages import (
     ChannelConfig,
@@ -99,6 +99,7 @@ class Session:
         self.clean_commands = clean_commands
         self.answer_timeout_ns = answer_timeout_ns
         self.framers = {Direction.C2S: Framer(max_item, max_image), Direction.S2C: Framer(max_item, max_image)}
+        self.framers[Direction.C2S].expect_password()  # the client's first line may be its password
         self.state = HandshakeState.START
         self.mode = Mode.UNKNOWN
         self.channel_map: ChannelMap = {}
@@ -115,10 +116,11 @@ class Session:
         # and is not unsolicited.  The oldest are forgotten past ``expired_kept``.
         self._expired = Book()
         self.expired_kept = EXPIRED_KEPT
-        # Client items that may be a password sent before the server asked for it
-        # (an eager client): held until the server's first item says which.
+        # The client's first line (a password item) and what follows it, when they
+        # come before the server's first item, which says whether it is a password.
         self._early: list[Item] | None = None
         self._may_hold_early = True  # until the server speaks or the handshake moves on
+        self._asks_password = False  # the server began with 'sendchkpass': the first line is the password
         self._asked_t_ns: int | None = None  # when 'sendchkpass' arrived
         self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
         self._index = 0
@@ -134,8 +136,8 @@ class Session:
         return self._observe_all(direction, self.framers[direction].feed(data, t_ns), t_ns)
 
     def end(self, direction: Direction, t_ns: int) -> list[Event]:
-        if direction in self._ended:
-            return []
+        if direction in self._ended and not self.framers[direction].buffered:
+            return []  # (bytes fed after the end are flushed by another: the close's)
         self._ended.add(direction)
         events = self._observe_all(direction, self.framers[direction].end(t_ns), t_ns)
         if direction is Direction.C2S:
@@ -283,10 +285,16 @@ class Session:
         """The general path: one item of any kind, in any state (the fast paths
         hand over every item they do not take)."""
         if self._may_hold_early:
-            if direction is Direction.S2C:
+            if direction is Direction.C2S:
+                if self._hold_early(item, events):
+                    return
+            elif item.kind is not ItemKind.EOL:
                 self._release_early(events, item)
-            elif self._hold_early(item, events):
-                return
+        if item.kind is ItemKind.PASSWORD and not self._asks_password:  # no password asked: bytes like any others
+            framer = self.framers[Direction.C2S]
+            for piece in unasked(item, framer.max_item, framer.max_image):
+                self._observe(direction, piece, events)
+            return
         kind = item.kind
         t = item.t_end_ns
         if self.first_t_ns is None:
@@ -326,16 +334,14 @@ class Session:
         """'sendchkpass', 'readytogo' or 'Failed Validation' from the server."""
         step = SERVER_STEPS[type(message)]
         t = item.t_end_ns
-        if step is not _St.SENDCHKPASS:
-            # the verdict ends the password: observe the password first
+        if step is not _St.SENDCHKPASS and self._asks_password:
+            # a verdict before the password's end: what came of it is observed first
             password_items = self.framers[Direction.C2S].close_password(t)
             events.extend(self._observe_all(Direction.C2S, password_items, t))
         early = self.state is _S.EARLY_PASSWORD
         self._step(step, violations)
         if step is _St.SENDCHKPASS and (self.state is _S.AWAIT_PASSWORD or early):
             self._asked_t_ns = item.t_start_ns
-            if not early:
-                self.framers[Direction.C2S].expect_password()
 
     def _frame(self, direction: Direction, item: Item, message: Message | None,
                candidates: tuple[Message, ...], violations: list[Violation]) -> Message | None:
@@ -373,13 +379,14 @@ class Session:
                                                       observation.violations, answer_kind, channel, certain)
 
     def _hold_early(self, item: Item, events: list[Event]) -> bool:
-        """Hold a client item that may be (or follow) a password sent before the
-        server asked for one; False when it is to be observed now."""
+        """Hold the client's first line (a password item) and what follows it
+        until the server's first item says whether it is a password; False
+        when the item is to be observed now."""
         if self._early is None:
             if self.state is not _S.START:
                 self._may_hold_early = False
                 return False
-            if item.kind is not ItemKind.UNFRAMED or item.reason is not Unframed.GARBAGE:
+            if item.kind is not ItemKind.PASSWORD:
                 return False
             self._early = []
         self._early.append(item)
@@ -388,16 +395,15 @@ class Session:
         return True
 
     def _release_early(self, events: list[Event], server_first: Item | None) -> None:
-        """Observe the held client items, before the server's first item.  If that
-        item is 'sendchkpass', the first held item was the password, sent early."""
-        early, self._early = self._early, None
-        self._may_hold_early = False
-        if not early:
+        """The server's first item (None: none will come in time) says whether
+        the client's first line is a password ('sendchkpass': it is, sent early);
+        the held client items are observed before it."""
+        if not self._may_hold_early:
             return
-        if server_first is not None and server_first.raw == b"sendchkpass":
-            first = early[0]
-            early[0] = Item(ItemKind.PASSWORD, first.raw, first.t_start_ns, first.t_end_ns)
-        for held in early:
+        self._may_hold_early = False
+        self._asks_password = server_first is not None and server_first.raw == b"sendchkpass"
+        early, self._early = self._early, None
+        for held in early or ():
             self._observe(Direction.C2S, held, events)
 
     def _step(self, step: Step, violations: list[Violation]) -> None:

@@ -2,29 +2,24 @@
 
 The rule (docs/recording-format.md, *Passwords*), per connection:
 
-* Until the server's first bytes (line breaks aside) say which, a session may
-  be Winsock: the client's bytes are *undecided* and held back.
-* If the server begins with ``sendchkpass`` the session is Winsock: every
-  client byte received before the server's verdict (``readytogo`` or
-  ``Failed Validation``, wherever it comes in the server's bytes) is masked,
-  and so are the client's bytes after the verdict up to its first line break
-  or frame header (``rr1-``, ``cr1-``, ``sr1-``): a server may judge a
-  password before its end (at its first wrong byte), and the rest follows.
-  From there on, nothing is masked.
-* If the server begins with anything else, there is no login (VPN mode, or
-  not the Progwhiz protocol): nothing the client sends is masked, held bytes
-  included.
-* A server that ends (or is never reached, or the connection closes) before
-  its first bytes leaves the session undecided for good: the client's bytes
-  are masked, unless the client began with a frame header (line breaks
-  aside), which no Winsock client does (it begins with its password).
+* The password can only be the client's first line: from the start of its
+  stream (line breaks aside) to its first line break, or to the header
+  (``rr1-``, ``cr1-``, ``sr1-``) of a frame that completes (a header whose
+  frame never completes is part of the line).  A first line that begins with
+  a frame header, or that is longer than ``MAX_PASSWORD`` bytes, is no
+  password.  Nothing after the first line is ever masked.
+* It is masked if the server begins (line breaks aside) with ``sendchkpass``;
+  if the server begins with anything else, nothing is masked.
+* A server that ends (or is never reached, or loses bytes to a gap) before it
+  has said which may have asked: the first line is masked.
 
-Masking replaces each byte by ``*`` except CR and LF, which end a password
-and keep the items around it in shape; lengths never change.  The decisions
-depend on the byte streams and the order in which reads arrived, never on how
-the bytes were cut into reads.  What only a clock or a bound decides (held too
-long, too many undecided bytes, the connection closed undecided) is to mask,
-never to show.
+Masking replaces each byte by ``*`` except CR and LF; lengths never change.
+The decisions depend on the two byte streams and the order in which reads
+arrived, never on how the bytes were cut into reads (the line is found by the
+session's own ``Framer``, whose items do not depend on it).  What only a clock
+or a bound decides (held too long, too many undecided bytes, the connection
+closed undecided) is to mask, never to show, and it can only ever reach the
+bytes of the first line.
 
 Sans-IO: ``LoginMask`` is one connection's decision; ``Redactor`` keeps the
 traffic of every connection in arrival order and lets it out as it is decided.
@@ -40,107 +35,128 @@ from collections.abc import Iterator
 from enum import Enum
 from typing import Generic, NamedTuple, TypeVar
 
-from whiztap.analyzer.recording.format import MASK_BYTE
+from whiztap.analyzer.protocol.framing import MAX_PASSWORD, Framer, ItemKind
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.recording.format import MASK_BYTE
 from whiztap.analyzer.traffic import Closed, ConnectionEvent, Gap, HalfClosed, Opened, UpstreamFailed
 
 HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than this
 UNDECIDED_CAP = 16 * 1024  # ... or once a connection has this many
 QUEUE_CAP = 8 << 20  # ... or once this much traffic waits behind them
 GREETING = b"sendchkpass"
-_VERDICT = re.compile(rb"readytogo|Failed Validation")
-_VERDICT_CARRY = len(b"Failed Validation") - 1
-_LINE_END = re.compile(rb"[\r\n]|[rcs]r1-")
-_HEADERS = (b"rr1-", b"cr1-", b"sr1-")
-_HEADER_SIZE = 4
 _MASKABLE = re.compile(rb"[^\r\n]+")
 _ALL = 1 << 62  # an offset past any stream's end
+_NONE = -1  # the first line is no password
 C2S, S2C = Direction.C2S, Direction.S2C
+__all__ = ["GREETING", "HOLD_LIMIT_S", "MAX_PASSWORD", "QUEUE_CAP", "UNDECIDED_CAP", "LoginMask", "Phase",
+           "Redactor", "Released"]
 
 
 class Phase(Enum):
     GREETING = "greeting"  # the server has not said whether it asks for a password
-    LOGIN = "login"  # Winsock, before the verdict: every client byte is masked
-    TAIL = "tail"  # after the verdict, up to the client's next line break or frame header
-    OPEN = "open"  # nothing more is masked
+    LOGIN = "login"  # it asked (or may have: it ended first), and the first line has not ended yet
+    OPEN = "open"  # decided: nothing more is masked
 
 
 class LoginMask:
     """One connection: which of its client's bytes are masked.
 
-    The masked bytes are always a prefix of the client's stream: offsets below
-    ``masked_end`` are masked, from there up to ``decided`` they are shown, and
-    from ``decided`` on nothing is known yet."""
+    The masked bytes are always within the client's first line: offsets below
+    ``masked_end`` are masked (line breaks aside), from there up to
+    ``decided`` they are shown, and from ``decided`` on nothing is known yet."""
 
-    __slots__ = ("phase", "received", "masked_end", "decided", "_greeted", "_carry", "_head")
+    __slots__ = ("phase", "received", "masked_end", "decided", "_server", "_greeted", "_line", "_line_at",
+                 "_start", "_end")
 
     def __init__(self) -> None:
         self.phase = Phase.GREETING
         self.received = 0  # client bytes so far
         self.masked_end = 0
         self.decided = 0
+        self._server: bool | None = None  # whether the server asks for a password (None: not said yet)
         self._greeted = 0  # bytes of 'sendchkpass' the server has sent so far
-        self._carry = b""  # bytes a token may straddle: the server's (LOGIN) or the client's (TAIL)
-        self._head = b""  # the client's first bytes, line breaks aside (up to a frame header's length)
+        self._line: Framer | None = Framer()  # finds the client's first line, as the session does
+        self._line.expect_password()
+        self._line_at = 0  # client bytes the line's framer has taken as items
+        self._start = 0  # where the first line begins (line breaks before it aside)
+        self._end: int | None = None  # where it ends if it is a password, _NONE if it is none; None: not known
 
     @property
     def undecided(self) -> int:
-        return max(self.received - self.decided, 0)
+        """Client bytes that may still be masked or shown."""
+        if self.phase is Phase.OPEN:
+            return 0
+        end = self.received if self._end is None else self._end
+        return max(end - self.decided, 0)
 
     # -- input -----------------------------------------------------------------------------
 
     def client(self, data: bytes) -> None:
         """Bytes from the client, in order."""
         self.received += len(data)
-        if len(self._head) < _HEADER_SIZE:
-            self._head = (self._head + data).lstrip(b"\r\n")[:_HEADER_SIZE]
-        if self.phase is Phase.LOGIN:
-            self.masked_end = self.decided = self.received
-        elif self.phase is Phase.TAIL:
-            self._scan_tail(data)
-        elif self.phase is Phase.GREETING and self.undecided > UNDECIDED_CAP:
+        if self.phase is Phase.OPEN:
+            return
+        if self._line is not None:
+            self._scan_line(self._line.feed(data, 0))
+        self._settle()
+        if self.undecided > UNDECIDED_CAP:
             self.force()
 
     def client_gap(self, length: int) -> None:
-        """``length`` client bytes were never seen (a capture that missed them)."""
-        self.received += length
-        if self.phase in (Phase.LOGIN, Phase.TAIL):
+        """``length`` client bytes were never seen (a capture that missed them):
+        what came of the first line is masked, and the hole counts as bytes of it."""
+        if self.phase is not Phase.OPEN and self._line is not None:
             self.force()
+            self.client(b"\0" * min(length, MAX_PASSWORD + 4))
+            self.received += length - min(length, MAX_PASSWORD + 4)
+        else:
+            self.received += length
+
+    def client_ended(self) -> None:
+        """The client will send nothing more: its first line ends here if it has not."""
+        if self._line is not None and self.phase is not Phase.OPEN:
+            self._scan_line(self._line.end(0))
+            self._settle()
 
     def server(self, data: bytes) -> None:
         """Bytes from the server, in order."""
-        if self.phase is Phase.GREETING:
-            self._scan_greeting(data)
-        elif self.phase is Phase.LOGIN:
-            self._scan_verdict(data)
+        if self._server is not None:
+            return
+        if not self._greeted:
+            data = data.lstrip(b"\r\n")
+        wanted = GREETING[self._greeted:]
+        n = min(len(wanted), len(data))
+        if data[:n] != wanted[:n]:
+            self._server = False  # the server spoke first with something else: no login
+        else:
+            self._greeted += n
+            if self._greeted == len(GREETING):
+                self._server = True
+        self._settle()
 
     def server_gap(self) -> None:
-        """Server bytes were never seen: the greeting or the verdict may be among them."""
-        if self.phase is Phase.GREETING:
-            self._login()
-        elif self.phase is Phase.LOGIN:
-            self._carry = b""  # a verdict may not straddle the hole
+        """Server bytes were never seen: the greeting may be among them."""
+        if self._server is None:
+            self._server = True
+            self._settle()
 
     def server_ended(self) -> None:
         """The server will send nothing more (it shut down, or was never reached)."""
-        if self.phase is not Phase.GREETING:
-            return
-        if not self._greeted and self._head in _HEADERS:
-            self._open()  # a client that begins with a frame: no password first
-        else:
-            self._login()  # never decided: mask
+        self.server_gap()  # it may have asked: the first line is masked
 
     def end(self) -> None:
-        """The connection is over: decide, as if the server ended, and mask what is left."""
+        """The connection is over: decide, as if both sides ended, and mask what is left."""
+        self.client_ended()
         self.server_ended()
         self.force()
 
     def force(self) -> None:
         """Mask what is undecided now (held too long, too much of it, or the end)."""
-        if self.phase is not Phase.OPEN and self.received > self.decided:
-            self.masked_end = self.decided = self.received
-            if self.phase is Phase.TAIL:
-                self._carry = b""  # a header may not begin in masked bytes
+        if self.phase is Phase.OPEN or not self.undecided:
+            return
+        self.masked_end = max(self.masked_end, self.received if self._end is None else self._end)
+        self.decided = max(self.decided, self.masked_end)
+        self._settle()
 
     # -- output ----------------------------------------------------------------------------
 
@@ -160,50 +176,35 @@ class LoginMask:
 
     # -- internals ---------------------------------------------------------------------------
 
-    def _login(self) -> None:
-        self.phase = Phase.LOGIN
-        self.masked_end = self.decided = self.received
-        self._carry = b""
+    def _scan_line(self, items: list) -> None:
+        """The line's framer said something: line breaks before it, the password, or none."""
+        line = self._line
+        for item in items:
+            if item.kind is ItemKind.EOL and self._end is None:
+                self._line_at += len(item.raw)
+                self._start = self._line_at
+                continue
+            if item.kind is ItemKind.PASSWORD:
+                self._end = self._line_at + len(item.raw)
+            break
+        if self._end is None and line is not None and not line.password_pending:
+            self._end = _NONE  # it began with a frame header, or ran past MAX_PASSWORD
+        if self._end is not None:
+            self._line = None
 
-    def _open(self) -> None:
-        self.phase = Phase.OPEN
-        self.decided = _ALL
-        self._carry = b""
-
-    def _scan_greeting(self, data: bytes) -> None:
-        if not self._greeted:
-            data = data.lstrip(b"\r\n")
-        wanted = GREETING[self._greeted:]
-        n = min(len(wanted), len(data))
-        if data[:n] != wanted[:n]:
-            self._open()  # the server spoke first with something else: no login
+    def _settle(self) -> None:
+        """What the line and the server have said so far, as the phase and the offsets."""
+        end, server = self._end, self._server
+        if end == _NONE or server is False or (end is not None and (server or self.masked_end >= end)):
+            if end is not None and end != _NONE and server:
+                self.masked_end = max(self.masked_end, end)
+            self.phase = Phase.OPEN
+            self.decided = _ALL
+            self._line = None
             return
-        self._greeted += n
-        if self._greeted == len(GREETING):
-            self._login()
-            self._scan_verdict(data[n:])
-
-    def _scan_verdict(self, data: bytes) -> None:
-        seen = self._carry + data
-        if _VERDICT.search(seen):
-            self.phase = Phase.TAIL
-            self._carry = b""
-        else:
-            self._carry = seen[-_VERDICT_CARRY:]
-
-    def _scan_tail(self, data: bytes) -> None:
-        """Mask up to the first line break or frame header; hold only the last
-        bytes that may still begin a header."""
-        base = self.decided
-        seen = self._carry + data
-        m = _LINE_END.search(seen)
-        if m is not None:
-            self.masked_end = base + m.start()
-            self._open()
-            return
-        keep = next((k for k in (3, 2, 1) if len(seen) >= k and any(h.startswith(seen[-k:]) for h in _HEADERS)), 0)
-        self.masked_end = self.decided = base + len(seen) - keep
-        self._carry = seen[len(seen) - keep:]
+        if end is not None:
+            self.decided = max(self.decided, self._start)  # the line breaks before the password are shown
+        self.phase = Phase.LOGIN if server else Phase.GREETING
 
 
 R = TypeVar("R")
@@ -291,8 +292,11 @@ class Redactor(Generic[R]):
     def ended(self, conn: int, direction: Direction) -> None:
         """One side shut down (call before queuing its event)."""
         mask = self._masks.get(conn)
-        if mask is not None and direction is S2C:
-            mask.server_ended()
+        if mask is not None:
+            if direction is S2C:
+                mask.server_ended()
+            else:
+                mask.client_ended()
             self._settle(conn, mask)
 
     def gap(self, conn: int, direction: Direction, length: int) -> None:
