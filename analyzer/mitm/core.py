@@ -140,7 +140,10 @@ class MiddleCore:
         return self._done(t_ns)
 
     def wake(self, t_ns: int) -> list[Command]:
-        """A timer fired: whatever is due at ``t_ns`` happens."""
+        """A timer fired: whatever is due at ``t_ns`` happens.  The timer is
+        spent, so the next wake-up is asked for again (also when a timer fired
+        a little early and nothing was due yet)."""
+        self._wake = None
         due = [fault for at, fault in self._timed if at <= t_ns]
         self._timed = [(at, fault) for at, fault in self._timed if at > t_ns]
         for fault in due:
@@ -259,13 +262,9 @@ class MiddleCore:
             self._undecided_since = t_ns
 
     def end(self, how: Action, t_ns: int) -> None:
-        if how is Action.CLOSE:
-            self._release_holds(t_ns, (C2S, S2C))
-            for lane in self.lanes.values():
-                lane.flush(t_ns)
+        """End the connection now (what is queued behind a frame's end never goes)."""
         self._commands.append(EndConnection(how))
-        if how is Action.RESET:
-            self.gone = True
+        self.gone = True
 
     def pass_eof(self, direction: Direction) -> None:
         self._commands.append(PassEof(direction))
@@ -320,7 +319,7 @@ class MiddleCore:
             action, after = Action.RELEASE, before
         shown = masked if held.hidden else bytes
         note = Intervention(self.conn, t_ns, held.direction, action, cause, shown(before), shown(after),
-                            held.observation.item.kind.value, "", held.index, held.id, held.hidden, held.offset)
+                            held.observation.item.kind.value, "", held.index, held.id, held.secret, held.offset)
         if drop:  # nothing of it is delivered: told now
             for earlier in out.notes:
                 self._tell(earlier)
@@ -340,7 +339,7 @@ class MiddleCore:
                 self.context.held.discard(held)
                 shown = held.shown
                 out.notes += (Intervention(self.conn, t_ns, held.direction, Action.RELEASE, CLOSING, shown, shown,
-                                           held.observation.item.kind.value, "", held.index, held.id, held.hidden,
+                                           held.observation.item.kind.value, "", held.index, held.id, held.secret,
                                            held.offset),)
                 out.held = None
 
@@ -350,6 +349,10 @@ class MiddleCore:
         fault.hits += 1
         action = fault.action
         self._tell(Intervention(self.conn, t_ns, C2S, action, fault.cause, detail=f"the proxy {action}s the connection"))
+        if action is Action.CLOSE:  # a close on a timer delivers what waits first (held frames as they are)
+            self._release_holds(t_ns, (C2S, S2C))
+            for lane in self.lanes.values():
+                lane.flush(t_ns)
         self.end(action, t_ns)
 
     def _tell(self, event: Data | Delivered | Intervention) -> None:

@@ -60,7 +60,7 @@ class Frame:
     delay_ns: int = 0
     slices: tuple[int, int] | None = None
     pause_ns: int = MS
-    hold: str | None = None  # why it is held (the intercept filter), or None
+    hold: str | None = None  # the intercept filter that holds it, or None
     end: Action | None = None
     # frames to send after this one: (direction, bytes, cause); a tuple, so a failed stage's are undone with it
     injections: tuple[tuple[Direction, bytes, Cause], ...] = ()

@@ -42,13 +42,14 @@ class Intercept:
         count from the opening of the frame's connection, as a fault's clock does."""
         if self.filter is not None and frame.data is not None and \
                 self.filter.accepts(frame.conn, frame.observation, frame.opened_ns):
-            frame.hold = f"intercept {self.text}"
+            frame.hold = self.text
 
 
 @dataclass
 class Held:
     """A frame waiting for a person: ``data`` is what would go now (the frame
-    as the stages left it); ``hidden``: it may be a password and the run hides them."""
+    as the stages left it); ``hidden``: it may be a password and the run hides them;
+    ``cause``: why it is held, as people read it."""
 
     id: int
     conn: int
@@ -59,7 +60,12 @@ class Held:
     since_ns: int
     cause: str
     data: bytes
-    hidden: bool
+    secret: bool  # it may be a password
+    redact: bool  # the run hides passwords
+
+    @property
+    def hidden(self) -> bool:
+        return self.secret and self.redact
 
     @property
     def shown(self) -> bytes:
@@ -86,7 +92,7 @@ class HeldFrames:
 
     def add(self, frame: Frame, since_ns: int) -> Held:
         held = Held(next(self._ids), frame.conn, frame.direction, frame.index, frame.offset, frame.observation, since_ns,
-                    frame.hold or "", frame.data or b"", frame.hidden)
+                    f"intercept {frame.hold}", frame.data or b"", frame.secret, frame.redact)
         self.frames[held.id] = held
         return held
 
