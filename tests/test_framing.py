@@ -6,6 +6,7 @@ from hypothesis import strategies as st
 
 from whiztap.analyzer.protocol.framing import (
     DEFAULT_MAX_ITEM,
+    MAX_PASSWORD,
     MIN_MAX_ITEM,
     Framer,
     Item,
@@ -78,6 +79,48 @@ def test_password_ends_at_line_break_or_frame_header():
     framer = Framer()
     framer.expect_password()
     assert shape(framer.feed(b"pwrr1-24--0--0-ss1", 1))[0] == (ItemKind.PASSWORD, b"pw", None)
+
+
+# -- the password: the client's first line (docs/protocol.md, A14) ----------------------------
+
+SET_CONFIG = b"sr1-25--\x0c\x00\x00\x0c\x01\x02\x18--0-ss1"
+P, E, C = ItemKind.PASSWORD, ItemKind.EOL, ItemKind.COMMAND
+
+
+def frame_password(data: bytes, bytewise: bool = False) -> list[tuple]:
+    framer = Framer()
+    framer.expect_password()
+    chunks = [data[i:i + 1] for i in range(len(data))] if bytewise else [data]
+    items = [item for t, chunk in enumerate(chunks) for item in framer.feed(chunk, t)]
+    return shape(items + framer.end(len(chunks)))
+
+
+@pytest.mark.parametrize("data, expected", [
+    (b"secrr1-et\r\nrr1-24--0--0-ss1",  # a header whose frame never completes is part of the password
+     [(P, b"secrr1-et", None), (E, b"\r\n", None), (C, b"rr1-24--0--0-ss1", None)]),
+    (b"\r\n\npw\r\n", [(E, b"\r\n", None), (E, b"\n", None), (P, b"pw", None), (E, b"\r\n", None)]),
+    (b"\rpw" + SET_CONFIG, [(E, b"\r", None), (P, b"pw", None), (ItemKind.SET_CONFIG, SET_CONFIG, None)]),
+    (b"\n" + b"x" * MAX_PASSWORD + b"\r\n", [(E, b"\n", None), (P, b"x" * MAX_PASSWORD, None), (E, b"\r\n", None)]),
+    (b"x" * (MAX_PASSWORD + 1) + b"\r\n",  # longer than a password: bytes like any others
+     [(ItemKind.UNFRAMED, b"x" * (MAX_PASSWORD + 1), Unframed.GARBAGE), (E, b"\r\n", None)]),
+    (b"\npwsr1-\x02000200-ss1",
+     [(E, b"\n", None), (P, b"pw", None), (ItemKind.CONFIG, b"sr1-\x02000200-ss1", None)]),
+])
+def test_the_password_is_the_first_line_up_to_a_line_break_or_a_frame_that_completes(data, expected):
+    assert frame_password(data) == expected
+    assert frame_password(data, bytewise=True) == expected
+
+
+def test_a_verdict_before_the_line_ends_leaves_the_rest_of_the_line_a_password():
+    """A server may judge at the first wrong byte: what came is handed over at
+    once, and the rest of the line is the password's too, not garbage."""
+    framer = Framer()
+    framer.expect_password()
+    assert framer.feed(b"K", 1) == []
+    assert framer.close_password(2) == [Item(P, b"K", 1, 2)]
+    assert not framer.password_pending  # the proxy in the middle frames what follows
+    assert shape(framer.feed(b"x9hunter\r\nrr1-24--0--0-ss1", 3)) == [
+        (P, b"x9hunter", None), (E, b"\r\n", None), (C, b"rr1-24--0--0-ss1", None)]
 
 
 def test_images_are_recognised_whole():
@@ -202,6 +245,30 @@ def test_lossless_and_chunking_independent_on_protocol_like_streams(pieces, cuts
     many = frame_all(chunked(data, cuts))
     assert b"".join(i.raw for i in many) == data
     assert shape(many) == shape(one)
+
+
+@settings(max_examples=300, deadline=None)
+@given(lead=st.sampled_from([b"", b"\r\n", b"\n", b"\r", b"x" * 300]), pieces=stream_pieces(),
+       cuts=st.lists(st.integers(0, 4000), max_size=30))
+def test_a_password_is_cut_the_same_in_any_reads(lead, pieces, cuts):
+    """Told to expect a password, the framer cuts the same items from any
+    chunking, loses nothing, and its one password item is the first line (line
+    breaks before it aside), never longer than a password may be."""
+    data = lead + b"".join(pieces)
+    framer = Framer()
+    framer.expect_password()
+    one = shape(framer.feed(data, 0) + framer.end(1))
+    framer = Framer()
+    framer.expect_password()
+    many = [item for t, chunk in enumerate(chunked(data, cuts)) for item in framer.feed(chunk, t)]
+    many = shape(many + framer.end(10**6))
+    assert many == one and b"".join(raw for _, raw, _ in one) == data
+    kinds = [kind for kind, _, _ in one]
+    passwords = [raw for kind, raw, _ in one if kind is P]
+    assert len(passwords) <= 1 and all(len(raw) <= MAX_PASSWORD for raw in passwords)
+    if passwords:
+        assert set(kinds[:kinds.index(P)]) <= {E}  # only line breaks before it
+        assert not passwords[0].startswith((b"rr1-", b"cr1-", b"sr1-"))
 
 
 @settings(max_examples=100, deadline=None)

@@ -268,6 +268,41 @@ def test_a_password_begun_before_sendchkpass_without_a_line_break_breaks_the_ord
     assert session.handshake_outcome == "readytogo"
 
 
+def client_items(events):
+    return [(o.item.kind, o.item.raw) for o in observations(events) if o.direction is C]
+
+
+def test_an_early_password_is_still_asked_for_by_a_server_that_begins_with_a_line_break():
+    session, events = run([(C, b"secret\r\n"), (S, b"\r\nsendchkpass"), (S, b"readytogo")])
+    assert client_items(events) == [("password", b"secret"), ("eol", b"\r\n")]
+    assert fired(events) == ["PW-FRAME-EOL", "PW-HS-ORDER"]  # the server's line break before any item: info
+    assert session.handshake_outcome == "readytogo"
+
+
+def test_an_early_password_with_a_header_that_never_completes_is_one_password():
+    session, events = run([(C, b"secrr1-et\r\nrr1-24--0--0-ss1"), (S, b"sendchkpass"), (S, b"readytogo"),
+                           (S, b"sr1-\x01200-ss1")])
+    assert client_items(events) == [("password", b"secrr1-et"), ("eol", b"\r\n"), ("command", b"rr1-24--0--0-ss1")]
+    assert fired(events) == ["PW-HS-ORDER", "PW-HS-COMMAND-BEFORE-READY"]
+    command = [o for o in observations(events) if o.item.kind == "command"][0]
+    assert observations(events)[-1].answers is command
+
+
+def test_the_rest_of_a_password_judged_at_its_first_byte_is_still_the_password():
+    """The server refused at the first byte; the client sends the rest of its
+    line anyway: a password (sent after the verdict), not garbage."""
+    _, events = run([(S, b"sendchkpass"), (C, b"K"), (S, b"Failed Validation"), (C, b"x9\r\n")])
+    assert client_items(events) == [("password", b"K"), ("password", b"x9"), ("eol", b"\r\n")]
+    assert fired(events) == ["PW-HS-AFTER-FAILED"]
+
+
+def test_a_first_line_longer_than_a_password_is_no_password():
+    line = b"x" * 300
+    session, events = run([(S, b"sendchkpass"), (C, line + b"\r\n"), (S, b"Failed Validation")])
+    assert client_items(events) == [("unframed", line), ("eol", b"\r\n")]
+    assert session.handshake_outcome == "failed validation"
+
+
 def test_garbage_before_a_vpn_session_is_still_garbage():
     session, events = run([(C, b"hello\r\n"), (C, b"rr1-24--0--0-ss1"), (S, b"sr1-\x01200-ss1")])
     assert fired(events) == ["PW-FRAME-GARBAGE", "PW-FRAME-EOL"]
