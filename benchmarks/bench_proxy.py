@@ -27,6 +27,12 @@ process.
   parallel; then Ctrl-C, and the clock stops when the file is finished.
   Requests and responses both count as frames.  The recording is read back
   and must hold every byte and every frame.
+* Pipelined, one way: ``WHIZTAP_BENCH_ONE_WAY_FRAMES`` Normal Sends (default
+  500k; commands that get no answer, as a client that only drives outputs
+  sends them) through whiztap record to a server that reads them and never
+  says a thing; then Ctrl-C.  Every frame must be in the file, as sent: with
+  no server to say whether a password is asked, only the client's first line
+  could be one, and a client that begins with a frame has none.
 * Pipelined in the middle: the same requests through ``whiztap record
   --control 0`` (no fault) to a server that reads and discards them; frames/s
   from the first byte sent to the last byte the server received (the
@@ -56,6 +62,7 @@ from pathlib import Path
 RT_S = float(os.environ.get("WHIZTAP_BENCH_RT_S", "3"))
 ROUNDS = 3
 PIPELINE_FRAMES = int(os.environ.get("WHIZTAP_BENCH_PIPELINE_FRAMES", "200000"))
+ONE_WAY_FRAMES = int(os.environ.get("WHIZTAP_BENCH_ONE_WAY_FRAMES", "500000"))
 SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", "60"))
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 PEERS = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin"
@@ -295,6 +302,48 @@ def pipelined(tmp: Path) -> dict[str, float]:
             "size": out.stat().st_size}
 
 
+def one_way(tmp: Path) -> dict[str, float]:
+    """The one-way mix: Normal Sends through ``whiztap record`` to a server that
+    never speaks; frames/s from the first byte sent to the finished file, and
+    whether the file holds every frame, unmasked."""
+    server = socket.create_server(("127.0.0.1", 0))
+    upstream_port, port = server.getsockname()[1], _free_port()
+    payload = b"".join(b"rr1-%d--%d--0-ss1" % (i % 24, 2 + i % 1999) for i in range(ONE_WAY_FRAMES))
+    received = [0]
+
+    def discard() -> None:
+        while received[0] < len(payload):  # the port probe first, then the benchmark's connection
+            conn, _ = server.accept()
+            with conn:
+                while data := conn.recv(1 << 20):
+                    received[0] += len(data)
+
+    sink = threading.Thread(target=discard, daemon=True)
+    sink.start()
+    out = tmp / "one-way.mcap"
+    rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
+                  "-o", str(out)])
+    stdout = ""
+    try:
+        _wait_port(port, rec)
+        with socket.create_connection(("127.0.0.1", port)) as s:
+            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            start = time.perf_counter()
+            s.sendall(payload)
+        sink.join(600)
+    finally:
+        stdout = _stop(rec)
+        finished = time.perf_counter()
+        server.close()
+    streams = _streams(out)
+    conn = max(c for c, _ in streams)
+    m = re.search(r"c2s (\d+) frames", stdout)
+    recorded = int(m.group(1)) if m else 0
+    lost = received[0] != len(payload) or streams.get((conn, "c2s")) != payload or recorded != ONE_WAY_FRAMES
+    return {"frames": ONE_WAY_FRAMES, "recorded_frames": recorded, "lost": float(lost),
+            "recorded_fps": ONE_WAY_FRAMES / (finished - start)}
+
+
 def middle_blast(tmp: Path) -> dict[str, float]:
     """The pipelined requests through the proxy in the middle (``--control 0``,
     no fault) to a server that discards them: frames/s to the last byte received."""
@@ -402,6 +451,11 @@ def main() -> None:
                   f"{'SOME LOST' if p['lost'] else 'nothing lost'}; {p['size'] / 1e6:.1f} MB")
             print(f"FRAMES/S pipelined recording, first byte to finished file: {p['recorded_fps']:,.0f} "
                   f"(target >= {TARGET_PIPELINED_FPS:,})")
+            w = one_way(tmp)
+            print(f"pipelined, one way: {w['frames']:,} Normal Sends through whiztap record to a server that never "
+                  f"speaks: {w['recorded_frames']:,} frames in the recording, "
+                  f"{'SOME LOST OR MASKED' if w['lost'] else 'every one, as sent'}; "
+                  f"{w['recorded_fps']:,.0f} frames/s first byte to finished file")
             b = middle_blast(tmp)
             print(f"FRAMES/S pipelined in the middle: {b['frames']:,} requests through {MIDDLE} (no fault) to "
                   f"a discarding server, first byte sent to last byte received: {b['fps']:,.0f}; "
