@@ -76,9 +76,8 @@ async def violations() -> None:
         async def session(port: int) -> None:
             for steps in SCENARIOS.values():
                 await peer.play(steps, (LOCAL, port))
-        # --keep-secrets: redaction masks what a client sends before the server's
-        # verdict on its password, so PW-HS-COMMAND-BEFORE-READY's early command
-        # would be '*' bytes; the scenarios' passwords are made up
+        # --keep-secrets: the scenarios' passwords are made up; kept, the
+        # report shows every scenario's bytes as they were sent
         await recorded(peer.port, HERE / "violations.mcap", session, keep_secrets=True)
 
 

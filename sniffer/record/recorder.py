@@ -12,13 +12,15 @@ messages reach each channel in the order they happened and ``log_time`` never
 goes backwards.
 
 Passwords are redacted unless asked otherwise, by the rule of
-``whiztap.analyzer.recording.redaction``: what the client sends until the server's verdict on the
-login is masked.  The masking comes first: the session model, and so every
-frame, violation and printed line, sees the bytes as the file has them, never
-the password.  A client read whose fate is still undecided (the server has not
-said yet whether it asks for a password) waits, and every read and event after
-it waits behind it, so the file stays in arrival order; the wait is bounded
-(``HOLD_LIMIT_S``, and a cap on the bytes), after which the bytes are masked.
+``whiztap.analyzer.recording.redaction``: the client's first line, when the
+server asks for a password (or never says), is masked.  The masking comes
+first: the session model, and so every frame, violation and printed line,
+sees the bytes as the file has them, never the password.  A client read that
+holds part of a first line still undecided (it has not ended, or the server
+has not said yet whether it asks) waits, and every read and event after it
+waits behind it, so the file stays in arrival order; the wait is bounded
+(``HOLD_LIMIT_S``, and caps on the bytes), after which the line's bytes are
+masked.
 """
 
 from __future__ import annotations
