@@ -174,24 +174,116 @@ def test_a_checksum_the_proxy_broke_is_an_effect_not_a_violation_of_either_side(
     assert report["set_configurations"][0]["ok"]  # what the client sent was right
 
 
+# -- what follows from a frame the proxy made or changed: effects, not violations ------------------------
+
+
+def _analyze(path: Path, *args: str) -> tuple[int, dict]:
+    """``whiztap analyze --format json`` (the real command): its exit status and report."""
+    result = CliRunner().invoke(cli, ["analyze", "--format", "json", "--answer-timeout", str(ANSWER_S), *args,
+                                      str(path)])
+    report = json.loads(result.output)
+    jsonschema.validate(report, REPORT_SCHEMA)
+    return result.exit_code, report
+
+
+def _effects(report: dict) -> list[tuple[str, str, str]]:
+    """(rule, seen by, cause) of every effect listed."""
+    return [(e["rule_id"], e["seen_by"], e["cause"]) for e in report["interventions"]["effects"]]
+
+
+def _passes_unless_asked(path: Path) -> dict:
+    """No violation of either side: the report passes, and fails only with
+    --fail-on-interventions; the report (without it)."""
+    code, report = _analyze(path)
+    assert (code, report["passed"], report["violations"], report["rule_counts"]) == (0, True, [], {}), report
+    failed, strict = _analyze(path, "--fail-on-interventions")
+    assert (failed, strict["passed"], strict["interventions"]["fail_on_interventions"]) == (1, False, True)
+    assert strict["summary"]["violations_by_severity"] == report["summary"]["violations_by_severity"]
+    return report
+
+
 @pytest.mark.parametrize("spec", ["dup dir:s2c kind:response ch:12 nth:1", "dup dir:c2s kind:command ch:12 nth:1"])
-def test_an_answer_the_proxy_duplicated_is_unsolicited_for_the_client_only(tmp_path, spec):
-    report = _report(_record(tmp_path / "dup.mcap", (spec,), lambda client, rec: _sensors(client, 2)))
-    assert _by_side(report, "PW-PAIR-UNSOLICITED") == {"client": 1}
-    assert not [v for v in report["violations"] if v["side"] == "server"]
+def test_an_answer_the_proxy_duplicated_is_an_effect_of_the_dup(tmp_path, spec):
+    report = _passes_unless_asked(_record(tmp_path / "dup.mcap", (spec,), lambda client, rec: _sensors(client, 2)))
+    assert _effects(report) == [("PW-PAIR-UNSOLICITED", "client", f"fault fault-1: {spec}")]
     assert report["interventions"]["causes"][0]["actions"] == {"dup": 1}
 
 
-def test_an_injected_answer_is_unsolicited_for_the_client_only(tmp_path):
+def test_an_injected_answer_is_an_effect_of_the_injection(tmp_path):
     async def session(client: Client, rec) -> None:  # noqa: ANN001
         await _sensors(client, 1)
         rec.controller.inject(1, "s2c", "cr1-12--5--0-ss1")
         await client.sensor(13)
 
-    report = _report(_record(tmp_path / "injected.mcap", (NEVER,), session))
-    [v] = [v for v in report["violations"] if v["rule_id"] == "PW-PAIR-UNSOLICITED"]
-    assert v["side"] == "client" and v["frame"] == "cr1-12--5--0-ss1" and "injection" in v["detail"]
+    report = _passes_unless_asked(_record(tmp_path / "injected.mcap", (NEVER,), session))
+    [effect] = report["interventions"]["effects"]
+    assert (effect["rule_id"], effect["seen_by"], effect["cause"], effect["frame"]) == (
+        "PW-PAIR-UNSOLICITED", "client", "injection", "cr1-12--5--0-ss1")
     assert report["interventions"]["causes"] == [{"cause": "injection", "count": 1, "actions": {"inject": 1}}]
+
+
+def test_the_answer_to_an_injected_request_is_an_effect_not_the_clients_or_the_servers(tmp_path):
+    async def session(client: Client, rec) -> None:  # noqa: ANN001
+        await _sensors(client, 1)
+        rec.controller.inject(1, "c2s", "sensor 13")  # the client never asked: the server's answer surprises it
+        await client.sensor(12)
+
+    report = _passes_unless_asked(_record(tmp_path / "asked.mcap", (NEVER,), session))
+    [effect] = report["interventions"]["effects"]
+    assert (effect["rule_id"], effect["seen_by"], effect["cause"], effect["dir"]) == (
+        "PW-PAIR-UNSOLICITED", "client", "injection", "s2c")
+    assert effect["frame"].startswith("cr1-13--")
+    assert report["interventions"]["effects_by_severity"] == {"error": 1, "warning": 0, "info": 0}
+
+
+async def _held(rec, n: int = 1) -> list[dict]:  # noqa: ANN001
+    """Wait until ``n`` frames are held at the proxy."""
+    for _ in range(500):
+        held = rec.controller.held_frames()
+        if len(held) >= n:
+            return held
+        await asyncio.sleep(0.01)
+    raise AssertionError("nothing was held")
+
+
+def test_a_request_edited_by_hand_and_its_answer_are_effects_of_the_edit(tmp_path):
+    """The client asked for channel 12; a person made it 13: the client's
+    request goes unanswered and the answer it gets answers nothing it asked,
+    and neither is the client's doing nor the server's."""
+    async def session(client: Client, rec) -> None:  # noqa: ANN001
+        await _sensors(client, 1)
+        rec.controller.set_intercept("dir:c2s kind:command ch:12")
+        asked = asyncio.ensure_future(client.sensor(12))
+        [held] = await _held(rec)
+        rec.controller.set_intercept("")
+        rec.controller.release(held["id"], edit="sensor 13")
+        with pytest.raises(ResponseTimeout):
+            await asked
+        await client.sensor(14)
+
+    report = _passes_unless_asked(_record(tmp_path / "edited.mcap", (NEVER,), session))
+    assert sorted(_effects(report)) == [("PW-PAIR-UNANSWERED", "client", "hand edit"),
+                                        ("PW-PAIR-UNSOLICITED", "client", "hand edit")]
+    assert report["unanswered"] == {}  # no request of the client's went unanswered by anyone's doing
+    assert {c["cause"] for c in report["interventions"]["causes"]} == {"intercept dir:c2s kind:command ch:12",
+                                                                         "hand edit"}
+
+
+def test_an_answer_replaced_by_another_channels_is_an_effect_and_a_drop_beside_it_still_fails(tmp_path):
+    """Replacing an answer takes it from the request it answered and gives the
+    client one it never asked for: effects.  The answer the proxy dropped
+    later on is still what the client went through."""
+    replace_spec = 'replace:"cr1-13--999--0-ss1" dir:s2c kind:response ch:12 nth:1'
+    drop_spec = "drop dir:s2c kind:response ch:12 nth:2"
+    code, report = _analyze(_record(tmp_path / "replaced.mcap", (replace_spec, drop_spec),
+                                    lambda client, rec: _sensors(client, 3)))
+    assert code == 1
+    assert sorted(_effects(report)) == [("PW-PAIR-UNANSWERED", "client", f"fault fault-1: {replace_spec}"),
+                                        ("PW-PAIR-UNSOLICITED", "client", f"fault fault-1: {replace_spec}")]
+    [experienced] = report["violations"]
+    assert (experienced["rule_id"], experienced["side"]) == ("PW-PAIR-UNANSWERED", "client")
+    assert "drop dir:s2c" in experienced["detail"]
+    assert report["unanswered"] == {"Sensor Request": 1}
 
 
 def test_what_a_side_really_did_is_still_its_own_and_counted_once(tmp_path):
@@ -399,6 +491,8 @@ def test_without_interventions_the_two_views_judge_as_the_one_session(ops):
     single, middle = build(one.finish()), build(two.finish())
     section = middle.pop("interventions", {"count": 0, "effects": []})
     assert (section["count"], section["effects"]) == (0, [])
+    # nothing held back: the client waited what the server took, and the one session measured that too
+    assert middle.pop("client_latency", single["latency"]) == single["latency"]
     for c in middle["connections"]:
         if c.pop("interventions", None) is not None:
             c["notes"].remove(MIDDLE_NOTE)

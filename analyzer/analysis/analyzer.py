@@ -127,6 +127,12 @@ class Analyzer:
                 self._settle(event.conn, sides.settle(event.conn, closed=kind is Closed))
         return events
 
+    def open_judgements(self) -> list[tuple[int, Settled]]:
+        """In the middle, how each connection not yet settled would be judged if
+        its traffic ended now (``Sides.provisional``); elsewhere violations are
+        counted as they are found, and there is nothing more to say."""
+        return self._sides.provisional() if self._sides is not None else []
+
     def finish(self) -> Analysis:
         """Close what is still open (a recording cut short) and return the facts."""
         self.close_all()
@@ -234,15 +240,16 @@ class Analyzer:
             self._sides.single(conn, (self._record(conn, rule_id, detail, about, t, late), unanswered))
             return
         result = self.result
-        self._tally(rule_id, unanswered)
+        self._tally(rule_id, side_of(rule_id, str(about.direction)), unanswered)
         if len(result.violations) < result.max_violations:
             result.violations.append(self._record(conn, rule_id, detail, about, t, late))
 
-    def _tally(self, rule_id: str, unanswered: str | None, n: int = 1) -> None:
-        """A violation counted (``unanswered``: the request's title, for the
-        unanswered table), whether or not it is kept in full."""
+    def _tally(self, rule_id: str, side: str, unanswered: str | None, n: int = 1) -> None:
+        """A violation counted (``side``: whose conduct; ``unanswered``: the
+        request's title, for the unanswered table), whether or not it is kept in full."""
         result = self.result
         result.violation_counts[rule_id] += n
+        result.side_counts[(rule_id, side)] += n
         if unanswered is not None:
             result.unanswered[unanswered] += n
 
@@ -270,25 +277,27 @@ class Analyzer:
     def _settle(self, conn: int, settled: Settled) -> None:
         """A connection's sessions ended: its violations as judged go into the
         summary and the result, and its intervention effects beside them."""
-        verdicts, more, effects, latencies = settled
+        verdicts, more, effects, latencies, client_latencies = settled
         summary = self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
         result = self.result
         for verdict in verdicts:
             self._add(summary, verdict)
-        for (rule_id, _side, title), n in more.items():
+        for (rule_id, side, title), n in more.items():
             summary.violations[rule_id] += n
-            self._tally(rule_id, title, n)
+            self._tally(rule_id, side, title, n)
         for record in effects:
             result.effect_counts[record.rule_id] += 1
             if len(result.effects) < result.max_violations:
                 result.effects.append(record)
         for title, stats in (latencies or {}).items():
             result.latencies[title].merge(stats)
+        for title, stats in (client_latencies or {}).items():
+            result.client_latencies[title].merge(stats)
 
     def _add(self, summary: ConnectionSummary, verdict: Verdict) -> None:
         record, unanswered = verdict
         result = self.result
         summary.violations[record.rule_id] += 1
-        self._tally(record.rule_id, unanswered)
+        self._tally(record.rule_id, record.side, unanswered)
         if len(result.violations) < result.max_violations:
             result.violations.append(record)

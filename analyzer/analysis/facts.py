@@ -31,6 +31,7 @@ class ViolationRecord:
     late: bool = False
     cut: bool = False  # the item was longer than RAW_KEPT
     side: str = ""  # whose conduct it is about: "client" or "server"; for an intervention's effect, who saw it
+    cause: str = ""  # for an intervention's effect: the intervention it follows from ('' when not known)
 
     @property
     def severity(self) -> Severity:
@@ -98,7 +99,11 @@ class Analysis:
     connections: list[ConnectionSummary] = field(default_factory=list)
     violations: list[ViolationRecord] = field(default_factory=list)
     violation_counts: Counter = field(default_factory=Counter)
+    side_counts: Counter = field(default_factory=Counter)  # (rule id, "client" | "server") -> count
     latencies: dict[str, LatencyStats] = field(default_factory=lambda: defaultdict(LatencyStats))
+    # the client's latencies (from the request it sent to the answer it received), for the
+    # connections the proxy stood in the middle of; ``latencies`` are the server's there
+    client_latencies: dict[str, LatencyStats] = field(default_factory=lambda: defaultdict(LatencyStats))
     unanswered: Counter = field(default_factory=Counter)  # request title -> count
     set_configs: list[SetConfigCheck] = field(default_factory=list)
     frames_per_second: dict[int, Counter] = field(default_factory=lambda: defaultdict(Counter))
@@ -131,8 +136,11 @@ class Analysis:
         room = self.max_violations - len(self.violations)
         self.violations += other.violations[:max(room, 0)]
         self.violation_counts.update(other.violation_counts)
+        self.side_counts.update(other.side_counts)
         for title, stats in other.latencies.items():
             self.latencies[title].merge(stats)
+        for title, stats in other.client_latencies.items():
+            self.client_latencies[title].merge(stats)
         self.unanswered.update(other.unanswered)
         self.set_configs += other.set_configs
         for second, counts in other.frames_per_second.items():

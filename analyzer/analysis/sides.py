@@ -20,7 +20,14 @@ own view: a copy (the same rule on the same bytes) is the other side's
 violation, reported once; what is left is the proxy's doing.  Left in the
 client's view, an answering violation is the client's experience (the proxy
 dropped, delayed or added an answer), reported on the client side; any other
-is an intervention's effect, a violation of neither side.
+is an intervention's effect, a violation of neither side, and so is an
+answering violation that follows directly from a frame the proxy made or
+changed (``consequences.py``): the answer to an injected request, the request
+an edit replaced, an answer a ``dup`` copied.
+
+Each view's sessions also time the answering: the server's view from the
+request as the server received it to the answer it sent, the client's view
+from the request as the client sent it to the answer as it received it.
 
 A connection without any of those messages is judged by the one session of
 ``Analyzer`` as before: its violations are held here until it ends and then
@@ -31,9 +38,10 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
+from whiztap.analyzer.analysis.consequences import Consequences, Key, answer_key, request_key
 from whiztap.analyzer.analysis.facts import ViolationRecord
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.session import Session
@@ -56,6 +64,7 @@ ANSWERING = frozenset({"PW-PAIR-UNANSWERED", "PW-PAIR-UNSOLICITED"})
 CAUSES_SHOWN = 3  # causes named in the detail of a violation only the client saw
 
 Verdict = tuple[ViolationRecord, str | None]  # a violation, and the title of the request it says was never answered
+_Held = tuple[ViolationRecord, str | None, Key | None]  # a verdict, and what pairs the request or answer it is about
 MakeRecord = Callable[[int, str, str, Observation, int, bool], ViolationRecord]
 _Key = tuple[str, str, int, int]  # rule, direction, the frame's length and hash: the same violation in both views
 
@@ -71,13 +80,14 @@ def side_of(rule_id: str, direction: str | None) -> str:
 class Settled(NamedTuple):
     """A connection's judgement, once its sessions ended: the verdicts and,
     past the records kept, the rest counted by (rule, side, request title);
-    the interventions' effects; and the server's latencies when they come
-    from its view (None: the one session's stand)."""
+    the interventions' effects; and the server's and the client's latencies
+    when they come from the two views (None: the one session's stand)."""
 
     verdicts: list[Verdict]
     more: Counter
     effects: list[ViolationRecord]
     latencies: dict[str, LatencyStats] | None
+    client_latencies: dict[str, LatencyStats] | None = None
 
 
 @dataclass(slots=True)
@@ -86,14 +96,16 @@ class _Connection:
 
     middle: bool = False
     causes: dict[str, None] = field(default_factory=dict)  # what intervened, in order
+    consequences: Consequences = field(default_factory=Consequences)
     held: int = 0  # verdicts held in full; past the cap only counted
     single: list[Verdict] = field(default_factory=list)  # the one session's, for a connection not in the middle
     kept: list[Verdict] = field(default_factory=list)  # each view's verdicts on its own side
     more: Counter = field(default_factory=Counter)  # past the cap: (rule, side, title) -> count
     single_more: Counter = field(default_factory=Counter)
     published: dict[str, Counter] = field(default_factory=lambda: {SERVER: Counter(), CLIENT: Counter()})
-    waiting: dict[str, dict[_Key, deque[Verdict]]] = field(default_factory=lambda: {SERVER: {}, CLIENT: {}})
+    waiting: dict[str, dict[_Key, deque[_Held]]] = field(default_factory=lambda: {SERVER: {}, CLIENT: {}})
     latencies: dict[str, LatencyStats] = field(default_factory=dict)  # the server view's
+    client_latencies: dict[str, LatencyStats] = field(default_factory=dict)  # the client view's
 
 
 class Sides:
@@ -111,7 +123,8 @@ class Sides:
         self._record = record
         self._cap = cap
         self._conns: dict[int, _Connection] = {}
-        self._views = {SERVER: Traffic(new_session, self._server_ended), CLIENT: Traffic(new_session)}
+        self._views = {SERVER: Traffic(new_session, self._server_ended),
+                       CLIENT: Traffic(new_session, self._client_ended)}
 
     def is_middle(self, conn: int) -> bool:
         c = self._conns.get(conn)
@@ -131,6 +144,7 @@ class Sides:
             c = self._conn(event.conn)
             c.middle = True
             c.causes[str(event.cause)] = None  # type: ignore[union-attr]
+            c.consequences.note(event)  # type: ignore[arg-type]
         elif kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
             # a sender's FIN ends the stream in both views: the proxy passes it on once it has
             # delivered what it holds, and the recording has no time of its own for that
@@ -155,21 +169,22 @@ class Sides:
         if c is None:
             return Settled([], Counter(), [], None)
         if not closed:
-            self._conns[conn] = _Connection(c.middle, c.causes)
-        if not c.middle:
-            return Settled(c.single, c.single_more, [], None)
-        verdicts = list(c.kept)
-        effects: list[ViolationRecord] = []
-        for held in c.waiting[SERVER].values():
-            effects += [record for record, _ in held]
-        for held in c.waiting[CLIENT].values():
-            for record, title in held:
-                if record.rule_id in ANSWERING:
-                    verdicts.append((self._experienced(record, c), title))
-                else:
-                    effects.append(record)
-        effects.sort(key=lambda r: r.t_ns)
-        return Settled(verdicts, c.more, effects, c.latencies)
+            self._conns[conn] = _Connection(c.middle, c.causes, c.consequences)
+        return _judgement(c)
+
+    def provisional(self) -> list[tuple[int, Settled]]:
+        """How every connection not yet settled would be judged if its traffic
+        ended now (a live verdict), changing nothing; latencies include what
+        its open sessions timed so far."""
+        out = []
+        for conn, c in self._conns.items():
+            settled = _judgement(c)
+            if settled.latencies is not None:
+                server, client = (self._views[side].sessions.get(conn) for side in (SERVER, CLIENT))
+                settled = settled._replace(latencies=_with_open(settled.latencies, server),
+                                           client_latencies=_with_open(settled.client_latencies or {}, client))
+            out.append((conn, settled))
+        return out
 
     def finish(self) -> list[tuple[int, Settled]]:
         """End every view still open (traffic cut short) and settle every connection."""
@@ -194,9 +209,11 @@ class Sides:
     def _server_ended(self, conn: int, session: Session) -> None:
         """The server's view ended: its latencies are the server's own (a
         delay the proxy added is not the server's)."""
-        latencies = self._conn(conn).latencies
-        for title, stats in session.latencies.items():
-            latencies.setdefault(title, LatencyStats()).merge(stats)
+        _merge(self._conn(conn).latencies, session.latencies)
+
+    def _client_ended(self, conn: int, session: Session) -> None:
+        """The client's view ended: its latencies are what the client waited."""
+        _merge(self._conn(conn).client_latencies, session.latencies)
 
     def _judge(self, view: str, conn: int, events: list[Event]) -> None:
         for e in events:
@@ -241,19 +258,66 @@ class Sides:
             c.held += 1
             record = self._record(conn, rule_id, detail, about, t, late)
             record.side = view
-            c.waiting[view].setdefault(key, deque()).append((record, title))
+            record.cause = c.consequences.cause_of(about.direction)
+            pairs = None
+            if rule_id == "PW-PAIR-UNSOLICITED":
+                pairs = answer_key(about)
+            elif rule_id == "PW-PAIR-UNANSWERED":
+                pairs = request_key(about)
+            c.waiting[view].setdefault(key, deque()).append((record, title, pairs))
 
-    @staticmethod
-    def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:
-        """An answering violation only the client's view has: what the client
-        went through because the proxy intervened, never the server's doing."""
-        causes = list(c.causes)
-        named = "; ".join(causes[:CAUSES_SHOWN]) + (f"; and {len(causes) - CAUSES_SHOWN} more"
-                                                    if len(causes) > CAUSES_SHOWN else "")
-        record.side = CLIENT
-        record.detail = (f"{record.detail} (the client's experience only: the proxy intervened on this "
-                         f"connection{': ' + named if named else ''}; the server's view has no such violation)")
-        return record
+
+def _judgement(c: _Connection) -> Settled:
+    """A connection judged on what its views found so far; the records it
+    hands back are copies, so a provisional judgement changes nothing."""
+    if not c.middle:
+        return Settled(list(c.single), Counter(c.single_more), [], None)
+    verdicts = list(c.kept)
+    effects = [replace(record) for held in c.waiting[SERVER].values() for record, _, _ in held]
+    answering: list[_Held] = []
+    for held in c.waiting[CLIENT].values():
+        for record, title, pairs in held:
+            if record.rule_id in ANSWERING:
+                answering.append((record, title, pairs))
+            else:
+                effects.append(replace(record))
+    causes = c.consequences.account([(r.t_ns, r.rule_id, pairs) for r, _, pairs in answering])
+    for (record, title, _), cause in zip(answering, causes):
+        if cause is None:
+            verdicts.append((_experienced(record, c), title))
+        else:  # what follows from a frame the proxy made or changed: not the client's experience
+            effects.append(replace(record, cause=cause))
+    effects.sort(key=lambda r: r.t_ns)
+    return Settled(verdicts, Counter(c.more), effects, _copied(c.latencies), _copied(c.client_latencies))
+
+
+def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:
+    """An answering violation only the client's view has: what the client
+    went through because the proxy intervened, never the server's doing."""
+    causes = list(c.causes)
+    named = "; ".join(causes[:CAUSES_SHOWN]) + (f"; and {len(causes) - CAUSES_SHOWN} more"
+                                                if len(causes) > CAUSES_SHOWN else "")
+    return replace(record, side=CLIENT, cause="", detail=(
+        f"{record.detail} (the client's experience only: the proxy intervened on this "
+        f"connection{': ' + named if named else ''}; the server's view has no such violation)"))
+
+
+def _merge(into: dict[str, LatencyStats], latencies: dict[str, LatencyStats]) -> None:
+    for title, stats in latencies.items():
+        into.setdefault(title, LatencyStats()).merge(stats)
+
+
+def _copied(latencies: dict[str, LatencyStats]) -> dict[str, LatencyStats]:
+    out: dict[str, LatencyStats] = {}
+    _merge(out, latencies)
+    return out
+
+
+def _with_open(latencies: dict[str, LatencyStats], session: Session | None) -> dict[str, LatencyStats]:
+    """``latencies`` and what an open session timed so far."""
+    if session is not None:
+        _merge(latencies, session.latencies)
+    return latencies
 
 
 def _unanswered_title(rule_id: str, about: Observation) -> str | None:

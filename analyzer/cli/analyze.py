@@ -99,11 +99,15 @@ def _analyse_in_worker(args: tuple):  # noqa: ANN201 - an Analysis or a line
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, no cluster line.")
 @click.option("--allow-empty", is_flag=True,
               help="Pass a report on no traffic (no connection, or no server ever reached) instead of exit 3.")
+@click.option("--fail-on-interventions", is_flag=True,
+              help="With the proxy in the middle: the effects of its interventions (an injected or edited "
+                   "frame, and what follows from it) fail the report like violations; by default they are "
+                   "listed and fail nothing.")
 @limits_options
 def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, list_rules: bool,
                     ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str,
                     jobs: int | None, dask: str | None, group_by: tuple[str, ...], quiet: bool, allow_empty: bool,
-                    answer_timeout: float, max_frame: int, max_image: int) -> None:
+                    fail_on_interventions: bool, answer_timeout: float, max_frame: int, max_image: int) -> None:
     """Check recordings against the spec and report how the sessions behaved.
 
     PATH_OR_URL: .mcap files, folders, globs, or URLs that fsspec reads
@@ -113,7 +117,8 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
     Exit status:
       0  no violation at or above --severity-threshold (error by default:
          warnings and info do not fail)
-      1  a violation at or above the threshold
+      1  a violation at or above the threshold (with --fail-on-interventions,
+         also an effect of the proxy's interventions)
       2  an input could not be read (the report covers the others)
       3  nothing to judge: no connection, or the server was never reached
          (--allow-empty passes such a report)
@@ -141,7 +146,7 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
     with ByteProgress(parts, enabled=not quiet) as progress:
         analysis, unreadable = _analyse_all(found, checksum_rule, limits, jobs, progress, dask, quiet)
     _finish(analysis, unreadable, Severity.parse(severity_threshold), frozenset(ignore), keys, fmt, output, force,
-            allow_empty)
+            allow_empty, fail_on_interventions)
 
 
 def _group_keys(group_by: tuple[str, ...]) -> list[tuple[str, ...]]:
@@ -155,7 +160,8 @@ def _group_keys(group_by: tuple[str, ...]) -> list[tuple[str, ...]]:
 
 
 def _finish(analysis, unreadable: list[dict[str, str]], threshold, ignore: frozenset[str],  # noqa: ANN001
-            keys: list[tuple[str, ...]], fmt: str, output: str | None, force: bool, allow_empty: bool) -> None:
+            keys: list[tuple[str, ...]], fmt: str, output: str | None, force: bool, allow_empty: bool,
+            fail_on_interventions: bool = False) -> None:
     """The report written, and the exit status it calls for."""
     for u in unreadable:
         warn(u["error"])
@@ -168,7 +174,7 @@ def _finish(analysis, unreadable: list[dict[str, str]], threshold, ignore: froze
         if not keys_found(analysis, group):
             warn(f"no recording carries the metadata key {' or '.join(group)}: "
                  "its fleet table has one group, (none) ('whiztap info' shows a recording's keys)")
-    report = build(analysis, threshold, ignore, unreadable, allow_empty, keys)
+    report = build(analysis, threshold, ignore, unreadable, allow_empty, keys, fail_on_interventions)
     to_stdout = output is None or output == "-"
     report_text = render(report, analysis, fmt, to_terminal=to_stdout and sys.stdout.isatty())
     with output_stream(output, force) as out:

@@ -6,6 +6,7 @@ from typing import Any
 
 from whiztap.analyzer import __version__
 from whiztap.analyzer.analysis.facts import NS, Analysis, ConnectionSummary, ViolationRecord
+from whiztap.analyzer.analysis.verdict import analysis_verdict
 from whiztap.analyzer.protocol.checksum import get_rule
 from whiztap.analyzer.protocol.rules import RULES, Severity
 from whiztap.analyzer.protocol.text import escape
@@ -16,15 +17,18 @@ REPORT_VERSION = 1
 
 def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
           unreadable: list[dict[str, str]] | None = None, allow_empty: bool = False,
-          group_by: list[tuple[str, ...]] | None = None) -> dict[str, Any]:
+          group_by: list[tuple[str, ...]] | None = None, fail_on_interventions: bool = False) -> dict[str, Any]:
     """The report as plain data (the JSON format, documented in docs/analyze.md).
     ``unreadable``: {"file", "error"} of the inputs left out because they could
     not be read (the key is there only when there are some).  A report on no
     traffic (``nothing_judged`` says why) does not pass unless ``allow_empty``.
-    ``group_by``: the fleet tables' key sets (``fleet``, docs/fleet.md), only when asked."""
+    ``group_by``: the fleet tables' key sets (``fleet``, docs/fleet.md), only when asked.
+    ``fail_on_interventions``: the effects of the proxy's interventions fail
+    it too.  Whether it passes is ``verdict.verdict_of``'s, the one verdict."""
     counts = {r: n for r, n in analysis.violation_counts.items() if r not in ignore}
-    failing = any(RULES[r].severity >= threshold for r, n in counts.items() if n)
     nothing = nothing_judged(analysis)
+    verdict = analysis_verdict(analysis, threshold=threshold, ignore=ignore, nothing_judged=nothing,
+                               fail_on_interventions=fail_on_interventions, allow_empty=allow_empty)
     start = analysis.first_ns or 0
     listed = [v for v in analysis.violations if v.rule_id not in ignore]
     rule = get_rule(analysis.checksum_rule)
@@ -37,16 +41,13 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         "checksum_rule": {"name": rule.name, "description": rule.description},
         "severity_threshold": str(threshold),
         "ignored_rules": sorted(ignore),
-        "passed": not failing and (nothing is None or allow_empty),
+        "passed": verdict.passed,
         "summary": _summary(analysis, counts),
         "connections": [_connection(c, ignore) for c in analysis.connections],
         "rule_counts": {r: counts[r] for r in RULES if counts.get(r)},
         "violations": [_violation(v, start) for v in listed],
         "violations_not_listed": sum(counts.values()) - len(listed),
-        "latency": [{
-            "request": title, "count": s.count, "mean_ns": round(s.mean), "p50_ns": s.percentile(50),
-            "p95_ns": s.percentile(95), "p99_ns": s.percentile(99), "max_ns": s.max,
-        } for title, s in sorted(analysis.latencies.items())],
+        "latency": latency_rows(analysis.latencies),
         "unanswered": dict(sorted(analysis.unanswered.items())),
         "set_configurations": [{
             "file": c.file, "conn": c.conn, "t_ns": c.t_ns, "checksum": c.checksum,
@@ -59,7 +60,10 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
     if nothing is not None:
         report["nothing_judged"] = nothing
     if analysis.interventions or any(c.middle for c in analysis.connections):
-        report["interventions"] = _interventions(analysis, start)
+        report["interventions"] = _interventions(analysis, start, fail_on_interventions,
+                                                 verdict.effects_by_severity)
+        if any(c.middle for c in analysis.connections):
+            report["client_latency"] = latency_rows(analysis.client_latencies)
     if group_by:
         from whiztap.analyzer.analysis.fleet import fleet_tables
 
@@ -118,11 +122,23 @@ def _violation(v: ViolationRecord, start: int) -> dict[str, Any]:
     }
 
 
-def _interventions(analysis: Analysis, start: int) -> dict[str, Any]:
+def latency_rows(latencies: dict) -> list[dict[str, Any]]:
+    """Latency statistics by request title, as the report's rows."""
+    return [{
+        "request": title, "count": s.count, "mean_ns": round(s.mean), "p50_ns": s.percentile(50),
+        "p95_ns": s.percentile(95), "p99_ns": s.percentile(99), "max_ns": s.max,
+    } for title, s in sorted(latencies.items())]
+
+
+def _interventions(analysis: Analysis, start: int, fail_on_interventions: bool,
+                   by_severity: dict[str, int]) -> dict[str, Any]:
     """What the proxy changed when it stood in the middle: each cause (a
     fault's name and SPEC, a script, a hand edit, an injection) with its
     counts by action, and the effects: violations one side saw that the other
-    did not commit (a frame the proxy broke), which count against neither."""
+    did not commit (a frame the proxy broke), and what follows directly from
+    a frame the proxy made or changed, each with the change it follows from;
+    they count against neither side, and fail the report only with
+    ``fail_on_interventions``."""
     causes: dict[str, dict[str, int]] = {}
     for (cause, action), n in analysis.interventions.items():
         causes.setdefault(cause, {})[action] = n
@@ -130,6 +146,7 @@ def _interventions(analysis: Analysis, start: int) -> dict[str, Any]:
     for v in analysis.effects:
         effect = _violation(v, start)
         effect["seen_by"] = effect.pop("side")
+        effect["cause"] = v.cause
         effects.append(effect)
     return {
         "count": sum(analysis.interventions.values()),
@@ -139,6 +156,8 @@ def _interventions(analysis: Analysis, start: int) -> dict[str, Any]:
         "effect_counts": {r: analysis.effect_counts[r] for r in RULES if analysis.effect_counts.get(r)},
         "effects": effects,
         "effects_not_listed": sum(analysis.effect_counts.values()) - len(analysis.effects),
+        "effects_by_severity": by_severity,
+        "fail_on_interventions": fail_on_interventions,
     }
 
 

@@ -13,11 +13,15 @@ from whiztap.analyzer.analysis.facts import NS, Analysis
 from whiztap.analyzer.analysis.report.text import duration, headline, verdict
 from whiztap.analyzer.analysis.report.text import FLEET_COLUMNS, FLEET_DAY_COLUMNS, fleet_rows
 from whiztap.analyzer.analysis.report.words import (
+    CLIENT_LATENCY,
     EFFECTS_HEADING,
+    SERVER_LATENCY,
     fleet_headings,
     fleet_key,
     group_name,
     intervention_lines,
+    latency_tables,
+    side_cell,
 )
 from whiztap.analyzer.protocol.text import printable
 
@@ -69,18 +73,11 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
         ax.legend(fontsize="small", ncol=4)
         plots.append(("Items over time, by kind", _svg(fig)))
         plt.close(fig)
-    if analysis.latencies:
-        fig, ax = plt.subplots(figsize=(9, 3))
-        for title, stats in sorted(analysis.latencies.items()):
-            buckets = stats.histogram()
-            ax.step([(lo + hi) / 2 / 1e6 for lo, hi, _ in buckets], [n for *_, n in buckets], where="mid",
-                    label=title)
-        ax.set_xscale("log")
-        ax.set_xlabel("latency (ms)")
-        ax.set_ylabel("responses")
-        ax.legend(fontsize="small")
-        plots.append(("Response latency", _svg(fig)))
-        plt.close(fig)
+    both = bool(analysis.client_latencies)  # the proxy stood in the middle: the server's and the client's
+    for latencies, title in ((analysis.latencies, f"Response latency, {SERVER_LATENCY}" if both else "Response latency"),
+                             (analysis.client_latencies, f"Response latency, {CLIENT_LATENCY}")):
+        if latencies:
+            plots.append((title, _latency_plot(plt, latencies)))
     for kind, label in (("sensor", "Sensor values"), ("servo", "Servo positions (data / 4)")):
         series = {ch: s for (k, ch), s in sorted(analysis.values.items()) if k == kind}
         if not series:
@@ -94,6 +91,20 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
         plots.append((f"{label} per channel", _svg(fig)))
         plt.close(fig)
     return plots
+
+
+def _latency_plot(plt, latencies: dict) -> str:  # noqa: ANN001 - pyplot
+    fig, ax = plt.subplots(figsize=(9, 3))
+    for title, stats in sorted(latencies.items()):
+        buckets = stats.histogram()
+        ax.step([(lo + hi) / 2 / 1e6 for lo, hi, _ in buckets], [n for *_, n in buckets], where="mid", label=title)
+    ax.set_xscale("log")
+    ax.set_xlabel("latency (ms)")
+    ax.set_ylabel("responses")
+    ax.legend(fontsize="small")
+    svg = _svg(fig)
+    plt.close(fig)
+    return svg
 
 
 _TOP_RULES = 8  # rules drawn one by one in the fleet's bars; the rest are one "other rules" bar
@@ -192,7 +203,7 @@ def _violations(report: dict[str, Any], violations: list[dict[str, Any]]) -> str
         row = [f"<code>{e(v['rule_id'])}</code>", f"<span class='{e(v['severity'])}'>{e(v['severity'])}</span>",
                e(v["section"]), str(v["conn"])]
         if middle:
-            row.append(e(v.get("side") or f"seen by the {v['seen_by']}"))
+            row.append(e(side_cell(v)))
         rows.append(row + [f"{v['t_rel_s']:.3f}", f"<code>{e(v['frame'][:200])}</code>", e(v["detail"])])
     return _table(["rule", "severity", "section", "conn"] + (["side"] if middle else []) + ["t (s)", "frame", "detail"],
                   rows)
@@ -244,11 +255,11 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
             parts.append(f"<p>… and {report['violations_not_listed']} more not listed.</p>")
     else:
         parts.append("<p>None.</p>")
-    if report["latency"]:
-        parts.append("<h2>Latency</h2>")
+    for label, rows in latency_tables(report):
+        parts.append(f"<h2>Latency, {e(label)}</h2>" if label else "<h2>Latency</h2>")
         parts.append(_table(["request", "count", "p50", "p95", "p99", "max"],
                             [[e(r["request"]), str(r["count"]), duration(r["p50_ns"]), duration(r["p95_ns"]),
-                              duration(r["p99_ns"]), duration(r["max_ns"])] for r in report["latency"]]))
+                              duration(r["p99_ns"]), duration(r["max_ns"])] for r in rows]))
     if report["unanswered"]:
         parts.append("<p>Never answered: " + e(", ".join(f"{n} × {t}" for t, n in report["unanswered"].items()))
                      + "</p>")

@@ -7,7 +7,10 @@ so a clean run still lists every rule.  Violations of rules below the severity
 threshold do not fail their case (the report passes with them); they are
 listed in its system-out instead.  When the proxy stood in the middle, each
 violation says whose side it is about, and the suite's properties and
-system-out list the interventions and their effects (which fail no case).  Inputs that could not be read make one more
+system-out list the interventions, their effects and both latencies (the
+server's and the client's), and one more case, "the interventions' effects",
+fails only with ``--fail-on-interventions`` (one failure per effect at or
+above the threshold).  Inputs that could not be read make one more
 case, in error; a report on nothing to judge makes one more failing case.
 """
 
@@ -25,6 +28,7 @@ from whiztap.analyzer.analysis.report.words import (
     fleet_key,
     group_name,
     intervention_lines,
+    latency_tables,
     rule_counts_words,
     rules_since,
     side_words,
@@ -47,6 +51,8 @@ def render_junit(report: dict[str, Any]) -> str:
         ET.SubElement(props, "property", name="interventions", value=str(report["interventions"]["count"]))
     tally: Counter[str] = Counter()  # tests, failures, errors, skipped
     _rule_cases(suite, report, tally)
+    if "interventions" in report:
+        _effects_case(suite, report, tally)
     _input_cases(suite, report, tally)
     if "interventions" in report:
         ET.SubElement(suite, "system-out").text = _interventions_text(report)
@@ -147,7 +153,35 @@ def _interventions_text(report: dict[str, Any]) -> str:
                                               for v in section["effects"]]
     if section["effects_not_listed"]:
         lines.append(f"... and {section['effects_not_listed']} more effects not listed")
+    for label, rows in latency_tables(report):
+        lines += ["", _x(f"Latency by request, {label}" if label else "Latency by request")]
+        lines += [_x(f"  {r['request']}: {r['count']} answers, p50 {r['p50_ns'] / 1e6:.3f} ms, "
+                     f"p99 {r['p99_ns'] / 1e6:.3f} ms, max {r['max_ns'] / 1e6:.3f} ms") for r in rows]
     return "\n".join(lines)
+
+
+def _effects_case(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) -> None:
+    """The interventions' effects as a case: listed in its system-out; failing,
+    one failure each at or above the threshold, only with --fail-on-interventions."""
+    section = report["interventions"]
+    case = ET.SubElement(suite, "testcase", classname="whiztap.interventions", name="the interventions' effects")
+    tally["tests"] += 1
+    threshold = Severity.parse(report["severity_threshold"])
+    ignored = set(report["ignored_rules"])
+    failing = [v for v in section["effects"] if section["fail_on_interventions"] and v["rule_id"] not in ignored
+               and Severity.parse(v["severity"]) >= threshold]
+    fails = section["fail_on_interventions"] and any(
+        n for s, n in section["effects_by_severity"].items() if Severity.parse(s) >= threshold)
+    if fails:
+        tally["failures"] += 1
+        for v in failing:
+            ET.SubElement(case, "failure", type=v["severity"], message=_x(v["detail"])).text = \
+                _violation_text(report, v)
+        if not failing:
+            ET.SubElement(case, "failure", type="effect", message="effects of the interventions, not listed")
+    texts = [f"{v['rule_id']}: " + _violation_text(report, v) for v in section["effects"] if v not in failing]
+    if texts:
+        ET.SubElement(case, "system-out").text = "\n\n".join(texts)
 
 
 def _input_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) -> None:

@@ -8,9 +8,19 @@ _COUNTS = {"type": "object", "additionalProperties": _INT}
 _SIDE = {"type": "string", "enum": ["client", "server"],
          "description": "whose conduct the violation is about"}
 
+_BY_SEVERITY = {"type": "object", "required": ["error", "warning", "info"],
+                "properties": {"error": _INT, "warning": _INT, "info": _INT}}
+_LATENCY = {"type": "array", "items": {
+    "type": "object",
+    "required": ["request", "count", "mean_ns", "p50_ns", "p95_ns", "p99_ns", "max_ns"],
+    "properties": {"request": _STR, "count": _INT, "mean_ns": _INT, "p50_ns": _INT, "p95_ns": _INT,
+                   "p99_ns": _INT, "max_ns": _INT},
+}}
+
 _INTERVENTIONS = {
     "type": "object",
-    "required": ["count", "connections", "causes", "effect_counts", "effects", "effects_not_listed"],
+    "required": ["count", "connections", "causes", "effect_counts", "effects", "effects_not_listed",
+                 "effects_by_severity", "fail_on_interventions"],
     "properties": {
         "count": _INT, "connections": _INT,
         "causes": {"type": "array", "items": {
@@ -20,15 +30,17 @@ _INTERVENTIONS = {
         "effects": {"type": "array", "items": {
             "type": "object",
             "required": ["rule_id", "severity", "section", "file", "conn", "dir", "t_ns", "t_rel_s", "frame",
-                         "detail", "late", "seen_by"],
-            "properties": {"rule_id": _STR, "seen_by": _SIDE}}},
+                         "detail", "late", "seen_by", "cause"],
+            "properties": {"rule_id": _STR, "seen_by": _SIDE,
+                           "cause": {"type": "string",
+                                     "description": "the intervention it follows from ('' when not known)"}}}},
         "effects_not_listed": _INT,
+        "effects_by_severity": _BY_SEVERITY,
+        "fail_on_interventions": {"type": "boolean", "description": "whether the effects fail the report"},
     },
 }
 
 _DAY = {"type": ["string", "null"], "description": "YYYY-MM-DD (UTC); null when no time is known"}
-_BY_SEVERITY = {"type": "object", "required": ["error", "warning", "info"],
-                "properties": {"error": _INT, "warning": _INT, "info": _INT}}
 _FLEET = {"type": "array", "items": {
     "type": "object", "required": ["group_by", "day_of", "groups"], "additionalProperties": False,
     "properties": {
@@ -121,12 +133,10 @@ REPORT_SCHEMA = {
             },
         }},
         "violations_not_listed": _INT,
-        "latency": {"type": "array", "items": {
-            "type": "object",
-            "required": ["request", "count", "mean_ns", "p50_ns", "p95_ns", "p99_ns", "max_ns"],
-            "properties": {"request": _STR, "count": _INT, "mean_ns": _INT, "p50_ns": _INT, "p95_ns": _INT,
-                           "p99_ns": _INT, "max_ns": _INT},
-        }},
+        # the server's latency: from the request as it received it to the answer it sent
+        "latency": _LATENCY,
+        # only when the proxy stood in the middle: the client's, from the request it sent to the answer it received
+        "client_latency": _LATENCY,
         "unanswered": _COUNTS,
         "set_configurations": {"type": "array", "items": {
             "type": "object", "required": ["file", "conn", "t_ns", "checksum", "expected", "ok", "satisfies"],

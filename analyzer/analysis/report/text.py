@@ -15,9 +15,12 @@ from whiztap.analyzer.analysis.report.words import (
     fleet_key,
     group_name,
     intervention_lines,
+    latency_tables,
     rule_counts_words,
     rules_since,
+    side_cell,
     side_words,
+    verdict_words,
 )
 from whiztap.analyzer.protocol.text import printable, shorten
 
@@ -57,19 +60,7 @@ def headline(report: dict[str, Any]) -> str:
 
 
 def verdict(report: dict[str, Any]) -> str:
-    sev = report["summary"]["violations_by_severity"]
-    counts = f"{sev['error']} errors, {sev['warning']} warnings, {sev['info']} info"
-    if report["passed"]:
-        text = f"PASS: no violation at or above {report['severity_threshold']} ({counts})"
-    else:
-        text = f"FAIL: violations at or above {report['severity_threshold']} ({counts})"
-    if report.get("nothing_judged"):
-        allowed = " (allowed by --allow-empty)" if report["passed"] else ""
-        text = f"NOTHING TO JUDGE: {report['nothing_judged']}{allowed}"
-    unreadable = len(report.get("unreadable", ()))
-    if unreadable:
-        text = f"INCOMPLETE: {unreadable} input{'s' * (unreadable != 1)} could not be read. {text}"
-    return text
+    return verdict_words(report)
 
 
 def _plain(console: Console, value: object, style: str = "") -> Text:
@@ -213,11 +204,12 @@ def _text_violations(report: dict[str, Any], console: Console) -> None:
 
 
 def _text_latency_and_checksums(report: dict[str, Any], console: Console) -> None:
-    if report["latency"]:
-        console.print(_table("Latency by request", [("request", "left")] + [(c, "right") for c in (
+    for label, rows in latency_tables(report):
+        title = f"Latency by request, {label}" if label else "Latency by request"
+        console.print(_table(title, [("request", "left")] + [(c, "right") for c in (
             "count", "p50", "p95", "p99", "max")],
                              [[r["request"], f"{r['count']:,}", duration(r["p50_ns"]), duration(r["p95_ns"]),
-                               duration(r["p99_ns"]), duration(r["max_ns"])] for r in report["latency"]]))
+                               duration(r["p99_ns"]), duration(r["max_ns"])] for r in rows]))
     for title, n in report["unanswered"].items():
         console.print(_plain(console, f"Never answered: {n} × {title}", "yellow"))
 
@@ -288,9 +280,10 @@ def render_markdown(report: dict[str, Any]) -> str:
             out.append(f"\n… and {report['violations_not_listed']} more not listed.")
     else:
         out.append("None.")
-    if report["latency"]:
-        out += ["", "## Latency", "", "| request | count | p50 | p95 | p99 | max |", "|---|---:|---:|---:|---:|---:|"]
-        for row in report["latency"]:
+    for label, rows in latency_tables(report):
+        out += ["", f"## Latency, {t(label)}" if label else "## Latency", "",
+                "| request | count | p50 | p95 | p99 | max |", "|---|---:|---:|---:|---:|---:|"]
+        for row in rows:
             out.append(f"| {t(row['request'])} | {row['count']} | {duration(row['p50_ns'])} | "
                        f"{duration(row['p95_ns'])} | {duration(row['p99_ns'])} | {duration(row['max_ns'])} |")
     if report["unanswered"]:
@@ -324,7 +317,7 @@ def _md_violation_rows(report: dict[str, Any], violations: list[dict[str, Any]])
     rows = ["| rule | severity | conn |" + (" side |" if middle else "") + " t (s) | frame | detail |",
             "|---|---|---:|" + ("---|" if middle else "") + "---:|---|---|"]
     for v in violations:
-        side = f" {md_text(v.get('side') or 'seen by the ' + v['seen_by'])} |" if middle else ""
+        side = f" {md_text(side_cell(v))} |" if middle else ""
         rows.append(f"| {md_code(v['rule_id'])} | {md_text(v['severity'])} | {v['conn']} |{side} {v['t_rel_s']:.3f} | "
                     f"{md_code(shorten(v['frame'], MD_FRAME))} | {md_text(v['detail'])} |")
     return rows

@@ -12,7 +12,59 @@ def side_words(report: dict[str, Any], v: dict[str, Any]) -> str:
     sides to tell apart (the proxy stood in the middle); else nothing."""
     if "interventions" not in report:
         return ""
-    return f" ({v['side']} side)" if "side" in v else f" (seen by the {v['seen_by']}; neither side's doing)"
+    if "side" in v:
+        return f" ({v['side']} side)"
+    cause = f"; follows from {v['cause']}" if v.get("cause") else ""
+    return f" (seen by the {v['seen_by']}; neither side's doing{cause})"
+
+
+def side_cell(v: dict[str, Any]) -> str:
+    """A violation's side, or an effect's viewer and cause, for a table's side column."""
+    if v.get("side"):
+        return v["side"]
+    return f"seen by the {v['seen_by']}" + (f"; follows from {v['cause']}" if v.get("cause") else "")
+
+
+SERVER_LATENCY = "the server's: from the request as it received it to the answer it sent"
+CLIENT_LATENCY = "the client's: from the request as it sent it to the answer as it received it"
+
+
+def latency_tables(report: dict[str, Any]) -> list[tuple[str, list[dict[str, Any]]]]:
+    """(label, rows) of each latency table: one, unlabelled, unless the proxy
+    stood in the middle, when the server's and the client's differ and each is
+    named ('' when there is no row at all)."""
+    if "client_latency" not in report:
+        return [("", report["latency"])] if report["latency"] else []
+    return [(SERVER_LATENCY, report["latency"]), (CLIENT_LATENCY, report["client_latency"])]
+
+
+def verdict_words(report: dict[str, Any]) -> str:
+    """The verdict line every rendering ends with (or begins with)."""
+    sev = report["summary"]["violations_by_severity"]
+    counts = f"{sev['error']} errors, {sev['warning']} warnings, {sev['info']} info"
+    section = report.get("interventions")
+    effects = sum(section["effects_by_severity"].values()) if section else 0
+    if effects:
+        counts += f"; {effects} effect{'s' * (effects != 1)} of the interventions"
+    threshold = report["severity_threshold"]
+    above = [s for s in ("error", "warning", "info") if _LEVEL[s] >= _LEVEL[threshold]]
+    if report["passed"]:
+        text = f"PASS: no violation at or above {threshold} ({counts})"
+    elif section and section["fail_on_interventions"] and not any(sev[s] for s in above) \
+            and any(section["effects_by_severity"][s] for s in above):
+        text = f"FAIL: effects of the interventions at or above {threshold}, --fail-on-interventions ({counts})"
+    else:
+        text = f"FAIL: violations at or above {threshold} ({counts})"
+    if report.get("nothing_judged"):
+        allowed = " (allowed by --allow-empty)" if report["passed"] else ""
+        text = f"NOTHING TO JUDGE: {report['nothing_judged']}{allowed}"
+    unreadable = len(report.get("unreadable", ()))
+    if unreadable:
+        text = f"INCOMPLETE: {unreadable} input{'s' * (unreadable != 1)} could not be read. {text}"
+    return text
+
+
+_LEVEL = {"info": 1, "warning": 2, "error": 3}
 
 
 def intervention_lines(report: dict[str, Any]) -> tuple[str, list[tuple[str, int, str]]]:
