@@ -19,7 +19,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.record_support import LOCAL, op_event, recording
+from tests.record_support import LOCAL, op_event
 from tests.streams import stream_pieces
 from whiztap.analyzer.analysis.analyzer import MIDDLE_NOTE, Analyzer
 from whiztap.analyzer.analysis.exchanges import load_exchanges
@@ -38,7 +38,7 @@ from whiztap.analyzer.recording.format import STREAM_TOPICS, TOPIC_INTERVENTIONS
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.analyzer.traffic import Action, Cause, Closed, Data, Delivered, Intervention, Opened, Source
-from whiztap.sniffer.record.record_run import MiddleSettings
+from whiztap.sniffer.record.record_run import MiddleSettings, Recording, RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
@@ -83,18 +83,24 @@ async def _sensors(client: Client, n: int = 4) -> None:
 
 
 def _record(path: Path, specs: tuple[str, ...], session, *, wait: float = CLIENT_WAIT,  # noqa: ANN001
-            server: FaultConfig = FaultConfig()) -> Path:
-    """``session(client, rec)`` through the proxy with ``specs`` in force, in front of the simulator."""
+            server: FaultConfig = FaultConfig(), consumers: tuple = ()) -> Path:
+    """``session(client, rec)`` through the proxy with ``specs`` in force, in
+    front of the simulator; ``consumers`` get every traffic event, as the TUI's tap does."""
     async def run() -> None:
         async with Simulator(port=0, mode="vpn", seed=7, faults=server) as sim:
             middle = MiddleSettings(faults=tuple(parse_fault(s) for s in specs))
-            async with recording(sim.port, path, middle=middle) as rec:
+            rec = Recording(RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(path), middle=middle),
+                            consumers=consumers)
+            await rec.start()
+            try:
                 async with await Client.connect(LOCAL, rec.proxy.port, timeout=wait) as client:
                     await session(client, rec)
                 for _ in range(200):  # until the simulator has seen the client go
                     if sim.stats.open_connections == 0:
                         break
                     await asyncio.sleep(0.01)
+            finally:
+                await rec.stop()
     asyncio.run(run())
     return path
 

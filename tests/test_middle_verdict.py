@@ -1,0 +1,171 @@
+"""One verdict, and both latencies, for traffic the proxy stood in the middle of.
+
+``Judge`` (analyzer/analysis/verdict.py) is fed the traffic events live, as
+the real proxy tells its consumers while it records in front of the real
+simulator; what it says must be what ``whiztap analyze`` says of the file the
+same proxy wrote.  And when the proxy changed the timing, every report names
+the server's latency and the client's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+from pathlib import Path
+
+import jsonschema
+import pytest
+from click.testing import CliRunner
+
+from tests.test_analyze_middle import ANSWER_S, NEVER, _record, _sensors
+from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
+from whiztap.analyzer.analysis.verdict import Judge
+from whiztap.analyzer.cli.reading import scan_recording
+from whiztap.analyzer.cli.root import cli
+from whiztap.analyzer.protocol.rules import Severity
+from whiztap.analyzer.protocol.session import Limits
+from whiztap.sniffer.sim.client import Client
+
+MS = 1_000_000
+DELAY_MS = 300
+
+
+def _judge(**options: object) -> Judge:
+    return Judge(limits=Limits(answer_timeout_ns=int(ANSWER_S * 1e9)), middle=True, **options)  # type: ignore[arg-type]
+
+
+def _analyze(path: Path, *args: str, fmt: str = "json") -> tuple[int, str]:
+    result = CliRunner().invoke(cli, ["analyze", "--format", fmt, *args, str(path)])
+    return result.exit_code, result.output
+
+
+# -- one verdict ----------------------------------------------------------------------------------------
+
+
+def test_the_judge_fed_live_says_what_analyze_says_of_the_file(tmp_path):
+    """A dropped answer (the client's experience, an error) and an injected
+    one (an effect, no side's violation): live, the injection is an effect
+    while the connection is still open; at the end the judge and analyze
+    agree on every count, with and without --fail-on-interventions."""
+    live, strict = _judge(), _judge(fail_on_interventions=True)
+    seen: list = []
+
+    async def session(client: Client, rec) -> None:  # noqa: ANN001
+        await _sensors(client, 1)
+        rec.controller.inject(1, "s2c", "cr1-12--5--0-ss1")
+        for _ in range(300):
+            if live.verdict().effects:
+                break
+            await asyncio.sleep(0.01)
+        seen.append(live.verdict())
+        await _sensors(client, 3)
+
+    path = _record(tmp_path / "live.mcap", ("drop dir:s2c kind:response ch:12 nth:2",), session,
+                   consumers=(live, strict))
+    [during] = seen
+    assert (during.passed, during.effects, during.violations) == (True, 1, 0)
+    for judge, args in ((live, ()), (strict, ("--fail-on-interventions",))):
+        code, output = _analyze(path, "--answer-timeout", str(ANSWER_S), *args)
+        report = json.loads(output)
+        verdict = judge.finish()
+        assert verdict.passed == report["passed"] is False and code == 1
+        assert verdict.by_severity == report["summary"]["violations_by_severity"] == {"error": 1, "warning": 0,
+                                                                                         "info": 0}
+        assert verdict.by_side == {"client": 1, "server": 0}
+        assert verdict.by_rule == report["rule_counts"] == {"PW-PAIR-UNANSWERED": 1}
+        assert verdict.effects_by_severity == report["interventions"]["effects_by_severity"]
+        assert verdict.effects == 1 and verdict.failing == "violations"
+
+
+def test_a_judge_reading_the_file_agrees_and_effects_alone_fail_only_when_asked(tmp_path):
+    async def session(client: Client, rec) -> None:  # noqa: ANN001
+        await _sensors(client, 1)
+        rec.controller.inject(1, "c2s", "sensor 13")
+        await client.sensor(12)
+
+    path = _record(tmp_path / "injected.mcap", (NEVER,), session)
+    for fail_on, code in ((False, 0), (True, 1)):
+        judge = _judge(fail_on_interventions=fail_on)
+        for event in scan_recording(path):
+            judge.receive(event)
+        verdict = judge.finish()
+        assert (verdict.passed, verdict.effects, verdict.violations) == (not fail_on, 1, 0)
+        assert verdict.failing == ("effects" if fail_on else "")
+        got, text = _analyze(path, "--answer-timeout", str(ANSWER_S), *(("--fail-on-interventions",) * fail_on),
+                             fmt="text")
+        assert got == code
+        assert text.splitlines()[-1] == (
+            "FAIL: effects of the interventions at or above error, --fail-on-interventions "
+            "(0 errors, 0 warnings, 0 info; 1 effect of the interventions)" if fail_on else
+            "PASS: no violation at or above error (0 errors, 0 warnings, 0 info; 1 effect of the interventions)")
+    judge = _judge(threshold=Severity.ERROR, ignore=frozenset({"PW-PAIR-UNSOLICITED"}), fail_on_interventions=True)
+    for event in scan_recording(path):
+        judge.receive(event)
+    assert judge.finish().passed  # an ignored rule fails nothing, effects included
+
+
+# -- both latencies -----------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def slowed(tmp_path_factory) -> dict[str, Path]:  # noqa: ANN001
+    """The same session with every answer (s2c) or every request (c2s) held
+    DELAY_MS by the proxy; the client waits longer than that."""
+    folder = tmp_path_factory.mktemp("latency")
+    return {d: _record(folder / f"{d}.mcap", (f"delay:{DELAY_MS}ms dir:{d}",),
+                       lambda client, rec: _sensors(client, 2), wait=2.0) for d in ("s2c", "c2s")}
+
+
+def _rows(report: dict, key: str) -> dict[str, dict]:
+    return {row["request"]: row for row in report[key]}
+
+
+@pytest.mark.parametrize("direction", ["s2c", "c2s"])
+def test_the_json_report_has_the_servers_latency_and_the_clients(slowed, direction):
+    code, output = _analyze(slowed[direction])
+    report = json.loads(output)
+    jsonschema.validate(report, REPORT_SCHEMA)
+    assert code == 0
+    server, client = _rows(report, "latency"), _rows(report, "client_latency")
+    assert set(server) == set(client) == {"Fetch Configuration Settings", "Sensor Request"}
+    for title in server:
+        assert server[title]["count"] == client[title]["count"]
+        assert server[title]["max_ns"] < 100 * MS  # the server answered at once
+        assert client[title]["p50_ns"] >= DELAY_MS * MS  # the client waited for the proxy's delay too
+
+
+def test_every_format_names_both_latencies(slowed):
+    labels = ("the server's: from the request as it received it to the answer it sent",
+              "the client's: from the request as it sent it to the answer as it received it")
+    path = slowed["s2c"]
+    _, text = _analyze(path, fmt="text")
+    for label in labels:
+        assert f"Latency by request, {label}" in text
+    client_table = text[text.index(labels[1]):]
+    assert re.search(r"Sensor Request\s+2\s+3\d\d\.\d\d ms", client_table), client_table
+    _, markdown = _analyze(path, fmt="markdown")
+    assert all(f"## Latency, {label}" in markdown for label in labels)
+    _, html = _analyze(path, fmt="html")
+    assert all(f"<h2>Latency, {label}</h2>".replace("'", "&#x27;") in html for label in labels)
+    _, junit = _analyze(path, fmt="junit")
+    assert all(f"Latency by request, {label}" in junit for label in labels)
+    assert re.search(r"Sensor Request: 2 answers, p50 3\d\d\.\d{3} ms", junit)
+
+
+def test_the_live_judge_has_both_latencies_too(slowed):
+    judge = _judge()
+    for event in scan_recording(slowed["c2s"]):
+        judge.receive(event)
+        server, client = judge.latencies()
+    assert server["Sensor Request"].max < 100 * MS and client["Sensor Request"].min >= DELAY_MS * MS
+    judge.finish()
+    assert judge.latencies()[1]["Sensor Request"].count == 2
+
+
+def test_without_the_middle_there_is_one_latency_unlabelled():
+    code, output = _analyze(Path(__file__).parent.parent / "samples/vpn.mcap")
+    report = json.loads(output)
+    assert "client_latency" not in report and report["latency"]
+    _, text = _analyze(Path(__file__).parent.parent / "samples/vpn.mcap", fmt="text")
+    assert "Latency by request\n" in text and "the client's" not in text
