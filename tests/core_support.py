@@ -7,7 +7,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from whiztap.analyzer.mitm.commands import Command, Deliver, EndConnection, PassEof, Tell, WakeAt
-from whiztap.analyzer.mitm.core import MiddleCore
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action, Data, Delivered, Intervention
 from whiztap.sniffer.mitm.controller import Controller
@@ -47,7 +46,8 @@ class FakeClockMiddle:
         if intercept:
             self.controller.set_intercept(intercept)
         self.shell = NotingShell()
-        self.core: MiddleCore = self.controller.open(1, self.shell)
+        self.core, commands = self.controller.open(1, self.shell)
+        self.shell.run(commands)
         if ready:
             for direction in (C2S, S2C):
                 self.shell.run(self.core.ready(direction, self.now))

@@ -408,7 +408,7 @@ async def test_ctl_holds_releases_drops_and_injects(tmp_path):
         state = (await ctl(rec, "state")).stdout.splitlines()
         assert state[0] == "intercept: (off)" and "faults: 0" in state and "connections: 1" in state
         as_json = json.loads((await ctl(rec, "--format", "json", "state")).stdout)
-        assert set(as_json) == {"faults", "intercept", "held", "connections", "seed", "scripts"}
+        assert set(as_json) == {"faults", "intercept", "held", "connections", "seed", "scripts", "verdict"}
         assert (await ctl(rec, "inject", "1", "sideways", "sensor 12")).exit_code == 2
 
 

@@ -16,7 +16,6 @@ import struct
 import subprocess
 import time
 from collections import Counter
-from pathlib import Path
 
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
@@ -77,20 +76,6 @@ async def test_delay_holds_every_answer_back_and_keeps_their_order(tmp_path):
     assert [text.encode() for text, _ in held] == answers and all(ns >= 200_000_000 for _, ns in held)
     assert max(d["t_ns"] for d in topics["/tcp/delivered"] if d["dir"] == "c2s") <= min(
         r["t_ns"] for r in topics["/tcp/reads"] if r["dir"] == "s2c")
-
-
-async def test_delay_with_jitter_still_keeps_the_order(tmp_path):
-    async with middle(tmp_path / "r.mcap", "delay:200ms dir:s2c jitter:50ms") as mid:
-        raw = await Raw.open(mid.port)
-        for ch in list(range(12, 24)) * 2:  # answers 10 ms apart: jitter alone would reorder them
-            await raw.send(sensor(ch))
-            await asyncio.sleep(0.01)
-        answers = await raw.nothing_more(24)
-        await raw.close()
-    assert [answer_channel(a) for a in answers] == list(range(12, 24)) * 2
-    delays = [i["detail"] for i in mid.topics()["/interventions"]]
-    assert len(delays) == 24 and len(set(delays)) > 1  # the jitter did vary them
-    assert all(150 <= float(d.split()[1]) <= 250 for d in delays)
 
 
 # -- drop, dup, corrupt, replace ----------------------------------------------------------------------
@@ -219,40 +204,11 @@ def _assert_paced(topics: dict[str, list[dict]], rate: int) -> None:
         ("bandwidth", f"in writes of {rate // 100} bytes, 10 ms apart")}
 
 
-async def test_bandwidth_paces_many_small_answers_too(tmp_path):
-    async with middle(tmp_path / "r.mcap", "bandwidth:2kB/s dir:s2c") as mid:
-        raw = await Raw.open(mid.port)
-        await raw.send(*(sensor(12 + i % 12) for i in range(60)))
-        answers = await raw.take(60)
-        await raw.close()
-    assert [answer_channel(a) for a in answers] == [12 + i % 12 for i in range(60)]
-    topics = mid.topics()
-    assert len(sent(topics, "s2c")) >= 60 * 16
-    _assert_paced(topics, 2000)  # each answer shorter than a write, yet not sent back to back
-
-
 # -- blackhole, reset, close ----------------------------------------------------------------------------
 
 
 def closed_events(topics: dict[str, list[dict]]) -> list[dict]:
     return [e for e in topics["/tcp/events"] if e["event"] == "closed"]
-
-
-async def test_blackhole_after_a_time_swallows_answers_and_keeps_the_connection(tmp_path):
-    async with middle(tmp_path / "r.mcap", "blackhole dir:s2c after:0.5s") as mid:
-        raw = await Raw.open(mid.port)
-        await raw.send(sensor(12))
-        await raw.take(1)
-        await asyncio.sleep(0.6)
-        await raw.send(sensor(13), sensor(14))
-        await raw.nothing_more(1)
-        assert mid.server.stats.answers_sent == 3
-        assert not raw.reader.at_eof() and list(mid.rec.proxy.connections) == [1]  # type: ignore[union-attr]
-        await raw.close()
-    topics = mid.topics()
-    assert actions(topics) == ["blackhole", "blackhole"]
-    assert b"".join(delivered(topics, "c2s")) == sensor(12) + sensor(13) + sensor(14)
-    assert closed_events(topics)[0]["by"] != "proxy"  # the fault did not end it
 
 
 def test_after_takes_seconds_and_counts():
@@ -309,66 +265,8 @@ async def test_close_after_ten_client_frames(tmp_path):
 
 # -- the options: nth, every, prob with a seed, after:N, for:, conn: ------------------------------------
 
-REQUESTS = [sensor(ch) for ch in range(12, 24)] + [encode(m.ServoPositionRequest(ch)) for ch in range(6)]
-
-
-async def _prob_hits(path: Path, seed: int) -> list[str]:
-    """The requests a ``prob:0.5`` drop hit, in order, over one pipelined run."""
-    async with middle(path, "drop dir:c2s kind:command prob:0.5", seed=seed) as mid:
-        raw = await Raw.open(mid.port)
-        await raw.send(*REQUESTS)
-        fault = mid.rec.controller.faults[0]  # type: ignore[union-attr]
-        async with asyncio.timeout(WAIT):
-            while len(raw.items) + fault.hits < len(REQUESTS):  # every request answered or dropped
-                await raw.take(len(raw.items) + 1, WAIT)
-        await raw.close()
-    hits = [i["before"] for i in mid.topics()["/interventions"]]
-    assert len(hits) == fault.hits and len(raw.items) == len(REQUESTS) - len(hits)
-    return hits
-
-
-async def test_prob_with_a_seed_hits_the_same_frames_every_run(tmp_path):
-    first = await _prob_hits(tmp_path / "a.mcap", seed=5)
-    assert first == await _prob_hits(tmp_path / "b.mcap", seed=5)
-    assert 0 < len(first) < len(REQUESTS)
-    assert first != await _prob_hits(tmp_path / "c.mcap", seed=6)
-
-
-async def test_after_a_count_lets_that_many_chosen_frames_pass_first(tmp_path):
-    async with middle(tmp_path / "r.mcap", "drop dir:s2c kind:response after:3") as mid:
-        raw = await Raw.open(mid.port)
-        await raw.send(*(sensor(ch) for ch in range(12, 18)))
-        answers = await raw.nothing_more(3)
-        await raw.close()
-    assert [answer_channel(a) for a in answers] == [12, 13, 14]
-    assert actions(mid.topics()) == ["drop"] * 3
-
-
-async def test_for_ends_the_fault_a_while_after_it_began(tmp_path):
-    async with middle(tmp_path / "r.mcap", "drop dir:s2c kind:response for:300ms") as mid:
-        raw = await Raw.open(mid.port)
-        await raw.send(sensor(12))  # the fault begins here: dropped
-        await asyncio.sleep(0.1)
-        await raw.send(sensor(13))  # dropped
-        await asyncio.sleep(0.5)
-        await raw.send(sensor(14))  # the fault is over
-        answers = await raw.nothing_more(1)
-        await raw.close()
-    assert [answer_channel(a) for a in answers] == [14]
-    assert actions(mid.topics()) == ["drop", "drop"]
-
-
-async def test_conn_aims_a_fault_at_one_connection(tmp_path):
-    faults = ('replace:"cr1-12--999--0-ss1" dir:s2c ch:12 conn:2', "reset after:0.3s conn:2")
-    async with middle(tmp_path / "r.mcap", *faults) as mid, await Client.connect(LOCAL, mid.port) as one, \
-            await Client.connect(LOCAL, mid.port) as two:
-        assert await two.sensor(12) == 999
-        assert await one.sensor(12) != 999
-        await asyncio.sleep(0.4)  # the second connection is reset by now, the first is not
-        await one.sensor(13)
-        assert two._closed is not None and one._closed is None
-    topics = mid.topics()
-    assert actions(topics, conn=1) == [] and actions(topics, conn=2) == ["replace", "reset"]
+# Timing, counting and aiming (jitter, bandwidth's pacing, blackhole, prob:, after:, for:, conn:)
+# are tested on a fake clock against the middle's core: tests/test_middle_core.py.
 
 
 # -- no fault crashes the proxy ---------------------------------------------------------------------------

@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from whiztap.analyzer.mitm.commands import Closing, Full, WakeAt
+from whiztap.analyzer.mitm.commands import Closing, Deliver, EndConnection, Full, WakeAt
 from whiztap.analyzer.mitm.lane import HIGH_WATER, INJECT_ROOM, STALL_NS
 from whiztap.analyzer.traffic import Action, Cause, Source
 from whiztap.sniffer.mitm.controller import ControlError
-from tests.core_support import C2S, MS, S, S2C, FakeClockMiddle
+from tests.core_support import C2S, MS, S, S2C, FakeClockMiddle, NotingShell
 from tests.streams import chunked
 
 REQ = b"rr1-12--0--0-ss1"
@@ -81,17 +81,29 @@ def test_delay_holds_every_answer_back_and_keeps_their_order():
     assert [d.delivered for d in delays] == [0, len(ANS)] and [d.index for d in delays] == [0, 1]
 
 
-def test_jitter_with_a_seed_delays_alike_every_run_and_never_reorders():
-    def times(seed: int) -> list[int]:
-        mid = FakeClockMiddle("delay:50ms dir:s2c jitter:40ms", seed=seed)
-        for i in range(20):
-            mid.send(S2C, answers(1))
-            mid.advance(5 * MS)
+def test_jitter_varies_each_delay_within_its_bounds_and_never_reorders():
+    def run(seed: int) -> tuple[list[int], list[str]]:
+        mid = FakeClockMiddle("delay:200ms dir:s2c jitter:50ms", seed=seed)
+        for i in range(24):  # answers 10 ms apart: jitter alone would reorder them
+            mid.send(S2C, b"cr1-%d--5--0-ss1" % (12 + i))
+            mid.advance(10 * MS)
         mid.advance(S)
-        assert mid.got(S2C) == answers(1) * 20
-        return mid.write_times(S2C)
+        assert mid.got(S2C) == b"".join(b"cr1-%d--5--0-ss1" % (12 + i) for i in range(24))
+        return mid.write_times(S2C), [d.detail for d in mid.interventions(Action.DELAY)]
 
-    assert times(3) == times(3) and times(3) == sorted(times(3))
+    times, details = run(3)
+    assert (times, details) == run(3) and times == sorted(times)
+    assert len(set(details)) > 1 and all(150 <= float(d.split()[1]) <= 250 for d in details)
+
+
+def test_bandwidth_paces_many_small_answers_too():
+    mid = FakeClockMiddle("bandwidth:2kB/s dir:s2c")
+    start = mid.now
+    for _ in range(60):
+        mid.send(S2C, ANS)  # each answer shorter than a write, yet not sent back to back
+    mid.advance(2 * S)
+    assert mid.got(S2C) == ANS * 60
+    assert mid.write_times(S2C)[-1] - start >= (60 * len(ANS) - 20) * S // 2000
 
 
 def test_bandwidth_paces_a_direction_at_its_rate():
@@ -132,6 +144,37 @@ def test_every_and_nth_count_the_frames_they_choose():
     assert [d.index for d in mid.interventions(Action.DROP)] == [2, 5]
     [dup] = mid.interventions(Action.DUP)
     assert dup.index == 1 and mid.got(S2C) == ANS * 6
+
+
+def test_after_a_count_lets_that_many_chosen_frames_pass_first():
+    mid = FakeClockMiddle("drop dir:s2c kind:response after:3")
+    mid.send(S2C, answers(6))
+    assert mid.got(S2C) == answers(3) and [d.index for d in mid.interventions(Action.DROP)] == [3, 4, 5]
+
+
+def test_prob_with_a_seed_hits_the_same_frames_every_run():
+    def hits(seed: int) -> list[int]:
+        mid = FakeClockMiddle("drop dir:c2s kind:command prob:0.5", seed=seed)
+        mid.send(C2S, b"".join(b"rr1-%d--0--0-ss1" % ch for ch in range(12, 24)))
+        return [d.index for d in mid.interventions(Action.DROP)]
+
+    assert hits(5) == hits(5) and 0 < len(hits(5)) < 12 and hits(5) != hits(6)
+
+
+def test_conn_aims_a_fault_at_one_connection():
+    mid = FakeClockMiddle('replace:"cr1-12--999--0-ss1" dir:s2c ch:12 conn:2', "reset after:300ms conn:2")
+    other = NotingShell()
+    two, commands = mid.controller.open(2, other)
+    other.run(commands)
+    for direction in (C2S, S2C):
+        other.run(two.ready(direction, mid.now))
+    mid.send(S2C, ANS)
+    other.run(two.received(S2C, ANS, mid.now))
+    assert mid.got(S2C) == ANS and b"".join(c.data for c in other.commands if type(c) is Deliver) == \
+        b"cr1-12--999--0-ss1"
+    assert mid.shell.wake_at is None and other.wake_at == mid.now + 300 * MS
+    other.run(two.wake(other.wake_at))
+    assert [c.how for c in other.commands if type(c) is EndConnection] == [Action.RESET] and not mid.ended()
 
 
 def test_reset_after_a_time_acts_on_its_timer_with_no_frame_needed():

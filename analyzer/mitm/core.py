@@ -205,6 +205,9 @@ class MiddleCore:
 
     # -- what the lanes ask (LaneOwner) -------------------------------------------------------------
 
+    def idle(self) -> bool:
+        return self.context.stages.idle()
+
     def saw(self, direction: Direction, item: Item, t_ns: int) -> None:
         """Follow the handshake as the session model does (see ``session.py``)."""
         if direction is S2C and item.kind is ItemKind.HANDSHAKE:
@@ -255,6 +258,10 @@ class MiddleCore:
             self._tell(Delivered(self.conn, S2C, t_ns, data))
             return
         login = self.login
+        if not self._undecided and login.decided >= login.received + len(data) and login.masked_end <= login.received:
+            login.client(data)  # decided and shown already (the usual case once a login is over, or never was)
+            self._tell(Delivered(self.conn, C2S, t_ns, data))
+            return
         self._undecided.append((login.received, data, t_ns))
         login.client(data)
         self._tell_decided()
@@ -378,8 +385,10 @@ class MiddleCore:
         """The commands so far, and a new wake-up time if it changed.  Both
         lanes are pumped first: a stage may have injected into the other one."""
         for lane in self.lanes.values():
-            lane.pump(t_ns)
-        deadline = self.deadline()
+            if lane.busy:
+                lane.pump(t_ns)
+        deadline = self.deadline() if self._timed or self._holds or self._undecided or self._wake is not None or \
+            any(lane.busy for lane in self.lanes.values()) else None
         if deadline != self._wake:
             self._wake = deadline
             self._commands.append(WakeAt(deadline))

@@ -54,6 +54,11 @@ class Fault:
         return self.spec.name or f"fault-{self.id}"
 
     @property
+    def active(self) -> bool:
+        """It may act on a frame (``Stages.idle``)."""
+        return self.enabled
+
+    @property
     def cause(self) -> Cause:
         return Cause(Source.FAULT, self.name, self.spec.text)
 

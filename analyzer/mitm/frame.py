@@ -70,6 +70,15 @@ class Frame:
         if self.data is None:
             self.data = self.item.raw
 
+    def state(self) -> tuple:
+        """What a stage may change, to put back if the stage fails (``restore``)."""
+        return (self.data, self.copies, self.delay_ns, self.slices, self.pause_ns, self.hold, self.end,
+                self.injections)
+
+    def restore(self, state: tuple) -> None:
+        (self.data, self.copies, self.delay_ns, self.slices, self.pause_ns, self.hold, self.end,
+         self.injections) = state
+
     @property
     def kind(self) -> ItemKind:
         return self.item.kind

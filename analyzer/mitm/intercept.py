@@ -32,6 +32,10 @@ class Intercept:
         self.text = ""
         self.filter: ItemFilter | None = None
 
+    @property
+    def active(self) -> bool:
+        return self.filter is not None
+
     def set(self, text: str | None) -> None:
         """Hold what ``text`` selects from now on (FilterSyntaxError if it does not parse); None or "": nothing."""
         self.filter = parse_filter(text) if text else None

@@ -50,6 +50,7 @@ class LaneOwner(Protocol):
     gone: bool
 
     def saw(self, direction: Direction, item: Item, t_ns: int) -> None: ...
+    def idle(self) -> bool: ...
     def tell(self, event: Intervention) -> None: ...
     def decide(self, lane: Lane, item: Item, index: int, offset: int, t_ns: int) -> Frame: ...
     def hold(self, lane: Lane, frame: Frame, out: Out, t_ns: int) -> Held: ...
@@ -121,6 +122,11 @@ class Lane:
         """Bytes waiting here, decided or not: what the memory tests bound."""
         return self._queued + self._entry_bytes + len(self._pending)
 
+    @property
+    def busy(self) -> bool:
+        """Something waits here (to be framed, decided or written)."""
+        return bool(self._queue or self._entries or self._pending or (self._eof and not self.eof_passed))
+
     def may_read(self) -> bool:
         """Whether the shell may read the sender: flow control's rule."""
         return self.queued <= HIGH_WATER
@@ -139,16 +145,33 @@ class Lane:
     # -- input ------------------------------------------------------------------------------
 
     def feed(self, data: bytes, t_ns: int) -> None:
-        if self.framer.password_pending:  # a password cannot wait for its end
+        framer = self.framer
+        if framer.password_pending:  # a password cannot wait for its end
             self._raw(bytes(self._pending) + data, t_ns)
-            self._frame(self.framer.feed(data, t_ns), t_ns)
+            self._frame(framer.feed(data, t_ns), t_ns)
         else:
+            items = framer.feed(data, t_ns)
+            if (not framer.buffered and not self._pending and not self._queue and not self._entries and self.ready
+                    and not self._skip and not self._eof and self.owner.idle()):
+                self._pass(items, data, t_ns)  # whole frames, nothing before them, no stage to ask: now, as they are
+                return
             self._pending += data
-            self._frame(self.framer.feed(data, t_ns), t_ns)
+            self._frame(items, t_ns)
             if len(self._pending) >= HIGH_WATER:  # a large item (a picture): it flows on as it comes
                 self._raw(bytes(self._pending), t_ns)
         self._pending_since = t_ns if self._pending else None
         self.pump(t_ns)
+
+    def _pass(self, items: list[Item], data: bytes, t_ns: int) -> None:
+        """The fast way of a read that is whole frames through an idle middle
+        (what ``_frame``, ``_advance`` and ``pump`` would do with it, at once)."""
+        owner = self.owner
+        for item in items:
+            owner.saw(self.direction, item, t_ns)
+        self.index += len(items)
+        self.offset += len(data)
+        if not owner.gone:
+            owner.deliver(self.direction, data, t_ns, [])
 
     def end(self, t_ns: int) -> None:
         """The sender sent its FIN: everything pending becomes items; the FIN follows them."""
@@ -181,9 +204,23 @@ class Lane:
 
     def _frame(self, items: list[Item], t_ns: int) -> None:
         """Queue each item for its decision, in order; the pending bytes they
-        took go at the end (once per read: a read of thousands of frames stays linear)."""
-        used = 0
+        took go at the end (once per read: a read of thousands of frames stays
+        linear).  While no stage can act (``owner.idle``), a read's items need
+        no decision and go on as one run of bytes."""
+        if not items:
+            return
         owner = self.owner
+        if owner.idle() and not self._skip:
+            run = b"".join([item.raw for item in items])
+            start = self.index
+            for item in items:
+                owner.saw(self.direction, item, t_ns)
+            self.index += len(items)
+            self.offset += len(run)
+            self._enter(_Entry(None, run, start, self.offset - len(run), t_ns))
+            del self._pending[:len(run)]
+            return
+        used = 0
         for item in items:
             n = len(item.raw)
             index, offset = self.index, self.offset

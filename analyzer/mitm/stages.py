@@ -16,7 +16,6 @@ from typing import Any
 from whiztap.analyzer.mitm.frame import Frame
 
 Report = Callable[[str], None]
-_STATE = ("data", "copies", "delay_ns", "slices", "pause_ns", "hold", "end", "injections")  # what a stage may change
 
 
 def stage_name(stage: Any) -> str:
@@ -31,18 +30,22 @@ class Stages:
         self.items: list[Any] = []
         self._reported: set[int] = set()
 
+    def idle(self) -> bool:
+        """No stage can act on a frame now (each says so with ``active``; one
+        that does not say, a script, always may): frames need no decision."""
+        return not any(getattr(stage, "active", True) for stage in self.items)
+
     def frame(self, frame: Frame) -> None:
         for stage in self.items:
             hook = getattr(stage, "frame", None)
-            if hook is None:
+            if hook is None or not getattr(stage, "active", True):
                 continue
-            saved = tuple(getattr(frame, name) for name in _STATE)
+            saved = frame.state()
             noted = len(frame.interventions)
             try:
                 hook(frame)
             except Exception:  # noqa: BLE001 - a failing stage never touches the frame or the proxy
-                for name, value in zip(_STATE, saved):
-                    setattr(frame, name, value)
+                frame.restore(saved)
                 del frame.interventions[noted:]
                 self._failed(stage, "frame")
 

@@ -71,6 +71,8 @@ class Controller:
                                      hold_timeout_ns=int(hold_timeout * 1e9))
         self.clock: Callable[[], int] = lambda: 0  # the proxy's, from attach()
         self.emit: Callable[[object], None] = lambda event: None
+        # analyze's verdict on the traffic so far, as the recording's writer judges it (None: not known)
+        self.verdict: Callable[[], dict | None] = lambda: None
         self.cores: dict[int, tuple[MiddleCore, Shell]] = {}
         self._fault_ids = 0
         self._restage()
@@ -92,15 +94,17 @@ class Controller:
 
     # -- connections -------------------------------------------------------------------------------
 
-    def open(self, conn: int, shell: Shell) -> MiddleCore:
-        """A connection opened: its core, told of the timed faults in force."""
+    def open(self, conn: int, shell: Shell) -> tuple[MiddleCore, list[Command]]:
+        """A connection opened: its core, and what it asks for first (a timer
+        for the timed faults in force), for ``shell`` to carry out."""
         now = self.clock()
         core = MiddleCore(conn, now, self.context)
         self.cores[conn] = (core, shell)
+        commands: list[Command] = []
         for fault in self.faults:
-            shell.run(core.schedule(fault, now))
+            commands += core.schedule(fault, now)
         self.context.stages.call("opened", conn)
-        return core
+        return core, commands
 
     def closed(self, conn: int) -> None:
         entry = self.cores.pop(conn, None)
@@ -253,7 +257,7 @@ class Controller:
     def state(self) -> dict:
         return {"faults": [f.as_dict() for f in self.faults], "intercept": self.intercept.text,
                 "held": self.held_frames(), "connections": self.connections(), "seed": self.seed,
-                "scripts": [stage_name(s) for s in self.scripts]}
+                "scripts": [stage_name(s) for s in self.scripts], "verdict": self.verdict()}
 
 
 def load_fault_file(controller: Controller, path: str | Path) -> None:

@@ -20,14 +20,13 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from whiztap.analyzer.mitm.commands import Command, Deliver, EndConnection, PassEof, Tell, WakeAt
-from whiztap.analyzer.mitm.core import MiddleCore
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action
 
 if TYPE_CHECKING:
     from whiztap.sniffer.mitm.controller import Controller
 
-C2S = Direction.C2S
+C2S, S2C = Direction.C2S, Direction.S2C
 _LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP reset
 
 
@@ -64,7 +63,9 @@ class MiddleShell:
         self.emit = controller.emit
         self._timer: asyncio.TimerHandle | None = None
         self._failed = False
-        self.core: MiddleCore = controller.open(connection.id, self)
+        self._may_read = {C2S: True, S2C: True}  # what the core said last: a leg is synced when it changes
+        self.core, commands = controller.open(connection.id, self)
+        self.run(commands)
 
     @property
     def client_addr(self) -> str:
@@ -109,8 +110,12 @@ class MiddleShell:
                 connection.pass_eof(connection.client if command.direction is C2S else connection.upstream)  # type: ignore[union-attr]
             elif kind is EndConnection:
                 self._end(command.how)  # type: ignore[union-attr]
-        connection.client.sync()
-        connection.upstream.sync()
+        core = self.core
+        for direction, leg in ((C2S, connection.client), (S2C, connection.upstream)):
+            may = core.may_read(direction)
+            if may is not self._may_read[direction]:  # the lane filled past its mark, or emptied below it
+                self._may_read[direction] = may
+                leg.sync()
 
     def _schedule(self, t_ns: int | None) -> None:
         if self._timer is not None:

@@ -209,6 +209,7 @@ class Connection:
         if self.middle is not None:
             self.client.target = self.upstream.transport
             self.middle.ready(C2S)  # what the client sent meanwhile, and its FIN
+            self.client.sync()
             return
         for data in self.client.early:
             self.upstream.transport.write(data)  # type: ignore[union-attr]
