@@ -33,8 +33,10 @@ from tests.record_support import (
     EchoServer,
     RecordProcess,
     StepServer,
+    both_ways,
     play_client,
     read_all,
+    record_dialogue,
     streams,
 )
 SECRET = b"Kx9hunter2Tq4"
@@ -163,3 +165,15 @@ async def test_a_command_before_readytogo_is_the_clients_fault_and_is_answered(t
     _, report = analyse(path)
     assert report["rule_counts"] == {"PW-HS-COMMAND-BEFORE-READY": 1}, report["rule_counts"]
     assert SECRET.decode() not in printed + json.dumps(report)
+
+
+async def test_a_line_judged_early_and_too_long_to_be_a_password_reads_the_same_from_frames_and_reads(tmp_path):
+    """Refused at its first byte, the client's line then runs past 256 bytes:
+    the byte the server judged is masked, the rest is not, and /frames says
+    exactly what /tcp/reads says."""
+    rest = b"x" * 300 + b"\r\n"
+    path = await record_dialogue(tmp_path / "long.mcap",
+                                 [("send", b"sendchkpass"), ("recv", 1), ("send", b"Failed Validation"),
+                                  ("recv", len(rest))],
+                                 [("recv", 11), ("send", SECRET[:1]), ("recv", 17), ("send", rest)])
+    assert both_ways(str(path))[(1, "c2s")] == b"*" + rest

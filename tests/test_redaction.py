@@ -18,13 +18,19 @@ from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.redaction import LoginMask, Phase, Redactor
 
 from tests.streams import chunked
-from tests.test_readers_property import stream
 
 C2S, S2C = Direction.C2S, Direction.S2C
 SECRET = b"Kx9hunter2Tq4"
 FETCH = b"rr1-24--0--0-ss1"
 CONFIG = b"sr1-\x18" + b"200" * 24 + b"-ss1"
 SEND = b"rr1-5--600--0-ss1"  # a Normal Send: no answer
+
+
+# protocol-like bytes: frames, handshake words, line breaks, fragments, anything
+stream = st.lists(st.one_of(st.sampled_from([
+    FETCH, b"rr1-3--0--2-ss1", b"cr1-12--100--0-ss1", b"sr1-\x02000200-ss1", b"sr1-25--\x0c\x00\x00\x07--0-ss1",
+    b"sendchkpass", b"readytogo", b"Failed Validation", b"rr1-", b"cr1-", b"-ss1", b"\r\n", b"\n", b"\r", b" ",
+]), st.binary(min_size=1, max_size=12)), max_size=12).map(b"".join)
 
 
 def shown(mask: LoginMask, data: bytes) -> bytes:
@@ -99,6 +105,33 @@ def test_what_the_clock_masked_stays_masked_and_the_rest_follows_the_rule():
     mask.server(b"sendchkpass")
     assert mask.phase is Phase.OPEN
     assert shown(mask, b"sec" + rest) == b"******\r\n" + FETCH
+
+
+def test_a_verdict_before_the_line_ends_masks_what_came_of_it_at_once():
+    """A server that refuses at the first wrong byte has judged that much as
+    the password: masked then, as the session hands it over then; the rest of
+    the line follows the rule (masked, or shown if the line is too long to be
+    a password)."""
+    for rest, masked in [(b"x9hunter2Tq4\r\n" + FETCH, len(SECRET)), (b"x" * MAX_PASSWORD + b"\r\n", 1)]:
+        mask = LoginMask()
+        mask.server(b"sendchkpass")
+        mask.client(b"K")
+        assert mask.decided == 0
+        mask.server(b"Failed Valid")
+        mask.server(b"ation")
+        assert mask.masked_end == mask.decided == 1
+        mask.client(rest)
+        assert mask.phase is Phase.OPEN
+        assert shown(mask, b"K" + rest) == b"*" * masked + (b"K" + rest)[masked:]
+
+
+def test_a_verdict_between_the_bytes_of_a_first_frame_header_masks_nothing():
+    mask = LoginMask()
+    mask.server(b"sendchkpass")
+    mask.client(b"rr")
+    mask.server(b"readytogo")
+    mask.client(b"1-24--0--0-ss1")
+    assert mask.phase is Phase.OPEN and shown(mask, b"rr1-24--0--0-ss1") == b"rr1-24--0--0-ss1"
 
 
 # -- every connection, in arrival order -----------------------------------------------------------
@@ -214,16 +247,28 @@ def _through_redactor(client: bytes, server: bytes, order: list[bool], cuts: set
     return bytes(got)
 
 
+def _masked_at(shown_bytes: bytes, client: bytes) -> set[int]:
+    return {i for i, (a, b) in enumerate(zip(shown_bytes, client)) if a != b}
+
+
 @settings(max_examples=300, deadline=None)
 @given(drawn=connections(), cuts=st.sets(st.integers(0, 300), max_size=40))
 def test_the_rule_holds_for_any_arrival_order_and_any_reads(drawn, cuts):
     """Without a clock, what is masked is the rule's answer for the two
     streams, whatever the order their bytes came in and however they were cut
-    into reads, one byte per read included."""
+    into reads, one byte per read included.  (A verdict before the first line
+    has ended may mask more of it: never anything past its first line break.)"""
     client, server, order = drawn
     want = expected(client, server)
-    assert _through_redactor(client, server, order, set(range(len(order)))) == want
-    assert _through_redactor(client, server, order, cuts) == want
+    got = _through_redactor(client, server, order, set(range(len(order))))
+    assert _through_redactor(client, server, order, cuts) == got
+    assert len(got) == len(client) and all(a == b or a == ord("*") for a, b in zip(got, client))
+    if b"readytogo" not in server and b"Failed Validation" not in server:
+        assert got == want
+    else:
+        start = len(client) - len(client.lstrip(b"\r\n"))
+        line_end = min([i for i in (client.find(b"\r", start), client.find(b"\n", start)) if i != -1] or [len(client)])
+        assert _masked_at(want, client) <= _masked_at(got, client) <= set(range(start, line_end))
 
 
 @settings(max_examples=200, deadline=None)

@@ -95,6 +95,13 @@ class Framer(ImageScanning):
         proxy in the middle passes these bytes on as they come."""
         return self._password_mode
 
+    @property
+    def reading_password(self) -> bool:
+        """The next line, or the rest of one the server judged early, is still
+        taken as a password (``password_pending`` ends at the verdict; this
+        ends with the line)."""
+        return self._in_password
+
     def expect_password(self) -> None:
         """The next line (line breaks before it aside) may be a password."""
         self._password_mode = self._in_password = True
@@ -110,7 +117,7 @@ class Framer(ImageScanning):
         self._password_mode = False
         items = self._scan(t_ns, first_new=len(self._buf), final=False)
         buf = self._buf
-        if self._in_password and buf and buf[0] not in b"\r\n":
+        if self._in_password and buf and buf[0] not in b"\r\n" and not self._may_be_header(buf):
             end = _PASSWORD_END.search(buf)
             cut = end.start() if end is not None else len(buf)
             if 0 < cut <= self._password_left:
@@ -296,6 +303,10 @@ class Framer(ImageScanning):
         self._in_password = self._password_mode = False
         return cut - pos, ItemKind.PASSWORD, None
 
+    def _may_be_header(self, buf: bytes | bytearray) -> bool:
+        """The line has not begun, and what came of it may still be a frame header."""
+        return not self._password_begun and len(buf) < 4 and any(h.startswith(bytes(buf)) for h in FRAME_HEADERS)
+
     def _no_password(self, pos: int, final: bool):
         self._in_password = self._password_mode = False
         return self._scan_slow(pos, final)
@@ -309,8 +320,10 @@ class Framer(ImageScanning):
         n = len(buf)
         last = pos + self._password_left  # the latest it may end
         at = pos
-        while (end := _PASSWORD_END.search(buf, at, min(n, last + 4))) is not None and end.start() <= last:
+        while (end := _PASSWORD_END.search(buf, at, min(n, last + 4))) is not None:
             i = end.start()
+            if i > last:  # (a header at or before ``last`` would have come first)
+                return -1
             if buf[i] in (0x0D, 0x0A):
                 return i
             completes = self._frame_completes(i, final)

@@ -9,7 +9,11 @@ The rule (docs/recording-format.md, *Passwords*), per connection:
   a frame header, or that is longer than ``MAX_PASSWORD`` bytes, is no
   password.  Nothing after the first line is ever masked.
 * It is masked if the server begins (line breaks aside) with ``sendchkpass``;
-  if the server begins with anything else, nothing is masked.
+  if the server begins with anything else, nothing is masked.  A verdict
+  (``readytogo``, ``Failed Validation``) that comes before the line has ended
+  masks what came of it at once: the server judged that much as the password
+  (the session hands it over as one there).  The rest of the line follows the
+  rule.
 * A server that ends (or is never reached, or loses bytes to a gap) before it
   has said which may have asked: the first line is masked.
 
@@ -44,6 +48,8 @@ HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than th
 UNDECIDED_CAP = 16 * 1024  # ... or once a connection has this many
 QUEUE_CAP = 8 << 20  # ... or once this much traffic waits behind them
 GREETING = b"sendchkpass"
+_VERDICT = re.compile(rb"readytogo|Failed Validation")
+_VERDICT_CARRY = len(b"Failed Validation") - 1
 _MASKABLE = re.compile(rb"[^\r\n]+")
 _ALL = 1 << 62  # an offset past any stream's end
 _NONE = -1  # the first line is no password
@@ -65,8 +71,8 @@ class LoginMask:
     ``masked_end`` are masked (line breaks aside), from there up to
     ``decided`` they are shown, and from ``decided`` on nothing is known yet."""
 
-    __slots__ = ("phase", "received", "masked_end", "decided", "_server", "_greeted", "_line", "_line_at",
-                 "_start", "_end")
+    __slots__ = ("phase", "received", "masked_end", "decided", "_server", "_greeted", "_carry", "_line",
+                 "_line_at", "_start", "_said", "_end")
 
     def __init__(self) -> None:
         self.phase = Phase.GREETING
@@ -75,10 +81,12 @@ class LoginMask:
         self.decided = 0
         self._server: bool | None = None  # whether the server asks for a password (None: not said yet)
         self._greeted = 0  # bytes of 'sendchkpass' the server has sent so far
+        self._carry = b""  # the server's last bytes, which a verdict may straddle
         self._line: Framer | None = Framer()  # finds the client's first line, as the session does
         self._line.expect_password()
         self._line_at = 0  # client bytes the line's framer has taken as items
         self._start = 0  # where the first line begins (line breaks before it aside)
+        self._said: int | None = None  # where the password items so far end (None: none yet)
         self._end: int | None = None  # where it ends if it is a password, _NONE if it is none; None: not known
 
     @property
@@ -120,22 +128,15 @@ class LoginMask:
 
     def server(self, data: bytes) -> None:
         """Bytes from the server, in order."""
-        if self._server is not None:
-            return
-        if not self._greeted:
-            data = data.lstrip(b"\r\n")
-        wanted = GREETING[self._greeted:]
-        n = min(len(wanted), len(data))
-        if data[:n] != wanted[:n]:
-            self._server = False  # the server spoke first with something else: no login
-        else:
-            self._greeted += n
-            if self._greeted == len(GREETING):
-                self._server = True
+        if self._server is None:
+            data = self._greeting(data)
+        if self._server and self._line is not None and data:
+            self._verdict(data)
         self._settle()
 
     def server_gap(self) -> None:
         """Server bytes were never seen: the greeting may be among them."""
+        self._carry = b""  # a verdict may not straddle the hole
         if self._server is None:
             self._server = True
             self._settle()
@@ -176,20 +177,50 @@ class LoginMask:
 
     # -- internals ---------------------------------------------------------------------------
 
-    def _scan_line(self, items: list) -> None:
-        """The line's framer said something: line breaks before it, the password, or none."""
+    def _greeting(self, data: bytes) -> bytes:
+        """Follow 'sendchkpass' in the server's first bytes; what comes after it."""
+        if not self._greeted:
+            data = data.lstrip(b"\r\n")
+        wanted = GREETING[self._greeted:]
+        n = min(len(wanted), len(data))
+        if data[:n] != wanted[:n]:
+            self._server = False  # the server spoke first with something else: no login
+            return b""
+        self._greeted += n
+        if self._greeted < len(GREETING):
+            return b""
+        self._server = True
+        return data[n:]
+
+    def _verdict(self, data: bytes) -> None:
+        """A verdict while the first line is still coming: what came of it is
+        the password the server judged, and it is masked now."""
+        seen = self._carry + data
+        if _VERDICT.search(seen) is None:
+            self._carry = seen[-_VERDICT_CARRY:]
+            return
+        self._carry = b""
+        self._scan_line(self._line.close_password(0), judged=True)  # type: ignore[union-attr]
+
+    def _scan_line(self, items: list, judged: bool = False) -> None:
+        """The line's framer said something: line breaks before it, the
+        password (or, ``judged``, what came of it by the verdict), or none."""
         line = self._line
         for item in items:
-            if item.kind is ItemKind.EOL and self._end is None:
+            if item.kind is ItemKind.PASSWORD:
+                self._line_at += len(item.raw)
+                self._said = self._line_at
+                if judged:
+                    self.masked_end = max(self.masked_end, self._said)
+                    self.decided = max(self.decided, self._said)
+            elif item.kind is ItemKind.EOL and self._said is None:
                 self._line_at += len(item.raw)
                 self._start = self._line_at
-                continue
-            if item.kind is ItemKind.PASSWORD:
-                self._end = self._line_at + len(item.raw)
-            break
-        if self._end is None and line is not None and not line.password_pending:
-            self._end = _NONE  # it began with a frame header, or ran past MAX_PASSWORD
-        if self._end is not None:
+            else:
+                break
+        if line is not None and not line.reading_password:
+            # over: at its end, or it began with a frame header, or ran past MAX_PASSWORD
+            self._end = self._said if self._said is not None else _NONE
             self._line = None
 
     def _settle(self) -> None:
