@@ -191,9 +191,6 @@ class MiddleCore:
         """Flow control: read the sender of ``direction`` only while its lane has room."""
         return self.lanes[direction].may_read()
 
-    def eof_passed(self, direction: Direction) -> bool:
-        return self.lanes[direction].eof_passed
-
     def deadline(self) -> int | None:
         times = [at for at, _ in self._timed]
         if self._undecided_since is not None:

@@ -64,6 +64,7 @@ class MiddleShell:
         self._timer: asyncio.TimerHandle | None = None
         self._failed = False
         self._may_read = {C2S: True, S2C: True}  # what the core said last: a leg is synced when it changes
+        self._eof_passed: set[Direction] = set()
         self.core, commands = controller.open(connection.id, self)
         self.run(commands)
 
@@ -89,7 +90,10 @@ class MiddleShell:
         return self.core.may_read(direction)
 
     def eof_passed(self, direction: Direction) -> bool:
-        return self.core.eof_passed(direction)
+        """The FIN of ``direction``'s sender was passed on: by this shell, not
+        as the core sees it (the core may be a few commands ahead: a close
+        that believed it would cut off a write still to be carried out)."""
+        return direction in self._eof_passed
 
     # -- the core's commands ------------------------------------------------------------------
 
@@ -107,6 +111,7 @@ class MiddleShell:
             elif kind is WakeAt:
                 self._schedule(command.t_ns)  # type: ignore[union-attr]
             elif kind is PassEof:
+                self._eof_passed.add(command.direction)  # type: ignore[union-attr]
                 connection.pass_eof(connection.client if command.direction is C2S else connection.upstream)  # type: ignore[union-attr]
             elif kind is EndConnection:
                 self._end(command.how)  # type: ignore[union-attr]
