@@ -128,6 +128,8 @@ class LoginMask:
 
     def server(self, data: bytes) -> None:
         """Bytes from the server, in order."""
+        if self.phase is Phase.OPEN:
+            return
         if self._server is None:
             data = self._greeting(data)
         if self._server and self._line is not None and data:
