@@ -20,6 +20,7 @@ from whiztap.tui.detail import describe_frame
 from whiztap.tui.editor import EditorScreen
 from whiztap.tui.help import HelpScreen
 from whiztap.tui.inject import InjectScreen
+from whiztap.tui.marks import mark_kind
 from whiztap.tui.sources import LiveSource, ProxyRig
 
 from tests.middle_support import Raw, answer_channel, sensor
@@ -94,7 +95,7 @@ async def test_an_intercepted_sensor_request_is_edited_and_the_simulator_answers
             await quit_app(pilot)
     [edit] = [i for i in read_all(str(output))["/interventions"] if i["action"] == "edit"]
     assert (edit["before"], edit["after"], edit["dir"]) == ("rr1-12--0--0-ss1", "rr1-13--0--0-ss1", "c2s")
-    assert edit["cause"] == "hand edit (held #1)"
+    assert (edit["cause"], edit["held"]) == ("hand edit", 1)
 
 
 async def test_an_injected_sensor_request_pairs_with_its_answer(tmp_path):
@@ -159,7 +160,7 @@ async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_pa
             assert [answer_channel(a) for a in got] == [12, 14]  # every second answer dropped
             answers = [n for n in range(store.count) if store.kind(n) is ItemKind.RESPONSE]
             await until(pilot, lambda: len(store.marked) >= 2, "the drop marks")
-            assert [[m.kind for m in store.marks.get(n, ())] for n in answers] == [[], ["dropped"], [], ["dropped"]]
+            assert [[mark_kind(m) for m in store.marks.get(n, ())] for n in answers] == [[], ["dropped"], [], ["dropped"]]
             for n, dropped in zip(answers, (False, True, False, True)):
                 request = store.pair[n]  # the server answered every request
                 unanswered = [v for v in store.violations.get(request, ()) if v.rule_id == "PW-PAIR-UNANSWERED"]
@@ -191,8 +192,9 @@ async def test_keys_are_answered_while_a_hundred_frames_are_held(tmp_path):
             assert isinstance(app.screen, HelpScreen)
             await pilot.press("escape", "G")
             assert frames.tail and frames.cursor == 99 and frames.held_frame.id == 100
-            await pilot.press("x")  # drop the last one
-            await until(pilot, lambda: frames.rows == 99, "the list without it")
+            await pilot.press("x")  # drop the last one: a row of the list now, marked dropped
+            await until(pilot, lambda: len(controller.held.frames) == 99 and frames.store_rows == 1, "the drop")
+            assert [m.action for m in app.model.store.marks[0]] == ["hold", "drop"] and frames.rows == 100
             await pilot.press("A")  # let the others go
             answers = await raw.nothing_more(99)
             assert len(answers) == 99 and not controller.held.frames

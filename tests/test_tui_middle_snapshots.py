@@ -50,7 +50,7 @@ def controller() -> Controller:
     controller = Controller(seed=0)
     controller.attach(lambda: now[0], lambda event: None)
     controller.set_intercept("kind:command ch:12")
-    core = controller.open(1, _Shell())
+    core, _ = controller.open(1, _Shell())
     core.received(Direction.C2S, b"rr1-12--0--0-ss1", T0)  # held: the lane has nowhere to write it anyway
     now[0] += WAITED_NS
     return controller

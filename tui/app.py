@@ -36,7 +36,7 @@ from whiztap.tui.frame_list import FrameList
 from whiztap.tui.help import HelpScreen
 from whiztap.tui.inject import InjectScreen, target_connection
 from whiztap.tui.intercept_bar import InterceptBar
-from whiztap.tui.model import TrafficModel
+from whiztap.tui.model import TrafficModel, verdict_text
 from whiztap.tui.sources import LiveSource, Source, SourceError
 from whiztap.tui.stats import StatsPane
 from whiztap.tui.virtual_list import VirtualList
@@ -250,7 +250,7 @@ class WhiztapApp(App):
     def _show_status(self) -> None:
         store = self.model.store
         frames = self.frames
-        parts = [f"{store.count:,} frames", f"{len(store.violating):,} with violations"]
+        parts = [f"{store.count:,} frames", verdict_text(self.model.verdict())]
         progress = self.source.progress
         if progress is not None and not self.fed:
             parts.append(f"loading {progress:.0%}")

@@ -34,8 +34,9 @@ from whiztap.analyzer.protocol.messages import CameraImage
 from whiztap.analyzer.protocol.observations import Observation
 from whiztap.analyzer.protocol.rules import RULES, Violation
 from whiztap.analyzer.protocol.text import escape, printable
+from whiztap.analyzer.traffic import Action, Intervention
 from whiztap.tui.controls import Controls, HeldKey
-from whiztap.tui.marks import GLYPHS, Mark
+from whiztap.tui.marks import GLYPHS, mark_kind
 from whiztap.tui.store import NS, FrameStore
 from whiztap.tui.typed import TypedFrame, judge_bytes
 
@@ -44,6 +45,8 @@ HEX_LINES = 128  # 1 KiB of hex; an image shows its head
 MARK_BYTES = 256  # of a frame before and after an intervention
 MARK_STYLES = {"held": "bold cyan", "injected": "bold green", "edited": "bold magenta", "dropped": "bold red",
                "delayed": "yellow", "faulted": "bold yellow"}
+_MASKED = frozenset(b"*\r\n")  # what a masked password is made of
+DROPPED = frozenset({Action.DROP, Action.BLACKHOLE})
 SEVERITY_STYLE = {1: "blue", 2: "yellow", 3: "bold red"}
 UNITS = {0: "servo", 1: "switch", 2: "sensor"}
 
@@ -135,6 +138,7 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
         paired = store.pair[n]
         paired_meaning = store.meaning(paired) if paired >= 0 else ""
         paired_latency = abs(store.t_end[n] - store.t_end[paired]) if paired >= 0 else 0
+        clients = client_latency(store, n, paired) if paired >= 0 else None
         conn = store.conn[n]
         relative = store.relative_s(n)
         marks = list(store.marks.get(n, ()))
@@ -153,11 +157,31 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
     if paired >= 0:
         pairing = Text("Pairing\n", style="bold")
         what = "answers" if obs.direction.sender == "server" else "answered by"
-        pairing.append(f"{what}: {printable(paired_meaning)}\n"
-                       f"latency {latency_text(paired_latency)}  (p jumps there)")
+        pairing.append(f"{what}: {printable(paired_meaning)}\n")
+        if clients is None:
+            pairing.append(f"latency {latency_text(paired_latency)}  (p jumps there)")
+        else:  # the proxy changed the timing: each side waited its own time
+            pairing.append(f"latency for the server {latency_text(paired_latency)}, "
+                           f"for the client {clients}  (p jumps there)")
         parts.append(pairing)
     parts += _bytes_parts(store.raw(n), size)
     return Group(*parts)
+
+
+def client_latency(store: FrameStore, n: int, paired: int) -> str | None:
+    """In the middle, the client's latency for the pair of ``n`` and
+    ``paired`` when the proxy changed their timing (None: it did not, and the
+    client waited as the server did): from when the client sent the request
+    to when it got the answer (``FrameStore.client_t``)."""
+    request, answer = (paired, n) if paired < n else (n, paired)
+    times = store.client_t
+    if any(m.action in DROPPED for m in store.marks.get(answer, ())):
+        return "never: the proxy dropped the answer"
+    if any(m.action is Action.INJECT for m in store.marks.get(request, ())):
+        return "none: the proxy injected the request"
+    if request not in times and answer not in times:
+        return None
+    return latency_text(times.get(answer, store.t_end[answer]) - times.get(request, store.t_end[request]))
 
 
 def _heading(obs: Observation, meaning: str, conn: int, relative: float) -> Text:
@@ -194,18 +218,22 @@ def violations_text(found: Iterable[Violation]) -> Text:
     return violations
 
 
-def marks_text(marks: list[Mark], secret: bool = False) -> Text:
+def marks_text(marks: list[Intervention], secret: bool = False) -> Text:
     """What the proxy in the middle did to the frame, each thing on its own:
     the kind (as the list's glyph), the action and its cause, the frame before
-    and after as escaped text, and how (a delay's length, a hold's number)."""
+    and after as escaped text, and how (a delay's length, a hold's number).
+    ``secret``: the frame is a password shown masked; a mark on a frame that
+    may be one says ``<redacted>`` too."""
     text = Text("What the proxy did\n", style="bold")
     for mark in marks:
-        text.append(f"{GLYPHS[mark.kind]} {mark.action}", style=MARK_STYLES[mark.kind])
-        text.append(f"  {printable(mark.cause)}\n")
+        kind = mark_kind(mark)
+        text.append(f"{GLYPHS[kind]} {mark.action}", style=MARK_STYLES[kind])
+        text.append(f"  {printable(str(mark.cause))}" + (f" (held #{mark.held})" if mark.held else "") + "\n")
+        hidden = secret or (mark.secret and set(mark.before + mark.after) <= _MASKED)
         for label, data in (("before", mark.before), ("after", mark.after)):
-            shown = "<redacted>" if secret and data else escape(data[:MARK_BYTES]) if data else "(nothing)"
+            shown = "<redacted>" if hidden and data else escape(data[:MARK_BYTES]) if data else "(nothing)"
             text.append(f"  {label:<7}", style="dim")
-            text.append(shown + ("…" if len(data) > MARK_BYTES else "") + "\n")
+            text.append(shown + ("…" if len(data) > MARK_BYTES and not hidden else "") + "\n")
         if mark.detail:
             text.append(f"  {printable(mark.detail)}\n", style="dim")
     return text

@@ -6,6 +6,14 @@ per connection over the raw bytes, exactly as ``whiztap analyze`` and ``cat``
 do, and its events go into the ``FrameStore``.  The panes read summaries from
 here (connections, latencies, values per channel), under the same lock the
 feeder holds, so they never see half of a batch.
+
+The counts (violations, by connection and in all) are ``analyze``'s verdict
+(``whiztap.analyzer.analysis.verdict``) on the same events, the one
+``record``'s summary and the control API's ``/state`` give.  Without the
+middle it is the store's own analyzer's.  In the middle the store shows the
+conversation as the server had it (``middle.py``) while a ``Judge`` judges
+each side by what it sent and received, as ``analyze`` does, fed the events
+as the file has them.
 """
 
 from __future__ import annotations
@@ -13,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from whiztap.analyzer.analysis.analyzer import Analyzer, Series
+from whiztap.analyzer.analysis.verdict import Judge, Verdict, verdict_of
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.stats import LatencyStats
@@ -33,8 +42,13 @@ class ConnectionRow:
     mode: str
     handshake: str
     frames: int
-    violations: int
+    violations: int  # as analyze counts them (in the middle, an open one as if it ended now)
     state: str  # "open", or who closed it
+
+
+def verdict_text(verdict: Verdict) -> str:
+    """The status line's counts: the verdict so far, as ``analyze`` would give it."""
+    return f"{'PASS' if verdict.passed else 'FAIL'}: {verdict.violations:,} violations ({verdict.words()})"
 
 
 class TrafficModel:
@@ -45,11 +59,17 @@ class TrafficModel:
         self.lock = self.store.lock
         self.finished = False  # no more traffic will come (the file ended, the proxy stopped)
         self.middle: MiddleView | None = None  # the proxy stands in the middle: see middle.py
+        self.judge: Judge | None = None  # in the middle: analyze's judging (without it, the analyzer's)
+        self._redact_delivered = False
+        self._settings = (checksum_rule, limits, name)
 
     def in_the_middle(self, redact: bool) -> None:
         """From now on, traffic is that of a proxy in the middle (a recording
         whose metadata says so, or the live proxy with its controller)."""
         self.middle = MiddleView(self.analyzer.receive, self.store, redact)
+        checksum_rule, limits, name = self._settings
+        self.judge = Judge(checksum_rule, limits, middle=True, name=name)
+        self._redact_delivered = redact
 
     # -- feeding (one worker thread) --------------------------------------------------------
 
@@ -57,6 +77,9 @@ class TrafficModel:
         with self.lock:
             if self.middle is not None:
                 self.middle.receive(event)
+                if self._redact_delivered and type(event) is Delivered and event.secret:
+                    event = event._replace(data=b"*" * len(event.data))  # as the file has it
+                self.judge.receive(event)  # type: ignore[union-attr]
             elif type(event) not in _MIDDLE_ONLY:  # they mean something only in the middle
                 self.store.add(event.conn, self.analyzer.receive(event))
 
@@ -65,6 +88,8 @@ class TrafficModel:
         with self.lock:
             for conn, events in self.analyzer.close_all():
                 self.store.add(conn, events)
+            if self.judge is not None:
+                self.judge.finish()
             self.finished = True
 
     # -- summaries (the screen) ----------------------------------------------------------------
@@ -73,31 +98,61 @@ class TrafficModel:
         analyzer = self.analyzer
         rows = []
         with self.lock:
+            judged = self._judged_violations()
             for conn, summary in sorted(analyzer.summaries.items()):
                 session = analyzer.sessions.get(conn)
+                violations = judged.get(conn, 0)
                 if session is not None:  # still open: the live session knows more than the summary
                     mode, handshake = str(session.mode), session.handshake_outcome
                     frames = sum(session.counts.values())
-                    violations = sum(session.violation_counts.values())
+                    if self.judge is None:
+                        violations = sum(session.violation_counts.values())
                     state = "open"
                 else:
                     mode, handshake = summary.mode, summary.handshake
                     frames = sum(summary.frames.values())
-                    violations = sum(summary.violations.values())
                     state = f"closed by {summary.closed_by}" if summary.closed_by else "ended"
                 rows.append(ConnectionRow(conn, summary.client, summary.upstream, mode, handshake,
                                           frames, violations, state))
         return rows
 
+    def _judged_violations(self) -> dict[int, int]:
+        """Violations by connection as ``analyze`` counts them; in the middle,
+        an open connection's as if its traffic ended now."""
+        judged = self.judge.analyzer if self.judge is not None else self.analyzer
+        counts = {conn: sum(s.violations.values()) for conn, s in judged.summaries.items()}
+        for conn, settled in judged.open_judgements():
+            counts[conn] = counts.get(conn, 0) + len(settled.verdicts) + sum(settled.more.values())
+        return counts
+
+    def verdict(self) -> Verdict:
+        """What ``analyze`` would say of the traffic so far (open connections
+        in the middle judged as if they ended now)."""
+        with self.lock:
+            if self.judge is not None:
+                return self.judge.verdict()
+            result = self.analyzer.result
+            return verdict_of(result.side_counts, result.effect_counts, len(self.analyzer.summaries))
+
     def latencies(self) -> dict[str, LatencyStats]:
-        """Latency by request title over every session, open or closed."""
+        """Latency by request title over every session, open or closed (in
+        the middle: the server's, from what it received to what it sent)."""
+        return self.both_latencies()[0]
+
+    def both_latencies(self) -> tuple[dict[str, LatencyStats], dict[str, LatencyStats]]:
+        """The server's and the client's latency by request title, as
+        ``analyze`` reports them; the client's only in the middle (else empty:
+        they are the server's)."""
         merged: dict[str, LatencyStats] = {}
         with self.lock:
+            if self.judge is not None:
+                server, client = self.judge.latencies()
+                return dict(sorted(server.items())), dict(sorted(client.items()))
             sources = [self.analyzer.result.latencies] + [s.latencies for s in self.analyzer.sessions.values()]
             for source in sources:
                 for title, stats in source.items():
                     merged.setdefault(title, LatencyStats()).merge(stats)
-        return dict(sorted(merged.items()))
+        return dict(sorted(merged.items())), {}
 
     def channel_values(self) -> dict[tuple[str, int], list[tuple[int, float]]]:
         """("sensor" | "servo", channel) -> (t_ns, value) points, down-sampled."""

@@ -14,11 +14,13 @@ from textual.app import ComposeResult
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Label, Sparkline, Static
 
+from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.tui.detail import latency_text
 from whiztap.tui.model import TrafficModel
 
 LIVE_WINDOW_S = 60  # live: the last minute of frames per second
 PERCENTILES = (50, 95, 99)
+SAME_NS = 1_000_000  # latencies closer than this are the same: the proxy's own hop, not a change of timing
 
 
 class ChannelPlot(Horizontal):
@@ -45,6 +47,31 @@ class ChannelPlot(Horizontal):
         self.query_one(Sparkline).data = values
         if values:
             self.query_one(".value", Label).update(f"{values[-1]:g} ({min(values):g}-{max(values):g})")
+
+
+def _rows(out: Text, latencies: dict[str, LatencyStats]) -> None:
+    for title, stats in latencies.items():
+        out.append(f"{title}", style="bold")
+        out.append(f"  {stats.count:,} answered\n", style="dim")
+        cells = [f"p{p} {latency_text(stats.percentile(p))}" for p in PERCENTILES]
+        out.append("  " + "  ".join(cells + [f"max {latency_text(stats.max)}"]) + "\n")
+    if not latencies:
+        out.append("  no answered request yet\n", style="dim")
+
+
+def _differ(server: dict[str, LatencyStats], client: dict[str, LatencyStats]) -> bool:
+    """The proxy changed the timing: a request kind's latencies differ between
+    the sides by more than ``SAME_NS`` at a percentile shown (or one side has
+    answers the other has not)."""
+    if server.keys() != client.keys():
+        return True
+    for title, s in server.items():
+        c = client[title]
+        if s.count != c.count or abs(s.max - c.max) > SAME_NS:
+            return True
+        if any(abs(s.percentile(p) - c.percentile(p)) > SAME_NS for p in PERCENTILES):
+            return True
+    return False
 
 
 class StatsPane(VerticalScroll):
@@ -90,16 +117,21 @@ class StatsPane(VerticalScroll):
         self._plots()
 
     def _latency_table(self) -> Text:
-        """Two lines per request kind: narrow enough for the side pane."""
-        latencies = self.model.latencies()
-        if not latencies:
+        """Two lines per request kind: narrow enough for the side pane.  In the
+        middle, where the proxy changed the timing, the server's latency (from
+        the request it received to the answer it sent) and the client's (from
+        the request it sent to the answer it got), each labelled."""
+        server, client = self.model.both_latencies()
+        if not server and not client:
             return Text("no answered request yet", style="dim")
         out = Text()
-        for title, stats in latencies.items():
-            out.append(f"{title}", style="bold")
-            out.append(f"  {stats.count:,} answered\n", style="dim")
-            cells = [f"p{p} {latency_text(stats.percentile(p))}" for p in PERCENTILES]
-            out.append("  " + "  ".join(cells + [f"max {latency_text(stats.max)}"]) + "\n")
+        if client and _differ(server, client):
+            out.append("the server's (what it received → what it sent)\n", style="italic")
+            _rows(out, server)
+            out.append("the client's (what it sent → what it got)\n", style="italic")
+            _rows(out, client)
+        else:
+            _rows(out, server)
         out.rstrip()
         return out
 

@@ -26,7 +26,7 @@ from whiztap.analyzer.protocol.describe import fields, meaning
 from whiztap.analyzer.protocol.framing import Item, ItemKind, Unframed
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
-from whiztap.tui.marks import Mark
+from whiztap.analyzer.traffic import Intervention
 
 NS = 1_000_000_000
 KINDS: tuple[ItemKind, ...] = tuple(ItemKind)
@@ -64,7 +64,10 @@ class FrameStore:
         self._by_conn: dict[int, array] = {}  # conn -> frame id by session index
         self._second = -1  # the second the last frame fell in, and its counts
         self._counts = [0, 0]
-        self.marks: dict[int, list[Mark]] = {}  # what the proxy in the middle did to a frame
+        self.marks: dict[int, list[Intervention]] = {}  # what the proxy in the middle did to a frame
+        # in the middle, where the proxy changed a frame's timing: when its client sent it (c2s) or got it
+        # (s2c), the row's own time being the server's
+        self.client_t: dict[int, int] = {}
         self.marked: list[int] = []  # frames given a mark after they were stored (lines to redraw)
 
     # -- writing (the ingest worker) ------------------------------------------------------
@@ -147,9 +150,10 @@ class FrameStore:
             self.start_ns = self.t_start.get(first, self.t_end[first])
         self.count = n
 
-    def add_unseen(self, conn: int, direction: Direction, kind: ItemKind, raw: bytes, t_ns: int, mark: Mark) -> int:
-        """A frame no session saw, with what happened to it: one the proxy
-        dropped before the server got it, or injected toward the client.
+    def add_unseen(self, conn: int, direction: Direction, kind: ItemKind, raw: bytes, t_ns: int,
+                   marks: list[Intervention]) -> int:
+        """A frame no session saw, with what happened to it (``marks``): one the
+        proxy dropped before the server got it, or injected toward the client.
         It pairs with nothing; its row id is returned."""
         n = self.count
         self.flags.append(KIND_CODE[kind] | (S2C_BIT if direction is Direction.S2C else 0))
@@ -160,13 +164,13 @@ class FrameStore:
         self.pair.append(-1)
         self.raws += raw[:self.raw_cap]
         self.raw_end.append(len(self.raws))
-        self.marks[n] = [mark]
+        self.marks[n] = marks
         if self.start_ns is None:
             self.start_ns = t_ns
         self.count = n + 1
         return n
 
-    def mark(self, n: int, mark: Mark) -> None:
+    def mark(self, n: int, mark: Intervention) -> None:
         """Add what the proxy did to frame ``n`` (its line is drawn again)."""
         self.marks.setdefault(n, []).append(mark)
         self.marked.append(n)
@@ -286,6 +290,6 @@ class FrameStore:
         total = sum(c.buffer_info()[1] * c.itemsize for c in columns)
         total += len(self.flags) + len(self.choice) + len(self.raws)
         total += sum(a.buffer_info()[1] * a.itemsize for a in self._by_conn.values())
-        sparse = len(self.t_start) + len(self.reasons) + len(self.violations) + len(self.capped)
+        sparse = len(self.t_start) + len(self.reasons) + len(self.violations) + len(self.capped) + len(self.client_t)
         return total + 100 * sparse + 8 * len(self.violating)
 

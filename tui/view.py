@@ -14,6 +14,7 @@ from bisect import bisect_left, insort
 from dataclasses import replace
 
 from whiztap.analyzer.analysis.item_filter import ItemFilter
+from whiztap.tui.marks import mark_kind
 from whiztap.tui.store import FrameStore
 
 SLICE = 4096  # frames judged between looks at whether the filter was replaced
@@ -25,7 +26,7 @@ def with_connection(item_filter: ItemFilter, conn: int | None) -> ItemFilter:
 
 def _marked(store: FrameStore, n: int, kinds: frozenset[str]) -> bool:
     """Frame ``n`` has a mark of one of ``kinds`` (``held``, ``injected``, ...)."""
-    return any(mark.kind in kinds for mark in store.marks.get(n, ()))
+    return any(mark_kind(mark) in kinds for mark in store.marks.get(n, ()))
 
 
 class FrameView:

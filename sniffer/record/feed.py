@@ -143,6 +143,7 @@ class WriterProcess:
         self._behind = False
         self.error: str | None = None
         self.summary: dict | None = None
+        self.verdict: dict | None = None  # in the middle: the writer's latest verdict (summary.verdict_dict)
         self.ready: dict = {}
         self._batch = bytearray()
         self._batch_bytes: dict[int, int] = {}  # connection -> bytes of its reads in the batch
@@ -348,6 +349,8 @@ class WriterProcess:
             self.fail(message["message"])
         elif kind == "summary":
             self.summary = message
+        elif kind == "verdict":
+            self.verdict = {k: v for k, v in message.items() if k != "type"}
 
     def _status_closed(self) -> None:
         if self.summary is None and self._ready is not None and self._ready.done():

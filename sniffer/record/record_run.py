@@ -137,6 +137,8 @@ class Recording:
         writer.on_violation = self._violation
         writer.on_error = lambda message: self.stopped.set()
         writer.on_file = lambda path: self.echo(f"finished {path}")
+        if self.controller is not None:  # GET /state's verdict: the writer's, as analyze will judge the file
+            self.controller.verdict = lambda: writer.verdict
         self.consumers.add(writer)
         for consumer in self._extra:
             self.consumers.add(consumer)

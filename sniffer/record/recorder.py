@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any, NamedTuple
 
+from whiztap.analyzer.analysis.verdict import Judge
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.recording.encode import (
@@ -77,6 +78,7 @@ from whiztap.analyzer.traffic import (
     UpstreamFailed,
     to_json,
 )
+from whiztap.sniffer.record.summary import verdict_dict
 from whiztap.sniffer.record.writer import RecordingFile
 
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -117,11 +119,13 @@ class Summary:
     violations: Counter[str] = field(default_factory=Counter)  # by severity
     messages: int = 0
     files: list[str] = field(default_factory=list)
+    verdict: dict | None = None  # in the middle: analyze's verdict (summary.verdict_dict), ``violations`` its counts
 
     def as_dict(self) -> dict:
         return {"connections": self.connections, "upstream_failures": self.upstream_failures,
                 "frames": dict(self.frames), "bytes": dict(self.bytes),
-                "violations": dict(self.violations), "messages": self.messages, "files": self.files}
+                "violations": dict(self.violations), "messages": self.messages, "files": self.files,
+                "verdict": self.verdict}
 
 
 class Recorder:
@@ -131,12 +135,17 @@ class Recorder:
 
     def __init__(self, file: RecordingFile, *, keep_secrets: bool = False,
                  checksum_rule: str = DEFAULT_CHECKSUM_RULE, limits: Limits = Limits(),
-                 on_violation: ViolationHook | None = None) -> None:
+                 on_violation: ViolationHook | None = None, middle: bool = False) -> None:
+        """``middle``: the proxy stands in the middle (the metadata says so), so
+        the summary's violations are ``analyze``'s verdict (``verdict``)."""
         self.file = file
         self.keep_secrets = keep_secrets
         self.on_violation = on_violation
         self.summary = Summary()
         self._traffic = Traffic(partial(limits.session, checksum_rule))
+        # In the middle, analyze's judging of what the file gets (each side by what it sent and
+        # received); without it, the session's violations are analyze's verdict already.
+        self.judge = Judge(checksum_rule, limits, middle=True) if middle else None
         self._conns: dict[int, _Conn] = {}  # open, as far as the input goes
         self._live: dict[int, _Conn] = {}  # open, as far as the file goes
         # None with --keep-secrets; a queued record is a _ReadNote, or the work
@@ -209,6 +218,10 @@ class Recorder:
         # every connection is closed, so nothing waits any more
         stopped = RecordingStopped(t, "recorder", detail)
         self._then(0, lambda: self._write_event(stopped))
+        if self.judge is not None:  # the connections are judged as analyze will judge the file
+            verdict = self.judge.finish()
+            self.summary.violations = Counter(verdict.by_severity)
+            self.summary.verdict = self.verdict()
         self.summary.messages = self.file.messages
         self.summary.frames.update({d.value: n for d, n in self._frame_counts.items()})
         self.summary.bytes.update({d.value: n for d, n in self._bytes.items()})
@@ -262,6 +275,8 @@ class Recorder:
             spans = [(0, len(data))] if masked else None
             self.file.write_late(TOPIC_DELIVERED, e.t_ns, encode_read(e.conn, DIR_TEXT[e.direction], e.t_ns, offset,
                                                                        data, spans))
+            if self.judge is not None:  # as the file has it
+                self.judge.receive(e._replace(data=data) if masked else e)
         return work
 
     def _input_intervention(self, e: Intervention) -> Work:
@@ -269,6 +284,8 @@ class Recorder:
             self._at(e.t_ns)
             self.file.write_late(TOPIC_INTERVENTIONS, e.t_ns,
                                  encode(intervention_message(e, not self.keep_secrets)))
+            if self.judge is not None:
+                self.judge.receive(e)
         return work
 
     def _input_closed(self, e: Closed) -> Work:
@@ -318,23 +335,42 @@ class Recorder:
         self.file.write(TOPIC_READS, t, encode_read(conn, DIR_TEXT[direction], t, offset, data, spans))
         c.written[direction] = offset + len(data)  # after: a part that begins before the read does not count it
         self._observe_all(conn, c, self._traffic.receive(read))
+        if self.judge is not None:
+            self.judge.receive(read)
 
     def _write_event(self, event: ConnectionEvent) -> None:
         t = self._now = event.t_ns
         self.file.write(TOPIC_EVENTS, t, encode(to_json(event)))
 
+    def verdict(self) -> dict | None:
+        """In the middle, ``analyze``'s verdict on what is written so far (``summary.verdict_dict``)."""
+        judge = self.judge
+        if judge is None:
+            return None
+        analyzer = judge.analyzer
+        return verdict_dict(judge.verdict(), len(analyzer.sessions), sum(analyzer.result.interventions.values()))
+
+    def _judged(self, e: TrafficEvent) -> None:
+        """A connection event written: the judge takes it in the same place."""
+        if self.judge is not None:
+            self.judge.receive(e)
+
     def _opened(self, c: _Conn, e: Opened) -> None:
         self._at(e.t_ns)
         self._live[e.conn] = c
         self._write_event(e)
+        if self.judge is not None:
+            self.judge.receive(e)
 
     def _upstream_failed(self, c: _Conn, e: UpstreamFailed) -> None:
         self._observe_all(e.conn, c, self._traffic.receive(e))  # the server will never speak
+        self._judged(e)
         self._write_event(e)
 
     def _half_closed(self, c: _Conn, e: HalfClosed) -> None:
         self._at(e.t_ns)
         self._observe_all(e.conn, c, self._traffic.receive(e))
+        self._judged(e)
         # after what the session made of the side's last bytes: the file keeps each stream's order
         self._write_event(e)
 
@@ -344,6 +380,7 @@ class Recorder:
         # The framer cannot know what the missing bytes were: it finishes what it
         # has and starts a fresh session model after the hole.
         self._observe_all(e.conn, c, self._traffic.receive(e))
+        self._judged(e)
         self._traffic.session(e.conn)
         c.framed = dict(c.written)
 
@@ -352,6 +389,7 @@ class Recorder:
         del self._live[e.conn]
         session = self._traffic.sessions[e.conn]
         self._observe_all(e.conn, c, self._traffic.receive(e))
+        self._judged(e)
         self._write_event(Closed(e.conn, e.t_ns, e.by, e.detail, c.received[C2S], c.received[S2C],
                                  session.mode.value, session.handshake_outcome))
 

@@ -1,11 +1,19 @@
 """How a recording is told to the person running it: the wall-clock time of a
-violation seen live, and the lines printed when a recording ends (``record``
-and ``capture`` print the same summary)."""
+violation seen live, the lines printed when a recording ends (``record``
+and ``capture`` print the same summary), and the verdict as plain data.
+
+In the middle the verdict is ``whiztap analyze``'s own, live: the writer's
+``Recorder`` feeds a ``Judge`` (``whiztap.analyzer.analysis.verdict``) the
+events it writes, as the file has them, reports ``verdict_dict`` to the proxy
+as it changes (``GET /state`` serves the latest) and closes with it.
+"""
 
 from __future__ import annotations
 
 import datetime
+from typing import Any
 
+from whiztap.analyzer.analysis.verdict import Verdict
 from whiztap.analyzer.protocol.text import human_bytes
 
 
@@ -14,15 +22,36 @@ def clock_text(t_ns: int) -> str:
     return datetime.datetime.fromtimestamp(t_ns / 1e9).strftime("%H:%M:%S.%f")
 
 
+def verdict_dict(verdict: Verdict, open_connections: int, interventions: int) -> dict[str, Any]:
+    """A verdict as plain data (``GET /state``'s ``verdict``, the closing
+    summary's): whether the traffic so far passes as ``analyze`` decides it
+    (``failing``: why not), violations by severity, side and rule, the
+    interventions' effects by severity (neither side's), the connections
+    seen and those still open (judged as if they ended now), the interventions."""
+    return {"passed": verdict.passed, "failing": verdict.failing, "threshold": str(verdict.threshold),
+            "violations": dict(verdict.by_severity), "sides": dict(verdict.by_side), "rules": dict(verdict.by_rule),
+            "effects": dict(verdict.effects_by_severity), "connections": verdict.connections,
+            "open": open_connections, "interventions": interventions}
+
+
 def summary_lines(summary: dict, what: str) -> list[str]:
     """The lines printed when a recording ends; ``summary``: the writer's (with
-    its files' total ``size``), ``what``: 'recorded', 'captured'."""
+    its files' total ``size``), ``what``: 'recorded', 'captured'.  The
+    violations are those ``whiztap analyze`` counts in the file: in the
+    middle, its verdict (``verdict.py``)."""
     frames, nbytes, violations = summary["frames"], summary["bytes"], summary["violations"]
     files = summary["files"]
     where = files[0] if len(files) == 1 else f"{len(files)} files ({files[0]} ... {files[-1]})" if files else "no file"
     per_dir = "; ".join(f"{d} {frames.get(d, 0)} frames {human_bytes(nbytes.get(d, 0))}" for d in ("c2s", "s2c"))
     counts = ", ".join(f"{violations.get(s, 0)} {s}" for s in ("error", "warning", "info"))
-    return [f"{what} {summary['connections']} connection(s) into {where} ({human_bytes(summary['size'])}, "
-            f"{summary['messages']} messages)",
-            f"  {per_dir}",
-            f"  violations: {counts}"]
+    lines = [f"{what} {summary['connections']} connection(s) into {where} ({human_bytes(summary['size'])}, "
+             f"{summary['messages']} messages)",
+             f"  {per_dir}",
+             f"  violations: {counts}"]
+    verdict = summary.get("verdict")
+    if verdict is not None:  # in the middle: the counts are analyze's verdict, each side judged on its own
+        effects = sum(verdict["effects"].values())
+        lines.append(f"  in the middle: {verdict['interventions']} intervention(s)"
+                     + (f", {effects} effect(s) of them (no side's violation)" if effects else "")
+                     + f"; {'PASS' if verdict['passed'] else 'FAIL'}, as whiztap analyze judges the file")
+    return lines

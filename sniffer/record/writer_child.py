@@ -43,6 +43,9 @@ from whiztap.sniffer.record.feed import (
     WriterError,
 )
 
+VERDICT_S = 0.25  # the verdict is reported at most this often
+
+
 def _say(message: dict) -> None:
     """One status line to the proxy.  A proxy that is gone (killed on its own)
     hears nothing more, but the recording must still be finished: the first
@@ -92,6 +95,25 @@ def _apply(recorder, buf: bytearray) -> RecordingStopped | None:  # noqa: ANN001
         return None
     finally:
         del buf[:pos]
+
+
+class _VerdictReports:
+    """In the middle, the verdict so far (``Recorder.verdict``) goes to the
+    proxy when it changes, at most every ``VERDICT_S``: what ``GET /state`` serves."""
+
+    def __init__(self, recorder) -> None:  # noqa: ANN001 - a Recorder
+        self.recorder = recorder
+        self.last: dict | None = None
+        self.at = 0.0
+
+    def report(self, now: float) -> None:
+        if self.recorder.judge is None or now - self.at < VERDICT_S:
+            return
+        self.at = now
+        current = self.recorder.verdict()
+        if current != self.last:
+            self.last = current
+            _say({"type": "verdict", **current})
 
 
 def _ignore_signals(on_term: Callable[[int, object], None]) -> None:
@@ -146,8 +168,10 @@ def _run(config: dict[str, Any]) -> int:
         return EXIT_WRITE_ERROR
     recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
                         checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
-                        on_violation=_violation_report if config.get("analyze") else None)
+                        on_violation=_violation_report if config.get("analyze") else None,
+                        middle=config["metadata"].get("middle") == "yes")
     reported = 0
+    verdict = _VerdictReports(recorder)
     try:
         recorder.start(config["start_ns"], **config.get("started", {}))
         _say({"type": "ready", "path": file.current_path, **ready})
@@ -161,6 +185,7 @@ def _run(config: dict[str, Any]) -> int:
                 buf += chunk
                 stop = _apply(recorder, buf)
             recorder.tick(time.time_ns())
+            verdict.report(time.monotonic())
             for path in file.finished[reported:]:
                 _say({"type": "file", "path": path})
             reported = len(file.finished)
