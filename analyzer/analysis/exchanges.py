@@ -6,11 +6,18 @@ order with their offsets and times, the recorded answer paired to each request
 by the session model, the server's handshake, and the client's raw reads (for
 replays that re-send the original read boundaries).  This module rebuilds them
 from a recording's raw reads, as every reader of recordings does.
+
+A recording made with the proxy in the middle also says what the client
+received (``/tcp/delivered``), which faults may have made differ from what the
+server sent: each item also has the answer the *client* got (``received``,
+paired by a session over what the client sent and what it received), and
+each connection the handshake words it got.  Elsewhere they are the same.
 """
 
 from __future__ import annotations
 
 import bisect
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,9 +33,10 @@ from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.recording.format import METADATA_NAME
 from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.analyzer.recording.sets import RecordingSet, scan_set
-from whiztap.analyzer.traffic import Closed, Data, Opened, Traffic
+from whiztap.analyzer.traffic import Closed, Data, Delivered, Opened, Traffic
 
 C2S, S2C = Direction.C2S, Direction.S2C
+DEFAULT_ANSWER_TIMEOUT_NS = 5_000_000_000
 
 
 class ClientRead(NamedTuple):
@@ -46,8 +54,9 @@ class ClientItem:
     obs: Observation
     offset: int  # stream offset of its first byte
     t_ns: int  # when the read holding its last byte arrived
-    answer: Observation | None = None
+    answer: Observation | None = None  # what the server sent
     at_rest: bool = False  # the answer is a servo position reached and held
+    received: Observation | None = None  # what the client got (in the middle; elsewhere the answer)
 
     @property
     def end(self) -> int:
@@ -61,6 +70,7 @@ class RecordedConnection:
     client: str = ""
     mode: Mode = Mode.UNKNOWN
     handshake: list[Observation] = field(default_factory=list)  # the server's handshake items
+    received_handshake: list[Observation] = field(default_factory=list)  # as the client got them
     items: list[ClientItem] = field(default_factory=list)  # every client item, stream order
     reads: list[ClientRead] = field(default_factory=list)  # the client's reads
 
@@ -108,6 +118,10 @@ class _Builder:
         self.pending: list[tuple[Observation, int]] = []  # client items: (obs, offset)
         self.answers: dict[int, tuple[Observation, bool]] = {}  # request index -> (answer, at rest)
         self.motion = ServoMotion()
+        self.middle = False  # the recording has what the client received
+        self.sent: dict[object, deque[int]] = defaultdict(deque)  # client item -> its request index
+        self.got: dict[int, Observation] = {}  # request index (the one session's) -> what the client got
+        self._mine: dict[int, int] = {}  # the client's session's request index -> the one session's
 
     def read(self, r: Data) -> None:
         direction = r.direction
@@ -126,11 +140,29 @@ class _Builder:
             self.framed[obs.direction] = offset + len(obs.item.raw)
             if obs.direction is C2S:
                 self.pending.append((obs, offset))
+                if self.middle:
+                    self.sent[obs.item].append(obs.index)
                 self.motion.observe(obs)
             elif obs.item.kind is ItemKind.HANDSHAKE:
                 self.rec.handshake.append(obs)
             elif obs.answers is not None:
                 self.answers[obs.answers.index] = (obs, self.motion.at_rest(obs))
+
+    def observe_received(self, events: list) -> None:
+        """The events of the session over what the client sent and what it
+        received: its answers, paired with the client's items (the same
+        items, framed alike, as the one session's)."""
+        for obs in events:
+            if not isinstance(obs, Observation):
+                continue
+            if obs.direction is C2S:
+                indexes = self.sent.get(obs.item)
+                if indexes:
+                    self._mine[obs.index] = indexes.popleft()
+            elif obs.item.kind is ItemKind.HANDSHAKE:
+                self.rec.received_handshake.append(obs)
+            elif obs.answers is not None and obs.answers.index in self._mine:
+                self.got[self._mine.pop(obs.answers.index)] = obs
 
     def finish(self, mode: Mode) -> RecordedConnection:
         rec = self.rec
@@ -140,7 +172,10 @@ class _Builder:
             i = bisect.bisect_left(self.read_ends, end)
             t = self.read_times[min(i, len(self.read_times) - 1)] if self.read_times else obs.item.t_end_ns
             answer, at_rest = self.answers.get(obs.index, (None, False))
-            rec.items.append(ClientItem(obs, offset, t, answer, at_rest))
+            received = self.got.get(obs.index) if self.middle else answer
+            rec.items.append(ClientItem(obs, offset, t, answer, at_rest, received))
+        if not self.middle:
+            rec.received_handshake = list(rec.handshake)
         return rec
 
 
@@ -152,41 +187,80 @@ def _checksum_rule(metadata: dict[str, dict[str, str]]) -> str:
         return DEFAULT_CHECKSUM_RULE
 
 
-def load_exchanges(recording) -> RecordedSessions:  # noqa: ANN001 - a RecordingSet or a path
-    """Read a recording (all parts of a split one, as one); raises OSError, or
-    RecordingError for a file that is no complete recording (one line)."""
+def load_exchanges(recording, answer_timeout_ns: int = DEFAULT_ANSWER_TIMEOUT_NS) -> RecordedSessions:  # noqa: ANN001
+    """Read a recording (a ``RecordingSet`` or a path; all parts of a split
+    one, as one); raises OSError, or RecordingError for a file that is no
+    complete recording (one line).  ``answer_timeout_ns``: how long the
+    client waited for an answer, for pairing what it received (in the
+    middle, where an answer it never got leaves its request unanswered; a
+    replay passes its ``--timeout``, so both pair alike)."""
     if not isinstance(recording, RecordingSet):
         recording = RecordingSet((Path(recording),))
     metadata = read_metadata(str(recording.name))
-    rule = _checksum_rule({METADATA_NAME: metadata})
-    builders: dict[int, _Builder] = {}
-    modes: dict[int, Mode] = {}  # each connection's mode, when its session ends
-    traffic = Traffic(lambda: Session(rule), lambda conn, session: modes.__setitem__(conn, session.mode))
-    done: list[RecordedConnection] = []
-    clients: dict[int, str] = {}
-    start_ns: int | None = None
+    reader = _Reader(_checksum_rule({METADATA_NAME: metadata}), metadata.get("middle") == "yes", answer_timeout_ns)
     for event in scan_set(recording):
+        reader.receive(event)
+    connections = sorted((c for c in reader.finish() if c.reads or c.handshake), key=lambda c: c.conn)
+    return RecordedSessions(str(recording.name), metadata, reader.start_ns or 0, connections)
+
+
+class _Reader:
+    """A recording's traffic events into each connection's ``_Builder``: one
+    session over what each side sent, and, in the middle, one over what the
+    client sent and what it received (``/tcp/delivered`` toward it)."""
+
+    def __init__(self, rule: str, middle: bool, answer_timeout_ns: int) -> None:
+        self.middle = middle
+        self.builders: dict[int, _Builder] = {}
+        self.modes: dict[int, Mode] = {}  # each connection's mode, when its session ends
+        self.traffic = Traffic(lambda: Session(rule), lambda conn, session: self.modes.__setitem__(conn, session.mode))
+        self.received = Traffic(lambda: Session(rule, answer_timeout_ns)) if middle else None
+        self.done: list[RecordedConnection] = []
+        self.clients: dict[int, str] = {}
+        self.start_ns: int | None = None
+
+    def receive(self, event) -> None:  # noqa: ANN001 - a traffic event
         conn, kind = event.conn, type(event)
         if kind is Opened:
-            clients[conn] = event.client  # type: ignore[union-attr]
-            builders[conn] = _Builder(conn, event.t_ns)
-            builders[conn].rec.client = clients[conn]
-            continue
-        builder = builders.get(conn)
+            self.clients[conn] = event.client
+            builder = self.builders[conn] = _Builder(conn, event.t_ns)
+            builder.rec.client = self.clients[conn]
+            builder.middle = self.middle
+            return
+        builder = self.builders.get(conn)
         if kind is Data:
-            if start_ns is None:
-                start_ns = event.t_ns
+            if self.start_ns is None:
+                self.start_ns = event.t_ns
             if builder is None:  # a connection continued from a part not given
-                builder = builders[conn] = _Builder(conn, event.t_ns)
-                builder.rec.client = clients.get(conn, "")
-            builder.read(event)  # type: ignore[arg-type]
+                builder = self.builders[conn] = _Builder(conn, event.t_ns)
+                builder.rec.client = self.clients.get(conn, "")
+                builder.middle = self.middle
+            builder.read(event)
         elif builder is None:
-            continue
-        builder.observe(traffic.receive(event))
+            return
+        if kind is not Delivered:
+            builder.observe(self.traffic.receive(event))
+        if self.received is not None:
+            self._receive_received(builder, event)
         if kind is Closed:
-            done.append(builders.pop(conn).finish(modes.pop(conn, Mode.UNKNOWN)))
-    for conn, events in traffic.finish():
-        builders[conn].observe(events)
-    done += [b.finish(modes.pop(conn, Mode.UNKNOWN)) for conn, b in builders.items()]
-    connections = sorted((c for c in done if c.reads or c.handshake), key=lambda c: c.conn)
-    return RecordedSessions(str(recording.name), metadata, start_ns or 0, connections)
+            self.done.append(self.builders.pop(conn).finish(self.modes.pop(conn, Mode.UNKNOWN)))
+
+    def _receive_received(self, builder: _Builder, event) -> None:  # noqa: ANN001
+        """What the client sent, and what it received instead of what the server sent."""
+        kind = type(event)
+        if kind is Delivered:
+            if event.direction is not S2C:
+                return
+            event = Data(event.conn, S2C, event.t_ns, event.data)
+        elif kind is Data and event.direction is S2C:
+            return
+        builder.observe_received(self.received.receive(event))  # type: ignore[union-attr]
+
+    def finish(self) -> list[RecordedConnection]:
+        if self.received is not None:
+            for conn, events in self.received.finish():
+                if conn in self.builders:
+                    self.builders[conn].observe_received(events)
+        for conn, events in self.traffic.finish():
+            self.builders[conn].observe(events)
+        return self.done + [b.finish(self.modes.pop(conn, Mode.UNKNOWN)) for conn, b in self.builders.items()]

@@ -25,14 +25,15 @@ def _find(path: str):  # noqa: ANN202 - a RecordingSet, imported lazily
     return one_recording((path,))
 
 
-def _load(path: str, recording=None):  # noqa: ANN001, ANN202 - RecordedSessions, imported lazily
+def _load(path: str, recording=None, timeout: float = 5.0):  # noqa: ANN001, ANN202 - RecordedSessions, imported lazily
     """The recording's exchanges (``recording``: what ``_find`` found for
-    ``path``), or a one-line error (exit status 2)."""
+    ``path``; ``timeout``: how long its client waited for an answer), or a
+    one-line error (exit status 2)."""
     from whiztap.analyzer.analysis.exchanges import load_exchanges
     from whiztap.analyzer.recording.scan import RecordingError
 
     try:
-        return load_exchanges(recording or _find(path))
+        return load_exchanges(recording or _find(path), int(timeout * 1e9))
     except OSError as e:
         fail(f"{path}: cannot read ({e.strerror or e})")
     except (RecordingError, KeyError) as e:  # KeyError: a message without a field the format requires
@@ -88,8 +89,9 @@ def _password(text: str | None) -> bytes | None:
               help="Only client items of this kind; repeatable (see docs/replay.md for the names).")
 @click.option("--faults-from-recording", "from_recording", is_flag=True,
               help="Re-apply the faults the recording was made under (those given to 'whiztap record' and "
-                   "those added while it ran), through a proxy in the middle, with its seed.  Default: no "
-                   "faults.  Holds, hand edits, injections and scripts are not re-applied.")
+                   "those added while it ran), through a proxy in the middle, with its seed, and compare "
+                   "the answers with what the recorded client received.  Default: no faults.  Holds, hand "
+                   "edits, injections and scripts are not re-applied.")
 @click.option("--fault", "faults", type=FaultSpecParam(), multiple=True,
               help="A fault to apply through a proxy in the middle, as 'whiztap record --fault' takes it "
                    "(e.g. 'drop dir:s2c kind:response every:2'); repeatable, and after the recording's "
@@ -114,7 +116,11 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     """Replay a recording's client side against a server and compare its answers.
 
     Exit status 0 when every answer matched, 1 on any difference, 2 when the
-    file cannot be read or the target cannot be reached.
+    file cannot be read or the target cannot be reached.  With
+    --faults-from-recording, answers are compared with what the recorded
+    client received, so a replay that reproduces it exits 0; the target's own
+    answers, before the faults, are compared with the recorded server's and
+    reported apart.
     """
     from whiztap.analyzer.analysis.compare import CompareError, CompareRules
     from whiztap.sniffer.replay.options import Pace, ReplayError, ReplayOptions
@@ -135,7 +141,7 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     selection = Selection(frozenset(conns), start_s, end_s, frozenset(kinds))
     found = _find(path)
     check_output(output, found.parts, force=force, recording=True)
-    recording = _load(path, found)
+    recording = _load(path, found, timeout)
     faults, seed = _faults(found, recording.metadata, faults, from_recording, seed)
     if dry_run:
         plans = plan(recording, selection, segments == "exact")
@@ -149,7 +155,8 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     options = ReplayOptions(target=target, password=_password(password), pace=Pace(pace),
                             rate=rate, segments=segments == "exact", rules=rules, timeout=timeout,
                             connect_timeout=connect_timeout, loop=loop, selection=selection, output=output,
-                            checksum_rule=recording.checksum_rule, faults=faults, fault_seed=seed)
+                            checksum_rule=recording.checksum_rule, faults=faults, fault_seed=seed,
+                            reproduce=from_recording)
     try:
         result = run(_replay(recording, options, verbose, quiet, fmt == "json"))
     except ReplayError as e:
@@ -221,6 +228,10 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
                               indent=2))
         return result
     _echo(result.summary())
+    if result.server is not None:
+        _echo(result.server.summary())
+        for difference in result.server.differences:
+            _echo("  " + difference.diff.replace("\n", "\n  "))
     if result.drift is not None:
         _echo(result.drift.text())
     elif options.pace != "recorded":

@@ -4,7 +4,9 @@ What crosses the socket becomes traffic events, told to the output
 recording and to the replay's table of sessions (one ``Session`` per
 connection, ``whiztap.analyzer.traffic.Traffic``); the session's observations
 pair each answer with the request it answers, and the tally judges it
-against the recorded answer as it arrives.
+against the recorded answer as it arrives: what the recorded server sent, or,
+when the replay reproduces a recording made in the middle under its own
+faults (``ReplayOptions.reproduce``), what the recorded client received.
 """
 
 from __future__ import annotations
@@ -109,12 +111,16 @@ class ReplayedConnection:
             elif obs.answers is not None and obs.answers.index in self.slots:
                 slot = self.slots[obs.answers.index]
                 slot.replayed = obs
-                self.tally.judge(self.conn, slot.item.answer, obs, slot.item, slot.item.at_rest)
+                self.tally.judge(self.conn, self.recorded(slot.item), obs, slot.item, slot.item.at_rest)
             elif kind in _ANSWER_KINDS:
                 self.tally.judge(self.conn, None, obs, None, False)
 
+    def recorded(self, item: ClientItem) -> Observation | None:
+        """The recorded answer the replay's is judged against."""
+        return item.received if self.options.reproduce else item.answer
+
     def _judge_handshake(self, i: int) -> None:
-        recorded = self.plan.recorded.handshake
+        recorded = self.plan.recorded.received_handshake if self.options.reproduce else self.plan.recorded.handshake
         mine = recorded[i] if i < len(recorded) else None
         theirs = self.handshake[i] if i < len(self.handshake) else None
         self.tally.judge(self.conn, mine, theirs, None, False, "the connection" if i == 0 else "the password")
@@ -153,15 +159,17 @@ class ReplayedConnection:
         return lambda: all(s.replayed is not None for s in slots)
 
     def waiting_for(self, send: Send | None = None, lockstep: bool = False) -> list[Slot]:
-        """Slots still waiting for an answer worth waiting for: one recorded, or
-        (in lockstep) one the request certainly asks for."""
+        """Slots still waiting for an answer worth waiting for: one recorded (the
+        server's, even when the recorded client never got it: it waited for it
+        too), or (in lockstep) one the request certainly asks for."""
         wanted = {id(i) for i in send.items} if send is not None else None
         out = []
         for slot in self.order:
             if slot.replayed is not None or (wanted is not None and id(slot.item) not in wanted):
                 continue
             key = answer_key(slot.item.obs)
-            if slot.item.answer is not None or (lockstep and key is not None and key[1]):
+            asked = slot.item.answer is not None or self.recorded(slot.item) is not None  # the server answered it
+            if asked or (lockstep and key is not None and key[1]):
                 out.append(slot)
         return out
 
@@ -195,13 +203,17 @@ class ReplayedConnection:
 
     def _judge_unanswered(self) -> None:
         """Judge what never came: the rest of the handshake, the answers, and the requests never sent."""
-        for i in range(len(self.handshake), len(self.plan.recorded.handshake)):
+        recorded = self.plan.recorded
+        for i in range(len(self.handshake), len(recorded.received_handshake if self.options.reproduce
+                                                else recorded.handshake)):
             self._judge_handshake(i)
         for slot in self.order:
             key = answer_key(slot.item.obs)
-            if slot.replayed is None and (slot.item.answer is not None or (key is not None and key[1])):
-                self.tally.judge(self.conn, slot.item.answer, None, slot.item, False)
+            expected = self.recorded(slot.item)
+            asked = slot.item.answer is not None or expected is not None
+            if slot.replayed is None and (asked or (key is not None and key[1])):
+                self.tally.judge(self.conn, expected, None, slot.item, False)
         for send in self.plan.sends:
             for item in send.items:
                 if id(item) not in self.sent_items and item.obs.item.kind is ItemKind.COMMAND:
-                    self.tally.judge(self.conn, item.answer, None, item, False, note="not sent")
+                    self.tally.judge(self.conn, self.recorded(item), None, item, False, note="not sent")

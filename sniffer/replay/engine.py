@@ -56,8 +56,12 @@ Faults (``options.faults``, parsed SPECs as ``whiztap record --fault`` takes
 them): the replay connects through a proxy in the middle
 (``whiztap.sniffer.replay.faults``) that applies them between it and the
 target, seeded with ``options.fault_seed``; answers are judged as the replay
-receives them, after the faults, against the recorded answers, which are what
-the recorded server sent.
+receives them, after the faults, against the recorded answers: what the
+recorded server sent, or, with ``options.reproduce``, what the recorded
+client received (a recording made in the middle, replayed under its own
+faults, passes when it reproduces what its client went through).  The
+target's own answers, before the faults, are judged against the recorded
+server's apart (``server_side.py``, ``ReplayResult.server``).
 
 The options and the error are in ``whiztap.sniffer.replay.options``, the
 events and the result in ``whiztap.sniffer.replay.events``.
@@ -66,6 +70,7 @@ events and the result in ``whiztap.sniffer.replay.events``.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import socket
 from collections.abc import Callable, Coroutine
 
@@ -82,6 +87,7 @@ from whiztap.sniffer.replay.options import Pace, ReplayError, ReplayOptions
 from whiztap.sniffer.replay.output import OutputRecording
 from whiztap.sniffer.replay.pacing import Pacer, Stopped
 from whiztap.sniffer.replay.plan import NS, ConnectionPlan, plan
+from whiztap.sniffer.replay.server_side import ServerSide
 from whiztap.sniffer.replay.tally import Tally
 
 
@@ -106,6 +112,7 @@ class Replay:
         self._next_conn = 1
         self._tasks: set[asyncio.Task] = set()
         self._middle: FaultProxy | None = None  # with faults, while running
+        self._server: ServerSide | None = None  # with faults: the target's own side, judged apart
         self._connect_to = options.target
 
     def check(self) -> None:
@@ -184,6 +191,8 @@ class Replay:
             except ReplayError as e:
                 error = error or str(e)
         result = self._tally.result(self.options.pace is Pace.RECORDED, self._pacer.stopped, error)
+        if self._server is not None:
+            result = dataclasses.replace(result, server=self._server.result())
         self._tally.emit(Finished(result))
         return result
 
@@ -193,7 +202,11 @@ class Replay:
         if not self.options.faults:
             return
         output = self._output
-        self._middle = FaultProxy(self.options, output.record if self.options.output is not None else None)
+        options = self.options
+        self._server = ServerSide(Tally(self.recording.start_ns, options.rules, None), options.checksum_rule,
+                                  int(options.timeout * NS))
+        self._middle = FaultProxy(options, output.record if options.output is not None else None,
+                                  self._server.receive)
         output.clock = self._middle.clock
         self._connect_to = await self._middle.start()
 
@@ -247,6 +260,8 @@ class Replay:
             judge = True  # the server went away: what it did not answer is missing
         finally:
             await c.finish(judge)
+            if judge and self._server is not None:
+                self._server.finish(c)
             self._tally.emit(ConnectionClosed(c.conn, self._tally.at(), c.closed_by or "client",
                                               "judged" if judge else "stopped"))
 
@@ -261,8 +276,11 @@ class Replay:
         self._output.receive(Opened(conn, t, local, show_address(*self.options.target)))  # type: ignore[misc]
         self._output.receive(UpstreamConnected(conn, t))
         self._tally.emit(ConnectionOpened(conn, p.recorded.conn, loop, self._tally.at(), local))
-        return ReplayedConnection(p, conn, reader, writer, options=self.options, pacer=self._pacer,
-                                  tally=self._tally, sessions=self._sessions, output=self._output)
+        c = ReplayedConnection(p, conn, reader, writer, options=self.options, pacer=self._pacer,
+                               tally=self._tally, sessions=self._sessions, output=self._output)
+        if self._server is not None:
+            self._server.attach(local, c)
+        return c
 
     async def _send(self, c: ReplayedConnection, recorded: bool) -> None:
         """The connection's planned writes, each at its turn (in lockstep, each

@@ -74,6 +74,43 @@ class Drift:
 
 
 @dataclass(frozen=True)
+class ServerResult:
+    """A replay through faults, judged on the target's side: what it sent
+    before the faults acted, against what the recorded server sent
+    (``server_side.py``).  Reported apart; the exit status is the client's."""
+
+    counts: dict[Status, int]
+    differences: tuple[ResponseCompared, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not self.differences
+
+    def summary(self) -> str:
+        return ("the target's own answers, before the faults, against the recorded server's: "
+                + _judged(self.counts))
+
+    def as_dict(self) -> dict:
+        return {"answers": {str(s): self.counts.get(s, 0) for s in Status}, "ok": self.ok,
+                "differences": [_difference(d) for d in self.differences]}
+
+
+def _judged(counts: dict[Status, int]) -> str:
+    return ", ".join(f"{counts.get(s, 0)} {s}" for s in (Status.MATCH, Status.MISMATCH, Status.MISSING,
+                                                         Status.EXTRA, Status.UNANSWERED, Status.IGNORED))
+
+
+def _text(data: bytes | None) -> str | None:
+    return escape(data) if data is not None else None
+
+
+def _difference(d: ResponseCompared) -> dict:
+    return {"conn": d.conn, "at_s": d.at_s, "recorded_s": d.recorded_s, "request": _text(d.request),
+            "request_text": d.request_text, "recorded": _text(d.recorded), "replayed": _text(d.replayed),
+            "status": str(d.status), "diff": d.diff}
+
+
+@dataclass(frozen=True)
 class ReplayResult:
     connections: int
     writes: int
@@ -82,6 +119,7 @@ class ReplayResult:
     drift: Drift | None
     stopped: bool = False
     error: str | None = None
+    server: ServerResult | None = None  # through faults: the target's side, reported apart
 
     @property
     def ok(self) -> bool:
@@ -92,30 +130,23 @@ class ReplayResult:
         return 2 if self.error is not None else 0 if self.ok else 1
 
     def as_dict(self) -> dict:
-        """The result as plain data (``whiztap replay --format json``); bytes as escaped text."""
-
-        def text(data: bytes | None) -> str | None:
-            return escape(data) if data is not None else None
-
-        return {
+        """The result as plain data (``whiztap replay --format json``); bytes as
+        escaped text; ``server`` only for a replay through faults."""
+        out = {
             "connections": self.connections, "writes": self.writes,
             "answers": {str(s): self.counts.get(s, 0) for s in Status},
             "ok": self.ok, "exit_status": self.exit_status, "stopped": self.stopped, "error": self.error,
-            "differences": [{
-                "conn": d.conn, "at_s": d.at_s, "recorded_s": d.recorded_s, "request": text(d.request),
-                "request_text": d.request_text, "recorded": text(d.recorded), "replayed": text(d.replayed),
-                "status": str(d.status), "diff": d.diff,
-            } for d in self.differences],
+            "differences": [_difference(d) for d in self.differences],
             "drift": None if self.drift is None else {
                 "count": self.drift.count, "p50_ns": self.drift.p50_ns, "p99_ns": self.drift.p99_ns,
                 "max_ns": self.drift.max_ns, "shift_ns": self.drift.shift_ns},
         }
+        if self.server is not None:
+            out["server"] = self.server.as_dict()
+        return out
 
     def summary(self) -> str:
-        c = self.counts
-        judged = ", ".join(f"{c.get(s, 0)} {s}" for s in (Status.MATCH, Status.MISMATCH, Status.MISSING,
-                                                           Status.EXTRA, Status.UNANSWERED, Status.IGNORED))
-        return f"replayed {self.connections} connection(s), {self.writes} writes; answers: {judged}"
+        return f"replayed {self.connections} connection(s), {self.writes} writes; answers: {_judged(self.counts)}"
 
 
 @dataclass(frozen=True, slots=True)

@@ -148,9 +148,11 @@ def _report(line: str) -> None:
 
 class FaultProxy:
     """The proxy in the middle of one replay (``start()``, ``reached()`` for each
-    connection, ``close()``); ``record``, if given, gets every traffic event."""
+    connection, ``close()``); ``record``, if given, gets every traffic event,
+    and so does ``watch`` (the judge of the target's own side, ``server_side.py``)."""
 
-    def __init__(self, options: ReplayOptions, record: Callable[[TrafficEvent], None] | None = None) -> None:
+    def __init__(self, options: ReplayOptions, record: Callable[[TrafficEvent], None] | None = None,
+                 watch: Callable[[TrafficEvent], None] | None = None) -> None:
         self.controller = Controller(seed=options.fault_seed, checksum_rule=options.checksum_rule, report=_report)
         try:
             for spec in options.faults:
@@ -163,6 +165,7 @@ class FaultProxy:
         self.proxy = RecordingProxy(LOOPBACK, 0, host, port, self, connect_timeout=options.connect_timeout,
                                     controller=self.controller)
         self._record = record
+        self._watch = watch
         self._clients: dict[int, str] = {}  # the proxy's connection -> the replay's local address
         self._upstream: dict[str, asyncio.Future[str | None]] = {}  # by that address: the failure, or None
 
@@ -193,6 +196,8 @@ class FaultProxy:
                     outcome.set_result(event.detail if kind is UpstreamFailed else None)  # type: ignore[union-attr]
         elif kind is Closed:
             self._clients.pop(event.conn, None)
+        if self._watch is not None:
+            self._watch(event)
         if self._record is not None:
             self._record(event)
 

@@ -61,3 +61,7 @@ class ReplayOptions:
     # middle (sniffer/replay/faults.py); none: the replay connects to the target itself
     faults: tuple[FaultSpec, ...] = ()
     fault_seed: int | None = None  # for the faults' prob:, jitter: and slice ranges
+    # judge the answers against what the recorded *client* received (a recording made in the middle:
+    # its /tcp/delivered), not what the recorded server sent: a replay under the recording's own
+    # faults (--faults-from-recording) then passes when it reproduces what the recorded client went through
+    reproduce: bool = False
