@@ -156,7 +156,7 @@ def test_a_recorded_session_has_every_channel_valid_and_plottable(tmp_path):
     assert violations["PW-RANGE-CHANNEL"]["level"] == 3 and violations["PW-RANGE-CHANNEL"]["frame_index"] > 0
     assert [m["name"] for m in by_topic["/log"]] == [v["rule_id"] for v in by_topic["/violations"]]
     meta = read_metadata(str(path))
-    assert meta["format_version"] == FORMAT_VERSION == "3" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
+    assert meta["format_version"] == FORMAT_VERSION == "4" and meta["spec_revision"] == "1.8" and meta["part"] == "1"
     assert meta["source"] == "test"
 
 
