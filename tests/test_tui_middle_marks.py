@@ -173,3 +173,13 @@ def test_a_delayed_answer_shows_the_servers_latency_and_the_clients():
     rig.model.receive(Closed(1, rig.now, "client"))
     server, client = rig.model.both_latencies()
     assert server["Sensor Request"].max == MS and client["Sensor Request"].max == 301 * MS
+
+
+def test_a_request_a_reset_took_away_is_one_row_with_its_marks_once():
+    rig = Rig("reset dir:c2s nth:2")
+    rig.client(sensor(12), sensor(13))
+    [delivered] = [n for n in rig.rows(C2S) if rig.store.raw(n) == sensor(12)]
+    [reset] = [n for n in rig.rows(C2S) if rig.store.raw(n) == sensor(13)]
+    assert len(rig.rows(C2S)) == 2 and rig.actions(delivered) == []
+    marks = rig.store.marks[reset]
+    assert {m.action for m in marks} == {Action.RESET} and len(marks) == len(set(marks))

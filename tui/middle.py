@@ -20,7 +20,8 @@ An intervention finds its row by the facts it carries, never by bytes:
   so it waits for its row); every copy of a duplicated frame gets the mark;
 - a hold (told when the frame is held, before anyone knows where it will go)
   goes with its release, edit or drop, by the ``held`` id;
-- a c2s frame that was never delivered (dropped, blackholed, expired), and
+- a c2s frame that was never delivered (dropped, blackholed, expired, or
+  taken away by a reset or close of its connection), and
   an injection that never was (either way), is a row of its own, with the
   marks told on it before (by its ``index``);
 - what is about the connection (a reset or close on a timer) shows on its
@@ -186,13 +187,11 @@ class MiddleView:
                 self.store.add_unseen(e.conn, S2C, kind_of(raw, S2C), raw, e.t_ns, [e])
         elif e.action is Action.HOLD:
             self.holds[e.held] = e
-        elif e.action in NOT_DELIVERED:
+        elif (last := self.unseen.get((e.conn, e.direction))) is not None and e.index >= 0 and last[0] == e.index:
+            self._attach(last[1], e)  # more about a frame already shown as never delivered
+        elif e.action in NOT_DELIVERED or (e.before and not e.after):  # dropped (by a reset or close too)
             self._never_delivered(e)
         else:  # told on a frame that is not delivered, before what decided that
-            last = self.unseen.get((e.conn, e.direction))
-            if last is not None and e.index >= 0 and last[0] == e.index:
-                self._attach(last[1], e)
-                return
             self.undelivered.setdefault((e.conn, e.direction, e.index), []).append(e)
             if len(self.undelivered) > PENDING_MAX:
                 del self.undelivered[next(iter(self.undelivered))]
@@ -253,6 +252,8 @@ class MiddleView:
     def _attach(self, n: int, e: Intervention) -> None:
         """Row ``n`` gets the mark (and, for a c2s release, edit or drop, the hold it ends)."""
         store = self.store
+        if e in store.marks.get(n, ()):
+            return  # told twice: one mark
         if e.held and e.direction is C2S and e.action is not Action.HOLD:
             hold = self.holds.pop(e.held, None)
             if hold is not None:
