@@ -194,6 +194,23 @@ def test_close_after_n_frames_follows_the_nth_frame():
     assert mid.got(C2S) == REQ * 3 and mid.ended() == [Action.CLOSE]
 
 
+def test_a_reset_in_place_of_a_frame_is_one_intervention_told_once():
+    mid = FakeClockMiddle("reset dir:s2c nth:2")
+    mid.send(S2C, ANS * 3)
+    [reset] = mid.interventions()
+    assert (reset.action, reset.index, reset.offset, reset.before, reset.after) == (
+        Action.RESET, 1, len(ANS), ANS, b"")
+    assert mid.got(S2C) == ANS and mid.ended() == [Action.RESET]
+
+
+def test_an_expired_frame_says_where_it_was_in_its_senders_stream():
+    mid = FakeClockMiddle("delay:1s dir:s2c nth:2")
+    mid.send(S2C, ANS * 2)
+    mid.shell.run(mid.core.lost(C2S, mid.now))
+    [expired] = mid.interventions(Action.EXPIRE)
+    assert (expired.index, expired.offset) == (1, len(ANS))
+
+
 def test_blackhole_swallows_and_keeps_the_connection():
     mid = FakeClockMiddle("blackhole dir:s2c after:1s")
     mid.send(S2C, ANS)

@@ -171,8 +171,9 @@ class MiddleCore:
     def inject(self, direction: Direction, data: bytes, cause: Cause, t_ns: int) -> list[Command]:
         """Send ``data`` toward the receiver of ``direction`` after what is
         already decided.  ``Closing`` once a side is gone; ``Full`` when too
-        much already waits in that direction."""
-        if self.closing:
+        much already waits in that direction, or its receiver was passed its FIN
+        (nothing can be written after it)."""
+        if self.closing or self.lanes[direction].eof_passed:
             raise Closing(f"connection {self.conn} is closing")
         self._inject(direction, data, cause, t_ns)
         self.lanes[direction].pump(t_ns)
@@ -284,7 +285,7 @@ class MiddleCore:
         data = masked(out.data) if out.secret and self.context.redact else out.data
         self._tell(Intervention(self.conn, t_ns, direction, Action.EXPIRE, CLOSING, data, b"", out.kind,
                                 "its receiver was gone before it was due: never delivered", out.index,
-                                held.id if held is not None else 0, out.secret))
+                                held.id if held is not None else 0, out.secret, out.offset))
 
     def slice_size(self, low: int, high: int) -> int:
         return self.context.rng.randint(low, high) if high > low else low
@@ -294,12 +295,16 @@ class MiddleCore:
     def _secret(self, direction: Direction, item: Item, offset: int) -> bool:
         """A client frame that may be (part of) the password, by the recorder's
         rule over what the client sent: masked, or not yet decided."""
-        if item.kind is ItemKind.PASSWORD:
-            return True
+        return item.kind is ItemKind.PASSWORD or self.secret(direction, offset, len(item.raw))
+
+    def secret(self, direction: Direction, offset: int, length: int) -> bool:
+        """``length`` bytes the sender of ``direction`` sent from ``offset`` may be
+        (part of) the password: masked by the rule, not yet decided, or from
+        nowhere known (LaneOwner: bytes a lane passes on raw)."""
         if direction is S2C:
             return False
         sent = self.sent
-        return offset < sent.masked_end or offset + len(item.raw) > sent.decided
+        return offset < 0 or offset < sent.masked_end or offset + length > sent.decided
 
     def _inject(self, direction: Direction, data: bytes, cause: Cause, t_ns: int) -> None:
         try:

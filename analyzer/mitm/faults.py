@@ -165,8 +165,7 @@ class Fault:
         frame.slice(size, size, pause, self.cause, Action.BANDWIDTH)
 
     def _end(self, frame: Frame) -> None:
-        frame.drop(self.cause, self.action)
-        frame.end_connection(self.action, self.cause)
+        frame.end_connection(self.action, self.cause, instead=True)
 
 
 ACT = {"delay": Fault._delay, "drop": Fault._drop, "blackhole": Fault._blackhole, "dup": Fault._dup,

@@ -140,12 +140,17 @@ class Frame:
         (and waits as long as the frame does); the core notes the injection."""
         self.injections += ((direction, data, cause),)
 
-    def end_connection(self, how: Action, cause: Cause) -> None:
+    def end_connection(self, how: Action, cause: Cause, instead: bool = False) -> None:
         """``how``: RESET (both sides get a TCP reset now) or CLOSE (both get a
-        normal close once what is before it is delivered)."""
+        normal close once what is before it is delivered); ``instead``: in
+        place of the frame, which is then not delivered (one intervention says both)."""
         if self.end is None:
             self.end = how
-            self.note(how, cause, self.data, self.data, f"the proxy {how}s the connection")
+            after = None if instead else self.data
+            self.note(how, cause, self.data, after, f"the proxy {how}s the connection"
+                      + (" instead of delivering the frame" if instead else ""))
+            if instead:
+                self.data = None
 
 
 def observation_of(item: Item, direction: Direction, index: int) -> Observation:

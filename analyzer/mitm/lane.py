@@ -50,6 +50,7 @@ class LaneOwner(Protocol):
     gone: bool
 
     def saw(self, direction: Direction, item: Item, t_ns: int) -> None: ...
+    def secret(self, direction: Direction, offset: int, length: int) -> bool: ...
     def idle(self) -> bool: ...
     def tell(self, event: Intervention) -> None: ...
     def decide(self, lane: Lane, item: Item, index: int, offset: int, t_ns: int) -> Frame: ...
@@ -66,8 +67,8 @@ class LaneOwner(Protocol):
 class Out:
     """Something to write, in turn: bytes (in slices, if set) no earlier than
     ``at_ns``, or a connection's end; ``held`` until a person lets it go.
-    ``index``/``kind``/``secret``: the frame it comes from (-1: an injection
-    or bytes passed on raw); ``notes``: the interventions on it, told when
+    ``index``/``offset``/``kind``/``secret``: the frame it comes from (-1: an
+    injection or bytes passed on raw); ``notes``: the interventions on it, told when
     it is delivered (then it is known where it went)."""
 
     data: bytes
@@ -77,6 +78,7 @@ class Out:
     end: Action | None = None
     held: Held | None = None
     index: int = -1
+    offset: int = -1
     kind: str = ""
     secret: bool = False
     notes: Notes = ()
@@ -232,7 +234,7 @@ class Lane:
                 self._skip -= taken
                 if taken < n:  # the rest of an item begun raw: it passes as it is
                     used += n - taken
-                    self._enter(_Entry(None, item.raw[taken:], index, offset, t_ns))
+                    self._enter(_Entry(None, item.raw[taken:], index, offset + taken, t_ns))
                 continue
             used += n
             self._enter(_Entry(item, item.raw, index, offset, t_ns))
@@ -243,8 +245,9 @@ class Lane:
         """Bytes no item owns yet, on their way untouched (see the module docstring)."""
         self._pending.clear()
         if data:
+            offset = self.offset + self._skip  # where they begin in the sender's stream: after the items and skips
             self._skip += len(data)
-            self._enter(_Entry(None, data, -1, -1, t_ns))
+            self._enter(_Entry(None, data, -1, offset, t_ns))
 
     def _enter(self, entry: _Entry) -> None:
         self._entries.append(entry)
@@ -256,8 +259,9 @@ class Lane:
         while entries and self._queued <= HIGH_WATER:
             entry = entries.popleft()
             self._entry_bytes -= len(entry.raw)
-            if entry.item is None:
-                self._append(Out(entry.raw, max(self._last_at, entry.t_ns)))
+            if entry.item is None:  # secret: judged as a frame is, should it never be delivered (expire)
+                self._append(Out(entry.raw, max(self._last_at, entry.t_ns),
+                                 secret=self.owner.secret(self.direction, entry.offset, len(entry.raw))))
             else:
                 self._decide(entry)
 
@@ -271,10 +275,11 @@ class Lane:
         if frame.data is None:
             for note in notes:  # nothing of it is delivered: told now
                 owner.tell(note)
+            notes = ()
         else:
             for _ in range(frame.copies):
-                out = Out(frame.data, at, frame.slices, frame.pause_ns, index=frame.index, kind=kind,
-                          secret=frame.secret, notes=notes)
+                out = Out(frame.data, at, frame.slices, frame.pause_ns, index=frame.index, offset=frame.offset,
+                          kind=kind, secret=frame.secret, notes=notes)
                 notes = ()  # the first copy tells them
                 if frame.hold is not None:
                     out.held = owner.hold(self, frame, out, t_ns)
