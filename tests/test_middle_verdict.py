@@ -169,3 +169,43 @@ def test_without_the_middle_there_is_one_latency_unlabelled():
     assert "client_latency" not in report and report["latency"]
     _, text = _analyze(Path(__file__).parent.parent / "samples/vpn.mcap", fmt="text")
     assert "Latency by request\n" in text and "the client's" not in text
+
+
+# -- cat: both latencies on each answer's line --------------------------------------------------------------
+
+
+def _cat(path: Path, *args: str) -> list[str]:
+    result = CliRunner().invoke(cli, ["cat", *args, str(path)])
+    assert result.exit_code == 0, result.output
+    return result.output.splitlines()
+
+
+@pytest.mark.parametrize("direction", ["s2c", "c2s"])
+def test_cat_shows_both_latencies_on_each_answer(slowed, direction):
+    lines = _cat(slowed[direction])
+    answers = [line for line in lines if " s2c response " in line or " s2c config " in line]
+    assert len(answers) == 3
+    for line in answers:
+        found = re.search(r"\[latency: server (\d+\.\d{3}) ms, client (\d+\.\d{3}) ms\]$", line)
+        assert found, line
+        assert float(found[1]) < 100 and float(found[2]) >= DELAY_MS
+    times = [float(line.split()[0]) for line in lines]
+    assert times == sorted(times)  # lines that waited for the client's latency kept their place
+    rows = [json.loads(line) for line in _cat(slowed[direction], "--format", "jsonl")]
+    answered = [r for r in rows if r["kind"] in ("response", "config")]
+    assert all(r["server_latency_ns"] < 100 * MS <= DELAY_MS * MS <= r["client_latency_ns"] for r in answered)
+
+
+def test_cat_says_the_client_had_no_answer_where_the_proxy_dropped_it(tmp_path):
+    path = _record(tmp_path / "dropped.mcap", ("drop dir:s2c kind:response ch:12 every:2",),
+                   lambda client, rec: _sensors(client))
+    lines = _cat(path, "--answer-timeout", str(ANSWER_S), "--interventions", "show")
+    for n, line in enumerate(lines):
+        if " ~ #" in line:  # the answer the proxy dropped is the line before its drop
+            assert re.search(r"\[latency: server \d+\.\d{3} ms, client none\]$", lines[n - 1]), lines[n - 1]
+    kept = [line for line in lines if " s2c response " in line and "client none" not in line]
+    assert len(kept) == 2 and all(re.search(r"client \d+\.\d{3} ms\]$", line) for line in kept)
+
+
+def test_cat_without_the_middle_shows_no_latency():
+    assert not [line for line in _cat(Path(__file__).parent.parent / "samples/vpn.mcap") if "[latency:" in line]

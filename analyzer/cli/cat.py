@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections import deque
 from collections.abc import Iterator
 from typing import IO, Any
 
@@ -52,36 +53,61 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
     glob), or with --follow a .mcap.part being written.  Streams: the first
     lines appear at once, and memory stays flat however long the recording is.
     """
-    from whiztap.analyzer.analysis.analyzer import Analyzer
-    from whiztap.analyzer.traffic import Data, Intervention
-
     item_filter = _cat_filter(filter_text, conns, direction, kinds, channels, since, until, violations_only)
     limits = limits_from(answer_timeout, max_frame, max_image)
     if follow:
         if len(inputs) != 1 or not os.path.isfile(inputs[0]):
             fail(f"--follow takes one file being written (NAME.mcap.part), got {' '.join(inputs) or 'none'}")
         records = _followed(inputs[0])
-        name = inputs[0]
+        name = first = inputs[0]
         # the part it starts from, and the name the recorder renames it to
         read: list[str] = [inputs[0], inputs[0].removesuffix(".part")]
     else:
         recording = one_recording(inputs)
-        records, name = scan_recording(recording), str(recording.name)
+        records, name, first = scan_recording(recording), str(recording.name), recording.name
         read = list(map(str, recording.parts))
     check_output(output, read, force=force)
-    analyzer = Analyzer(name, checksum_rule, limits)
     with output_stream(output, force) as out:
-        printer = _CatPrinter(fmt, item_filter, out)
-        for event in records:
-            if type(event) is Intervention:
-                if changes != "hide":
-                    printer.change(event)
-            elif changes != "only":
-                printer.show(event.conn, analyzer.receive(event))
-            elif type(event) is Data:
-                printer.start_at(event.t_ns)  # times count from the first traffic, as when items are shown
-        for conn, events in analyzer.close_all() if changes != "only" else ():
-            printer.show(conn, events)
+        printer = _CatPrinter(fmt, item_filter, out, _answer_latencies(first, checksum_rule, limits),
+                              2 * limits.answer_timeout_ns + 1_000_000_000)
+        _print(records, printer, name, checksum_rule, limits, changes)
+
+
+def _answer_latencies(first, checksum_rule: str, limits):  # noqa: ANN001, ANN202 - AnswerLatencies | None
+    """For a recording made in the middle, each answer's latency for the server and for the client."""
+    from functools import partial
+
+    from whiztap.analyzer.analysis.answer_latency import AnswerLatencies
+    from whiztap.analyzer.recording.scan import made_in_the_middle
+
+    if not made_in_the_middle(first):
+        return None
+    return AnswerLatencies(partial(limits.session, checksum_rule))
+
+
+def _print(records, printer: _CatPrinter, name: str, checksum_rule: str, limits, changes: str) -> None:  # noqa: ANN001
+    """Every event through the one session (and the two views, in the middle), as lines."""
+    from whiztap.analyzer.analysis.analyzer import Analyzer
+    from whiztap.analyzer.traffic import Data, Intervention
+
+    analyzer = Analyzer(name, checksum_rule, limits)
+    both = printer.latencies
+    for event in records:
+        if both is not None:
+            both.receive(event)
+        if type(event) is Intervention:
+            if changes != "hide":
+                printer.change(event)
+        elif changes != "only":
+            printer.show(event.conn, analyzer.receive(event))
+        elif type(event) is Data:
+            printer.start_at(event.t_ns)  # times count from the first traffic, as when items are shown
+        printer.release(event.t_ns)
+    for conn, events in analyzer.close_all() if changes != "only" else ():
+        printer.show(conn, events)
+    if both is not None:
+        both.finish()
+    printer.release(None)
 
 
 def _cat_filter(text: str, conns, direction, kinds, channels, since, until, violations_only):  # noqa: ANN001, ANN202
@@ -123,18 +149,30 @@ def _followed(path: str) -> Iterator[Any]:
 
 
 class _CatPrinter:
-    def __init__(self, fmt: str, item_filter, out: IO[str]) -> None:  # noqa: ANN001
+    """Lines in time order.  In the middle (``latencies``), an answer's line
+    also says both latencies; the client's may be known only once the answer
+    reached the client, so lines wait here (in order) until it is, or until
+    the client's view gave up on the request (at most ``HELD`` lines, and
+    ``wait_ns`` of recording time)."""
+
+    HELD = 10_000
+
+    def __init__(self, fmt: str, item_filter, out: IO[str], latencies=None,  # noqa: ANN001
+                 wait_ns: int = 11_000_000_000) -> None:
         from whiztap.analyzer.protocol.describe import fields, meaning
         from whiztap.analyzer.protocol.text import escape, printable, shorten
 
         self.fmt = fmt
         self.filter = item_filter
         self.start: int | None = None
+        self.latencies = latencies
+        self.wait_ns = wait_ns  # recording time an answer's line waits for the client's latency, at most
         self._meaning, self._fields, self._escape, self._shorten = meaning, fields, escape, shorten
         self._printable = printable  # a line says what files and peers said: shown, never obeyed
         self._out = out
         self._colour = out.isatty()
         self._changes = 0  # interventions seen: each line's number
+        self._held: deque[list] = deque()  # [line or its maker, conn, request, server ns, t_ns]
 
     def show(self, conn: int, events: list) -> None:  # noqa: ANN001
         from whiztap.analyzer.protocol.observations import LateViolation
@@ -156,36 +194,71 @@ class _CatPrinter:
         """Traffic at ``t_ns`` that no line shows: times count from the first."""
         self._start(t_ns)
 
+    def _write(self, line: str, conn: int = 0, request=None, server: int | None = None,  # noqa: ANN001
+               t_ns: int = 0, make=None) -> None:  # noqa: ANN001
+        """A line, or (``make``) the maker of an answer's line once the client's latency is known."""
+        if make is None and not self._held:
+            self._out.write(line + "\n")
+        else:
+            self._held.append([make or line, conn, request, server, t_ns])
+
+    def release(self, now_ns: int | None) -> None:
+        """Write the lines no longer waiting (``now_ns`` None: the end, all of them)."""
+        held, limit = self._held, self.wait_ns
+        while held:
+            line, conn, request, server, t_ns = held[0]
+            if not isinstance(line, str):
+                known = self.latencies.client_ns(conn, request) if self.latencies is not None else None
+                if known is None and now_ns is not None and len(held) <= self.HELD and now_ns - t_ns <= limit:
+                    return
+                line = line(server, known.ns if known is not None else None)
+            self._out.write(line + "\n")
+            held.popleft()
+
     def _item(self, conn: int, e) -> None:  # noqa: ANN001
         item = e.item
         rules = [v.rule_id for v in e.violations]
+        both = self.latencies is not None and e.answers is not None
+        server = self.latencies.server_ns(conn, e) if both else None
         if self.fmt == "jsonl":
             import json
 
             from whiztap.analyzer.recording.encode import cat_line
 
-            self._out.write(json.dumps(cat_line(conn, e)) + "\n")
+            line = cat_line(conn, e)
+            if not both:
+                self._write(json.dumps(line))
+                return
+            self._write("", conn, e.answers, server, item.t_end_ns, lambda s, c: json.dumps(
+                {**line, "server_latency_ns": s, "client_latency_ns": c}))
             return
         rel = (item.t_end_ns - (self.start or 0)) / 1e9
         mark = f"  ! {' '.join(rules)}" if rules else ""
         text = self._shorten(self._escape(item.raw), TEXT_SHOWN)  # the JSON lines keep it whole
         line = self._printable(f"{rel:12.6f} c{conn} {e.direction} {item.kind:10} {text}  {self._meaning(e)}{mark}")
-        if self._colour and rules:
-            line = click.style(line, fg="red" if max(v.severity for v in e.violations) >= 3 else "yellow")
-        self._out.write(line + "\n")
+        colour = "red" if rules and max(v.severity for v in e.violations) >= 3 else "yellow" if rules else None
+
+        def coloured(line: str) -> str:
+            return click.style(line, fg=colour) if self._colour and colour else line
+
+        if not both:
+            self._write(coloured(line))
+            return
+        self._write("", conn, e.answers, server, item.t_end_ns,
+                    lambda s, c: coloured(f"{line}  [latency: {_latency_words(s, c)}]"))
 
     def _late(self, conn: int, e) -> None:  # noqa: ANN001
         v = e.violation
         if self.fmt == "jsonl":
             import json
 
-            self._out.write(json.dumps({
+            self._write(json.dumps({
                 "t_ns": e.t_ns, "conn": conn, "dir": str(e.about.direction), "kind": "late_violation",
                 "raw_b64": None, "fields": {"about_index": e.about.index, "detail": v.detail},
-                "violations": [v.rule_id]}) + "\n")
+                "violations": [v.rule_id]}))
             return
         rel = (e.t_ns - (self.start or 0)) / 1e9
-        self._out.write(self._printable(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}") + "\n")
+        self._write(self._printable(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}"))
 
     def change(self, e) -> None:  # noqa: ANN001 - an Intervention
         """A change the proxy made, numbered in order: ``~ #N``, the direction,
@@ -197,20 +270,28 @@ class _CatPrinter:
             import base64
             import json
 
-            self._out.write(json.dumps({
+            self._write(json.dumps({
                 "t_ns": e.t_ns, "conn": e.conn, "dir": str(e.direction), "kind": "intervention", "raw_b64": None,
                 "fields": {"number": self._changes, "action": e.action.value, "cause": str(e.cause),
                            "source": e.cause.source.value, "index": e.index, "held": e.held, "item_kind": e.kind,
                            "before_b64": base64.b64encode(e.before).decode(),
                            "after_b64": base64.b64encode(e.after).decode(), "detail": e.detail},
-                "violations": []}) + "\n")
+                "violations": []}))
             return
         rel = (e.t_ns - (self.start or 0)) / 1e9
         cause = f"{e.cause} (held #{e.held})" if e.held else str(e.cause)
         why = f"{cause}; {e.detail}" if e.detail else cause
         line = self._printable(f"{rel:12.6f} c{e.conn} ~ #{self._changes} {e.direction} {e.action}  "
                                f"{self._shorten(_change_text(e, self._escape), TEXT_SHOWN)}  ({why})")
-        self._out.write((click.style(line, fg="cyan") if self._colour else line) + "\n")
+        self._write(click.style(line, fg="cyan") if self._colour else line)
+
+
+def _latency_words(server: int | None, client: int | None) -> str:
+    """``server 0.350 ms, client 300.412 ms``; ``none`` where there is none."""
+    def ms(ns: int | None) -> str:
+        return "none" if ns is None else f"{ns / 1e6:.3f} ms"
+
+    return f"server {ms(server)}, client {ms(client)}"
 
 
 def _change_text(e, escape) -> str:  # noqa: ANN001
