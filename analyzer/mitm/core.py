@@ -204,7 +204,7 @@ class MiddleCore:
     # -- what the lanes ask (LaneOwner) -------------------------------------------------------------
 
     def idle(self) -> bool:
-        return self.context.stages.idle()
+        return self.context.stages.idle
 
     def saw(self, direction: Direction, item: Item, t_ns: int) -> None:
         """Follow the handshake as the session model does (see ``session.py``)."""
@@ -386,11 +386,13 @@ class MiddleCore:
     def _done(self, t_ns: int) -> list[Command]:
         """The commands so far, and a new wake-up time if it changed.  Both
         lanes are pumped first: a stage may have injected into the other one."""
+        busy = False
         for lane in self.lanes.values():
             if lane.busy:
                 lane.pump(t_ns)
-        deadline = self.deadline() if self._timed or self._holds or self._undecided or self._wake is not None or \
-            any(lane.busy for lane in self.lanes.values()) else None
+                busy = True
+        deadline = self.deadline() if busy or self._timed or self._holds or self._undecided or \
+            self._wake is not None else None
         if deadline != self._wake:
             self._wake = deadline
             self._commands.append(WakeAt(deadline))

@@ -130,8 +130,8 @@ class Lane:
         return bool(self._queue or self._entries or self._pending or (self._eof and not self.eof_passed))
 
     def may_read(self) -> bool:
-        """Whether the shell may read the sender: flow control's rule."""
-        return self.queued <= HIGH_WATER
+        """Whether the shell may read the sender: flow control's rule (``queued`` spelled out: once per read)."""
+        return self._queued + self._entry_bytes + len(self._pending) <= HIGH_WATER
 
     def deadline(self) -> int | None:
         """When this lane next has something to do on its own (None: only on an event)."""

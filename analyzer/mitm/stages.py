@@ -28,12 +28,19 @@ class Stages:
     def __init__(self, report: Report) -> None:
         self.report = report
         self.items: list[Any] = []
+        self.idle = True
         self._reported: set[int] = set()
 
-    def idle(self) -> bool:
-        """No stage can act on a frame now (each says so with ``active``; one
-        that does not say, a script, always may): frames need no decision."""
-        return not any(getattr(stage, "active", True) for stage in self.items)
+    def set(self, items: list[Any]) -> None:
+        self.items = items
+        self.changed()
+
+    def changed(self) -> None:
+        """A stage was switched on or off: ``idle`` is whether no stage can act
+        on a frame now (each says so with ``active``; one that does not say, a
+        script, always may), so frames need no decision.  Kept, not computed
+        per read: the controller calls this whenever it changes a stage."""
+        self.idle = not any(getattr(stage, "active", True) for stage in self.items)
 
     def frame(self, frame: Frame) -> None:
         for stage in self.items:

@@ -90,7 +90,7 @@ class Controller:
         self.clock, self.emit = clock, emit
 
     def _restage(self) -> None:
-        self.context.stages.items = [*self.faults, *self.scripts, self.intercept]
+        self.context.stages.set([*self.faults, *self.scripts, self.intercept])
 
     # -- connections -------------------------------------------------------------------------------
 
@@ -173,6 +173,7 @@ class Controller:
     def enable_fault(self, key: str | int, enabled: bool) -> Fault:
         fault = self.fault(key)
         fault.enabled = enabled
+        self.context.stages.changed()
         return fault
 
     # -- scripts ---------------------------------------------------------------------------------
@@ -188,6 +189,7 @@ class Controller:
             self.intercept.set(text)
         except ValueError as e:
             raise ControlError(f"intercept filter: {e}") from None
+        self.context.stages.changed()
 
     def held_frames(self) -> list[dict]:
         now = self.clock()
