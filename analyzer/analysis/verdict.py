@@ -14,21 +14,27 @@ judged by each side only once it ends (``sides.py``); until then it is judged
 provisionally, as if its traffic ended now, except that requests still within
 ``--answer-timeout`` are not yet unanswered.  Once ``finish()`` is called the
 verdict is exactly ``analyze``'s on the same traffic.
+
+Importing ``Verdict`` and ``verdict_of`` costs no session model (a command's
+summary module may import them at ``whiztap --help``); ``Judge`` loads it.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from whiztap.analyzer.analysis.analyzer import Analyzer
-from whiztap.analyzer.analysis.facts import Analysis
-from whiztap.analyzer.analysis.sides import Settled
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.rules import RULES, Severity
-from whiztap.analyzer.protocol.session import Limits
-from whiztap.analyzer.protocol.stats import LatencyStats
-from whiztap.analyzer.traffic import TrafficEvent
+
+if TYPE_CHECKING:  # the session model loads only with a Judge: a Verdict is cheap to import
+    from whiztap.analyzer.analysis.analyzer import Analyzer
+    from whiztap.analyzer.analysis.facts import Analysis
+    from whiztap.analyzer.analysis.sides import Settled
+    from whiztap.analyzer.protocol.session import Limits
+    from whiztap.analyzer.protocol.stats import LatencyStats
+    from whiztap.analyzer.traffic import TrafficEvent
 
 SEVERITIES = (Severity.ERROR, Severity.WARNING, Severity.INFO)
 
@@ -113,10 +119,13 @@ class Judge:
     (``--ignore``), ``fail_on_interventions``.  ``analyzer`` is the
     ``Analyzer`` it feeds, for whoever wants its facts too."""
 
-    def __init__(self, checksum_rule: str = DEFAULT_CHECKSUM_RULE, limits: Limits = Limits(), *,
+    def __init__(self, checksum_rule: str = DEFAULT_CHECKSUM_RULE, limits: Limits | None = None, *,
                  middle: bool = False, threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
                  fail_on_interventions: bool = False, name: str = "") -> None:
-        self.analyzer = Analyzer(name, checksum_rule, limits, every_event=False, middle=middle)
+        from whiztap.analyzer.analysis.analyzer import Analyzer
+        from whiztap.analyzer.protocol.session import Limits
+
+        self.analyzer = Analyzer(name, checksum_rule, limits or Limits(), every_event=False, middle=middle)
         self._options = {"threshold": threshold, "ignore": ignore, "fail_on_interventions": fail_on_interventions}
         self._finished: Verdict | None = None
 
@@ -168,6 +177,8 @@ def both_latencies(analyzer: Analyzer) -> tuple[dict[str, LatencyStats], dict[st
 
 
 def _merge(into: dict[str, LatencyStats], latencies: dict[str, LatencyStats]) -> None:
+    from whiztap.analyzer.protocol.stats import LatencyStats
+
     for title, stats in latencies.items():
         if stats.count:
             into.setdefault(title, LatencyStats()).merge(stats)
