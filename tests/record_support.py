@@ -150,6 +150,7 @@ class RecordProcess:
         self.proc = proc
         self.lines: list[str] = []
         self.port = 0
+        self.first = ""  # its first line (start)
         _STARTED.append(proc)
 
     @classmethod
@@ -161,6 +162,7 @@ class RecordProcess:
             preexec_fn=preexec_fn, start_new_session=new_session)
         rec = cls(proc)
         first = await asyncio.wait_for(proc.stdout.readline(), WAIT)  # printed even with -q
+        rec.first = first.decode(errors="replace")  # where it listens, and its Foxglove and control addresses
         m = _LISTENING.match(first)
         assert m, first + await proc.stderr.read()
         rec.port = int(m.group(1))

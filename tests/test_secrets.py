@@ -24,11 +24,9 @@ import threading
 from pathlib import Path
 
 import whiztap.sniffer.record.recorder as recorder_module
-from click.testing import CliRunner
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.examples import CONFIG
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import (
@@ -47,41 +45,15 @@ from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.sim.tcp_server import TcpServer
 from whiztap.tui.model import TrafficModel
-from whiztap.tui.sources import FileSource, LiveSource, ProxyRig
+from whiztap.tui.sources import LiveSource, ProxyRig
 
+from tests.outputs import FILE_OUTPUTS, SECRET, assert_no_leak, run, store_text
 from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, op_event, play_client, play_steps, read_all, streams
 from tests.test_readers_property import TOKENS, stream
 
-SECRET = b"Kx9hunter2Tq4"
 C2S, S2C = Direction.C2S, Direction.S2C
-WINDOW = 8  # any 8 bytes of the password in a row count as a leak
 COMMAND = b"rr1-24--0--0-ss1"
 SENSOR, SENSOR_ANSWER = b"rr1-3--0--0-ss1", b"cr1-3--5--0-ss1"
-
-
-def leak_forms(secret: bytes = SECRET, window: int = WINDOW) -> set[str]:
-    """Every way a run of ``window`` bytes of the secret can show in text: as
-    itself, and as the base64 characters it fixes at each of the 3 alignments
-    (reads and frames carry their bytes in base64)."""
-    forms: set[str] = set()
-    for i in range(len(secret) - window + 1):
-        piece = secret[i:i + window]
-        forms.add(piece.decode())
-        for pad in range(3):
-            encoded = base64.b64encode(b"\0" * pad + piece).decode()
-            first, last = -(-8 * pad // 6), 8 * (pad + window) // 6  # characters made of the piece's bits only
-            forms.add(encoded[first:last])
-    return forms
-
-
-FORMS = leak_forms()
-
-
-def assert_no_leak(where: str, text: str | bytes) -> None:
-    if isinstance(text, bytes):
-        text = text.decode("latin-1")
-    found = [form for form in FORMS if form in text]
-    assert not found, f"the password shows in {where}: {found}"
 
 
 def assert_file_has_no_leak(path: Path) -> dict[str, list[dict]]:
@@ -155,28 +127,6 @@ async def record_every_client(path: Path) -> str:
     return stdout + stderr
 
 
-def run(*args: str, env: dict[str, str] | None = None) -> str:
-    """A whiztap command in this process: it may fail a gate (1), never crash."""
-    result = CliRunner().invoke(cli, list(args), env=env)
-    if result.exception is not None and not isinstance(result.exception, SystemExit):
-        raise result.exception
-    assert result.exit_code in (0, 1), result.output
-    return result.output
-
-
-def tui_store_text(path: Path) -> bytes:
-    """What the TUI holds for a recording: every frame's bytes, meaning and fields."""
-    model = TrafficModel(str(path))
-    FileSource(find_one([str(path)])).feed(model, threading.Event())
-    return store_text(model)
-
-
-def store_text(model: TrafficModel) -> bytes:
-    store = model.store
-    described = [repr(store.observation(i)) for i in range(store.count)] if hasattr(store, "observation") else []
-    return bytes(store.raws) + "\n".join(described).encode()
-
-
 async def test_an_eager_or_odd_client_never_leaves_its_password_anywhere(tmp_path):
     path = tmp_path / "eager.mcap"
     printed = await record_every_client(path)
@@ -195,15 +145,9 @@ async def test_an_eager_or_odd_client_never_leaves_its_password_anywhere(tmp_pat
     assert closed[1]["handshake"] == "readytogo" and closed[2]["handshake"] == "readytogo"
 
     env = {"WHIZTAP_PASSWORD": SECRET.decode()}
-    for fmt in ("text", "json", "junit", "markdown", "html"):
-        assert_no_leak(f"analyze --format {fmt}", run("analyze", str(path), "--format", fmt,
-                                                      "--severity-threshold", "info"))
-    for fmt in ("text", "jsonl"):
-        assert_no_leak(f"cat --format {fmt}", run("cat", str(path), "--format", fmt))
-    for fmt in ("text", "json"):
-        assert_no_leak(f"info --format {fmt}", run("info", str(path), "--format", fmt))
+    for name, read in FILE_OUTPUTS.items():  # every reader of a recording (tests/outputs.py)
+        assert_no_leak(name, read(path))
     assert_no_leak("replay --dry-run", run("replay", str(path), "--dry-run", env=env))
-    assert_no_leak("the TUI", tui_store_text(path))
 
     # replay -o records the replayed session: the password it sends (from the
     # environment) is masked there too
@@ -413,14 +357,9 @@ def _check_stream_order(path: Path, sent: dict[int, bytes]) -> None:
 
 
 def _every_reader(path: Path) -> list[tuple[str, str | bytes]]:
-    """What each reader shows of the file; none may raise."""
-    shown: list[tuple[str, str | bytes]] = []
-    for fmt in ("json", "text", "markdown", "junit", "html"):
-        shown.append((f"analyze {fmt}", run("analyze", str(path), "--format", fmt, "--severity-threshold", "info")))
-    for fmt in ("jsonl", "text"):
-        shown.append((f"cat {fmt}", run("cat", str(path), "--format", fmt)))
-    shown.append(("info", run("info", str(path), "--format", "json")))
-    shown.append(("the TUI", tui_store_text(path)))
+    """What each reader shows of the file (every one tests/outputs.py registers,
+    and the replay's plan both ways); none may raise."""
+    shown: list[tuple[str, str | bytes]] = [(name, read(path)) for name, read in FILE_OUTPUTS.items()]
     recording = find_one([str(path)])
     sessions_ = load_exchanges(recording)
     for segments in (False, True):
