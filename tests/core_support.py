@@ -4,9 +4,11 @@ loop, no sleep: a second of fault time costs nothing."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from whiztap.analyzer.mitm.commands import Command, Deliver, EndConnection, PassEof, Tell, WakeAt
+from whiztap.analyzer.mitm.core import MiddleCore
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action, Data, Delivered, Intervention
 from whiztap.sniffer.mitm.controller import Controller
@@ -25,11 +27,20 @@ class NotingShell:
     commands: list[Command] = field(default_factory=list)
     wake_at: int | None = None
 
+    core: MiddleCore | None = None
+    now: Callable[[], int] = lambda: 0
+    reads: bool = True  # the receivers take what is written (else a lane stops after its burst)
+
     def run(self, commands: list[Command]) -> None:
         for command in commands:
             self.commands.append(command)
             if type(command) is WakeAt:
                 self.wake_at = command.t_ns
+        core = self.core
+        if core is not None and self.reads:
+            for direction in (C2S, S2C):
+                if core.blocked(direction):
+                    self.run(core.writable(direction, self.now()))
 
 
 class FakeClockMiddle:
@@ -47,6 +58,7 @@ class FakeClockMiddle:
             self.controller.set_intercept(intercept)
         self.shell = NotingShell()
         self.core, commands = self.controller.open(1, self.shell)
+        self.shell.core, self.shell.now = self.core, lambda: self.now
         self.shell.run(commands)
         if ready:
             for direction in (C2S, S2C):

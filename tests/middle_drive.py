@@ -33,6 +33,10 @@ T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 
 
+KERNEL = 4 << 20  # what a receiver that never reads still takes: its socket buffers
+TRANSPORT_HIGH_WATER = 256 << 10  # the proxy's transports (sniffer/record/proxy.py)
+
+
 class WriteAfterEof(AssertionError):
     """The core asked to write toward a side after passing that side its FIN."""
 
@@ -69,6 +73,17 @@ class FakeShell:
             elif kind is EndConnection:
                 self.ended = command.how.value  # type: ignore[union-attr]
                 drive.pending_ends.append(self.conn)
+        self._takes_more()
+
+    def _takes_more(self) -> None:
+        """As the proxy's transport does: a lane that wrote its burst is told its
+        receiver takes more while that receiver's (modeled) transport is under its mark."""
+        core, drive = self.core, self.drive
+        if core is None or self.conn in drive.gone:
+            return
+        for direction in (C2S, S2C):
+            if core.blocked(direction) and drive.buffered(self.conn, direction) <= TRANSPORT_HIGH_WATER:
+                self.run(core.writable(direction, drive.t))
 
 
 class Drive:
@@ -85,6 +100,7 @@ class Drive:
         self.lost: dict[int, set[Direction]] = {}
         self.pending_ends: list[int] = []
         self.answers: list[tuple[str, str, int, object]] = []  # (method, path, status, answer) of every request
+        self.never_reads: set[tuple[int, Direction]] = set()  # (conn, direction) whose receiver reads nothing
 
     # -- connections -----------------------------------------------------------------------
 
@@ -193,6 +209,14 @@ class Drive:
 
     def delivered(self, conn: int, direction: Direction) -> bytes:
         return bytes(self.shells[conn].got[direction])
+
+    def buffered(self, conn: int, direction: Direction) -> int:
+        """What the proxy's transport toward the receiver of ``direction`` holds:
+        nothing for a receiver that reads; for one that never reads, what was
+        delivered to it less what its kernel took."""
+        if (conn, direction) not in self.never_reads:
+            return 0
+        return max(0, len(self.shells[conn].got[direction]) - KERNEL)
 
 
 def interventions(events: Iterable[object]) -> list:

@@ -109,7 +109,8 @@ async def test_dup_sends_the_first_command_twice_and_the_server_answers_twice(tm
     assert b"".join(delivered(topics, "c2s")) == sensor(12) * 2 + sensor(13)
     assert sent(topics, "c2s") == sensor(12) + sensor(13)
     [dup] = topics["/interventions"]
-    assert (dup["action"], dup["before"], dup["after"]) == ("dup", escape(sensor(12)), escape(sensor(12) * 2))
+    assert (dup["action"], dup["before"], dup["after"], dup["detail"]) == (
+        "dup", escape(sensor(12)), escape(sensor(12)), "delivered 2 times")
 
 
 async def test_corrupt_changes_the_set_configuration_checksum_and_the_server_ignores_it(tmp_path, caplog):

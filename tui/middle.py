@@ -128,6 +128,7 @@ class MiddleView:
         self.holds: dict[int, Intervention] = {}  # c2s holds by held id, until let go
         # (conn, direction, index) -> marks told on a frame not delivered, before what decided that
         self.undelivered: dict[tuple[int, Direction, int], list[Intervention]] = {}
+        self._dups: dict[tuple[int, int], int] = {}  # (conn, request index) -> copies marked so far
         self.unseen: dict[tuple[int, Direction], tuple[int, int]] = {}  # (index, row) of the last frame never delivered
         self.to_client: dict[int, int] = {}  # conn -> bytes delivered to its client so far
         self.arriving: dict[int, list[tuple[int, int]]] = {}  # conn -> (delivered offset, row): when did it arrive?
@@ -215,8 +216,13 @@ class MiddleView:
         offset, each copy's for a duplicate."""
         track = self._track(e.conn, C2S)
         step = len(e.before)
-        copies = len(e.after) // step if e.action is Action.DUP and step else 1
-        for k in range(max(copies, 1)):
+        copies = 1
+        if e.action is Action.DUP:  # each dup on a frame is one more copy, right behind the others
+            key = (e.conn, e.index)
+            copies = self._dups[key] = self._dups.get(key, 1) + 1
+            if len(self._dups) > PENDING_MAX:
+                del self._dups[next(iter(self._dups))]
+        for k in range(copies):
             offset = e.delivered + k * step
             row = track.row_at(offset)
             if row is not None:

@@ -108,6 +108,8 @@ class Consequences:
         cause = str(event.cause)
         self.last_change[event.direction] = cause
         before, after = _keys(event.before, event.direction), _keys(event.after, event.direction)
+        if event.action is Action.DUP:  # each dup is one more copy of the frame (``after`` is the frame once)
+            before = Counter()
         for book, name, keys in ((self.extra, "extra", after - before), (self.missing, "missing", before - after)):
             for key, n in keys.items():
                 for _ in range(n):

@@ -102,6 +102,15 @@ class MiddleCore:
         lane.pump(t_ns)
         return self._done(t_ns)
 
+    def writable(self, direction: Direction, t_ns: int) -> list[Command]:
+        """The receiver of ``direction`` takes more: its lane writes on (it stops after a burst)."""
+        self.lanes[direction].writable(t_ns)
+        return self._done(t_ns)
+
+    def blocked(self, direction: Direction) -> bool:
+        """The lane of ``direction`` waits for its receiver to take more (``writable``)."""
+        return self.lanes[direction].blocked
+
     def sender_ended(self, direction: Direction, t_ns: int) -> list[Command]:
         """The sender of ``direction`` sent its FIN: the FIN follows what its lane holds."""
         if direction is S2C:  # the server will say nothing more about a login

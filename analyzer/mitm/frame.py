@@ -121,7 +121,7 @@ class Frame:
     def duplicate(self, cause: Cause) -> None:
         if self.data is not None:
             self.copies += 1
-            self.note(Action.DUP, cause, self.data, self.data * self.copies, f"delivered {self.copies} times")
+            self.note(Action.DUP, cause, self.data, self.data, f"delivered {self.copies} times")
 
     def delay(self, delay_ns: int, cause: Cause) -> None:
         if self.data is not None and delay_ns > 0:

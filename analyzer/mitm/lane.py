@@ -14,7 +14,11 @@ observed.
 Memory is bounded after the faults act, not before: frames are decided only
 while what the lane has queued for delivery (after replace, dup and
 injection) is at most ``HIGH_WATER``; the rest wait as the sender sent them,
-and ``may_read`` tells the shell to stop reading the sender.  One decision
+and ``may_read`` tells the shell to stop reading the sender.  The queue
+drains only as fast as the receiver takes it: a lane writes at most
+``WRITE_BURST`` bytes until the shell says the receiver takes more
+(``writable``: its transport's buffer is under its mark), so what a fault
+makes of a read never piles up in the transport either.  One decision
 adds at most one frame's worth times its copies, both bounded
 (``MAX_REPLACEMENT``, ``MAX_DUP_FAULTS``).  An injection that would make the
 queue longer than ``INJECT_ROOM`` is refused (``Full``).
@@ -39,6 +43,7 @@ if TYPE_CHECKING:
     from whiztap.analyzer.mitm.intercept import Held
 
 HIGH_WATER = 256 << 10
+WRITE_BURST = 256 << 10  # bytes a lane writes before its receiver must say it takes more (``writable``)
 INJECT_ROOM = 1 << 20
 STALL_NS = 200_000_000
 Notes = tuple[Intervention, ...]
@@ -118,6 +123,7 @@ class Lane:
         self._queued = 0
         self._last_at = 0
         self._eof = False  # pass a FIN on once everything is delivered
+        self.credit = WRITE_BURST  # bytes it may still write before the receiver says it takes more
 
     @property
     def queued(self) -> int:
@@ -129,6 +135,16 @@ class Lane:
         """Something waits here (to be framed, decided or written)."""
         return bool(self._queue or self._entries or self._pending or (self._eof and not self.eof_passed))
 
+    @property
+    def blocked(self) -> bool:
+        """It wrote its burst: nothing more goes until the receiver takes more (``writable``)."""
+        return self.credit <= 0
+
+    def writable(self, now: int) -> None:
+        """The receiver takes more (its transport's buffer is under its mark)."""
+        self.credit = WRITE_BURST
+        self.pump(now)
+
     def may_read(self) -> bool:
         """Whether the shell may read the sender: flow control's rule (``queued`` spelled out: once per read)."""
         return self._queued + self._entry_bytes + len(self._pending) <= HIGH_WATER
@@ -138,7 +154,7 @@ class Lane:
         times = []
         if self._pending and self._pending_since is not None:
             times.append(self._pending_since + STALL_NS)
-        if self._queue and self.ready:
+        if self._queue and self.ready and self.credit > 0:
             head = self._queue[0]
             if head.held is None:
                 times.append(head.at_ns)
@@ -154,7 +170,7 @@ class Lane:
         else:
             items = framer.feed(data, t_ns)
             if (not framer.buffered and not self._pending and not self._queue and not self._entries and self.ready
-                    and not self._skip and not self._eof and self.owner.idle()):
+                    and not self._skip and not self._eof and self.credit > 0 and self.owner.idle()):
                 self._pass(items, data, t_ns)  # whole frames, nothing before them, no stage to ask: now, as they are
                 return
             self._pending += data
@@ -173,6 +189,7 @@ class Lane:
         self.index += len(items)
         self.offset += len(data)
         if not owner.gone:
+            self.credit -= len(data)
             owner.deliver(self.direction, data, t_ns, [])
 
     def end(self, t_ns: int) -> None:
@@ -312,7 +329,7 @@ class Lane:
         queue, owner = self._queue, self.owner
         wrote = False
         notes: list[tuple[int, Notes]] = []
-        while queue and self.ready and not owner.gone:
+        while queue and self.ready and not owner.gone and self.credit > 0:
             out = queue[0]
             if out.held is not None or out.at_ns > now:
                 break  # a release, or the deadline, pumps again
@@ -348,6 +365,7 @@ class Lane:
                         at += len(out.data)
                     chunk = b"".join(parts)
             self._queued -= len(chunk)
+            self.credit -= len(chunk)
             wrote = True
             if chunk or notes:  # a frame replaced by nothing is no delivery, but what was done to it is told
                 owner.deliver(self.direction, chunk, now, notes)

@@ -56,10 +56,14 @@ class ProxiedConnection(Protocol):
 
 
 class MiddleShell:
-    def __init__(self, controller: Controller, connection: ProxiedConnection, clock: Callable[[], int]) -> None:
+    def __init__(self, controller: Controller, connection: ProxiedConnection, clock: Callable[[], int],
+                 high_water: int = 256 << 10) -> None:
+        """``high_water``: the mark of the proxy's transports, under which a receiver takes more."""
         self.controller = controller
         self.connection = connection
         self.clock = clock
+        self.high_water = high_water
+        self._draining: set[Direction] = set()
         self.emit = controller.emit
         self._timer: asyncio.TimerHandle | None = None
         self._failed = False
@@ -88,6 +92,17 @@ class MiddleShell:
 
     def may_read(self, direction: Direction) -> bool:
         return self.core.may_read(direction)
+
+    def drained(self, direction: Direction) -> None:
+        """The receiver of ``direction``'s transport is under its mark again (``resume_writing``)."""
+        self.run(self.core.writable(direction, self.clock()))
+
+    def _drained(self, direction: Direction) -> None:
+        self._draining.discard(direction)
+        try:
+            self.drained(direction)
+        except Exception as e:  # noqa: BLE001 - a callback never raises into the loop, nor takes another connection
+            self._report_once(e)
 
     def eof_passed(self, direction: Direction) -> bool:
         """The FIN of ``direction``'s sender was passed on: by this shell, not
@@ -121,6 +136,13 @@ class MiddleShell:
             if may is not self._may_read[direction]:  # the lane filled past its mark, or emptied below it
                 self._may_read[direction] = may
                 leg.sync()
+            if core.blocked(direction) and direction not in self._draining:
+                receiver = (connection.upstream if direction is C2S else connection.client).transport
+                if receiver is not None and not receiver.is_closing() and \
+                        receiver.get_write_buffer_size() <= self.high_water:
+                    self._draining.add(direction)  # it takes more now: say so once this run is over
+                    asyncio.get_running_loop().call_soon(self._drained, direction)
+                # else the receiver's transport calls drained() when it is under its mark again
 
     def _schedule(self, t_ns: int | None) -> None:
         if self._timer is not None:
@@ -135,10 +157,13 @@ class MiddleShell:
         try:
             self.run(self.core.wake(self.clock()))
         except Exception as e:  # noqa: BLE001 - a timer never raises into the loop, nor takes another connection
-            if not self._failed:
-                self._failed = True
-                self.controller.report(f"connection {self.connection.id}: the middle's timer failed: "
-                                       f"{type(e).__name__}: {e} (reported once)")
+            self._report_once(e)
+
+    def _report_once(self, e: Exception) -> None:
+        if not self._failed:
+            self._failed = True
+            self.controller.report(f"connection {self.connection.id}: the middle's timer failed: "
+                                   f"{type(e).__name__}: {e} (reported once)")
 
     def _end(self, how: Action) -> None:
         connection = self.connection

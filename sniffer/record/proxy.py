@@ -145,6 +145,9 @@ class _Leg(asyncio.Protocol):
 
     def resume_writing(self) -> None:
         self.peer.sync()  # type: ignore[union-attr]
+        middle = self.conn.middle
+        if middle is not None:  # what the middle queued toward this side may go on
+            middle.drained(S2C if self.direction is C2S else C2S)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.lost = True
@@ -179,7 +182,7 @@ class Connection:
         if proxy.controller is not None:
             from whiztap.sniffer.mitm.shell import MiddleShell
 
-            self.middle = MiddleShell(proxy.controller, self, proxy.clock)
+            self.middle = MiddleShell(proxy.controller, self, proxy.clock, TRANSPORT_HIGH_WATER)
         if proxy.on_opened is not None:
             proxy.on_opened(self)
         self._connect = asyncio.get_running_loop().create_task(self._open_upstream())
