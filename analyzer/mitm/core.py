@@ -22,6 +22,7 @@ keeps secrets.
 from __future__ import annotations
 
 import random
+import re
 from collections import deque
 from dataclasses import dataclass, field, replace
 
@@ -29,7 +30,7 @@ from whiztap.analyzer.mitm.commands import Closing, Command, Deliver, EndConnect
 from whiztap.analyzer.mitm.faults import Fault
 from whiztap.analyzer.mitm.frame import Frame, masked, observation_of
 from whiztap.analyzer.mitm.intercept import Held, HeldFrames
-from whiztap.analyzer.mitm.lane import Lane, Notes, Out
+from whiztap.analyzer.mitm.lane import Lane, Notes, Out, Segments
 from whiztap.analyzer.mitm.stages import Stages
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction
@@ -42,6 +43,7 @@ OTHER = {C2S: S2C, S2C: C2S}
 _ASKS = b"sendchkpass"
 _VERDICTS = (b"readytogo", b"Failed Validation")
 _LOGIN_HOLD_NS = int(HOLD_LIMIT_S * 1e9)
+_MASKABLE = re.compile(rb"[^\r\n]+")
 CLOSING = Cause(Source.CLOSING)
 
 
@@ -69,9 +71,8 @@ class MiddleCore:
         self.lanes = {d: Lane(self, d, Framer(limits.max_frame, limits.max_image)) for d in (C2S, S2C)}
         self.gone = False  # nothing more is written (both sides gone, or reset)
         self.closing = False  # a side is gone: no control command is taken
-        self.login = LoginMask()  # the recorder's rule, over what the server received and sent
-        self.sent = LoginMask()  # the same rule over what the client sent: which sent frames may be a password
-        self._undecided: deque[tuple[int, bytes, int]] = deque()  # (offset, bytes, time) delivered, not yet told
+        self.sent = LoginMask()  # the recorder's rule over what the client sent: which of its bytes are the password
+        self._undecided: deque[tuple[Segments, bytes, int]] = deque()  # deliveries to the server not yet told
         self._undecided_since: int | None = None
         self._timed: list[tuple[int, Fault]] = []  # (when, fault): a reset or close after a time
         self._holds: dict[int, tuple[Lane, Out, Held]] = {}
@@ -85,8 +86,7 @@ class MiddleCore:
         """``data`` came from the sender of ``direction`` at ``t_ns``: told as
         the read it is (``Data``), after the delivered client bytes that what
         the server says decides, so every consumer sees them in that order."""
-        if direction is S2C:
-            self.login.server(data)
+        if direction is S2C:  # what the server says may decide the delivered client bytes told before
             self.sent.server(data)
             self._tell_decided()
         else:
@@ -114,7 +114,6 @@ class MiddleCore:
     def sender_ended(self, direction: Direction, t_ns: int) -> list[Command]:
         """The sender of ``direction`` sent its FIN: the FIN follows what its lane holds."""
         if direction is S2C:  # the server will say nothing more about a login
-            self.login.server_ended()
             self.sent.server_ended()
             self._tell_decided()
         self.lanes[direction].end(t_ns)
@@ -133,7 +132,7 @@ class MiddleCore:
         gone.drop_all(t_ns)
         gone.ready = False  # what its sender still sends waits, and expires at the close
         self.lanes[sender].flush(t_ns)
-        self.login.end()  # undecided client bytes are masked
+        self.sent.end()  # undecided client bytes are masked
         self._tell_decided()
         return self._done(t_ns)
 
@@ -143,7 +142,7 @@ class MiddleCore:
         for lane in self.lanes.values():
             lane.drop_all(t_ns)
         self.gone = True
-        self.login.end()
+        self.sent.end()
         self._tell_decided()
         self._timed.clear()
         return self._done(t_ns)
@@ -158,7 +157,7 @@ class MiddleCore:
         for fault in due:
             self._timed_end(fault, t_ns)
         if self._undecided_since is not None and t_ns >= self._undecided_since + _LOGIN_HOLD_NS:
-            self.login.force()  # as the recorder does: what only a clock decides is masked, never shown
+            self.sent.force()  # as the recorder does: what only a clock decides is masked, never shown
             self._tell_decided()
         timeout = self.context.hold_timeout_ns
         for _, _, held in [h for h in self._holds.values() if t_ns - h[2].since_ns >= timeout]:
@@ -250,9 +249,16 @@ class MiddleCore:
     def tell(self, event: Intervention) -> None:
         self._tell(event)
 
-    def deliver(self, direction: Direction, data: bytes, t_ns: int, notes: list[tuple[int, Notes]]) -> None:
+    def deliver(self, direction: Direction, data: bytes, t_ns: int, notes: list[tuple[int, Notes]],
+                segments: Segments = ()) -> None:
         """Write ``data``; tell the interventions on the frames in it, with where
-        each went, then the delivery (the client's bytes by the password rule)."""
+        each went, then the delivery.  What the server receives is masked by
+        the recorder's rule over what the client *sent*: ``segments`` say which
+        bytes of ``data`` are which of the client's (``passed``: all of it, as
+        it came, from ``source``); bytes that are none of the client's (an
+        injection, an edit) are not its password, unless they stand for a
+        frame that may be one (``secret``).  A delivery waits to be told until
+        the rule has decided its bytes."""
         base = self._delivered[direction]
         for at, group in notes:
             for note in group:
@@ -264,13 +270,11 @@ class MiddleCore:
         if direction is S2C:
             self._tell(Delivered(self.conn, S2C, t_ns, data))
             return
-        login = self.login
-        if not self._undecided and login.decided >= login.received + len(data) and login.masked_end <= login.received:
-            login.client(data)  # decided and shown already (the usual case once a login is over, or never was)
-            self._tell(Delivered(self.conn, C2S, t_ns, data))
+        sent = self.sent
+        if not self._undecided and sent.decided >= sent.received and sent.masked_end <= _first_source(segments):
+            self._tell(Delivered(self.conn, C2S, t_ns, data))  # the usual case: decided, and past any password
             return
-        self._undecided.append((login.received, data, t_ns))
-        login.client(data)
+        self._undecided.append((segments, data, t_ns))
         self._tell_decided()
         if self._undecided and self._undecided_since is None:
             self._undecided_since = t_ns
@@ -377,16 +381,17 @@ class MiddleCore:
         self._commands.append(Tell(event))
 
     def _tell_decided(self) -> None:
-        login, undecided = self.login, self._undecided
-        while undecided and login.decided >= undecided[0][0] + len(undecided[0][1]):
-            offset, data, t_ns = undecided.popleft()
-            _, spans = login.apply(offset, data)
+        """Tell the deliveries to the server whose bytes the rule has decided,
+        in order: the masked runs (but CR and LF) as secret, the rest not."""
+        sent, undecided = self.sent, self._undecided
+        while undecided and _decided(undecided[0][0], sent.decided):
+            segments, data, t_ns = undecided.popleft()
             at = 0
-            for start, length in spans:  # the masked runs are secret, the rest (line breaks, after) is not
+            for start, stop in _masked_runs(segments, data, sent.masked_end):
                 if start > at:
                     self._tell(Delivered(self.conn, C2S, t_ns, data[at:start]))
-                self._tell(Delivered(self.conn, C2S, t_ns, data[start:start + length], True))
-                at = start + length
+                self._tell(Delivered(self.conn, C2S, t_ns, data[start:stop], True))
+                at = stop
             if at < len(data):
                 self._tell(Delivered(self.conn, C2S, t_ns, data[at:]))
         if not undecided:
@@ -407,3 +412,31 @@ class MiddleCore:
             self._commands.append(WakeAt(deadline))
         commands, self._commands = self._commands, []
         return commands
+
+
+def _first_source(segments: Segments) -> int:
+    """Where the first of the client's bytes in a delivery began in its stream
+    (a delivery of none of the client's bytes: as if past any password, unless secret)."""
+    for _, _, source, secret in segments:
+        if secret and source < 0:
+            return -1
+        if source >= 0:
+            return source
+    return 1 << 62
+
+
+def _decided(segments: Segments, decided: int) -> bool:
+    return all(source < 0 or source + length <= decided for _, length, source, _ in segments)
+
+
+def _masked_runs(segments: Segments, data: bytes, masked_end: int) -> list[tuple[int, int]]:
+    """The [start, stop) runs of ``data`` to mask, CR and LF left out: the
+    client's bytes the rule masks, and all of a secret segment not the client's."""
+    runs: list[tuple[int, int]] = []
+    for at, length, source, secret in segments:
+        if source >= 0:
+            stop = at + max(0, min(length, masked_end - source))
+        else:
+            stop = at + length if secret else at
+        runs += [m.span() for m in _MASKABLE.finditer(data, at, stop)]
+    return runs

@@ -47,6 +47,7 @@ WRITE_BURST = 256 << 10  # bytes a lane writes before its receiver must say it t
 INJECT_ROOM = 1 << 20
 STALL_NS = 200_000_000
 Notes = tuple[Intervention, ...]
+Segments = list[tuple[int, int, int, bool]]  # in a write: (at, length, the sender's offset or -1, secret)
 
 
 class LaneOwner(Protocol):
@@ -61,7 +62,8 @@ class LaneOwner(Protocol):
     def decide(self, lane: Lane, item: Item, index: int, offset: int, t_ns: int) -> Frame: ...
     def hold(self, lane: Lane, frame: Frame, out: Out, t_ns: int) -> Held: ...
     def inject_from_stage(self, direction: Direction, data: bytes, cause: Cause, t_ns: int) -> None: ...
-    def deliver(self, direction: Direction, data: bytes, t_ns: int, notes: list[tuple[int, Notes]]) -> None: ...
+    def deliver(self, direction: Direction, data: bytes, t_ns: int, notes: list[tuple[int, Notes]],
+                segments: Segments = ...) -> None: ...
     def end(self, how: Action, t_ns: int) -> None: ...
     def pass_eof(self, direction: Direction) -> None: ...
     def expired(self, direction: Direction, out: Out, t_ns: int) -> None: ...
@@ -73,8 +75,10 @@ class Out:
     """Something to write, in turn: bytes (in slices, if set) no earlier than
     ``at_ns``, or a connection's end; ``held`` until a person lets it go.
     ``index``/``offset``/``kind``/``secret``: the frame it comes from (-1: an
-    injection or bytes passed on raw); ``notes``: the interventions on it, told when
-    it is delivered (then it is known where it went)."""
+    injection or bytes passed on raw); ``source``: where ``data`` begins in the
+    sender's stream when it is the sender's own bytes, unchanged (-1: an
+    injection, an edit); ``notes``: the interventions on it, told when it is
+    delivered (then it is known where it went)."""
 
     data: bytes
     at_ns: int
@@ -87,6 +91,7 @@ class Out:
     kind: str = ""
     secret: bool = False
     notes: Notes = ()
+    source: int = -1
 
 
 class _Entry(NamedTuple):
@@ -190,7 +195,7 @@ class Lane:
         self.offset += len(data)
         if not owner.gone:
             self.credit -= len(data)
-            owner.deliver(self.direction, data, t_ns, [])
+            owner.deliver(self.direction, data, t_ns, [], [(0, len(data), self.offset - len(data), False)])
 
     def end(self, t_ns: int) -> None:
         """The sender sent its FIN: everything pending becomes items; the FIN follows them."""
@@ -278,7 +283,8 @@ class Lane:
             self._entry_bytes -= len(entry.raw)
             if entry.item is None:  # secret: judged as a frame is, should it never be delivered (expire)
                 self._append(Out(entry.raw, max(self._last_at, entry.t_ns),
-                                 secret=self.owner.secret(self.direction, entry.offset, len(entry.raw))))
+                                 secret=self.owner.secret(self.direction, entry.offset, len(entry.raw)),
+                                 source=entry.offset))
             else:
                 self._decide(entry)
 
@@ -296,7 +302,8 @@ class Lane:
         else:
             for _ in range(frame.copies):
                 out = Out(frame.data, at, frame.slices, frame.pause_ns, index=frame.index, offset=frame.offset,
-                          kind=kind, secret=frame.secret, notes=notes)
+                          kind=kind, secret=frame.secret, notes=notes,
+                          source=frame.offset if frame.data == frame.raw else -1)
                 notes = ()  # the first copy tells them
                 if frame.hold is not None:
                     out.held = owner.hold(self, frame, out, t_ns)
@@ -329,6 +336,7 @@ class Lane:
         queue, owner = self._queue, self.owner
         wrote = False
         notes: list[tuple[int, Notes]] = []
+        segments: Segments = []
         while queue and self.ready and not owner.gone and self.credit > 0:
             out = queue[0]
             if out.held is not None or out.at_ns > now:
@@ -347,6 +355,9 @@ class Lane:
                 low, high = out.slices
                 size = owner.slice_size(low, high)
                 chunk, out.data = data[:size], data[size:]
+                segments.append((0, len(chunk), out.source, out.secret))
+                if out.source >= 0:
+                    out.source += len(chunk)
                 if out.data:
                     out.at_ns = now + out.pause_ns
                 else:
@@ -354,6 +365,7 @@ class Lane:
             else:
                 queue.popleft()
                 chunk = data
+                segments.append((0, len(data), out.source, out.secret))
                 if queue and _joinable(queue[0], now):  # one write for a run of due frames
                     parts = [data]
                     at = len(data)
@@ -361,6 +373,7 @@ class Lane:
                         out = queue.popleft()
                         if out.notes:
                             notes.append((at, out.notes))
+                        segments.append((at, len(out.data), out.source, out.secret))
                         parts.append(out.data)
                         at += len(out.data)
                     chunk = b"".join(parts)
@@ -368,8 +381,9 @@ class Lane:
             self.credit -= len(chunk)
             wrote = True
             if chunk or notes:  # a frame replaced by nothing is no delivery, but what was done to it is told
-                owner.deliver(self.direction, chunk, now, notes)
+                owner.deliver(self.direction, chunk, now, notes, segments)
                 notes = []
+            segments = []
         return wrote
 
     # -- holds and the end ------------------------------------------------------------------------
@@ -377,13 +391,12 @@ class Lane:
     def let_go(self, out: Out, data: bytes, notes: Notes, now: int) -> None:
         """A held frame may go, as ``data`` (empty: dropped), ``notes`` told once it is delivered."""
         self._queued += len(data) - len(out.data)
+        if data != out.data:
+            out.source = -1  # edited: the bytes are the person's, not the sender's
         out.data = data
         out.held = None
         out.notes += notes
         self.pump(now)
-
-    def held_outs(self) -> list[Out]:
-        return [out for out in self._queue if out.held is not None]
 
     def flush(self, now: int) -> None:
         """The connection is ending: what is decided goes now, held frames as
@@ -392,11 +405,11 @@ class Lane:
         than a lane may hold)."""
         while self._entries:
             entry = self._entries.popleft()
-            self._append(Out(entry.raw, 0, index=entry.index,
-                             kind=entry.item.kind.value if entry.item is not None else ""))
+            self._append(Out(entry.raw, 0, index=entry.index, kind=entry.item.kind.value if entry.item is not None
+                             else "", source=entry.offset))
         self._entry_bytes = 0
         if self._pending:
-            self._append(Out(bytes(self._pending), 0))
+            self._append(Out(bytes(self._pending), 0, source=self.offset + self._skip))
             self._pending.clear()
         for out in self._queue:
             out.held = None
