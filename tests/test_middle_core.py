@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from whiztap.analyzer.mitm.commands import Closing, Deliver, EndConnection, Full, WakeAt
 from whiztap.analyzer.mitm.lane import HIGH_WATER, INJECT_ROOM, STALL_NS
+from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.traffic import Action, Cause, Source
 from whiztap.sniffer.mitm.controller import ControlError
 from tests.core_support import C2S, MS, S, S2C, FakeClockMiddle, NotingShell
@@ -343,3 +344,14 @@ def test_an_eager_password_under_a_fault_is_masked_in_everything_the_core_emits(
     shown = b"".join(i.before + i.after for i in mid.interventions())
     assert mid.interventions() and (b"Zq7secretPW" in shown) is not redact
     assert all(i.secret for i in mid.interventions() if i.direction is C2S)
+
+
+def test_a_password_held_and_sent_back_as_its_mask_goes_as_it_came():
+    mid = FakeClockMiddle(intercept="dir:c2s")
+    mid.send(C2S, b"Zq7secretPW\r\n")  # eager: before the server's greeting, so held (and shown masked)
+    hidden = [h for h in mid.controller.held.frames.values() if h.hidden]
+    assert hidden
+    for held in hidden:
+        mid.controller.release(held.id, edit=escape(held.shown), force=True)  # Enter in the editor, unchanged
+    mid.controller.release_all()
+    assert mid.got(C2S) == b"Zq7secretPW\r\n"

@@ -28,6 +28,7 @@ from whiztap.analyzer.mitm.stages import Stages, stage_name
 from whiztap.analyzer.protocol.frame_text import check_frame, frame_from_text
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
+from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.traffic import Cause, Source
 
 MAX_FAULTS = 256  # faults in force at once: every frame is weighed against each
@@ -198,11 +199,14 @@ class Controller:
     def _held(self, held_id: int) -> Held:
         held = self.held.get(held_id)
         if held is None:
-            raise ControlError(f"no held frame #{held_id} (it was released, dropped or timed out)", 404)
+            raise ControlError(f"no held frame #{held_id} (it was released, dropped or timed out, or its "
+                               f"connection ended)", 404)
         return held
 
     def release(self, held_id: int, edit: str | None = None, force: bool = False) -> dict:
         held = self._held(held_id)
+        if edit is not None and held.hidden and edit == escape(held.shown):
+            edit = None  # a password's mask sent back unchanged (the editor shows it masked): it goes as it came
         data = None if edit is None else self.checked(edit, held.direction, force)
         cause = Cause(Source.HAND, "edit" if data is not None else "")
         self._run(held.conn, lambda core, now: core.release(held, data, False, cause, now))
