@@ -143,7 +143,7 @@ def test_the_fleet_table_is_in_every_format(fleet: list[Path], tmp_path: Path) -
     args = [*fleet, "--group-by", "robot", "-o"]
     text = tmp_path / "r.txt"
     run("analyze", *args, text)
-    assert "Fleet by robot" in text.read_text() and "PW-PAIR-UNANSWERED 6 since 2026-03-02" in text.read_text()
+    assert "Fleet by robot" in text.read_text() and "PW-PAIR-UNANSWERED 7 since 2026-03-02" in text.read_text()
     md = tmp_path / "r.md"
     run("analyze", *args, md, "--format", "markdown")
     lines = md.read_text().splitlines()
