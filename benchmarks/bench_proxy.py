@@ -302,44 +302,67 @@ def pipelined(tmp: Path) -> dict[str, float]:
             "size": out.stat().st_size}
 
 
-def one_way(tmp: Path) -> dict[str, float]:
-    """The one-way mix: Normal Sends through ``whiztap record`` to a server that
-    never speaks; frames/s from the first byte sent to the finished file, and
-    whether the file holds every frame, unmasked."""
-    server = socket.create_server(("127.0.0.1", 0))
-    upstream_port, port = server.getsockname()[1], _free_port()
-    payload = b"".join(b"rr1-%d--%d--0-ss1" % (i % 24, 2 + i % 1999) for i in range(ONE_WAY_FRAMES))
-    received = [0]
+class _Sink:
+    """A server that reads and discards, and notes when the last of ``size`` bytes came."""
 
-    def discard() -> None:
-        while received[0] < len(payload):  # the port probe first, then the benchmark's connection
-            conn, _ = server.accept()
+    def __init__(self, size: int) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.size = size
+        self.received = 0
+        self.last = 0.0
+        self._thread = threading.Thread(target=self._discard, daemon=True)
+        self._thread.start()
+
+    def _discard(self) -> None:
+        while self.received < self.size:  # the port probe first, then the benchmark's connection
+            conn, _ = self.server.accept()
             with conn:
                 while data := conn.recv(1 << 20):
-                    received[0] += len(data)
+                    self.received += len(data)
+                    if self.received >= self.size:
+                        self.last = time.perf_counter()
+                        return
 
-    sink = threading.Thread(target=discard, daemon=True)
-    sink.start()
-    out = tmp / "one-way.mcap"
-    rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
-                  "-o", str(out)])
-    stdout = ""
+    def wait(self) -> None:
+        self._thread.join(600)
+        self.server.close()
+
+
+def _one_way_run(tmp: Path, name: str, payload: bytes, *options: str) -> tuple[_Sink, float, float, str, bytes | None]:
+    """``payload`` sent through ``whiztap record OPTIONS`` to a discarding server:
+    the sink, when the first byte was sent and the file finished, what record
+    printed, and the client stream the recording holds."""
+    sink = _Sink(len(payload))
+    port = _free_port()
+    out = tmp / name
+    rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{sink.port}", "-o", str(out),
+                  *options])
     try:
         _wait_port(port, rec)
         with socket.create_connection(("127.0.0.1", port)) as s:
             s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             start = time.perf_counter()
             s.sendall(payload)
-        sink.join(600)
+            sink.wait()
     finally:
         stdout = _stop(rec)
         finished = time.perf_counter()
-        server.close()
+        sink.server.close()
     streams = _streams(out)
     conn = max(c for c, _ in streams)
+    return sink, start, finished, stdout, streams.get((conn, "c2s"))
+
+
+def one_way(tmp: Path) -> dict[str, float]:
+    """The one-way mix: Normal Sends through ``whiztap record`` to a server that
+    never speaks; frames/s from the first byte sent to the finished file, and
+    whether the file holds every frame, unmasked."""
+    payload = b"".join(b"rr1-%d--%d--0-ss1" % (i % 24, 2 + i % 1999) for i in range(ONE_WAY_FRAMES))
+    sink, start, finished, stdout, recorded_stream = _one_way_run(tmp, "one-way.mcap", payload)
     m = re.search(r"c2s (\d+) frames", stdout)
     recorded = int(m.group(1)) if m else 0
-    lost = received[0] != len(payload) or streams.get((conn, "c2s")) != payload or recorded != ONE_WAY_FRAMES
+    lost = sink.received != len(payload) or recorded_stream != payload or recorded != ONE_WAY_FRAMES
     return {"frames": ONE_WAY_FRAMES, "recorded_frames": recorded, "lost": float(lost),
             "recorded_fps": ONE_WAY_FRAMES / (finished - start)}
 
@@ -347,41 +370,12 @@ def one_way(tmp: Path) -> dict[str, float]:
 def middle_blast(tmp: Path) -> dict[str, float]:
     """The pipelined requests through the proxy in the middle (``--control 0``,
     no fault) to a server that discards them: frames/s to the last byte received."""
-    server = socket.create_server(("127.0.0.1", 0))
-    upstream_port, port = server.getsockname()[1], _free_port()
     payload = b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
                        for i in range(PIPELINE_FRAMES))
-    received = [0, 0.0]  # bytes, when the last came
-
-    def discard() -> None:
-        while True:  # the port probe first, then the benchmark's connection
-            conn, _ = server.accept()
-            with conn:
-                while data := conn.recv(1 << 20):
-                    received[0] += len(data)
-                    if received[0] >= len(payload):
-                        received[1] = time.perf_counter()
-                        return
-
-    sink = threading.Thread(target=discard, daemon=True)
-    sink.start()
-    out = tmp / "middle.mcap"
-    rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
-                  "-o", str(out), "--control", "0", "--keep-secrets"])  # no login: nothing to mask
-    try:
-        _wait_port(port, rec)
-        with socket.create_connection(("127.0.0.1", port)) as s:
-            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            start = time.perf_counter()
-            s.sendall(payload)
-            sink.join(600)
-    finally:
-        _stop(rec)
-        server.close()
-    streams = _streams(out)
-    conn = max(c for c, _ in streams)
-    return {"frames": PIPELINE_FRAMES, "fps": PIPELINE_FRAMES / (received[1] - start) if received[1] else 0.0,
-            "lost": float(received[0] != len(payload) or streams.get((conn, "c2s")) != payload)}
+    sink, start, _, _, recorded_stream = _one_way_run(tmp, "middle.mcap", payload, "-q", "--control", "0",
+                                                      "--keep-secrets")  # no login: nothing to mask
+    return {"frames": PIPELINE_FRAMES, "fps": PIPELINE_FRAMES / (sink.last - start) if sink.last else 0.0,
+            "lost": float(sink.received != len(payload) or recorded_stream != payload)}
 
 
 def soak(sim_port: int, tmp: Path) -> dict[str, object]:
