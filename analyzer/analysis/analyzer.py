@@ -26,11 +26,11 @@ from whiztap.analyzer.analysis.facts import (
     Series,
     ViolationRecord,
 )
-from whiztap.analyzer.analysis.sides import Settled, Sides, Verdict, side_of
+from whiztap.analyzer.analysis.sides import CLIENT, SERVER, Settled, Sides, Verdict, side_of
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ServoPositionRequest, SetConfiguration
-from whiztap.analyzer.protocol.observations import Event, LateViolation, Observation
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.session import Limits, Session
 from whiztap.analyzer.traffic import (
     Closed,
@@ -39,6 +39,7 @@ from whiztap.analyzer.traffic import (
     Data,
     Delivered,
     Gap,
+    HalfClosed,
     Intervention,
     Opened,
     RecordingStarted,
@@ -48,6 +49,7 @@ from whiztap.analyzer.traffic import (
     UpstreamFailed,
 )
 
+ENDS = frozenset({HalfClosed, UpstreamFailed, Closed, Gap})  # the connection events sessions take
 MIDDLE_NOTE = "the proxy stood in the middle: each side judged by what it sent and what it received"
 
 
@@ -75,22 +77,44 @@ class Analyzer:
         self._bin_second = 0
         self._next_second = -1
         self._sides = Sides(partial(limits.session, self._rule.name, False), self._record,
-                            max_violations) if middle else None
+                            max_violations, self.traffic, self._read) if middle else None
 
     def receive(self, event: TrafficEvent) -> list[Event]:
-        """One traffic event; returns the session's events (for views like ``cat``)."""
+        """One traffic event; returns the session's events (for views like ``cat``).
+        In the middle, the session takes a read once its delivery shows whether
+        the proxy changed it (``Sides``): its events come with that event."""
         if type(event) is not Data:
             return self._connection_event(event)  # type: ignore[arg-type]
+        conn = event.conn
+        sides = self._sides
+        if sides is not None:
+            held = sides.flush(conn)  # another connection's reads, first
+            if event.t_ns >= self._next_second:
+                self._new_bin(event.t_ns)
+            if conn not in self.sessions and conn not in self.summaries:
+                self.summaries[conn] = ConnectionSummary(self.file, conn)
+            events = sides.receive(event)
+            return held + events if held else events
         if event.t_ns >= self._next_second:
             self._new_bin(event.t_ns)
-        conn = event.conn
         if conn not in self.sessions and conn not in self.summaries:
             self.summaries[conn] = ConnectionSummary(self.file, conn)
         events = self.traffic.receive(event)
         if events:
             self._collect(conn, events)
-        if self._sides is not None:
-            self._sides.receive(event)
+        return events
+
+    def _read(self, event: Data) -> list[Event]:
+        """In the middle, a read into the one session (``Sides`` says when):
+        its frames are counted in the second it came in, even when it waited
+        for its delivery while a later read began a new second."""
+        conn = event.conn
+        events = self.traffic.receive(event)
+        if events:
+            self._collect(conn, events)
+            self._sides.batch(conn, SERVER if event.direction is Direction.S2C else CLIENT)  # type: ignore[union-attr]
+        if event.t_ns < self._bin_second * NS:  # it waited (a recording's times never go back)
+            self._bin(conn, self.sessions[conn], event.t_ns // NS)
         return events
 
     def _connection_event(self, event: ConnectionEvent) -> list[Event]:
@@ -99,8 +123,7 @@ class Analyzer:
         if kind is RecordingStarted or kind is RecordingStopped:
             return []
         if kind is Delivered or kind is Intervention:
-            self._middle_event(event)  # type: ignore[arg-type]
-            return []
+            return self._middle_event(event)  # type: ignore[arg-type]
         summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
         if kind is Opened or kind is Continued:
             summary.client = event.client or summary.client  # type: ignore[union-attr]
@@ -118,14 +141,18 @@ class Analyzer:
                                  else f"gap in {direction}: {why}")
         elif kind is Closed:
             summary.closed_by = event.by or ""  # type: ignore[union-attr]
+        sides = self._sides
+        held = None
+        if sides is not None and kind in ENDS:  # the sessions take it: a read held was never delivered before it
+            held = sides.flush()
         events = self.traffic.receive(event)
         self._collect(event.conn, events)
-        sides = self._sides
         if sides is not None:
+            sides.batch(event.conn, SERVER)
             sides.receive(event)
             if kind is Closed or kind is Gap:
                 self._settle(event.conn, sides.settle(event.conn, closed=kind is Closed))
-        return events
+        return held + events if held else events
 
     def open_judgements(self) -> list[tuple[int, Settled]]:
         """In the middle, how each connection not yet settled would be judged if
@@ -140,12 +167,19 @@ class Analyzer:
         return self.result
 
     def close_all(self) -> list[tuple[int, list[Event]]]:
-        """Like finish, for views that print events: the late ones per connection."""
-        out = self.traffic.finish()
-        for conn, events in out:
+        """Like finish, for views that print events: the late ones per connection
+        (in the middle, what became of reads still held, too)."""
+        sides = self._sides
+        out = []
+        if sides is not None and sides.holder is not None:  # reads never delivered
+            out.append((sides.holder, sides.flush()))
+        for conn, events in self.traffic.finish():
             self._collect(conn, events)
-        if self._sides is not None:
-            for conn, settled in self._sides.finish():
+            if sides is not None:
+                sides.batch(conn, SERVER)
+            out.append((conn, events))
+        if sides is not None:
+            for conn, settled in sides.finish():
                 self._settle(conn, settled)
             # connections are settled as they end: the report lists their violations in time order
             self.result.violations.sort(key=lambda v: v.t_ns)
@@ -173,9 +207,12 @@ class Analyzer:
         sides = self._sides
         if sides is None:
             summary.violations.update(session.violation_counts)
-        if sides is None or not sides.is_middle(conn):  # else the server's own view says (_settle)
+        if sides is None or sides.judged_alone(conn):  # else the server's own view says (_settle)
             for title, stats in session.latencies.items():
                 result.latencies[title].merge(stats)
+            if sides is not None and sides.is_middle(conn):  # in step all along: what the client waited too
+                for title, stats in session.latencies.items():
+                    result.client_latencies[title].merge(stats)
         result.frames += sum(session.counts.values())
         for t_edge in (session.first_t_ns, session.last_t_ns):
             if t_edge is not None:
@@ -190,9 +227,9 @@ class Analyzer:
         self._bin_second = t_ns // NS
         self._next_second = (self._bin_second + 1) * NS
 
-    def _bin(self, conn: int, session: Session) -> None:
+    def _bin(self, conn: int, session: Session, second: int | None = None) -> None:
         counted = self._counted.setdefault(conn, Counter())
-        bins = self.result.frames_per_second[self._bin_second]
+        bins = self.result.frames_per_second[self._bin_second if second is None else second]
         for key, n in session.counts.items():
             delta = n - counted[key]
             if delta:
@@ -237,7 +274,7 @@ class Analyzer:
         request it says was never answered); in the middle, held until the
         connection shows whether the proxy changed it."""
         if self._sides is not None:
-            self._sides.single(conn, (self._record(conn, rule_id, detail, about, t, late), unanswered))
+            self._sides.single(conn, (self._record(conn, rule_id, detail, about, t, late), unanswered), about.item.raw)
             return
         result = self.result
         self._tally(rule_id, side_of(rule_id, str(about.direction)), unanswered)
@@ -261,18 +298,21 @@ class Analyzer:
 
     # -- the proxy in the middle ---------------------------------------------------------
 
-    def _middle_event(self, event: Delivered | Intervention) -> None:
+    def _middle_event(self, event: Delivered | Intervention) -> list[Event]:
         """What a side received, or a change the proxy made: counted, and in
-        the middle handed to the views."""
-        summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
+        the middle handed to ``Sides``; returns what the one session made of
+        the read a delivery completed, if any."""
+        conn = event.conn
+        summary = self.summaries.get(conn) or self.summaries.setdefault(conn, ConnectionSummary(self.file, conn))
         if type(event) is Intervention:
             self.result.interventions[(str(event.cause), event.action.value)] += 1
             summary.interventions += 1
-        if self._sides is not None:
-            if not summary.middle:
-                summary.middle = True
-                summary.notes.append(MIDDLE_NOTE)
-            self._sides.receive(event)
+        if self._sides is None:
+            return []
+        if not summary.middle:
+            summary.middle = True
+            summary.notes.append(MIDDLE_NOTE)
+        return self._sides.receive(event)
 
     def _settle(self, conn: int, settled: Settled) -> None:
         """A connection's sessions ended: its violations as judged go into the

@@ -29,20 +29,33 @@ Each view's sessions also time the answering: the server's view from the
 request as the server received it to the answer it sent, the client's view
 from the request as the client sent it to the answer as it received it.
 
-A connection without any of those messages is judged by the one session of
-``Analyzer`` as before: its violations are held here until it ends and then
-handed back unchanged.
+The views begin only when they could differ from the one session of
+``Analyzer``: until then the connection is in step (``instep.py``), the
+traffic is the same for both sides, and the one session judges it for both
+(each read is held here until its delivery shows it, then handed to the one
+session).  At the first intervention, or the first delivery out of step
+(other bytes, another time, a read still undelivered when anything else
+happens, too much held), both views begin as copies of the one session as it
+stands, before the reads still held, which then go to the views as they would
+have; they are fed from there on.  What the one session found before is both
+sides' own, in the order the views would have kept it.
+
+A connection without any of those messages, or never out of step, is judged
+by the one session as before: its violations are held here until it ends and
+then handed back unchanged (in the middle, its latencies are both sides').
 """
 
 from __future__ import annotations
 
 from collections import Counter, deque
 from collections.abc import Callable
+from copy import deepcopy
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 from whiztap.analyzer.analysis.consequences import Consequences, Key, answer_key, request_key
 from whiztap.analyzer.analysis.facts import ViolationRecord
+from whiztap.analyzer.analysis.instep import InStep, OutOfStep
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.stats import LatencyStats
@@ -97,11 +110,18 @@ class _Connection:
     middle: bool = False
     causes: dict[str, None] = field(default_factory=dict)  # what intervened, in order
     consequences: Consequences = field(default_factory=Consequences)
+    views: bool = False  # out of step: the two views are fed (until then the one session judges)
+    step: InStep = field(default_factory=InStep)  # in step: the reads not yet delivered
     held: int = 0  # verdicts held in full; past the cap only counted
-    single: list[Verdict] = field(default_factory=list)  # the one session's, for a connection not in the middle
+    single: list[Verdict] = field(default_factory=list)  # the one session's
+    batched: int = 0  # how many of them are in their place (``Sides.batch``)
+    fresh: list[_Key] = field(default_factory=list)  # in step: the keys of those not yet in their place
+    left: dict[str, dict[_Key, None]] = field(default_factory=lambda: {SERVER: {}, CLIENT: {}})  # see _diverge
+    single_more: Counter = field(default_factory=Counter)
+    before: int = 0  # how many of ``single`` were found before the views began: both sides'
+    before_more: Counter = field(default_factory=Counter)  # and of ``single_more``
     kept: list[Verdict] = field(default_factory=list)  # each view's verdicts on its own side
     more: Counter = field(default_factory=Counter)  # past the cap: (rule, side, title) -> count
-    single_more: Counter = field(default_factory=Counter)
     published: dict[str, Counter] = field(default_factory=lambda: {SERVER: Counter(), CLIENT: Counter()})
     waiting: dict[str, dict[_Key, deque[_Held]]] = field(default_factory=lambda: {SERVER: {}, CLIENT: {}})
     latencies: dict[str, LatencyStats] = field(default_factory=dict)  # the server view's
@@ -110,19 +130,33 @@ class _Connection:
 
 class Sides:
     """The two views of every connection of a recording made in the middle,
-    and the reconciling of what they found.
+    begun when a connection goes out of step, and the reconciling of what
+    they found.
 
-    ``receive`` takes every traffic event; ``single`` takes the violations the
-    analyzer's own session found; ``settle`` (when a connection's sessions
-    ended: closed, or cut by a gap) and ``finish`` (at the end) say how each
-    connection is judged.  Violations are held per connection until then, the
-    first ``cap`` in full, the rest counted (past the cap, what a view sees of
-    the other side is no longer matched: it is left out)."""
+    ``receive`` takes every traffic event but the connection's end (and
+    hands the one session, through ``read``, each read once its delivery
+    shows it: what it returns is what the one session made of them);
+    ``flush`` comes before the one session takes a connection event and
+    ``receive`` after; ``single`` takes the violations the analyzer's own
+    session found; ``settle`` (when a connection's sessions ended: closed, or
+    cut by a gap) and ``finish`` (at the end) say how each connection is
+    judged.  Violations are held per connection until then, the first ``cap``
+    in full, the rest counted (past the cap, what a view sees of the other
+    side is no longer matched: it is left out).  ``lazy=False`` feeds the
+    views of every connection from its first event (the way it was done
+    before the views were begun lazily; what they find is the same)."""
 
-    def __init__(self, new_session: Callable[[], Session], record: MakeRecord, cap: int) -> None:
+    def __init__(self, new_session: Callable[[], Session], record: MakeRecord, cap: int, single: Traffic,
+                 read: Callable[[Data], list[Event]], lazy: bool = True) -> None:
+        """``single``: the analyzer's own sessions (copied when views begin);
+        ``read``: hands the analyzer's own session a read."""
         self._record = record
         self._cap = cap
+        self._single = single
+        self._read = read
+        self._lazy = lazy
         self._conns: dict[int, _Connection] = {}
+        self.holder: int | None = None  # the one connection that holds reads, if any
         self._views = {SERVER: Traffic(new_session, self._server_ended),
                        CLIENT: Traffic(new_session, self._client_ended)}
 
@@ -130,52 +164,122 @@ class Sides:
         c = self._conns.get(conn)
         return c is not None and c.middle
 
-    def receive(self, event: TrafficEvent) -> None:
-        """One traffic event, into the views it belongs to."""
+    def judged_alone(self, conn: int) -> bool:
+        """Whether the connection is judged by the one session (not in the
+        middle, or never out of step so far)."""
+        c = self._conns.get(conn)
+        return c is None or not (c.middle and c.views)
+
+    def receive(self, event: TrafficEvent) -> list[Event]:
+        """One traffic event, into the views it belongs to; what the one
+        session made of the reads it was handed meanwhile."""
         kind = type(event)
         if kind is Data:
-            self._feed(SERVER if event.direction is Direction.S2C else CLIENT, event)  # type: ignore[union-attr]
-        elif kind is Delivered:
-            c = self._conn(event.conn)
-            c.middle = True
+            c = self._conns.get(event.conn) or self._conn(event.conn)
+            if c.views:
+                events = self._read(event)  # type: ignore[arg-type]
+                self._feed(SERVER if event.direction is Direction.S2C else CLIENT, event)  # type: ignore[union-attr]
+                return events
+            if not c.step.hold(event):  # type: ignore[arg-type]
+                return self._diverge(event.conn, c) + self.receive(event)
+            self.holder = event.conn
+            return []
+        if kind is Delivered:
             conn, direction, t_ns, data, _secret = event  # type: ignore[misc]
+            c = self._conns.get(conn) or self._conn(conn)
+            c.middle = True
+            events: list[Event] = []
+            if not c.views:
+                try:
+                    read = c.step.deliver(direction, t_ns, data)
+                except OutOfStep:
+                    events = self._diverge(conn, c)
+                else:
+                    if read is None:
+                        return events
+                    if not c.step.reads:
+                        self.holder = None
+                    return self._read(read)
             self._feed(SERVER if direction is Direction.C2S else CLIENT, Data(conn, direction, t_ns, data))
-        elif kind is Intervention:
+            return events
+        if kind is Intervention:
             c = self._conn(event.conn)
             c.middle = True
+            events = [] if c.views else self._diverge(event.conn, c)
             c.causes[str(event.cause)] = None  # type: ignore[union-attr]
             c.consequences.note(event)  # type: ignore[arg-type]
-        elif kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
-            # a sender's FIN ends the stream in both views: the proxy passes it on once it has
-            # delivered what it holds, and the recording has no time of its own for that
-            self._feed(SERVER, event)
-            self._feed(CLIENT, event)
+            return events
+        if kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
+            c = self._conns.get(event.conn)
+            if c is not None and c.views:
+                # a sender's FIN ends the stream in both views: the proxy passes it on once it has
+                # delivered what it holds, and the recording has no time of its own for that
+                self._feed(SERVER, event)
+                self._feed(CLIENT, event)
+        return []
 
-    def single(self, conn: int, verdict: Verdict) -> None:
-        """A violation the analyzer's one session found: held until the
-        connection is settled, then handed back if it was not in the middle."""
+    def flush(self, conn: int | None = None) -> list[Event]:
+        """Before the one session takes a connection event (or the end of the
+        traffic), or, with ``conn``, a read of that connection: the
+        connection that holds reads (another one, with ``conn``) did not have
+        them delivered in step before it, so it goes out of step.  Hence one
+        connection at most holds reads, and the one session takes every read
+        in the order they came.  What the one session made of them."""
+        holder = self.holder
+        if holder is None or holder == conn:
+            return []
+        return self._diverge(holder, self._conns[holder])
+
+    def single(self, conn: int, verdict: Verdict, raw: bytes) -> None:
+        """A violation the analyzer's one session found (``raw``: the frame it
+        is about): held until the connection is settled, then handed back if
+        it was judged alone."""
         c = self._conn(conn)
         if c.held < self._cap:
             c.held += 1
             c.single.append(verdict)
+            if not c.views:
+                record = verdict[0]
+                c.fresh.append((record.rule_id, record.direction, len(raw), hash(raw)))
         else:
             record, title = verdict
             c.single_more[(record.rule_id, record.side, title)] += 1
 
+    def batch(self, conn: int, first: str) -> None:
+        """The one session's violations since the last call came from one
+        event; in the middle they are put in the order the two views would have
+        kept them: the side that took the event first (a read's sender, else
+        the server) before the other, each in the order found."""
+        c = self._conns.get(conn)
+        if c is None or len(c.single) == c.batched:
+            return
+        single, done = c.single, c.batched
+        found = single[done:]
+        if c.fresh:  # in step: what the first view found of the other side's would have waited for it
+            left = c.left[first]
+            for (record, _title), key in zip(found, c.fresh):
+                if record.side != first:
+                    left.setdefault(key)
+            c.fresh = []
+        if len(found) > 1 and c.middle:
+            single[done:] = [v for v in found if v[0].side == first] + [v for v in found if v[0].side != first]
+        c.batched = len(single)
+
     def settle(self, conn: int, closed: bool) -> Settled:
         """How the connection's sessions that just ended are judged; ``closed``:
-        the connection is over (else a gap cut its sessions, and it goes on)."""
+        the connection is over (else a gap cut its sessions, and it goes on,
+        in step again until shown otherwise: every session begins anew)."""
         c = self._conns.pop(conn, None) if closed else self._conns.get(conn)
         if c is None:
             return Settled([], Counter(), [], None)
         if not closed:
-            self._conns[conn] = _Connection(c.middle, c.causes, c.consequences)
+            self._conns[conn] = _Connection(c.middle, c.causes, c.consequences, views=not self._lazy)
         return _judgement(c)
 
     def provisional(self) -> list[tuple[int, Settled]]:
         """How every connection not yet settled would be judged if its traffic
         ended now (a live verdict), changing nothing; latencies include what
-        its open sessions timed so far."""
+        its open sessions timed so far (in step, the one session's are both sides')."""
         out = []
         for conn, c in self._conns.items():
             settled = _judgement(c)
@@ -183,6 +287,9 @@ class Sides:
                 server, client = (self._views[side].sessions.get(conn) for side in (SERVER, CLIENT))
                 settled = settled._replace(latencies=_with_open(settled.latencies, server),
                                            client_latencies=_with_open(settled.client_latencies or {}, client))
+            elif c.middle:
+                single = self._single.sessions.get(conn)
+                settled = settled._replace(latencies=_with_open({}, single), client_latencies=_with_open({}, single))
             out.append((conn, settled))
         return out
 
@@ -198,8 +305,38 @@ class Sides:
     def _conn(self, conn: int) -> _Connection:
         c = self._conns.get(conn)
         if c is None:
-            c = self._conns[conn] = _Connection()
+            c = self._conns[conn] = _Connection(views=not self._lazy)
         return c
+
+    def _diverge(self, conn: int, c: _Connection) -> list[Event]:
+        """The connection goes out of step: both views begin as copies of the
+        one session as it stands (the held reads not in it yet), then the held
+        reads go to the one session and the views as they would have gone
+        (what was delivered of the first one, to its receiver's view);
+        returns what the one session made of them."""
+        c.views = True
+        c.before, c.before_more = len(c.single), Counter(c.single_more)
+        # what the views would have matched by now leaves its keys behind, in the order they came (the
+        # order effects and the client's answering violations are listed and credited in, at one time)
+        c.waiting = {side: {key: deque() for key in keys} for side, keys in c.left.items()}
+        c.left = {SERVER: {}, CLIENT: {}}
+        session = self._single.sessions.get(conn)
+        if session is not None:
+            for view in self._views.values():
+                view.sessions[conn] = _copy(session)
+        reads, delivered = c.step.take()
+        if self.holder == conn:
+            self.holder = None
+        events: list[Event] = []
+        for read in reads:
+            events += self._read(read)
+            direction = read.direction
+            self._feed(SERVER if direction is Direction.S2C else CLIENT, read)
+            if delivered:
+                self._feed(CLIENT if direction is Direction.S2C else SERVER,
+                           Data(conn, direction, read.t_ns, read.data[:delivered]))
+                delivered = 0
+        return events
 
     def _feed(self, side: str, event: TrafficEvent) -> None:
         events = self._views[side].receive(event)
@@ -268,11 +405,12 @@ class Sides:
 
 
 def _judgement(c: _Connection) -> Settled:
-    """A connection judged on what its views found so far; the records it
+    """A connection judged on what its views found so far (or by the one
+    session alone: not in the middle, or never out of step); the records it
     hands back are copies, so a provisional judgement changes nothing."""
-    if not c.middle:
+    if not (c.middle and c.views):
         return Settled(list(c.single), Counter(c.single_more), [], None)
-    verdicts = list(c.kept)
+    verdicts = c.single[:c.before] + c.kept  # before the views began, what the one session found was both sides'
     effects = [replace(record) for held in c.waiting[SERVER].values() for record, _, _ in held]
     answering: list[_Held] = []
     for held in c.waiting[CLIENT].values():
@@ -288,7 +426,7 @@ def _judgement(c: _Connection) -> Settled:
         else:  # what follows from a frame the proxy made or changed: not the client's experience
             effects.append(replace(record, cause=cause))
     effects.sort(key=lambda r: r.t_ns)
-    return Settled(verdicts, Counter(c.more), effects, _copied(c.latencies), _copied(c.client_latencies))
+    return Settled(verdicts, c.before_more + c.more, effects, _copied(c.latencies), _copied(c.client_latencies))
 
 
 def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:
@@ -300,6 +438,16 @@ def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:
     return replace(record, side=CLIENT, cause="", detail=(
         f"{record.detail} (the client's experience only: the proxy intervened on this "
         f"connection{': ' + named if named else ''}; the server's view has no such violation)"))
+
+
+def _copy(session: Session) -> Session:
+    """A view's session begun as a copy of the one session: all its state is
+    its own (the checksum rule, a shared table, aside); like every view's
+    session, it leaves clean commands out of its events."""
+    rule = session.checksum_rule
+    view = deepcopy(session, {id(rule): rule})
+    view.clean_commands = False
+    return view
 
 
 def _merge(into: dict[str, LatencyStats], latencies: dict[str, LatencyStats]) -> None:

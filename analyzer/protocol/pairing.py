@@ -121,6 +121,16 @@ class Book:
             self._take(sure)
         return sure
 
+    def __deepcopy__(self, memo: dict) -> Book:
+        """A copy with containers of its own; the entries, immutable tuples, are
+        shared (a copied session awaits the same requests without copying them)."""
+        book = Book()
+        book.order.extend(self.order)
+        book.live, book._unqueued = self.live, self._unqueued
+        book._queues = {key: deque(queue) for key, queue in self._queues.items()}
+        book._taken = set(self._taken)
+        return book
+
     def clear(self) -> None:
         self.order.clear()
         self._queues.clear()
