@@ -196,6 +196,19 @@ class RecordProcess:
 # -- reading recordings back ------------------------------------------------------------------------
 
 
+@contextlib.asynccontextmanager
+async def running_record(upstream: int, output: Path, *args: str):  # noqa: ANN201
+    """``whiztap record`` in its own process; killed if the test fails half-way
+    (a proxy under test may be too busy, or frozen, to stop)."""
+    rec = await RecordProcess.start(upstream, output, *args)
+    try:
+        yield rec
+    finally:
+        if rec.proc.returncode is None:
+            rec.proc.kill()
+            await asyncio.wait_for(rec.proc.wait(), WAIT)
+
+
 def read_all(path: str) -> dict[str, list[dict]]:
     """Every message by topic, read with mcap's own indexed reader with CRC
     checks on, each checked against its channel's JSON schema."""

@@ -20,7 +20,7 @@ import pytest
 
 from whiztap.analyzer.recording.format import TOPIC_EVENTS
 from whiztap.analyzer.recording.scan import RecordingScan
-from tests.record_support import LOCAL, WAIT, RecordProcess, rebuild_streams
+from tests.record_support import LOCAL, WAIT, RecordProcess, rebuild_streams, running_record
 
 RSS_BOUND_KIB = 300 << 10  # the proxy process; it starts at about 30 MB
 SAMPLE_S = 0.02
@@ -231,18 +231,6 @@ def writer_stopped(pid: int) -> Iterator[None]:
         os.kill(pid, signal.SIGCONT)
 
 
-@contextlib.asynccontextmanager
-async def recorder(upstream: int, out: Path, *args: str):
-    """``whiztap record``; killed if the test fails half-way (after a thaw: see writer_stopped)."""
-    rec = await RecordProcess.start(upstream, out, *args)
-    try:
-        yield rec
-    finally:
-        if rec.proc.returncode is None:
-            rec.proc.kill()
-            await asyncio.wait_for(rec.proc.wait(), WAIT)
-
-
 async def finish(rec: RecordProcess) -> None:
     code, _, err = await rec.finish()
     assert code == 0 and not err, err
@@ -276,7 +264,7 @@ async def test_memory_bounded_with_readers_that_lag_before_during_and_after_a_ba
         await watch_memory(rec.proc.pid, 0.5)
 
     with Pusher() as server:
-        async with recorder(server.port, tmp_path / "r.mcap") as rec:
+        async with running_record(server.port, tmp_path / "r.mcap") as rec:
             await connect()  # before any backlog
             fast = await asyncio.to_thread(FastReader, rec.port)
             try:
@@ -335,7 +323,7 @@ async def test_a_flood_never_stalls_another_connections_round_trips(tmp_path, mo
     with EchoOrDrop() as server:
         options = ("--when-behind", mode) if mode != "pause" else ()  # pause is the default
         # --keep-secrets: no server greeting, so the junk would count as a possible password
-        async with recorder(server.port, out, "--keep-secrets", *options) as rec:
+        async with running_record(server.port, out, "--keep-secrets", *options) as rec:
             stop = asyncio.Event()
             done: list[float] = []
             talker = asyncio.create_task(_round_trips(rec.port, stop, done))  # connection 1

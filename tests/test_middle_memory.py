@@ -25,7 +25,6 @@ import socket
 import subprocess
 from collections import deque
 from collections.abc import Callable
-from pathlib import Path
 
 import pytest
 
@@ -36,7 +35,7 @@ from whiztap.analyzer.mitm.lane import HIGH_WATER, INJECT_ROOM, Lane
 from whiztap.analyzer.mitm.spec import MAX_REPLACEMENT
 
 from tests.middle_drive import MS, S2C, TRANSPORT_HIGH_WATER, Drive
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess
+from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, running_record
 from tests.test_flow_control import _ThreadedServer, rss_kib
 
 RSS_BOUND_KIB = 150 << 10  # the issue's bound for the proxy process (it starts at about 30 MB)
@@ -249,18 +248,6 @@ async def _never_reading_client(port: int) -> asyncio.StreamWriter:
     return writer
 
 
-@contextlib.asynccontextmanager
-async def _record(server_port: int, path: Path, *args: str):  # noqa: ANN202
-    """``whiztap record`` in the middle; killed if the test fails half-way (past the bound it may be too busy to stop)."""
-    rec = await RecordProcess.start(server_port, path, "--keep-secrets", *args)
-    try:
-        yield rec
-    finally:
-        if rec.proc.returncode is None:
-            rec.proc.kill()
-            await asyncio.wait_for(rec.proc.wait(), WAIT)
-
-
 async def _stopped(rec: RecordProcess) -> None:
     code, _, err = await rec.finish()
     assert code == 0 and "Traceback" not in err, err
@@ -272,7 +259,7 @@ async def _stopped(rec: RecordProcess) -> None:
 ], ids=["replace-60kB", "50-dups"])
 async def test_the_proxy_stays_under_150_MB_when_a_fault_multiplies_what_a_client_never_reads(tmp_path, faults):
     with Answers() as server:
-        async with _record(server.port, tmp_path / "r.mcap", *faults) as rec:
+        async with running_record(server.port, tmp_path / "r.mcap", "--keep-secrets", *faults) as rec:
             writer = await _never_reading_client(rec.port)
             high = await watch_rss(rec.proc.pid, WATCH_S)
             print(f"highest RSS {high >> 10} MiB")
@@ -282,7 +269,7 @@ async def test_the_proxy_stays_under_150_MB_when_a_fault_multiplies_what_a_clien
 
 async def test_the_proxy_stays_under_150_MB_through_1500_injections_and_ctl_says_no_in_one_line(tmp_path):
     with Answers() as server:
-        async with _record(server.port, tmp_path / "r.mcap", "--control", "127.0.0.1:0") as rec:
+        async with running_record(server.port, tmp_path / "r.mcap", "--keep-secrets", "--control", "127.0.0.1:0") as rec:
             control = await _control_address(rec)
             writer = await _never_reading_client(rec.port)
             await asyncio.sleep(0.2)
