@@ -60,6 +60,7 @@ from whiztap.analyzer.protocol.observations import Direction, Event, LateViolati
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.analyzer.traffic import (
+    Action,
     Closed,
     Data,
     Delivered,
@@ -73,6 +74,7 @@ from whiztap.analyzer.traffic import (
 
 SERVER, CLIENT = "server", "client"
 ANSWERING = frozenset({"PW-PAIR-UNANSWERED", "PW-PAIR-UNSOLICITED"})
+ENDS = frozenset({Action.RESET, Action.CLOSE})  # the proxy ending a connection
 """The rules about the answering rather than about one frame: the server's duty."""
 CAUSES_SHOWN = 3  # causes named in the detail of a violation only the client saw
 
@@ -110,6 +112,7 @@ class _Connection:
     middle: bool = False
     causes: dict[str, None] = field(default_factory=dict)  # what intervened, in order
     consequences: Consequences = field(default_factory=Consequences)
+    ended: tuple[int, str] | None = None  # the proxy reset or closed it: when, and why
     views: bool = False  # out of step: the two views are fed (until then the one session judges)
     step: InStep = field(default_factory=InStep)  # in step: the reads not yet delivered
     held: int = 0  # verdicts held in full; past the cap only counted
@@ -208,6 +211,8 @@ class Sides:
             events = [] if c.views else self._diverge(event.conn, c)
             c.causes[str(event.cause)] = None  # type: ignore[union-attr]
             c.consequences.note(event)  # type: ignore[arg-type]
+            if event.action in ENDS and c.ended is None:  # type: ignore[union-attr]
+                c.ended = (event.t_ns, str(event.cause))  # type: ignore[union-attr]
             return events
         if kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
             c = self._conns.get(event.conn)
@@ -410,8 +415,9 @@ def _judgement(c: _Connection) -> Settled:
     hands back are copies, so a provisional judgement changes nothing."""
     if not (c.middle and c.views):
         return Settled(list(c.single), Counter(c.single_more), [], None)
-    verdicts = c.single[:c.before] + c.kept  # before the views began, what the one session found was both sides'
+    verdicts = c.single[:c.before] + _not_cut(c.kept, c.ended)  # before the views began: both sides'
     effects = [replace(record) for held in c.waiting[SERVER].values() for record, _, _ in held]
+    effects += _cut(c.kept, c.ended)
     answering: list[_Held] = []
     for held in c.waiting[CLIENT].values():
         for record, title, pairs in held:
@@ -427,6 +433,21 @@ def _judgement(c: _Connection) -> Settled:
             effects.append(replace(record, cause=cause))
     effects.sort(key=lambda r: r.t_ns)
     return Settled(verdicts, c.before_more + c.more, effects, _copied(c.latencies), _copied(c.client_latencies))
+
+
+def _cut_short(record: ViolationRecord, ended: tuple[int, str] | None) -> bool:
+    """A request left unanswered because the proxy reset or closed the
+    connection while it waited (found at or after that end): the server had
+    no chance to answer, so it is the end's effect, not the server's doing."""
+    return ended is not None and record.rule_id == "PW-PAIR-UNANSWERED" and record.t_ns >= ended[0]
+
+
+def _not_cut(kept: list[Verdict], ended: tuple[int, str] | None) -> list[Verdict]:
+    return [v for v in kept if not _cut_short(v[0], ended)]
+
+
+def _cut(kept: list[Verdict], ended: tuple[int, str] | None) -> list[ViolationRecord]:
+    return [replace(record, cause=ended[1]) for record, _ in kept if _cut_short(record, ended)]  # type: ignore[index]
 
 
 def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:
