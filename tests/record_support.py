@@ -209,6 +209,19 @@ async def running_record(upstream: int, output: Path, *args: str):  # noqa: ANN2
             await asyncio.wait_for(rec.proc.wait(), WAIT)
 
 
+def post_status(url: str, body: bytes) -> int:
+    """POST a JSON ``body`` to the control API at ``url``: the HTTP status it answered."""
+    import urllib.error
+    import urllib.request
+
+    request = urllib.request.Request(url, data=body, method="POST", headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=WAIT) as reply:  # noqa: S310 - a local test server
+            return reply.status
+    except urllib.error.HTTPError as e:
+        return e.code
+
+
 def read_all(path: str) -> dict[str, list[dict]]:
     """Every message by topic, read with mcap's own indexed reader with CRC
     checks on, each checked against its channel's JSON schema."""

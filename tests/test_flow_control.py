@@ -211,13 +211,13 @@ def rss_kib(pid: int) -> int:
     raise AssertionError(f"no VmRSS for {pid}")
 
 
-async def watch_memory(pid: int, seconds: float) -> int:
-    """The proxy's highest resident size over ``seconds``; fails at once above the bound."""
+async def watch_memory(pid: int, seconds: float, bound_kib: int = RSS_BOUND_KIB, every_s: float = SAMPLE_S) -> int:
+    """The proxy's highest resident size over ``seconds`` (KiB); fails at once above ``bound_kib``."""
     high = 0
-    for _ in range(int(seconds / SAMPLE_S)):
+    for _ in range(int(seconds / every_s)):
         high = max(high, rss_kib(pid))
-        assert high < RSS_BOUND_KIB, f"proxy resident size {high >> 10} MiB"
-        await asyncio.sleep(SAMPLE_S)
+        assert high < bound_kib, f"proxy resident size {high >> 10} MiB"
+        await asyncio.sleep(every_s)
     return high
 
 

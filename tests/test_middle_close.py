@@ -18,8 +18,6 @@ import re
 import socket
 import struct
 import threading
-import urllib.error
-import urllib.request
 
 import pytest
 
@@ -29,7 +27,7 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.middle_drive import C2S, MS, S2C, T0, Drive
-from tests.record_support import LOCAL, WAIT, RecordProcess, read_all
+from tests.record_support import LOCAL, WAIT, RecordProcess, post_status, read_all
 
 SENSOR, ANSWER = b"rr1-12--0--0-ss1", b"cr1-12--5--0-ss1"
 CLOSING = re.compile(r"^connection \d+ is closing")
@@ -240,15 +238,7 @@ def _hammer(control: str, stop: threading.Event, statuses: list[int]) -> None:
     bodies += [(f"/held/{n}/release", {"edit": "sensor 13"}) for n in range(1, 10)]
     while not stop.is_set():
         for path, body in bodies:
-            request = urllib.request.Request(f"http://{control}{path}", data=json.dumps(body).encode(), method="POST",
-                                             headers={"Content-Type": "application/json"})
-            try:
-                with urllib.request.urlopen(request, timeout=WAIT) as reply:  # noqa: S310
-                    statuses.append(reply.status)
-            except urllib.error.HTTPError as e:
-                statuses.append(e.code)
-                if e.code == 500:
-                    statuses.append(-1)
+            statuses.append(post_status(f"http://{control}{path}", json.dumps(body).encode()))
 
 
 async def test_whiztap_record_shows_no_traceback_when_frames_and_commands_race_the_close(tmp_path):

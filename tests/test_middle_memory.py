@@ -35,8 +35,8 @@ from whiztap.analyzer.mitm.lane import HIGH_WATER, INJECT_ROOM, Lane
 from whiztap.analyzer.mitm.spec import MAX_REPLACEMENT
 
 from tests.middle_drive import MS, S2C, TRANSPORT_HIGH_WATER, Drive
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, running_record
-from tests.test_flow_control import _ThreadedServer, rss_kib
+from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, post_status, running_record
+from tests.test_flow_control import _ThreadedServer, rss_kib, watch_memory
 
 RSS_BOUND_KIB = 150 << 10  # the issue's bound for the proxy process (it starts at about 30 MB)
 SAMPLE_S = 0.05
@@ -230,16 +230,6 @@ class Answers(_ThreadedServer):
                 conn.send(self.DATA)
 
 
-async def watch_rss(pid: int, seconds: float) -> int:
-    """The process's highest resident size over ``seconds`` (KiB); fails at once past the bound."""
-    high = 0
-    for _ in range(int(seconds / SAMPLE_S)):
-        high = max(high, rss_kib(pid))
-        assert high < RSS_BOUND_KIB, f"proxy resident size {high >> 10} MiB"
-        await asyncio.sleep(SAMPLE_S)
-    return high
-
-
 async def _never_reading_client(port: int) -> asyncio.StreamWriter:
     reader, writer = await asyncio.open_connection(LOCAL, port, limit=1 << 16)
     writer.transport.pause_reading()
@@ -261,7 +251,7 @@ async def test_the_proxy_stays_under_150_MB_when_a_fault_multiplies_what_a_clien
     with Answers() as server:
         async with running_record(server.port, tmp_path / "r.mcap", "--keep-secrets", *faults) as rec:
             writer = await _never_reading_client(rec.port)
-            high = await watch_rss(rec.proc.pid, WATCH_S)
+            high = await watch_memory(rec.proc.pid, WATCH_S, RSS_BOUND_KIB, SAMPLE_S)
             print(f"highest RSS {high >> 10} MiB")
             writer.transport.abort()
             await _stopped(rec)
@@ -274,7 +264,7 @@ async def test_the_proxy_stays_under_150_MB_through_1500_injections_and_ctl_says
             writer = await _never_reading_client(rec.port)
             await asyncio.sleep(0.2)
             statuses = await asyncio.to_thread(_inject_many, rec.proc.pid, control, 1500)
-            high = max(await watch_rss(rec.proc.pid, 0.5), statuses.pop())
+            high = max(await watch_memory(rec.proc.pid, 0.5, RSS_BOUND_KIB, SAMPLE_S), statuses.pop())
             refused = await asyncio.to_thread(subprocess.run, [WHIZTAP, "ctl", "--control", control, "inject", "1",
                                                                "s2c", INJECTED, "--force"],
                                               capture_output=True, text=True, timeout=WAIT)
@@ -299,20 +289,12 @@ async def _control_address(rec: RecordProcess) -> str:
 def _inject_many(pid: int, control: str, count: int) -> list[int]:
     """``count`` injections of a 60 kB frame toward the client, over HTTP; each
     status, and last the proxy's highest resident size meanwhile (fails past the bound)."""
-    import urllib.error
-    import urllib.request
 
     body = json.dumps({"conn": 1, "dir": "s2c", "frame": INJECTED, "force": True}).encode()
     statuses: list[int] = []
     high = 0
     for _ in range(count):
-        request = urllib.request.Request(f"http://{control}/inject", data=body, method="POST",
-                                         headers={"Content-Type": "application/json"})
-        try:
-            with urllib.request.urlopen(request, timeout=WAIT) as reply:  # noqa: S310
-                statuses.append(reply.status)
-        except urllib.error.HTTPError as e:
-            statuses.append(e.code)
+        statuses.append(post_status(f"http://{control}/inject", body))
         high = max(high, rss_kib(pid))
         assert high < RSS_BOUND_KIB, f"proxy resident size {high >> 10} MiB after {len(statuses)} injections"
     return [*statuses, high]

@@ -19,7 +19,6 @@ import asyncio
 import base64
 import json
 import os
-import re
 import threading
 from pathlib import Path
 
