@@ -25,7 +25,6 @@ from whiztap.sniffer.record.record_run import MiddleSettings, Recording, RecordS
 from whiztap.sniffer.sim.simulator import Simulator
 from tests.record_support import LOCAL, WAIT, ScriptedServer, read_all
 
-QUIET_S = 0.3  # how long a test waits to see that nothing more comes
 
 
 def sensor(ch: int) -> bytes:
@@ -114,20 +113,24 @@ class Raw:
         return [raw for _, raw in self.items]
 
     async def nothing_more(self, n: int) -> list[bytes]:
-        """``n`` items came and, for QUIET_S after them, nothing else."""
-        got = await self.take(n)
-        with contextlib.suppress(TimeoutError):
-            await self.take(n + 1, QUIET_S)
-        assert len(self.items) == n, f"more than {n} items: {[r for _, r in self.items]}"
+        """``n`` items came, and nothing else before the server's end."""
+        got = await self.until_quiet()
+        assert len(got) == n, f"{len(got)} items, not {n}: {got}"
         return got
 
     async def until_quiet(self) -> list[bytes]:
-        """Every item that comes until nothing has for QUIET_S."""
-        while True:
-            try:
-                await self.take(len(self.items) + 1, QUIET_S)
-            except TimeoutError:
-                return [raw for _, raw in self.items]
+        """Every item that comes before the server's end of the connection.
+
+        The client half-closes: the simulator answers what it read, then
+        closes, and the proxy passes that end only after every frame it holds
+        or delays.  So "nothing more" is known when the end comes, where a
+        test waiting a quiet while would sleep and still guess."""
+        self.writer.write_eof()
+        async with asyncio.timeout(WAIT):
+            while data := await self.reader.read(65536):
+                now = time.monotonic()
+                self.items += [(now, i.raw) for i in self.framer.feed(data, 0) if i.kind is not ItemKind.EOL]
+        return [raw for _, raw in self.items]
 
     async def close(self) -> None:
         self.writer.close()

@@ -26,7 +26,7 @@ from whiztap.tui.sources import LiveSource, ProxyRig
 from tests.middle_support import Raw, answer_channel, sensor
 from tests.record_support import read_all
 from tests.test_tui_cli import run
-from tests.tui_support import SAMPLES, SIZE, until
+from tests.tui_support import SAMPLES, SIZE, paste, until
 
 LOCAL = "127.0.0.1"
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -65,7 +65,9 @@ async def test_an_intercepted_sensor_request_is_edited_and_the_simulator_answers
         async with app.run_test(size=SIZE) as pilot:
             raw = await Raw.open(await proxy_port(pilot))
             controller = app.source.controller
-            await pilot.press("i", *"kind:command ch:12", "enter")
+            await pilot.press("i")
+            await paste(pilot, "kind:command ch:12")
+            await pilot.press("enter")
             assert controller.intercept.text == "kind:command ch:12"
             frames = app.frames
             await until(pilot, lambda: "intercepting kind:command ch:12" in frames.border_title, "the title")
@@ -111,7 +113,8 @@ async def test_an_injected_sensor_request_pairs_with_its_answer(tmp_path):
             await pilot.press("I")
             dialog = app.screen
             assert isinstance(dialog, InjectScreen) and dialog.conn == 1 and dialog.direction is C2S
-            await pilot.press(*"sensor 12", "enter")
+            await paste(pilot, "sensor 12")
+            await pilot.press("enter")
             await until(pilot, lambda: app.screen is not dialog, "the dialog to close")
             [answer] = (await raw.take(2))[1:]  # the client gets the answer to a request it never sent
             assert answer_channel(answer) == 12
@@ -139,12 +142,15 @@ async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_pa
             pane = app.faults
             await pilot.press("f")
             assert pane.table.has_focus and app.tabs.active == "faults"
-            await pilot.press("a", *"drop dir:sideways")
+            await pilot.press("a")
+            await paste(pilot, "drop dir:sideways")
             assert "dir: wants c2s or s2c" in str(pane.query_one("#fault-error").content)
             assert not controller.faults  # nothing applied while typing
             await pilot.press("ctrl+u", *"dro")
             await until(pilot, lambda: pane.spec._suggestion == "drop", "the completion")  # noqa: SLF001
-            await pilot.press("tab", *" dir:s2c kind:response every:2", "enter")
+            await pilot.press("tab")
+            await paste(pilot, " dir:s2c kind:response every:2")
+            await pilot.press("enter")
             [fault] = controller.faults
             assert fault.spec.text == "drop dir:s2c kind:response every:2" and pane.table.has_focus
             await pilot.press("escape")
@@ -180,7 +186,9 @@ async def test_keys_are_answered_while_a_hundred_frames_are_held(tmp_path):
             raw = await Raw.open(await proxy_port(pilot))
             controller = app.source.controller
             frames = app.frames
-            await pilot.press("i", *"kind:command", "enter")
+            await pilot.press("i")
+            await paste(pilot, "kind:command")
+            await pilot.press("enter")
             await raw.send(*[sensor(12 + n % 12) for n in range(100)])
             await until(pilot, lambda: len(controller.held.frames) == 100 and frames.rows == 100, "100 held frames")
             assert "100 held" in frames.border_title and frames.held_frame is not None
@@ -257,7 +265,9 @@ async def test_frames_held_at_the_proxy_are_not_counted_as_new_frames(tmp_path):
             await raw.send(sensor(13))
             await raw.take(1)
             await until(pilot, lambda: frames.store_rows == 2, "the first exchange")
-            await pilot.press("i", *"kind:command ch:12", "enter", "g")  # away from the end: not following
+            await pilot.press("i")
+            await paste(pilot, "kind:command ch:12")
+            await pilot.press("enter", "g")  # away from the end: not following
             assert not frames.tail
             await raw.send(sensor(12))
             await until(pilot, lambda: frames.held_frame is not None or frames.rows == 3, "the held row")

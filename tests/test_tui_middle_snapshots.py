@@ -20,7 +20,7 @@ from whiztap.tui.controls import HeldKey
 from whiztap.tui.sources import FileSource
 
 from tests.test_tui_live import GrowingRecording
-from tests.tui_support import loaded, settled, until
+from tests.tui_support import loaded, paste, settled, until
 
 SIZE = (120, 36)
 T0 = 1_700_000_000_000_000_000
@@ -88,7 +88,9 @@ def test_a_held_frame_in_the_list(snap_compare, app):
 def test_the_editor_with_a_frame_that_breaks_a_rule(snap_compare, app):
     async def editing(pilot):
         await on_the_held_frame(pilot)
-        await pilot.press("e", "ctrl+u", *"rr1-31--0--0-ss1", "enter")  # asks before sending it
+        await pilot.press("e", "ctrl+u")
+        await paste(pilot, "rr1-31--0--0-ss1")
+        await pilot.press("enter")  # asks before sending it
         await steady(pilot)
 
     assert snap_compare(app, terminal_size=SIZE, run_before=editing)
@@ -98,7 +100,8 @@ def test_the_inject_dialog(snap_compare, app):
     async def injecting(pilot):
         await loaded(pilot)
         await settled(pilot)
-        await pilot.press("I", *"servo 3 1500")
+        await pilot.press("I")
+        await paste(pilot, "servo 3 1500")
         await steady(pilot)
 
     assert snap_compare(app, terminal_size=SIZE, run_before=injecting)

@@ -22,6 +22,17 @@ async def until(pilot, condition: Callable[[], bool], what: str = "condition") -
         await pilot.pause(0.02)
 
 
+async def paste(pilot, text: str) -> None:  # noqa: ANN001
+    """Paste ``text`` into the focused widget, as a terminal's bracketed paste
+    does: one event.  Pilot spends about 0.1 s on each key it presses (it
+    waits for the app to idle three times), so the tests press the keys a
+    test is about and paste the rest."""
+    from textual import events
+
+    pilot.app.post_message(events.Paste(text))
+    await pilot.pause()
+
+
 async def loaded(pilot) -> None:  # noqa: ANN001
     """Until the recording is read and the list shows all of it."""
     app = pilot.app
