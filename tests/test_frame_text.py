@@ -163,7 +163,7 @@ def test_direction_violations():
     assert _rules(CONFIG, "c2s") == ["PW-DIRECTION"]
     assert _rules(b"sendchkpass", C) == ["PW-DIRECTION"]
     message = check_frame(b"rr1-12--0--0-ss1", S)[0].detail
-    assert message == "a command item came from the server"  # the session's wording
+    assert message == "a command came from the server"  # the session's wording
 
 
 def test_checksum_violations_follow_the_rule():

@@ -31,6 +31,7 @@ from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, 
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ServoPositionRequest, SetConfiguration
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.session import Limits, Session
 from whiztap.analyzer.traffic import (
     Closed,
@@ -247,11 +248,11 @@ class Analyzer:
                 title = None
                 if e.violation.rule_id == "PW-PAIR-UNANSWERED":
                     title = e.about.message.title if e.about.message is not None else "request"
-                self._violation(conn, e.violation.rule_id, e.violation.detail, e.about, e.t_ns, True, title)
+                self._violation(conn, e.violation, e.about, e.t_ns, True, title)
                 continue
             if e.violations:
                 for v in e.violations:
-                    self._violation(conn, v.rule_id, v.detail, e, e.item.t_end_ns, late=False)
+                    self._violation(conn, v, e, e.item.t_end_ns, late=False)
             kind = e.item.kind
             if kind is response:
                 request = e.answers
@@ -268,18 +269,18 @@ class Analyzer:
                     self.file, conn, e.item.t_end_ns, m.checksum, self._rule.compute(m.entries),
                     satisfied_rules(m.entries, m.checksum)))
 
-    def _violation(self, conn: int, rule_id: str, detail: str, about: Observation, t: int, late: bool,
+    def _violation(self, conn: int, violation: Violation, about: Observation, t: int, late: bool,
                    unanswered: str | None = None) -> None:
         """One violation of the one session (``unanswered``: the title of the
         request it says was never answered); in the middle, held until the
         connection shows whether the proxy changed it."""
         if self._sides is not None:
-            self._sides.single(conn, (self._record(conn, rule_id, detail, about, t, late), unanswered), about.item.raw)
+            self._sides.single(conn, (self._record(conn, violation, about, t, late), unanswered), about.item.raw)
             return
         result = self.result
-        self._tally(rule_id, side_of(rule_id, str(about.direction)), unanswered)
+        self._tally(violation.rule_id, side_of(violation.rule_id, str(about.direction)), unanswered)
         if len(result.violations) < result.max_violations:
-            result.violations.append(self._record(conn, rule_id, detail, about, t, late))
+            result.violations.append(self._record(conn, violation, about, t, late))
 
     def _tally(self, rule_id: str, side: str, unanswered: str | None, n: int = 1) -> None:
         """A violation counted (``side``: whose conduct; ``unanswered``: the
@@ -290,11 +291,12 @@ class Analyzer:
         if unanswered is not None:
             result.unanswered[unanswered] += n
 
-    def _record(self, conn: int, rule_id: str, detail: str, about: Observation, t: int, late: bool) -> ViolationRecord:
+    def _record(self, conn: int, violation: Violation, about: Observation, t: int, late: bool) -> ViolationRecord:
         raw = about.item.raw
         direction = str(about.direction)
-        return ViolationRecord(rule_id, self.file, conn, direction, t, raw[:RAW_KEPT], detail, late,
-                               len(raw) > RAW_KEPT, side_of(rule_id, direction))
+        rule_id = violation.rule_id
+        return ViolationRecord(rule_id, self.file, conn, direction, t, raw[:RAW_KEPT], violation.detail, late,
+                               len(raw) > RAW_KEPT, side_of(rule_id, direction), section=violation.section)
 
     # -- the proxy in the middle ---------------------------------------------------------
 

@@ -32,6 +32,7 @@ class ViolationRecord:
     cut: bool = False  # the item was longer than RAW_KEPT
     side: str = ""  # whose conduct it is about: "client" or "server"; for an intervention's effect, who saw it
     cause: str = ""  # for an intervention's effect: the intervention it follows from ('' when not known)
+    section: str = ""  # the spec section it cites (Violation.section: the message's, or the rule's)
 
     @property
     def severity(self) -> Severity:

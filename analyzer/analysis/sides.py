@@ -57,6 +57,7 @@ from whiztap.analyzer.analysis.consequences import Consequences, Key, answer_key
 from whiztap.analyzer.analysis.facts import ViolationRecord
 from whiztap.analyzer.analysis.instep import InStep, OutOfStep
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.analyzer.traffic import (
@@ -80,7 +81,7 @@ CAUSES_SHOWN = 3  # causes named in the detail of a violation only the client sa
 
 Verdict = tuple[ViolationRecord, str | None]  # a violation, and the title of the request it says was never answered
 _Held = tuple[ViolationRecord, str | None, Key | None]  # a verdict, and what pairs the request or answer it is about
-MakeRecord = Callable[[int, str, str, Observation, int, bool], ViolationRecord]
+MakeRecord = Callable[[int, Violation, Observation, int, bool], ViolationRecord]
 _Key = tuple[str, str, int, int]  # rule, direction, the frame's length and hash: the same violation in both views
 
 
@@ -360,17 +361,18 @@ class Sides:
     def _judge(self, view: str, conn: int, events: list[Event]) -> None:
         for e in events:
             if type(e) is LateViolation:
-                self._found(view, conn, e.violation.rule_id, e.violation.detail, e.about, e.t_ns, True)
+                self._found(view, conn, e.violation, e.about, e.t_ns, True)
             elif type(e) is Observation:
                 for v in e.violations:
-                    self._found(view, conn, v.rule_id, v.detail, e, e.item.t_end_ns, False)
+                    self._found(view, conn, v, e, e.item.t_end_ns, False)
 
-    def _found(self, view: str, conn: int, rule_id: str, detail: str, about: Observation, t: int,
+    def _found(self, view: str, conn: int, violation: Violation, about: Observation, t: int,
                late: bool) -> None:
         """A violation one view found: kept if it is about the view's own side
         (and noted, so that the other view's copy is known as one), else held
         until the other side's view shows whether that side did it too."""
         c = self._conn(conn)
+        rule_id = violation.rule_id
         direction = str(about.direction)
         owner = side_of(rule_id, direction)
         raw = about.item.raw
@@ -386,7 +388,7 @@ class Sides:
                 c.published[view][key] += 1
             if c.held < self._cap:
                 c.held += 1
-                record = self._record(conn, rule_id, detail, about, t, late)
+                record = self._record(conn, violation, about, t, late)
                 record.side = owner
                 c.kept.append((record, title))
             else:
@@ -398,7 +400,7 @@ class Sides:
                 del published[key]
         elif c.held < self._cap:
             c.held += 1
-            record = self._record(conn, rule_id, detail, about, t, late)
+            record = self._record(conn, violation, about, t, late)
             record.side = view
             record.cause = c.consequences.cause_of(about.direction)
             pairs = None

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.rules import RULES, Severity
+from whiztap.analyzer.protocol.text import plural
 
 if TYPE_CHECKING:  # the session model loads only with a Judge: a Verdict is cheap to import
     from whiztap.analyzer.analysis.analyzer import Analyzer
@@ -66,11 +67,17 @@ class Verdict:
 
     def words(self) -> str:
         """``2 errors, 0 warnings, 1 info``, then the effects when there are any."""
-        sev = self.by_severity
-        text = f"{sev['error']} errors, {sev['warning']} warnings, {sev['info']} info"
-        if self.effects:
-            text += f"; {self.effects} effect{'s' * (self.effects != 1)} of the interventions"
-        return text
+        return counts_words(self.by_severity, self.effects)
+
+
+def counts_words(by_severity: dict[str, int], effects: int = 0) -> str:
+    """``2 errors, 0 warnings, 1 info``, then the effects of the interventions
+    when there are any: the counts every verdict line gives."""
+    text = (f"{plural(by_severity['error'], 'error')}, {plural(by_severity['warning'], 'warning')}, "
+            f"{plural(by_severity['info'], 'info', 'info')}")
+    if effects:
+        text += f"; {plural(effects, 'effect')} of the interventions"
+    return text
 
 
 def verdict_of(rule_sides: Counter, effect_counts: Counter, connections: int, *,

@@ -45,6 +45,7 @@ from whiztap.analyzer.protocol.messages import (
     UnknownCommand,
 )
 from whiztap.analyzer.protocol.rules import Violation
+from whiztap.analyzer.protocol.text import plural
 
 MAX_CHANNEL = 23
 MAX_SEND_VALUE = 2000
@@ -106,13 +107,18 @@ def _one(message: Message, violations: list[Violation]) -> Decoded:
 
 
 def _fixed(name: str, value: int, expected: int, what: str, out: list[Violation]) -> None:
+    """PW-FIXED-FIELD, cited in the section of the message ``what`` names."""
     if value != expected:
-        out.append(Violation("PW-FIXED-FIELD", f"{what}: {name} must be {expected}, got {value}"))
+        out.append(Violation("PW-FIXED-FIELD", f"{what}: {name} must be {expected}, got {value}", what))
 
 
-def _channel(value: int, out: list[Violation]) -> None:
+def _channel(value: int, candidates: tuple[Message, ...], out: list[Violation]) -> None:
+    """PW-RANGE-CHANNEL, cited in the section of the message the channel is
+    in: every one it may be, for a frame with several meanings."""
     if value > MAX_CHANNEL:
-        out.append(Violation("PW-RANGE-CHANNEL", f"channel must be 0-{MAX_CHANNEL}, got {value}"))
+        titles = [c.title for c in candidates]
+        where = titles[0] if len(titles) == 1 else f"{', '.join(titles[:-1])} or {titles[-1]}"
+        out.append(Violation("PW-RANGE-CHANNEL", f"channel must be 0-{MAX_CHANNEL}, got {value}", where))
 
 
 def _parse_fields(raw: bytes, out: list[Violation]) -> tuple[int, int, int] | None:
@@ -150,8 +156,9 @@ def _decode_command(raw: bytes) -> Decoded:
     d1, d2, d3 = fields
     if d3 == SERVO_POSITION_CODE:
         _fixed("Data2", d2, 0, "Servo Position Request", out)
-        _channel(d1, out)
-        return _one(ServoPositionRequest(d1), out)
+        message = ServoPositionRequest(d1)
+        _channel(d1, (message,), out)
+        return _one(message, out)
     script: Message | None = None
     if d3 in INTERNAL_SCRIPTS:
         script = PlayInternalScript(d3)
@@ -179,15 +186,19 @@ def _decode_command(raw: bytes) -> Decoded:
     if d1 == FETCH_CAMERA_CODE:
         _fixed("Data2", d2, 0, "Fetch Camera Image", out)
         return _one(FetchCameraImage(), out)
-    _channel(d1, out)
+    candidates: tuple[Message, ...]
     if d2 == 0:
-        candidates: tuple[Message, ...] = (SensorRequest(d1), DeactivateSwitch(d1), NormalSend(d1, 0))
+        candidates = (SensorRequest(d1), DeactivateSwitch(d1), NormalSend(d1, 0))
+    elif d2 == 1:
+        candidates = (ActivateSwitch(d1), NormalSend(d1, 1))
+    else:
+        candidates = (NormalSend(d1, d2),)
+    _channel(d1, candidates, out)
+    if len(candidates) > 1:
         return Decoded(None, candidates, tuple(out))
-    if d2 == 1:
-        return Decoded(None, (ActivateSwitch(d1), NormalSend(d1, 1)), tuple(out))
     if d2 > MAX_SEND_VALUE:
         out.append(Violation("PW-RANGE-SEND-VALUE", f"Normal Send value must be 0-{MAX_SEND_VALUE}, got {d2}"))
-    return _one(NormalSend(d1, d2), out)
+    return _one(candidates[0], out)
 
 
 _new = tuple.__new__
@@ -216,9 +227,10 @@ def _decode_response(raw: bytes) -> Decoded:
     if fields is None:
         return Decoded(None, (), tuple(out))
     d1, d2, d3 = fields
-    _channel(d1, out)
-    _fixed("Data3", d3, 0, "Sensor/Servo Response", out)
-    return _one(ChannelResponse(d1, d2), out)
+    message = ChannelResponse(d1, d2)
+    _channel(d1, (message,), out)
+    _fixed("Data3", d3, 0, message.title, out)
+    return _one(message, out)
 
 
 def _decode_config(raw: bytes) -> Decoded:
@@ -333,7 +345,7 @@ def decode(kind: ItemKind, raw: bytes, reason: Unframed | None = None) -> Decode
     if kind is ItemKind.EOL:
         return _NOTHING
     rule = _UNFRAMED_RULES[reason or Unframed.GARBAGE]
-    return Decoded(None, (), (Violation(rule, f"{len(raw)} bytes that form no message"),))
+    return Decoded(None, (), (Violation(rule, f"{plural(len(raw), 'byte')} that form no message"),))
 
 
 def resolve(candidates: tuple[Message, ...], unit: UnitType | None) -> Message | None:

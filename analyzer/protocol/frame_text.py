@@ -42,7 +42,7 @@ from whiztap.analyzer.protocol.messages import (
 )
 from whiztap.analyzer.protocol.observations import Direction, direction_violation
 from whiztap.analyzer.protocol.rules import Violation
-from whiztap.analyzer.protocol.text import unescape
+from whiztap.analyzer.protocol.text import plural, unescape
 
 DEFAULT_DEVICE = 12  # the spec's default Dev#, which setconfig puts in every entry
 HEADERS = ("rr1-", "sr1-", "cr1-")
@@ -220,7 +220,7 @@ def check_frame(data: bytes, direction: Direction, checksum_rule: str = DEFAULT_
     kinds = [item.kind for item in items]
     whole = len(kinds) == 1 and kinds[0] not in (ItemKind.UNFRAMED, ItemKind.EOL)
     if not whole and not any(v.rule_id == "PW-FRAME-GARBAGE" for v in violations):
-        what = ", ".join(kinds) if kinds else "nothing"
-        violations.append(Violation("PW-FRAME-GARBAGE", f"not exactly one complete frame: {len(data)} bytes "
+        what = ", ".join(kind.words for kind in kinds) if kinds else "nothing"
+        violations.append(Violation("PW-FRAME-GARBAGE", f"not exactly one complete frame: {plural(len(data), 'byte')} "
                                                         f"that frame as {what}"))
     return violations

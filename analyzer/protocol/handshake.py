@@ -76,6 +76,15 @@ EXPECTED_IN_STATE = {
     _S.READY: "commands and responses",
     _S.FAILED: "the connection to close",
 }
+STEP_WORDS = {
+    _St.SENDCHKPASS: "'sendchkpass' from the server",
+    _St.PASSWORD: "the client's password",
+    _St.READYTOGO: "'readytogo' from the server",
+    _St.FAILED: "'Failed Validation' from the server",
+    _St.CLIENT_FRAME: "a command from the client",
+    _St.SERVER_FRAME: "a frame from the server",
+}
+"""Each step in the words a rule's detail uses (the steps' values are identifiers)."""
 _OUTCOME = {
     _S.START: "not started",
     _S.EARLY_PASSWORD: "password sent before 'sendchkpass'",
@@ -97,7 +106,7 @@ def advance(state: HandshakeState, step: Step) -> tuple[HandshakeState, Mode | N
         after = state
     else:
         after, rule = transition
-    broken = None if rule is None else Violation(rule, f"got {step}, expected {EXPECTED_IN_STATE[state]}")
+    broken = None if rule is None else Violation(rule, f"got {STEP_WORDS[step]}, expected {EXPECTED_IN_STATE[state]}")
     return after, MODE_TOLD.get((state, step)), broken
 
 

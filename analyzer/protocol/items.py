@@ -24,6 +24,27 @@ class ItemKind(StrEnum):
     UNFRAMED = "unframed"  # anything else, with a reason
 
 
+    @property
+    def words(self) -> str:
+        """The kind as a person who read the spec knows it, with its article
+        ('a Sensor/Servo Response'): what rule details and messages say, never
+        the value, which is an identifier."""
+        return _KIND_WORDS[self]
+
+
+_KIND_WORDS = {
+    ItemKind.COMMAND: "a command",
+    ItemKind.RESPONSE: "a Sensor/Servo Response",
+    ItemKind.CONFIG: "a Configuration Settings message",
+    ItemKind.SET_CONFIG: "a Set Configuration Settings message",
+    ItemKind.HANDSHAKE: "a handshake message",
+    ItemKind.PASSWORD: "a password",
+    ItemKind.IMAGE: "a Camera Image",
+    ItemKind.EOL: "a line break",
+    ItemKind.UNFRAMED: "bytes that form no message",
+}
+
+
 class Unframed(StrEnum):
     """Why bytes were emitted as an ``unframed`` item."""
 

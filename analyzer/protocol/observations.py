@@ -38,7 +38,17 @@ def direction_violation(kind: ItemKind, direction: Direction) -> Violation | Non
     travels = _TRAVELS.get(kind)
     if travels is None or travels is direction:
         return None
-    return Violation("PW-DIRECTION", f"a {kind} item came from the {direction.sender}")
+    return Violation("PW-DIRECTION", f"{kind.words} came from the {direction.sender}")
+
+
+def line_break_violation(raw: bytes, last: ItemKind | None) -> Violation | None:
+    """PW-FRAME-EOL for the line break ``raw`` after an item of kind ``last``
+    on its direction (None: the first item there); None after handshake text
+    and passwords, which may end in one."""
+    if last is ItemKind.HANDSHAKE or last is ItemKind.PASSWORD:
+        return None
+    after = f"after {last.words}" if last is not None else "before anything else"
+    return Violation("PW-FRAME-EOL", f"line break {raw!r} {after}")
 
 
 class Observation(NamedTuple):

@@ -36,10 +36,19 @@ class Rule:
 class Violation:
     rule_id: str
     detail: str  # what was expected and what was seen
+    where: str = ""  # the spec section of the message it was broken in, when not the rule's own
 
     @property
     def rule(self) -> Rule:
         return RULES[self.rule_id]
+
+    @property
+    def section(self) -> str:
+        """The spec section a report cites: the message's own for a rule that
+        holds in several messages (a Servo Position Request's channel out of
+        range is in the Servo Position Request's section, not the Normal
+        Send's the rule names), else the rule's."""
+        return self.where or RULES[self.rule_id].section
 
     @property
     def severity(self) -> Severity:

@@ -26,7 +26,8 @@ from whiztap.analyzer.protocol.messages import (
     ServoPositionRequest,
     SetConfiguration,
 )
-from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation, direction_violation
+from whiztap.analyzer.protocol.observations import (
+    Direction, Event, LateViolation, Observation, direction_violation, line_break_violation)
 from whiztap.analyzer.protocol.pairing import Book, Pending, answer_spec
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.stats import LatencyStats
@@ -312,9 +313,8 @@ class Session:
             self._server_handshake(message, item, violations, events)
         elif kind in _FRAME_KINDS or kind is ItemKind.PASSWORD or kind is ItemKind.HANDSHAKE:
             message = self._frame(direction, item, message, candidates, violations)
-        elif kind is ItemKind.EOL:
-            if self._last_kind[direction] not in (ItemKind.HANDSHAKE, ItemKind.PASSWORD):
-                violations.append(Violation("PW-FRAME-EOL", f"line break {item.raw!r} after a {self._last_kind[direction]}"))
+        elif kind is ItemKind.EOL and (broken := line_break_violation(item.raw, self._last_kind[direction])):
+            violations.append(broken)
         answers = latency = None
         if direction is Direction.S2C and kind in _SERVER_KINDS:
             answers, latency = self._answer(kind, message, t, violations)
@@ -444,7 +444,7 @@ class Session:
         channel = message.channel if isinstance(message, ChannelResponse) else None
         found = self._match(kind, channel)
         if found is None:
-            violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by a {kind}"))
+            violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by {kind.words}"))
             request = None
         else:
             request = found.request

@@ -210,7 +210,7 @@ def violation_message(conn: int, violation: Violation, about: Observation | None
     rule = violation.rule
     message: dict[str, Any] = {
         "conn": conn, "t_ns": t_ns, "rule_id": rule.id, "severity": str(rule.severity),
-        "level": int(rule.severity), "section": rule.section, "summary": rule.summary,
+        "level": int(rule.severity), "section": violation.section, "summary": rule.summary,
         "detail": violation.detail, "late": late,
     }
     if about is not None:
@@ -236,7 +236,7 @@ def _rule_json(violation: Violation) -> tuple[str, int]:
     rule = violation.rule
     severity = str(rule.severity)
     return (f'"rule_id":{_quote(rule.id)},"severity":"{severity}","level":{int(rule.severity)},'
-            f'"section":{_quote(rule.section)},"summary":{_quote(rule.summary)}', LOG_LEVELS[severity])
+            f'"section":{_quote(violation.section)},"summary":{_quote(rule.summary)}', LOG_LEVELS[severity])
 
 
 _VIOLATION_CACHE: dict[tuple, tuple[bytes, bytes]] = {}  # what decides a violation's messages -> their templates

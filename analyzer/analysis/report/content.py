@@ -113,7 +113,7 @@ def _violation(v: ViolationRecord, start: int) -> dict[str, Any]:
     """One violation; ``t_rel_s`` counts from ``start``, the first traffic;
     ``side``: whose conduct it is about (client or server)."""
     return {
-        "rule_id": v.rule_id, "severity": str(v.severity), "section": RULES[v.rule_id].section,
+        "rule_id": v.rule_id, "severity": str(v.severity), "section": v.section or RULES[v.rule_id].section,
         "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
         "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
         "detail": v.detail,

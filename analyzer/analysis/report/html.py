@@ -23,7 +23,7 @@ from whiztap.analyzer.analysis.report.words import (
     latency_tables,
     side_cell,
 )
-from whiztap.analyzer.protocol.text import printable
+from whiztap.analyzer.protocol.text import plural, printable
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;max-width:70em;color:#222}
@@ -220,7 +220,7 @@ def _interventions(report: dict[str, Any]) -> list[str]:
     if section["effects"]:
         parts += [f"<p>{e(EFFECTS_HEADING)}:</p>", _violations(report, section["effects"])]
     if section["effects_not_listed"]:
-        parts.append(f"<p>… and {section['effects_not_listed']} more effects not listed.</p>")
+        parts.append(f"<p>… and {plural(section['effects_not_listed'], 'more effect')} not listed.</p>")
     return parts
 
 
@@ -252,7 +252,7 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
     if report["violations"]:
         parts.append(_violations(report, report["violations"]))
         if report["violations_not_listed"]:
-            parts.append(f"<p>… and {report['violations_not_listed']} more not listed.</p>")
+            parts.append(f"<p>… and {report['violations_not_listed']:,} more not listed.</p>")
     else:
         parts.append("<p>None.</p>")
     for label, rows in latency_tables(report):

@@ -34,6 +34,7 @@ from whiztap.analyzer.analysis.report.words import (
     side_words,
 )
 from whiztap.analyzer.protocol.rules import RULES, Severity
+from whiztap.analyzer.protocol.text import plural
 from whiztap.analyzer.protocol.text import printable as _x  # XML 1.0 forbids most control characters; terminals obey them
 
 
@@ -85,14 +86,15 @@ def _fleet_suite(suites: ET.Element, report: dict[str, Any], table: dict[str, An
         name = group_name(table, g)
         case = ET.SubElement(suite, "testcase", classname=_x(f"whiztap.fleet.{key}"), name=_x(f"{key} {name}"))
         tally["tests"] += 1
-        lines = [f"{g['recordings']} recordings, {g['connections']} connections, {g['frames']} items, "
-                 f"{g['violations']} violations: {rules_since(g)}", f"{by_day}:"]
-        lines += [f"  {d['day'] or 'unknown'}: {d['recordings']} recordings, {d['violations']} violations "
-                  f"({rule_counts_words(d['rule_counts'])})" for d in g["days"]]
+        lines = [f"{plural(g['recordings'], 'recording')}, {plural(g['connections'], 'connection')}, "
+                 f"{plural(g['frames'], 'item')}, {plural(g['violations'], 'violation')}: {rules_since(g)}",
+                 f"{by_day}:"]
+        lines += [f"  {d['day'] or 'unknown'}: {plural(d['recordings'], 'recording')}, "
+                  f"{plural(d['violations'], 'violation')} ({rule_counts_words(d['rule_counts'])})" for d in g["days"]]
         if not g["passed"]:
             sev = g["violations_by_severity"]
-            ET.SubElement(case, "failure", type="fleet",
-                          message=_x(f"{sev['error']} errors, {sev['warning']} warnings: {rules_since(g)}"))
+            ET.SubElement(case, "failure", type="fleet", message=_x(
+                f"{plural(sev['error'], 'error')}, {plural(sev['warning'], 'warning')}: {rules_since(g)}"))
             tally["failures"] += 1
         ET.SubElement(case, "system-out").text = "\n".join(_x(line) for line in lines)
     _set_tally(suite, tally)
@@ -135,7 +137,7 @@ def _rule_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str]) 
             for v, text in zip(shown, texts):
                 ET.SubElement(case, "failure", type=v["severity"], message=_x(v["detail"])).text = text
             if n > len(shown):
-                ET.SubElement(case, "failure", type=str(rule.severity), message=f"{n - len(shown)} more not listed")
+                ET.SubElement(case, "failure", type=str(rule.severity), message=f"{n - len(shown):,} more not listed")
 
 
 def _violation_text(report: dict[str, Any], v: dict[str, Any]) -> str:
@@ -152,10 +154,10 @@ def _interventions_text(report: dict[str, Any]) -> str:
         lines += ["", _x(EFFECTS_HEADING)] + [f"{v['rule_id']}: " + _violation_text(report, v).replace("\n", "; ")
                                               for v in section["effects"]]
     if section["effects_not_listed"]:
-        lines.append(f"... and {section['effects_not_listed']} more effects not listed")
+        lines.append(f"... and {plural(section['effects_not_listed'], 'more effect')} not listed")
     for label, rows in latency_tables(report):
         lines += ["", _x(f"Latency by request, {label}" if label else "Latency by request")]
-        lines += [_x(f"  {r['request']}: {r['count']} answers, p50 {r['p50_ns'] / 1e6:.3f} ms, "
+        lines += [_x(f"  {r['request']}: {plural(r['count'], 'answer')}, p50 {r['p50_ns'] / 1e6:.3f} ms, "
                      f"p99 {r['p99_ns'] / 1e6:.3f} ms, max {r['max_ns'] / 1e6:.3f} ms") for r in rows]
     return "\n".join(lines)
 

@@ -22,7 +22,7 @@ from whiztap.analyzer.analysis.report.words import (
     side_words,
     verdict_words,
 )
-from whiztap.analyzer.protocol.text import printable, shorten
+from whiztap.analyzer.protocol.text import plural, printable, shorten
 
 _STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
 TEXT_FRAME = 160  # characters of a frame in the text report; longer ones end in …
@@ -54,9 +54,8 @@ def channel_ranges(channel_map: dict[str, dict[str, int]]) -> str:
 
 def headline(report: dict[str, Any]) -> str:
     s = report["summary"]
-    files = len(report["files"])
-    return (f"{files} file{'s' * (files != 1)}, {s['connections']} connection{'s' * (s['connections'] != 1)}, "
-            f"{s['frames']:,} items over {s['duration_s']:.1f} s")
+    return (f"{plural(len(report['files']), 'file')}, {plural(s['connections'], 'connection')}, "
+            f"{plural(s['frames'], 'item')} over {s['duration_s']:.1f} s")
 
 
 def verdict(report: dict[str, Any]) -> str:
@@ -177,7 +176,7 @@ def _text_interventions(report: dict[str, Any], console: Console) -> None:
         for v in section["effects"]:
             _text_violation(report, v, console)
     if section["effects_not_listed"]:
-        console.print(_plain(console, f"… and {section['effects_not_listed']} more effects not listed"))
+        console.print(_plain(console, f"… and {plural(section['effects_not_listed'], 'more effect')} not listed"))
 
 
 def _text_violation(report: dict[str, Any], v: dict[str, Any], console: Console) -> None:
@@ -198,7 +197,7 @@ def _text_violations(report: dict[str, Any], console: Console) -> None:
     for v in report["violations"]:
         _text_violation(report, v, console)
     if report["violations_not_listed"]:
-        console.print(_plain(console, f"… and {report['violations_not_listed']} more not listed"))
+        console.print(_plain(console, f"… and {report['violations_not_listed']:,} more not listed"))
     console.print(_table("Violations by rule", [("rule", "left"), ("count", "right")],
                          [[rule_id, n] for rule_id, n in report["rule_counts"].items()]))
 
@@ -277,7 +276,7 @@ def render_markdown(report: dict[str, Any]) -> str:
     if report["violations"]:
         out += _md_violation_rows(report, report["violations"])
         if report["violations_not_listed"]:
-            out.append(f"\n… and {report['violations_not_listed']} more not listed.")
+            out.append(f"\n… and {report['violations_not_listed']:,} more not listed.")
     else:
         out.append("None.")
     for label, rows in latency_tables(report):
@@ -333,5 +332,5 @@ def _md_interventions(report: dict[str, Any]) -> list[str]:
     if section["effects"]:
         out += ["", f"{md_text(EFFECTS_HEADING)}:", ""] + _md_violation_rows(report, section["effects"])
     if section["effects_not_listed"]:
-        out.append(f"\n… and {section['effects_not_listed']} more effects not listed.")
+        out.append(f"\n… and {plural(section['effects_not_listed'], 'more effect')} not listed.")
     return out

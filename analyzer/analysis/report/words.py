@@ -6,6 +6,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from whiztap.analyzer.analysis.verdict import counts_words
+from whiztap.analyzer.protocol.text import plural
+
 
 def side_words(report: dict[str, Any], v: dict[str, Any]) -> str:
     """Whose conduct a violation is about, in words, when the report has
@@ -41,11 +44,8 @@ def latency_tables(report: dict[str, Any]) -> list[tuple[str, list[dict[str, Any
 def verdict_words(report: dict[str, Any]) -> str:
     """The verdict line every rendering ends with (or begins with)."""
     sev = report["summary"]["violations_by_severity"]
-    counts = f"{sev['error']} errors, {sev['warning']} warnings, {sev['info']} info"
     section = report.get("interventions")
-    effects = sum(section["effects_by_severity"].values()) if section else 0
-    if effects:
-        counts += f"; {effects} effect{'s' * (effects != 1)} of the interventions"
+    counts = counts_words(sev, sum(section["effects_by_severity"].values()) if section else 0)
     threshold = report["severity_threshold"]
     above = [s for s in ("error", "warning", "info") if _LEVEL[s] >= _LEVEL[threshold]]
     if report["passed"]:
@@ -60,7 +60,7 @@ def verdict_words(report: dict[str, Any]) -> str:
         text = f"NOTHING TO JUDGE: {report['nothing_judged']}{allowed}"
     unreadable = len(report.get("unreadable", ()))
     if unreadable:
-        text = f"INCOMPLETE: {unreadable} input{'s' * (unreadable != 1)} could not be read. {text}"
+        text = f"INCOMPLETE: {plural(unreadable, 'input')} could not be read. {text}"
     return text
 
 
@@ -71,8 +71,8 @@ def intervention_lines(report: dict[str, Any]) -> tuple[str, list[tuple[str, int
     """The interventions section's heading and (cause, count, actions) rows."""
     section = report["interventions"]
     conns = section["connections"]
-    heading = (f"The proxy stood in the middle of {conns} connection{'s' * (conns != 1)} "
-               f"and made {section['count']} change{'s' * (section['count'] != 1)}; "
+    heading = (f"The proxy stood in the middle of {plural(conns, 'connection')} "
+               f"and made {plural(section['count'], 'change')}; "
                "each side is judged by what it sent and what it received")
     rows = [(c["cause"], c["count"], ", ".join(f"{action} {n}" for action, n in c["actions"].items()))
             for c in section["causes"]]
