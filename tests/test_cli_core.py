@@ -1,13 +1,20 @@
 """The whiztap command line as a user runs it: a real subprocess."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from whiztap.analyzer.cli.decode import decode_command
 from whiztap.analyzer.protocol.rules import RULES
+from whiztap.analyzer.protocol.text import escape
+from tests.spec_vectors import ALL_FRAMES, HANDSHAKE_SERVER
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SAMPLES = Path(__file__).parent.parent / "samples"
@@ -33,7 +40,7 @@ def test_decode_clean_sample_session():
     result = run("decode", str(SAMPLES / "spec-session.txt"))
     assert result.returncode == 0, result.stdout + result.stderr
     assert "Sensor value ch 8 = 512" in result.stdout
-    assert result.stdout.strip().endswith("mode winsock, handshake readytogo, 0 violation(s)")
+    assert result.stdout.strip().endswith("mode winsock, handshake readytogo, 0 violations")
 
 
 def test_decode_reports_violations_with_exit_1():
@@ -49,8 +56,55 @@ def test_decode_reads_a_pipe_without_being_told():
     assert piped.stdout == dashed.stdout and "Fetch Configuration Settings" in piped.stdout
 
 
+SESSION_RULES = {"PW-HS-ORDER", "PW-HS-COMMAND-BEFORE-READY", "PW-HS-AFTER-FAILED", "PW-VPN-CONFIG-FIRST",
+                 "PW-WINSOCK-CONFIG-FIRST", "PW-UNIT-MISMATCH", "PW-CHANNEL-UNCONFIGURED", "PW-AMBIGUOUS",
+                 "PW-PAIR-UNSOLICITED", "PW-PAIR-UNANSWERED", "PW-FRAME-EOL"}  # what needs what came before
+
+
+def test_decode_takes_frames_as_arguments_each_judged_on_its_own():
+    """A response alone was unsolicited, a command alone not the configuration
+    first and never answered: rules about a session, broken by no frame."""
+    vectors = [escape(raw) for raw in ALL_FRAMES + HANDSHAKE_SERVER]
+    result = run("decode", *vectors)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "  ! " not in result.stdout
+    assert result.stdout.splitlines()[-1] == f"{len(vectors)} frames, each judged on its own: 0 violations"
+    assert "Servo Position Request ch 3" in result.stdout and "Response ch 2 data 100" in result.stdout
+    broken = run("decode", "rr1-31--0--2-ss1", "-f", "s2c cr1-3--5--0-ss1")
+    assert broken.returncode == 1
+    assert broken.stdout.splitlines() == [
+        "c2s command    rr1-31--0--2-ss1  ->  Servo Position Request ch 31",
+        "  ! PW-RANGE-CHANNEL (error): channel must be 0-23, got 31",
+        "s2c response   cr1-3--5--0-ss1  ->  Response ch 3 data 5",
+        "2 frames, each judged on its own: 1 violation"]
+
+
+def test_decode_judges_one_line_of_a_pipe_as_a_frame_and_more_as_a_session():
+    one = run("decode", stdin="rr1-0--0--2-ss1\n")
+    assert one.returncode == 0 and one.stdout.endswith("1 frame, each judged on its own: 0 violations\n")
+    two = run("decode", stdin="rr1-0--0--2-ss1\nrr1-0--0--2-ss1\n")
+    assert two.returncode == 1 and "PW-VPN-CONFIG-FIRST" in two.stdout and "PW-PAIR-UNANSWERED" in two.stdout
+    assert two.stdout.endswith("mode vpn, handshake none (vpn), 3 violations\n")
+
+
+_frame_text = st.text(st.characters(codec="utf-8", exclude_characters="/\\\x00"), min_size=1, max_size=30)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(_frame_text.filter(lambda t: not os.path.exists(t)), min_size=1, max_size=4))
+def test_decode_never_judges_a_session_on_frames_given_alone(texts):
+    """Whatever is typed: one line and exit 2, or each frame judged with
+    frame rules only; never a traceback."""
+    result = CliRunner().invoke(decode_command, ["--", *texts])
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
+    assert result.exit_code in (0, 1, 2)
+    assert not {rule for rule in SESSION_RULES if f"! {rule} " in result.output}
+
+
 @pytest.mark.parametrize("args", [
     ("decode", "/nonexistent/frames.txt"),
+    ("decode", "frames.txt"),
+    ("decode", "samples"),
     ("decode",),
     ("decode", "-f", "rr1-24--0--0-ss1", "--checksum-rule", "crc99"),
 ])

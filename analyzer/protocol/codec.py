@@ -345,7 +345,7 @@ def decode(kind: ItemKind, raw: bytes, reason: Unframed | None = None) -> Decode
     if kind is ItemKind.EOL:
         return _NOTHING
     rule = _UNFRAMED_RULES[reason or Unframed.GARBAGE]
-    return Decoded(None, (), (Violation(rule, f"{plural(len(raw), 'byte')} that form no message"),))
+    return Decoded(None, (), (Violation(rule, f"{plural(len(raw), 'byte')} forming no message"),))
 
 
 def resolve(candidates: tuple[Message, ...], unit: UnitType | None) -> Message | None:

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from whiztap.analyzer.protocol.channels import ChannelSpecError, parse_channels
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
 from whiztap.analyzer.protocol.codec import EXTERNAL_SCRIPTS, decode, encode
-from whiztap.analyzer.protocol.framing import Framer, ItemKind
+from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, ItemKind
 from whiztap.analyzer.protocol.messages import (
     ActivateSwitch,
     DeactivateSwitch,
@@ -40,7 +40,7 @@ from whiztap.analyzer.protocol.messages import (
     StopExternalScript,
     StopInternalScript,
 )
-from whiztap.analyzer.protocol.observations import Direction, direction_violation
+from whiztap.analyzer.protocol.observations import Direction, Observation, direction_violation
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.text import plural, unescape
 
@@ -195,21 +195,24 @@ def frame_from_text(text: str) -> bytes:
     return data
 
 
-def check_frame(data: bytes, direction: Direction, checksum_rule: str = DEFAULT_CHECKSUM_RULE) -> list[Violation]:
-    """What is wrong with ``data`` sent on its own in ``direction``, judged as a
-    session judges it where that needs no context: the codec's rules, the
-    direction the kind travels in, the Set Configuration checksum under
-    ``checksum_rule`` (ValueError for an unknown rule), and PW-FRAME-GARBAGE
-    unless the bytes are exactly one complete item.  What needs the session
-    (the handshake, the channel map, pairing) is not judged."""
+def frame_alone(data: bytes, direction: Direction, checksum_rule: str = DEFAULT_CHECKSUM_RULE,
+                max_item: int = DEFAULT_MAX_ITEM, max_image: int = DEFAULT_MAX_IMAGE,
+                ) -> tuple[list[Observation], list[Violation]]:
+    """``data`` sent on its own in ``direction``, judged as a session judges
+    it where that needs no context: each item with its meaning and the rules
+    it breaks (the codec's, the direction the kind travels in, the Set
+    Configuration checksum under ``checksum_rule``, ValueError for an unknown
+    rule); and PW-FRAME-GARBAGE for the bytes as a whole unless they are
+    exactly one complete item.  What needs the session (the handshake, the
+    channel map, pairing) is not judged: one frame is no session."""
     direction = Direction(direction)
     rule = get_rule(checksum_rule)
-    framer = Framer()
+    framer = Framer(max_item, max_image)
     items = framer.feed(data, 0) + framer.end(0)
-    violations: list[Violation] = []
-    for item in items:
+    observations = []
+    for index, item in enumerate(items):
         decoded = decode(item.kind, item.raw, item.reason)
-        violations.extend(decoded.violations)
+        violations = list(decoded.violations)
         wrong_way = direction_violation(item.kind, direction)
         if wrong_way is not None:
             violations.append(wrong_way)
@@ -217,10 +220,19 @@ def check_frame(data: bytes, direction: Direction, checksum_rule: str = DEFAULT_
             wrong_sum = checksum_violation(decoded.message, rule)
             if wrong_sum is not None:
                 violations.append(wrong_sum)
+        observations.append(Observation(index, direction, item, decoded.message, decoded.candidates,
+                                        tuple(violations)))
     kinds = [item.kind for item in items]
     whole = len(kinds) == 1 and kinds[0] not in (ItemKind.UNFRAMED, ItemKind.EOL)
-    if not whole and not any(v.rule_id == "PW-FRAME-GARBAGE" for v in violations):
-        what = ", ".join(kind.words for kind in kinds) if kinds else "nothing"
-        violations.append(Violation("PW-FRAME-GARBAGE", f"not exactly one complete frame: {plural(len(data), 'byte')} "
-                                                        f"that frame as {what}"))
-    return violations
+    if whole or any(v.rule_id == "PW-FRAME-GARBAGE" for o in observations for v in o.violations):
+        return observations, []
+    what = ", ".join(kind.words for kind in kinds) if kinds else "nothing"
+    return observations, [Violation("PW-FRAME-GARBAGE", f"not exactly one complete frame: "
+                                                        f"{plural(len(data), 'byte')} framed as {what}")]
+
+
+def check_frame(data: bytes, direction: Direction, checksum_rule: str = DEFAULT_CHECKSUM_RULE) -> list[Violation]:
+    """What is wrong with ``data`` sent on its own in ``direction``: every
+    rule ``frame_alone`` finds broken, by its items or as a whole."""
+    observations, whole = frame_alone(data, direction, checksum_rule)
+    return [v for o in observations for v in o.violations] + whole

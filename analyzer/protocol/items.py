@@ -41,7 +41,7 @@ _KIND_WORDS = {
     ItemKind.PASSWORD: "a password",
     ItemKind.IMAGE: "a Camera Image",
     ItemKind.EOL: "a line break",
-    ItemKind.UNFRAMED: "bytes that form no message",
+    ItemKind.UNFRAMED: "unframed bytes",
 }
 
 
