@@ -1,6 +1,7 @@
 """whiztap analyze, cat and info on the sample recordings, as a user runs them."""
 
 import base64
+import html
 import json
 import shutil
 import subprocess
@@ -11,7 +12,11 @@ import jsonschema
 import pytest
 from junitparser import Error, Failure, JUnitXml, Skipped
 
+from click.testing import CliRunner
+
 from whiztap.analyzer.analysis.analyzer import Analyzer
+from whiztap.analyzer.analysis.report.html import NO_PLOTS
+from whiztap.analyzer.cli.analyze import analyze_command
 from whiztap.analyzer.cli.analyze import scan_recording
 from tests.record_support import rebuild_streams, stream_bytes
 from whiztap.analyzer.analysis.report.content import build
@@ -155,6 +160,21 @@ def test_html_is_self_contained_with_plots(tmp_path):
     for caption in ("Items over time", "Response latency", "Sensor values", "Servo positions"):
         assert caption in page
     assert "<script src" not in page and "<link" not in page
+    assert "has no plots" not in page
+
+
+def test_html_without_matplotlib_is_written_without_plots_and_says_so(tmp_path, monkeypatch):
+    """It was exit 2 and no report: a CI image without the html extra lost the
+    whole report for want of its plots."""
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # 'import matplotlib' fails, as when it is not installed
+    out = tmp_path / "report.html"
+    result = CliRunner().invoke(analyze_command, [str(VIOLATIONS), "--format", "html", "-o", str(out), "-q",
+                                                  "--group-by", "robot"])
+    assert result.exit_code == 1, result.output  # the verdict's status, the report written
+    page = out.read_text()
+    assert f"<p class='warning'>{html.escape(NO_PLOTS)}.</p>" in page
+    assert "<svg" not in page and "<h2>Violations</h2>" in page and "Fleet by robot" in page
+    assert result.stderr.splitlines()[-1] == f"whiztap: {NO_PLOTS}"
 
 
 def test_markdown(tmp_path):

@@ -3,6 +3,7 @@ command that reads it: named by its first part, its folder or a glob."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import subprocess
 from pathlib import Path
@@ -13,7 +14,9 @@ from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
-from tests.record_support import WHIZTAP
+from whiztap.sniffer.record.record_run import Recording, RecordSettings
+
+from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, Segment, rebuild_streams
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
@@ -96,3 +99,66 @@ def test_replay_takes_the_set(tmp_path):
     result = run("replay", files[0], "--dry-run", "--target", "127.0.0.1:1")
     assert result.returncode == 0, result.stderr
     assert result.stdout.count("rr1-1--0--0-ss1") == 2
+
+
+# -- a part name taken while recording: skipped, never a stop ---------------------------------------
+
+
+def _whole_streams(files: list[str]) -> dict[tuple[int, str], bytes]:
+    """Each stream rebuilt from every part's /tcp/reads, checked contiguous from 0."""
+    segments: dict[tuple[int, str], list[Segment]] = {}
+    for path in files:
+        for key, found in rebuild_streams(path).items():
+            segments.setdefault(key, []).extend(found)
+    out = {}
+    for key, found in segments.items():
+        data = bytearray()
+        for segment in sorted(found):
+            assert segment.offset == len(data), f"{key}: a hole before {segment.offset}"
+            data += segment.data
+        out[key] = bytes(data)
+    return out
+
+
+async def test_a_part_name_taken_while_recording_is_skipped_and_the_recording_goes_on(tmp_path):
+    """Someone else's file at the second part's name, a link at the third's
+    .part: each is skipped with a warning, neither is touched, the client's
+    connection never notices, and every byte is in the parts written."""
+    path = tmp_path / "r.mcap"
+    foreign = tmp_path / "r-0002.mcap"
+    foreign.write_bytes(b"someone else's")
+    victim = tmp_path / "victim.txt"
+    victim.write_bytes(b"keep me")
+    (tmp_path / "r-0003.mcap.part").symlink_to(victim)
+    warnings: list[str] = []
+    finished: list[str] = []
+    payload = bytes(range(256)) * 256  # 64 KiB a round trip: a part every few
+    sent = 0
+    async with EchoServer() as server:
+        settings = RecordSettings((LOCAL, 0), (LOCAL, server.port), str(path), split_size=128 << 10,
+                                  keep_secrets=True, overwrite=False)
+        rec = Recording(settings, echo=finished.append, warn=warnings.append)
+        await rec.start()
+        try:
+            reader, writer = await asyncio.open_connection(LOCAL, rec.proxy.port)
+            # round trips until the writer has finished two parts (it rotates as it goes)
+            while sum(line.startswith("finished ") for line in finished) < 2 and rec.error is None:
+                assert sent < 1000, finished
+                writer.write(payload)
+                assert await asyncio.wait_for(reader.readexactly(len(payload)), WAIT) == payload
+                sent += 1
+                await asyncio.sleep(0.01)
+            writer.close()
+        finally:
+            summary = await asyncio.wait_for(rec.stop(), WAIT)
+    assert rec.error is None and summary is not None
+    files = summary["files"]
+    assert [Path(f).name for f in files[:2]] == ["r-0001.mcap", "r-0004.mcap"] and len(files) > 2
+    assert foreign.read_bytes() == b"someone else's" and victim.read_bytes() == b"keep me"
+    assert _whole_streams(files) == {(1, "c2s"): payload * sent, (1, "s2c"): payload * sent}
+    assert len(warnings) == 1, warnings
+    assert "r-0002.mcap" in warnings[0] and "r-0003.mcap.part" in warnings[0] and "r-0004.mcap" in warnings[0]
+    # named by a part, one recording: the names skipped are neither in it nor said to be missing from it
+    for named in (files[0], files[1]):
+        [found] = find_recordings([named])
+        assert [str(p) for p in found.parts] == files and found.missing == ()

@@ -288,20 +288,68 @@ async def test_rotation_never_writes_through_a_link(tmp_path, force):
         _finished(part)
 
 
-def test_a_part_name_taken_while_recording_stops_the_recording_and_is_kept(tmp_path):
-    from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
+def _fill(file, parts: int) -> None:  # noqa: ANN001 - a RecordingFile
+    """Messages into ``file`` until it has begun part ``parts`` (it rotates on its own)."""
+    t = 1
+    while file.part < parts:
+        file.write("/tcp/reads", t, json.dumps({"data": os.urandom(1000).hex()}).encode())
+        t += 1
+        assert t < 10_000
 
-    file = RecordingFile(str(tmp_path / "s.mcap"), {"session_id": "x"}, split_size=16 << 10, overwrite=False)
+
+def test_a_part_name_taken_while_recording_is_skipped_and_left_alone(tmp_path):
+    from whiztap.sniffer.record.writer import RecordingFile
+
+    warnings: list[str] = []
+    file = RecordingFile(str(tmp_path / "s.mcap"), {"session_id": "x"}, split_size=16 << 10, overwrite=False,
+                         warn=warnings.append)
     file.open(1)
-    topic = "/tcp/reads"
     taken = tmp_path / "s-0002.mcap"
     taken.write_bytes(b"appeared while recording")
-    with pytest.raises(RecordingWriteError, match=r"s-0002\.mcap.*File exists.*recording stopped.*s-0001\.mcap"):
-        for t in range(1, 100):
-            file.write(topic, t, json.dumps({"data": os.urandom(1000).hex()}).encode())
+    _fill(file, 4)
+    file.finish()
     assert taken.read_bytes() == b"appeared while recording"
-    assert [p.name for p in _recording_files(tmp_path)] == ["s-0001.mcap", "s-0002.mcap"]
+    assert [p.name for p in _recording_files(tmp_path)] == ["s-0001.mcap", "s-0002.mcap", "s-0003.mcap",
+                                                             "s-0004.mcap"]
+    assert [os.path.basename(p) for p in file.finished] == ["s-0001.mcap", "s-0003.mcap", "s-0004.mcap"]
+    for path in file.finished:
+        _finished(Path(path))
+    assert warnings == [f"warning: {taken} is taken, not by this recording: left alone; "
+                        f"the recording goes on in {tmp_path / 's-0003.mcap'}"]
+
+
+def test_taking_every_part_name_ends_the_recording_after_a_bound(tmp_path, monkeypatch):
+    from whiztap.sniffer.record import writer
+    from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
+
+    monkeypatch.setattr(writer, "MAX_SKIPPED", 3)
+    for n in range(2, 6):
+        (tmp_path / f"s-{n:04d}.mcap").write_bytes(b"taken")
+    file = RecordingFile(str(tmp_path / "s.mcap"), {"session_id": "x"}, split_size=16 << 10, overwrite=False,
+                         warn=lambda text: None)
+    file.open(1)
+    with pytest.raises(RecordingWriteError, match=r"s-0005\.mcap.*File exists.*recording stopped.*s-0001\.mcap"):
+        _fill(file, 6)
     _finished(tmp_path / "s-0001.mcap")
+
+
+def test_a_name_taken_while_its_part_was_written_keeps_the_part_and_goes_on(tmp_path):
+    from whiztap.sniffer.record.writer import RecordingFile
+
+    warnings: list[str] = []
+    file = RecordingFile(str(tmp_path / "s.mcap"), {"session_id": "x"}, split_size=16 << 10, overwrite=False,
+                         warn=warnings.append)
+    file.open(1)
+    _fill(file, 2)
+    taken = tmp_path / "s-0002.mcap"
+    taken.write_bytes(b"appeared while part 2 was written")
+    _fill(file, 3)
+    file.finish()
+    assert taken.read_bytes() == b"appeared while part 2 was written"
+    assert [os.path.basename(p) for p in file.finished] == ["s-0001.mcap", "s-0002.mcap.part", "s-0003.mcap"]
+    for path in file.finished:
+        _finished(Path(path))
+    assert len(warnings) == 1 and "kept, complete, as" in warnings[0] and "s-0002.mcap.part" in warnings[0]
 
 
 def test_a_finished_name_taken_while_recording_is_not_replaced(tmp_path):

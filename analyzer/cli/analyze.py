@@ -276,12 +276,12 @@ def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str
 
         return render_markdown(report)
     if fmt == "html":
-        from whiztap.analyzer.analysis.report.html import MissingPlotLibrary, render_html
+        from whiztap.analyzer.analysis.report.html import plots_missing, render_html
 
-        try:
-            return render_html(report, analysis)
-        except MissingPlotLibrary as e:
-            fail(str(e))
+        missing = plots_missing()
+        if missing is not None:
+            warn(missing)
+        return render_html(report, analysis)
     from rich.console import Console
 
     from whiztap.analyzer.analysis.report.text import render_text

@@ -133,9 +133,20 @@ def group(paths: Iterable[Path | RemotePart]) -> list[RecordingSet]:
     out = []
     for found in sets.values():
         numbers = sorted(found)
-        missing = tuple(n for n in range(numbers[0], numbers[-1] + 1) if n not in found)
+        missing = tuple(n for n in range(numbers[0], numbers[-1] + 1) if n not in found and not _taken(found, n))
         out.append(RecordingSet(tuple(found[n] for n in numbers), missing))
     return sorted(out, key=lambda s: str(s.name))
+
+
+def _taken(found: dict[int, Path], n: int) -> bool:
+    """Whether part ``n``'s name holds a file of something else: a number the
+    recorder found taken and skipped, not a part that went missing."""
+    first = found[min(found)]
+    m = _PART_NAME.match(first.name)
+    if not isinstance(first, Path) or m is None:
+        return False
+    name = first.parent / f"{m['stem']}-{n:04d}{m['ext']}"
+    return os.path.lexists(name) or os.path.lexists(f"{name}.part")
 
 
 def numbered_parts(output: str) -> list[str]:
@@ -150,11 +161,15 @@ def numbered_parts(output: str) -> list[str]:
 
 
 def _siblings(path: Path) -> list[Path]:
-    """The other parts a part's name suggests (same stem, any number)."""
+    """The other parts a part's name suggests (same stem, any number), of
+    the same recording: a file at such a name that is not one of its parts
+    (a name the recorder found taken and skipped) is left out."""
     m = _PART_NAME.match(path.name)
     if m is None:
         return [path]
-    return [Path(p) for p in numbered_parts(str(path.parent / m["stem"]) + m["ext"]) if not p.endswith(".part")]
+    session = _part_key(path)[0]  # type: ignore[index]  # the caller checked it is a part
+    names = [Path(p) for p in numbered_parts(str(path.parent / m["stem"]) + m["ext"]) if not p.endswith(".part")]
+    return [p for p in names if p == path or (_part_key(p) or ("",))[0] == session]
 
 
 def find_recordings(inputs: Iterable[str], urls: bool = False) -> list[RecordingSet]:

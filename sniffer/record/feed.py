@@ -140,6 +140,7 @@ class WriterProcess:
         self.on_violation: Callable[[dict], None] | None = None
         self.on_file: Callable[[str], None] | None = None
         self.on_error: Callable[[str], None] | None = None
+        self.on_warning: Callable[[str], None] | None = None  # something the writer worked around
         self._behind = False
         self.error: str | None = None
         self.summary: dict | None = None
@@ -347,6 +348,8 @@ class WriterProcess:
             self.on_file(message["path"])
         elif kind == "error":
             self.fail(message["message"])
+        elif kind == "warning" and self.on_warning is not None:
+            self.on_warning(message["message"])
         elif kind == "summary":
             self.summary = message
         elif kind == "verdict":

@@ -136,6 +136,7 @@ class Recording:
         writer.on_hold = proxy.hold
         writer.on_violation = self._violation
         writer.on_error = lambda message: self.stopped.set()
+        writer.on_warning = self.warn
         writer.on_file = lambda path: self.echo(f"finished {path}")
         if self.controller is not None:  # GET /state's verdict: the writer's, as analyze will judge the file
             self.controller.verdict = lambda: writer.verdict

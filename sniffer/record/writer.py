@@ -11,7 +11,10 @@ files by size or duration.
 Names: a file is created only where nothing is (``O_EXCL``, which also never
 follows a symbolic link), and a finished file is never renamed over an existing
 one, unless ``overwrite`` (the user's ``--force``): then what is at the name is
-removed first, a link as a link, never what it points at.
+removed first, a link as a link, never what it points at.  A later part whose
+name is taken while recording (someone else's file, a link) is not a reason
+to stop every client's connection: that number is skipped, with a warning, and
+the part takes the next free one (its metadata's part number is its name's).
 
 When a write fails (disk full, file too large, I/O error) the file is cut back
 to the end of the last complete flush and closed with a DataEnd and Footer
@@ -33,6 +36,7 @@ import errno
 import fcntl
 import os
 import signal
+import sys
 import time
 from collections.abc import Callable
 
@@ -56,6 +60,7 @@ FLUSH_INTERVAL_S = 0.5  # < 1 s, so a kill -9 or a power loss loses at most abou
 DEFAULT_CHUNK_SIZE = 1 << 20
 MIN_CHUNK_SIZE = 16 << 10
 _STREAM_BUFFER = 1 << 20
+MAX_SKIPPED = 1000  # taken part names skipped in a row before the recording gives up
 
 
 # What one message adds to an open chunk besides its data (opcode, length,
@@ -65,6 +70,11 @@ _MESSAGE_COST = 31 + 16
 
 class RecordingWriteError(Exception):
     """Writing the recording failed; the message says what was kept, in one line."""
+
+
+def _warn_on_stderr(text: str) -> None:
+    """Where a ``RecordingFile`` made in-process says what it worked around."""
+    print(f"whiztap: {text}", file=sys.stderr, flush=True)
 
 
 def _create(path: str, overwrite: bool) -> int:
@@ -148,14 +158,17 @@ class RecordingFile:
     is called after each rotation so the recorder can write what a reader of
     that file alone needs (the connections still open).  ``overwrite``: replace
     files at the names it writes (the caller checked, or the user said --force);
-    otherwise a name taken while recording stops the recording.
+    otherwise a later part's name taken while recording is skipped, and
+    ``warn`` is told (one line).
     """
 
     def __init__(self, path: str, metadata: dict[str, str], *, split_size: int | None = None,
                  split_duration_ns: int | None = None, chunk_size: int = DEFAULT_CHUNK_SIZE,
-                 compression: str = "zstd", overwrite: bool = True) -> None:
+                 compression: str = "zstd", overwrite: bool = True,
+                 warn: Callable[[str], None] = _warn_on_stderr) -> None:
         self.path = path
         self.overwrite = overwrite
+        self.warn = warn
         self.metadata = metadata
         self.split_size = split_size
         self.split_duration_ns = split_duration_ns
@@ -207,16 +220,39 @@ class RecordingFile:
         """Create the first file; an unwritable path raises RecordingWriteError."""
         self._open_part(t_ns)
 
+    def _create_part(self) -> int:
+        """Create the current part's ``.part`` file; its descriptor.  The first
+        part's name was checked at start: taken now, the recording cannot
+        begin.  A later part's name that is taken (the final name or its
+        ``.part``, a link there too: never followed) is skipped for the next
+        free number, with one warning for the names skipped."""
+        skipped: list[str] = []
+        while True:
+            final = self.current_path
+            target = final + ".part"
+            try:
+                if not self.overwrite and os.path.lexists(final):  # checked now, not after a part's worth of traffic
+                    raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), final)
+                fd = _create(target, self.overwrite)
+            except FileExistsError as e:
+                if (self.part or 1) == 1 or len(skipped) >= MAX_SKIPPED:
+                    self._cannot_create(e, target)
+                skipped.append(e.filename or target)
+                self.part += 1  # type: ignore[operator]
+                continue
+            except OSError as e:
+                self._cannot_create(e, target)
+            if skipped:
+                self.warn(_skipped_text(skipped, final))
+            return fd
+
+    def _cannot_create(self, error: OSError, target: str) -> None:
+        kept = f"; recording stopped, what was written before is in {self.finished[-1]}" if self.finished else ""
+        raise RecordingWriteError(f"cannot write {error.filename or target}: {error.strerror}{kept}") from None
+
     def _open_part(self, t_ns: int) -> None:
-        final = self.current_path
-        target = final + ".part"
-        try:
-            if not self.overwrite and os.path.lexists(final):  # checked now, not after a part's worth of traffic
-                raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), final)
-            fd = _create(target, self.overwrite)
-        except OSError as e:
-            kept = f"; recording stopped, what was written before is in {self.finished[-1]}" if self.finished else ""
-            raise RecordingWriteError(f"cannot write {e.filename or target}: {e.strerror}{kept}") from None
+        fd = self._create_part()
+        target = self.current_path + ".part"
         with contextlib.suppress(OSError):  # tells readers the file is being written (being_written)
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._stream = _FileStream(fd)
@@ -362,7 +398,7 @@ class RecordingFile:
 
     def _rotate(self, t_ns: int) -> None:
         self._rotate_due = False
-        self._finish_part()
+        self._finish_part(rotating=True)
         self.part += 1  # type: ignore[operator]
         self._open_part(t_ns)
         self._part_opening = None  # what a reader of this part alone needs first is not traffic
@@ -381,22 +417,33 @@ class RecordingFile:
             self._finish_part()
         return self.finished
 
-    def _finish_part(self) -> None:
+    def _finish_part(self, rotating: bool = False) -> None:
         try:
             self._writer.finish()  # type: ignore[union-attr]
             self._stream.flush()  # type: ignore[union-attr]
             os.fdatasync(self._stream.fd)  # type: ignore[union-attr]  # all of it on disk before the final name
         except OSError as e:
             self._fail(e)
-        self._close_and_rename()
+        self._close_and_rename(rotating)
 
-    def _close_and_rename(self) -> None:
+    def _close_and_rename(self, rotating: bool = False) -> None:
+        """Close the part and give it its final name.  A name taken while the
+        part was written stops nothing when more parts follow (``rotating``):
+        the part keeps its ``.part`` name, complete, and the recording goes on."""
         os.close(self._stream.fd)  # type: ignore[union-attr]
         final = self.current_path
         self._writer = None
         self._stream = None
         try:
             _publish(final + ".part", final, self.overwrite)
+        except FileExistsError:
+            if not rotating:
+                raise RecordingWriteError(f"cannot name the finished recording {final}: File exists; "
+                                          f"it is kept, complete, as {final}.part") from None
+            self.warn(f"warning: {final} was taken while this part was written, not by this recording: "
+                      f"the part is kept, complete, as {final}.part; the recording goes on")
+            self.finished.append(final + ".part")
+            return
         except OSError as e:
             raise RecordingWriteError(f"cannot name the finished recording {final}: {e.strerror}; "
                                       f"it is kept, complete, as {final}.part") from None
@@ -425,3 +472,11 @@ class RecordingFile:
         raise RecordingWriteError(
             f"cannot write {part}: {what}; recording stopped, "
             f"what was written before is in {self.finished[-1]}") from None
+
+
+def _skipped_text(skipped: list[str], final: str) -> str:
+    """The warning for part names skipped because they were taken."""
+    shown = [f"{name} (a link, never followed)" if os.path.islink(name) else name for name in skipped[:3]]
+    names = ", ".join(shown) + (f" and {len(skipped) - 3} more" if len(skipped) > 3 else "")
+    verb = "is" if len(skipped) == 1 else "are"
+    return f"warning: {names} {verb} taken, not by this recording: left alone; the recording goes on in {final}"

@@ -56,6 +56,13 @@ def _say(message: dict) -> None:
         drop_stdout()
 
 
+def _warning(text: str) -> None:
+    """Something the writer worked around (a part name taken, the live
+    server's trouble): the proxy says it where its user sees warnings (stderr,
+    or the TUI's notices), never this process's own stderr."""
+    _say({"type": "warning", "message": text})
+
+
 def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
     from whiztap.analyzer.recording.encode import violation_message
 
@@ -135,7 +142,7 @@ def _recording_file(config: dict[str, Any]):  # noqa: ANN202 - a RecordingFile, 
 
     args = (config["path"], config["metadata"])
     options = {"split_size": config.get("split_size"), "split_duration_ns": config.get("split_duration_ns"),
-               "overwrite": config.get("overwrite", True)}
+               "overwrite": config.get("overwrite", True), "warn": _warning}
     if not config.get("foxglove"):
         return RecordingFile(*args, **options), {}
     from whiztap.sniffer.record.live import LiveRecordingFile, LiveServer, LiveServerError

@@ -1,6 +1,7 @@
 """One self-contained HTML file: the report's tables and plots (inline SVG).
 
 Plots are drawn with matplotlib (the ``html`` extra), imported only here.
+Without it the report is written all the same, without plots, and says so.
 """
 
 from __future__ import annotations
@@ -33,15 +34,22 @@ code{font-size:90%;word-break:break-all}figure{margin:1em 0}
 """
 
 
-class MissingPlotLibrary(RuntimeError):
-    pass
+NO_PLOTS = ("the HTML report has no plots: they are drawn with matplotlib, which is not installed "
+            "(pip install 'whiztap[html]')")
+
+
+def plots_missing() -> str | None:
+    """Why the HTML report will have no plots (``NO_PLOTS``), or None when it will have them."""
+    try:
+        import matplotlib  # noqa: F401 - whether it can be imported is the question
+    except ImportError:
+        return NO_PLOTS
+    return None
 
 
 def _pyplot():
-    try:
-        import matplotlib
-    except ImportError:
-        raise MissingPlotLibrary("the HTML report needs matplotlib: pip install 'whiztap[html]'") from None
+    import matplotlib
+
     matplotlib.use("Agg")
     # the same report twice is the same file: SVG ids from a fixed salt, no date in the metadata
     matplotlib.rcParams["svg.hashsalt"] = "whiztap"
@@ -169,14 +177,14 @@ def _labels(set_ticks, set_labels, labels: list[str], **style: Any) -> None:  # 
     set_labels([labels[i] for i in ticks], fontsize="small", **style)
 
 
-def _fleet(table: dict[str, Any]) -> list[str]:
-    """A fleet table, its table by day and its plots."""
+def _fleet(table: dict[str, Any], plotted: bool) -> list[str]:
+    """A fleet table, its table by day and (``plotted``) its plots."""
     e = _escaped
     title, by_day = fleet_headings(table)
     groups, days = fleet_rows(table)
     key = fleet_key(table)
     parts = [f"<h2>{e(title)}</h2>", _table([key, *FLEET_COLUMNS], [[e(cell) for cell in row] for row in groups])]
-    for caption, svg in _fleet_plots(table):
+    for caption, svg in _fleet_plots(table) if plotted else ():
         parts.append(f"<figure><figcaption><b>{e(caption)}</b></figcaption>{svg}</figure>")
     parts += [f"<h2>{e(by_day)}</h2>", _table([key, *FLEET_DAY_COLUMNS], [[e(cell) for cell in row] for row in days])]
     return parts
@@ -236,15 +244,18 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
         f"<code>{e(rule['name'])}</code> ({e(rule['description'])}).</p>",
         f"<p class='{'pass' if report['passed'] else 'fail'}'><b>{e(verdict(report))}</b></p>",
     ]
+    plotted = plots_missing() is None
+    if not plotted:
+        parts.append(f"<p class='warning'>{e(NO_PLOTS)}.</p>")
     for table in report.get("fleet", ()):
-        parts += _fleet(table)
+        parts += _fleet(table, plotted)
     parts += [
         "<h2>Connections</h2>",
         _table(["file", "conn", "client", "mode", "handshake", "items", "violations"],
                [[e(c["file"]), str(c["conn"]), e(c["client"] or "-"), e(c["mode"]), e(c["handshake"]),
                  str(c["frames"]), str(sum(c["violations"].values()))] for c in report["connections"]]),
     ]
-    for title, svg in _plots(analysis):
+    for title, svg in _plots(analysis) if plotted else ():
         parts.append(f"<figure><figcaption><b>{e(title)}</b></figcaption>{svg}</figure>")
     if "interventions" in report:
         parts += _interventions(report)
