@@ -120,6 +120,31 @@ def test_several_files_and_a_folder(tmp_path):
     assert serial["summary"]["connections"] == 2
 
 
+def test_a_report_on_several_files_names_the_file_of_each_connection_and_violation(tmp_path):
+    """Each file numbers its connections from 1: 'conn 3' alone said which of
+    several it was no more than a page number without its book."""
+    first, second = tmp_path / "monday.mcap", tmp_path / "tuesday.mcap"
+    shutil.copy(VIOLATIONS, first)
+    shutil.copy(VIOLATIONS, second)
+    _, data = report(first, second)
+    per_file = len(data["violations"]) // 2
+    text = run("analyze", first, second).stdout.splitlines()
+    lines = [line for line in text if line.startswith("PW-")]
+    assert len(lines) == 2 * per_file and per_file > 30
+    assert all(f" {first} conn " in line or f" {second} conn " in line for line in lines)
+    assert sum(f" {first} conn " in line for line in lines) == per_file
+    header = text.index("Connections") + 1
+    assert text[header].split()[:2] == ["file", "conn"]
+    rows = text[header + 1:header + 1 + len(data["connections"])]
+    assert all(row.split()[0] in (str(first), str(second)) for row in rows)
+    assert sum(line.startswith(f"  {first} conn 1: ") or line.startswith(f"  {first} conn 1 channels: ")
+               for line in text) >= 1
+    markdown = run("analyze", "--format", "markdown", first, second).stdout
+    assert markdown.count(f"| {md_text(second)} |") >= per_file  # its connections' and violations' rows
+    alone = run("analyze", VIOLATIONS).stdout
+    assert str(VIOLATIONS) not in alone and "] conn 1 c2s" in alone  # one file: nothing to tell apart
+
+
 def test_text_report_to_a_pipe_is_never_wrapped():
     """Each escaped frame stays on one line, whole, for grep."""
     result = run("analyze", VIOLATIONS)

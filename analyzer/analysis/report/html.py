@@ -17,11 +17,13 @@ from whiztap.analyzer.analysis.report.words import (
     CLIENT_LATENCY,
     EFFECTS_HEADING,
     SERVER_LATENCY,
+    conn_words,
     fleet_headings,
     fleet_key,
     group_name,
     intervention_lines,
     latency_tables,
+    several_files,
     side_cell,
 )
 from whiztap.analyzer.protocol.text import plural, printable
@@ -206,15 +208,16 @@ def _violations(report: dict[str, Any], violations: list[dict[str, Any]]) -> str
     """A table of violations (or effects); with a side column when the proxy stood in the middle."""
     e = _escaped
     middle = "interventions" in report
+    files = several_files(report)
     rows = []
     for v in violations:
         row = [f"<code>{e(v['rule_id'])}</code>", f"<span class='{e(v['severity'])}'>{e(v['severity'])}</span>",
-               e(v["section"]), str(v["conn"])]
+               e(v["section"])] + ([e(v["file"])] if files else []) + [str(v["conn"])]
         if middle:
             row.append(e(side_cell(v)))
         rows.append(row + [f"{v['t_rel_s']:.3f}", f"<code>{e(v['frame'][:200])}</code>", e(v["detail"])])
-    return _table(["rule", "severity", "section", "conn"] + (["side"] if middle else []) + ["t (s)", "frame", "detail"],
-                  rows)
+    return _table(["rule", "severity", "section"] + (["file"] if files else []) + ["conn"]
+                  + (["side"] if middle else []) + ["t (s)", "frame", "detail"], rows)
 
 
 def _interventions(report: dict[str, Any]) -> list[str]:
@@ -277,7 +280,7 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
     if report["set_configurations"]:
         parts.append("<h2>Set Configuration checksums</h2>")
         parts.append(_table(["conn", "checksum", "expected", "candidate rules it fits"],
-                            [[str(c["conn"]), str(c["checksum"]), str(c["expected"]),
+                            [[e(conn_words(report, c)), str(c["checksum"]), str(c["expected"]),
                               e(", ".join(c["satisfies"]) or "none")] for c in report["set_configurations"]]))
     if report.get("unreadable"):
         parts.append("<h2>Not in this report (could not be read)</h2><ul>")

@@ -11,6 +11,7 @@ from rich.text import Text
 
 from whiztap.analyzer.analysis.report.words import (
     EFFECTS_HEADING,
+    conn_words,
     fleet_headings,
     fleet_key,
     group_name,
@@ -18,6 +19,7 @@ from whiztap.analyzer.analysis.report.words import (
     latency_tables,
     rule_counts_words,
     rules_since,
+    several_files,
     side_cell,
     side_words,
     verdict_words,
@@ -115,15 +117,17 @@ def _text_traffic(report: dict[str, Any], console: Console) -> None:
                              [[r["file"], r["connections"], f"{r['frames']:,}", r["violations"]]
                               for r in report["per_file"]]))
 
-    console.print(_table("Connections", [("conn", "right"), ("client", "left"), ("mode", "left"),
-                                         ("handshake", "left"), ("items", "right"), ("violations", "right")],
-                         [[c["conn"], c["client"] or "-", c["mode"], c["handshake"], f"{c['frames']:,}",
-                           sum(c["violations"].values())] for c in report["connections"]]))
+    files = [("file", "left")] if several_files(report) else []
+    console.print(_table("Connections", files + [("conn", "right"), ("client", "left"), ("mode", "left"),
+                                                 ("handshake", "left"), ("items", "right"), ("violations", "right")],
+                         [([c["file"]] if files else []) + [
+                             c["conn"], c["client"] or "-", c["mode"], c["handshake"], f"{c['frames']:,}",
+                             sum(c["violations"].values())] for c in report["connections"]]))
     for c in report["connections"]:
         for note in c["notes"]:
-            console.print(_plain(console, f"  conn {c['conn']}: {note}"))
+            console.print(_plain(console, f"  {conn_words(report, c)}: {note}"))
         if c["channel_map"]:
-            console.print(_plain(console, f"  conn {c['conn']} channels: {channel_ranges(c['channel_map'])}"),
+            console.print(_plain(console, f"  {conn_words(report, c)} channels: {channel_ranges(c['channel_map'])}"),
                           overflow="fold")
 
     kinds = report["summary"]["frames_by_kind"]
@@ -183,7 +187,7 @@ def _text_violation(report: dict[str, Any], v: dict[str, Any], console: Console)
     """A violation (or an intervention's effect) in two lines: what, where and why; the frame."""
     line = Text()
     line.append(printable(f"{v['rule_id']} "), style=_STYLE[v["severity"]])
-    line.append(printable(f"[{v['severity']}] conn {v['conn']} {v['dir'] or ''}{side_words(report, v)} "
+    line.append(printable(f"[{v['severity']}] {conn_words(report, v)} {v['dir'] or ''}{side_words(report, v)} "
                           f"+{v['t_rel_s']:.3f}s  "))
     line.append(printable(v["detail"]))
     console.print(line)
@@ -215,7 +219,7 @@ def _text_latency_and_checksums(report: dict[str, Any], console: Console) -> Non
     for c in report["set_configurations"]:
         ok = "ok" if c["ok"] else f"expected {c['expected']}"
         fits = ", ".join(c["satisfies"]) or "no candidate rule"
-        console.print(_plain(console, f"Set Configuration conn {c['conn']}: checksum {c['checksum']} ({ok}); "
+        console.print(_plain(console, f"Set Configuration {conn_words(report, c)}: checksum {c['checksum']} ({ok}); "
                                       f"fits: {fits}"))
 
 
@@ -289,9 +293,10 @@ def render_markdown(report: dict[str, Any]) -> str:
         out += ["", "Never answered: " + ", ".join(f"{n} × {t(title)}" for title, n in report["unanswered"].items())]
     if report["set_configurations"]:
         out += ["", "## Set Configuration checksums", "", "| conn | checksum | expected | fits |",
-                "|---:|---:|---:|---|"]
+                "|---|---:|---:|---|"]
         for c in report["set_configurations"]:
-            out.append(f"| {c['conn']} | {c['checksum']} | {c['expected']} | {t(', '.join(c['satisfies']) or '-')} |")
+            out.append(f"| {t(conn_words(report, c))} | {c['checksum']} | {c['expected']} "
+                       f"| {t(', '.join(c['satisfies']) or '-')} |")
     if report.get("unreadable"):
         out += ["", "## Not in this report (could not be read)", ""]
         out += [f"- {t(u['error'])}" for u in report["unreadable"]]
@@ -313,12 +318,15 @@ def _md_fleet(table: dict[str, Any]) -> list[str]:
 def _md_violation_rows(report: dict[str, Any], violations: list[dict[str, Any]]) -> list[str]:
     """A table of violations (or effects); with a side column when the proxy stood in the middle."""
     middle = "interventions" in report
-    rows = ["| rule | severity | conn |" + (" side |" if middle else "") + " t (s) | frame | detail |",
-            "|---|---|---:|" + ("---|" if middle else "") + "---:|---|---|"]
+    files = several_files(report)
+    rows = ["| rule | severity |" + (" file |" if files else "") + " conn |" + (" side |" if middle else "")
+            + " t (s) | frame | detail |",
+            "|---|---|" + ("---|" if files else "") + "---:|" + ("---|" if middle else "") + "---:|---|---|"]
     for v in violations:
+        file = f" {md_text(v['file'])} |" if files else ""
         side = f" {md_text(side_cell(v))} |" if middle else ""
-        rows.append(f"| {md_code(v['rule_id'])} | {md_text(v['severity'])} | {v['conn']} |{side} {v['t_rel_s']:.3f} | "
-                    f"{md_code(shorten(v['frame'], MD_FRAME))} | {md_text(v['detail'])} |")
+        rows.append(f"| {md_code(v['rule_id'])} | {md_text(v['severity'])} |{file} {v['conn']} |{side} "
+                    f"{v['t_rel_s']:.3f} | {md_code(shorten(v['frame'], MD_FRAME))} | {md_text(v['detail'])} |")
     return rows
 
 

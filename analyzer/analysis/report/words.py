@@ -28,6 +28,17 @@ def side_cell(v: dict[str, Any]) -> str:
     return f"seen by the {v['seen_by']}" + (f"; follows from {v['cause']}" if v.get("cause") else "")
 
 
+def several_files(report: dict[str, Any]) -> bool:
+    """Whether the report covers more than one recording: then connection
+    numbers repeat (each file counts from 1), and each is named with its file."""
+    return len(report["files"]) > 1
+
+
+def conn_words(report: dict[str, Any], item: dict[str, Any]) -> str:
+    """``conn 3``, or ``r7.mcap conn 3`` when the report covers several files."""
+    return f"{item['file']} conn {item['conn']}" if several_files(report) else f"conn {item['conn']}"
+
+
 SERVER_LATENCY = "the server's: from the request as it received it to the answer it sent"
 CLIENT_LATENCY = "the client's: from the request as it sent it to the answer as it received it"
 
