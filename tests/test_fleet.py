@@ -4,6 +4,7 @@ on a Dask cluster are tests/test_fleet_dask.py."""
 
 from __future__ import annotations
 
+import io
 import json
 import pickle
 import random
@@ -17,7 +18,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from rich.console import Console
+
 from tests.fleet_support import FLEET, write_fleet
+from whiztap.analyzer.analysis.report.text import render_text
+from whiztap.analyzer.analysis.report.words import group_name, rule_counts_each, rules_since_each
+from whiztap.analyzer.cli.analyze import UNWRAPPED
 from whiztap.analyzer.analysis.merge import DuplicateResult, Merger
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
@@ -161,6 +167,32 @@ def test_the_fleet_table_is_in_every_format(fleet: list[Path], tmp_path: Path) -
     page = html.read_text()
     assert "<h2>Fleet by robot</h2>" in page and "Violations per day (UTC), by robot" in page
     assert page.count("<svg") >= 4  # the fleet's two plots, and the report's own
+    assert "<td>PW-FRAME-GARBAGE 2 since 2026-03-02<br>PW-FRAME-TRUNCATED 1 since 2026-03-02<br>" in page
+    assert "overflow-wrap:anywhere" in page  # a long word (a robot's name) wraps, the table stays in the page
+
+
+def _fleet_lines(data: dict, width: int) -> list[str]:
+    """The text report's fleet tables as a terminal ``width`` wide shows them."""
+    console = Console(width=width, record=True, file=io.StringIO(), force_terminal=False)
+    render_text(data, console)
+    lines = console.export_text().splitlines()
+    return lines[lines.index(next(line for line in lines if line.startswith("Fleet by"))):
+                 lines.index(next(line for line in lines if line.startswith("Connections")))]
+
+
+@pytest.mark.parametrize("width", [80, 120, UNWRAPPED])
+def test_long_fleet_cells_wrap_between_rules_never_inside_one(fleet: list[Path], width: int) -> None:
+    """A group that broke 38 rules had them in one cell: folded inside rule
+    ids on a terminal (PW-FRAME-GARB / AGE), a row 2,000 characters wide
+    (every other row padded to it) in a file."""
+    data = report(*fleet, "--group-by", "robot,firmware")
+    lines = _fleet_lines(data, width)
+    table = data["fleet"][0]
+    for g in table["groups"]:
+        assert any(line.startswith(group_name(table, g) + " ") for line in lines)
+        for entry in rules_since_each(g) + [e for d in g["days"] for e in rule_counts_each(d["rule_counts"])]:
+            assert any(entry in line.split("  ") or line.rstrip().endswith(" " + entry) for line in lines), entry
+    assert max(len(line.rstrip()) for line in lines) <= min(width, 160)
 
 
 # -- merging is exact --------------------------------------------------------------------------------

@@ -30,7 +30,8 @@ from whiztap.analyzer.protocol.text import plural, printable
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;max-width:70em;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;padding:.2em .5em;text-align:left}
+table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;padding:.2em .5em;text-align:left;
+vertical-align:top;overflow-wrap:anywhere}
 th{background:#f3f3f3}.error{color:#b00}.warning{color:#a60}.info{color:#06a}.pass{color:#070}.fail{color:#b00}
 code{font-size:90%;word-break:break-all}figure{margin:1em 0}
 """
@@ -183,13 +184,27 @@ def _fleet(table: dict[str, Any], plotted: bool) -> list[str]:
     """A fleet table, its table by day and (``plotted``) its plots."""
     e = _escaped
     title, by_day = fleet_headings(table)
-    groups, days = fleet_rows(table)
+    groups, days = fleet_rows(table, _lines)
     key = fleet_key(table)
-    parts = [f"<h2>{e(title)}</h2>", _table([key, *FLEET_COLUMNS], [[e(cell) for cell in row] for row in groups])]
+    parts = [f"<h2>{e(title)}</h2>", _table([key, *FLEET_COLUMNS], [[_cell(cell) for cell in row] for row in groups])]
     for caption, svg in _fleet_plots(table) if plotted else ():
         parts.append(f"<figure><figcaption><b>{e(caption)}</b></figcaption>{svg}</figure>")
-    parts += [f"<h2>{e(by_day)}</h2>", _table([key, *FLEET_DAY_COLUMNS], [[e(cell) for cell in row] for row in days])]
+    parts += [f"<h2>{e(by_day)}</h2>",
+              _table([key, *FLEET_DAY_COLUMNS], [[_cell(cell) for cell in row] for row in days])]
     return parts
+
+
+class _Markup(str):
+    """HTML made here from escaped values: a cell taken as it is."""
+
+
+def _lines(entries: list[str], empty: str) -> _Markup:
+    """A cell of rules: one a line, so that a long list wraps between rules."""
+    return _Markup("<br>".join(_escaped(entry) for entry in entries) or empty)
+
+
+def _cell(value: object) -> str:
+    return value if isinstance(value, _Markup) else _escaped(value)
 
 
 def _table(headers: list[str], rows: list[list[str]]) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from typing import Any
 
 from rich.console import Console
@@ -17,8 +18,8 @@ from whiztap.analyzer.analysis.report.words import (
     group_name,
     intervention_lines,
     latency_tables,
-    rule_counts_words,
-    rules_since,
+    rule_counts_each,
+    rules_since_each,
     several_files,
     side_cell,
     side_words,
@@ -28,6 +29,7 @@ from whiztap.analyzer.protocol.text import plural, printable, shorten
 
 _STYLE = {"error": "bold red", "warning": "yellow", "info": "cyan"}
 TEXT_FRAME = 160  # characters of a frame in the text report; longer ones end in …
+UNBOUNDED = 1_000_000  # a width no table reaches: to measure one's natural width
 MD_FRAME = 120  # characters of a frame in a Markdown table; longer ones end in … (the JSON has them whole)
 
 
@@ -73,14 +75,16 @@ def _plain(console: Console, value: object, style: str = "") -> Text:
     return text
 
 
-def _table(title: str, columns: list[tuple[str, str]], rows: list[list[object]]) -> Table:
+def _table(title: str, columns: list[tuple[str, str]], rows: list[list[object]], narrow: bool = False) -> Table:
     """A borderless table of plain cells (as ``_plain``, unhighlighted as
-    Rich leaves table cells); columns: (name, justify)."""
-    table = Table(title=title, title_justify="left", box=None, header_style="bold")
+    Rich leaves table cells; a ``Text`` cell is taken as it is); columns:
+    (name, justify).  ``narrow``: one space between columns, not two."""
+    table = Table(title=title, title_justify="left", box=None, header_style="bold", collapse_padding=narrow,
+                  pad_edge=not narrow)
     for name, justify in columns:
         table.add_column(name, justify=justify, overflow="fold")  # type: ignore[arg-type]
     for row in rows:
-        table.add_row(*(Text(printable(str(cell))) for cell in row))
+        table.add_row(*(cell if isinstance(cell, Text) else Text(printable(str(cell))) for cell in row))
     return table
 
 
@@ -137,18 +141,30 @@ def _text_traffic(report: dict[str, Any], console: Console) -> None:
                           for kind in sorted(set(kinds["c2s"]) | set(kinds["s2c"]))]))
 
 
-def fleet_rows(table: dict[str, Any]) -> tuple[list[list[object]], list[list[object]]]:
+def _one_line(entries: list[str], empty: str) -> str:
+    return ", ".join(entries) or empty
+
+
+def fleet_rows(table: dict[str, Any], cell: Callable[[list[str], str], object] = _one_line,
+               ) -> tuple[list[list[object]], list[list[object]]]:
     """A fleet table's rows (group, recordings, connections, items, violations,
     errors, warnings, verdict, rules since) and its rows by day (group, day,
-    recordings, violations, rules), as every table-shaped format shows them."""
+    recordings, violations, rules), as every table-shaped format shows them;
+    ``cell`` makes a cell of rules (and what a cell of none says) as the format wants it."""
     groups, days = [], []
     for g in table["groups"]:
         name, sev = group_name(table, g), g["violations_by_severity"]
         groups.append([name, g["recordings"], g["connections"], f"{g['frames']:,}", g["violations"], sev["error"],
-                       sev["warning"], "pass" if g["passed"] else "FAIL", rules_since(g)])
-        days += [[name, d["day"] or "unknown", d["recordings"], d["violations"], rule_counts_words(d["rule_counts"])]
-                 for d in g["days"]]
+                       sev["warning"], "pass" if g["passed"] else "FAIL", cell(rules_since_each(g), "none")])
+        days += [[name, d["day"] or "unknown", d["recordings"], d["violations"],
+                  cell(rule_counts_each(d["rule_counts"]), "-")] for d in g["days"]]
     return groups, days
+
+
+def _one_a_line(entries: list[str], empty: str) -> Text:
+    """A cell of rules for the terminal: one a line, so that it wraps between
+    rules, never inside a rule's id."""
+    return Text("\n".join(printable(e) for e in entries) or empty)
 
 
 FLEET_COLUMNS = ["recordings", "connections", "items", "violations", "errors", "warnings", "verdict",
@@ -160,11 +176,23 @@ _NUMERIC = frozenset(("recordings", "connections", "items", "violations", "error
 
 
 def _text_fleet(table: dict[str, Any], console: Console) -> None:
+    """A fleet table and its table by day.  A group may have broken many
+    rules: its cell lists them one a line, and when the table is wider than
+    the terminal, the rules leave it for a table of their own (group, rules),
+    which fits any width: a cell wraps between words, never inside a rule's
+    id, and no column is squeezed to a few letters."""
     title, by_day = fleet_headings(table)
-    groups, days = fleet_rows(table)
+    groups, days = fleet_rows(table, _one_a_line)
+    key = fleet_key(table)
     for heading, columns, rows in ((title, FLEET_COLUMNS, groups), (by_day, FLEET_DAY_COLUMNS, days)):
-        console.print(_table(heading, [(fleet_key(table), "left")] + [(c, "right" if c in _NUMERIC else "left")
-                                                                      for c in columns], rows))
+        layout = [(key, "left")] + [(c, "right" if c in _NUMERIC else "left") for c in columns]
+        whole = _table(heading, layout, rows, narrow=True)
+        if console.measure(whole, options=console.options.update_width(UNBOUNDED)).maximum <= console.width:
+            console.print(whole)
+            continue
+        console.print(_table(heading, layout[:-1], [row[:-1] for row in rows], narrow=True))
+        console.print(_table(f"{heading}: {columns[-1]}", [(key, "left"), (columns[-1], "left")],
+                             [[row[0], row[-1]] for row in rows], narrow=True))
 
 
 def _text_interventions(report: dict[str, Any], console: Console) -> None:

@@ -107,16 +107,25 @@ def group_name(table: dict[str, Any], group: dict[str, Any]) -> str:
     return " / ".join("(none)" if group["group"][k] is None else str(group["group"][k]) for k in table["group_by"])
 
 
-def rules_since(group: dict[str, Any]) -> str:
-    """The rules a group broke, each with its count and the first day it broke:
+def rules_since_each(group: dict[str, Any]) -> list[str]:
+    """Each rule a group broke, with its count and the first day it broke:
     ``PW-PAIR-UNANSWERED 12 since 2026-03-02``."""
-    return ", ".join(f"{r['rule_id']} {r['count']} since {r['since'] or 'an unknown day'}"
-                     for r in group["rules"]) or "none"
+    return [f"{r['rule_id']} {r['count']:,} since {r['since'] or 'an unknown day'}" for r in group["rules"]]
+
+
+def rules_since(group: dict[str, Any]) -> str:
+    """``rules_since_each`` in one line; ``none`` for none."""
+    return ", ".join(rules_since_each(group)) or "none"
+
+
+def rule_counts_each(counts: dict[str, int]) -> list[str]:
+    """``PW-A 2``, ``PW-B 1``: each rule and its count."""
+    return [f"{rule_id} {n:,}" for rule_id, n in counts.items()]
 
 
 def rule_counts_words(counts: dict[str, int]) -> str:
     """``PW-A 2, PW-B 1``; ``-`` for none."""
-    return ", ".join(f"{rule_id} {n}" for rule_id, n in counts.items()) or "-"
+    return ", ".join(rule_counts_each(counts)) or "-"
 
 
 def fleet_headings(table: dict[str, Any]) -> tuple[str, str]:
