@@ -161,7 +161,7 @@ def test_frames_split_across_segments_are_reassembled(lua, tmp_path):
     assert meanings == [item["meaning"] for item in _analyzer_items(path)] == [
         "Fetch Configuration Settings", "Configuration Settings: 4 channels (2 servo, 1 switch, 1 sensor)",
         "Sensor Request ch 3", "Sensor value ch 3 = 1000", "Servo Position Request ch 0", "Servo 0 position 1000",
-        "Set Configuration: 1 entries, checksum 12",
+        "Set Configuration: 1 entry, checksum 12",
         "Normal Send ch 3 = 0"]  # channel 3 is a servo now: the channel map decides what the frame means
     assert [f for row in rows for f in row[2].split("\x1f") if f] == [
         "sensor data, by the request in frame 15", "servo data, by the request in frame 22"]

@@ -33,6 +33,7 @@ from whiztap.analyzer.protocol.messages import ServoPositionRequest, SetConfigur
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.session import Limits, Session
+from whiztap.analyzer.protocol.text import plural
 from whiztap.analyzer.traffic import (
     Closed,
     ConnectionEvent,
@@ -138,7 +139,7 @@ class Analyzer:
             why = event.detail or "bytes missing from the recording"  # type: ignore[union-attr]
             length = event.length  # type: ignore[union-attr]
             direction = event.direction  # type: ignore[union-attr]
-            summary.notes.append(f"gap of {length} bytes in {direction}: {why}" if length is not None
+            summary.notes.append(f"gap of {plural(length, 'byte')} in {direction}: {why}" if length is not None
                                  else f"gap in {direction}: {why}")
         elif kind is Closed:
             summary.closed_by = event.by or ""  # type: ignore[union-attr]

@@ -18,7 +18,7 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     many interventions it holds.  A split recording (its first part, folder or
     a glob) is shown as one, with its parts listed."""
     from whiztap.analyzer.recording.info import set_info
-    from whiztap.analyzer.protocol.text import printable
+    from whiztap.analyzer.protocol.text import plural, printable
 
     recording = one_recording(inputs)
     path_ = recording.parts[-1]
@@ -43,9 +43,9 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     # names and metadata come from the file: a terminal must show them, never obey them
     click.echo(f"file            {printable(info['path'])}")
     for part in info.get("parts", []):
-        click.echo(f"  part          {printable(part['path'])} ({part['size_bytes']:,} bytes, "
+        click.echo(f"  part          {printable(part['path'])} ({plural(part['size_bytes'], 'byte')}, "
                    f"{printable(part['state'])})")
-    click.echo(f"size            {info['size_bytes']:,} bytes")
+    click.echo(f"size            {plural(info['size_bytes'], 'byte')}")
     click.echo(f"complete        {'yes (indexed)' if info['complete'] else 'NO: ' + printable(info['state'])}")
     version = info["format_version"]
     click.echo(f"format version  {printable(version) if version else 'unknown (not written by whiztap?)'}")
@@ -54,8 +54,8 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     click.echo(f"time span       {info['start']} .. {info['end']} ({info['duration_s']:.3f} s)")
     click.echo(f"connections     {info['connections']}")
     if middle:
-        click.echo(f"in the middle   yes: the proxy changed the traffic {interventions:,} "
-                   f"time{'s' * (interventions != 1)} (whiztap cat --interventions only lists them)")
+        click.echo(f"in the middle   yes: the proxy changed the traffic {plural(interventions, 'time')} "
+                   "(whiztap cat --interventions only lists them)")
     click.echo("messages per topic")
     for topic, n in info["topics"].items():
         click.echo(f"  {topic:16} {n:,}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from whiztap.analyzer.protocol.text import LowerNamed
+from whiztap.analyzer.protocol.text import LowerNamed, plural
 
 
 class UnitType(LowerNamed):
@@ -173,7 +173,7 @@ class ConfigurationSettings(Message):
     def describe(self) -> str:
         counts = {u: sum(1 for c in self.channels if c.unit_type == u) for u in UnitType}
         parts = ", ".join(f"{n} {u}" for u, n in counts.items() if n)
-        return f"Configuration Settings: {len(self.channels)} channels" + (f" ({parts})" if parts else "")
+        return f"Configuration Settings: {plural(len(self.channels), 'channel')}" + (f" ({parts})" if parts else "")
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,7 +191,7 @@ class SetConfiguration(Message):
     sender: ClassVar[str] = "client"
 
     def describe(self) -> str:
-        return f"Set Configuration: {len(self.entries)} entries, checksum {self.checksum}"
+        return f"Set Configuration: {plural(len(self.entries), 'entry', 'entries')}, checksum {self.checksum}"
 
 
 # -- handshake and images -----------------------------------------------------------
@@ -222,7 +222,7 @@ class Password(Message):
     sender: ClassVar[str] = "client"
 
     def describe(self) -> str:
-        return f"Password ({len(self.secret)} bytes)"
+        return f"Password ({plural(len(self.secret), 'byte')})"
 
 
 @dataclass(frozen=True, slots=True)
@@ -233,4 +233,4 @@ class CameraImage(Message):
     sender: ClassVar[str] = "server"
 
     def describe(self) -> str:
-        return f"Camera image ({self.format}, {len(self.data)} bytes)"
+        return f"Camera image ({self.format}, {plural(len(self.data), 'byte')})"

@@ -81,7 +81,7 @@ def plural(n: int, word: str, words: str | None = None) -> str:
     """A count and its noun agreeing, for every line people read: '1 error',
     '2 errors', '1,024 entries' (``words``: the plural when it is not
     ``word`` + 's'; give ``word`` twice for a noun that does not change, '2 info').
-    One helper, so that no output says '1 errors' or 'error(s)'."""
+    One helper, so that no output says '1 errors' or hedges with '(s)'."""
     return f"{n:,} {word if n == 1 else words or word + 's'}"
 
 

@@ -15,6 +15,7 @@ import click
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import recording_output, say
 from whiztap.analyzer.cli.params import force_option, limits_from, limits_options
+from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.cli.params import (
     Address,
     check_recording_output,
@@ -24,7 +25,7 @@ from whiztap.sniffer.cli.params import (
     recording_options,
 )
 from whiztap.sniffer.cli.run import run, stop_signals
-from whiztap.sniffer.record.summary import summary_lines
+from whiztap.sniffer.record.summary import fault_lines, summary_lines
 
 
 @click.command("record")
@@ -101,6 +102,9 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     except OSError as e:
         return f"cannot listen on {show_address(*settings.listen)}: {e.strerror or e}"
     proxy = recording.proxy
+    if not settings.quiet and recording.controller is not None:  # each fault in words, before any traffic
+        for line in fault_lines(recording.controller.faults):
+            click.echo(printable(line), err=True)
     with stop_signals(recording.stopped.set):
         # even with -q: with port 0 this line is the only way to learn the port
         live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""

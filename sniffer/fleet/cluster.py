@@ -33,6 +33,7 @@ from typing import Any
 
 from whiztap.analyzer import __version__
 from whiztap.analyzer.analysis.merge import Lost, RunnerError
+from whiztap.analyzer.protocol.text import plural
 
 LOCAL = "local"  # --dask local: a LocalCluster on this machine
 CONNECT_S = 10  # how long to try the scheduler
@@ -118,7 +119,7 @@ def describe(client: Any) -> str:
     """One line about the cluster: its workers, its scheduler, its dashboard."""
     info = client.scheduler_info()
     workers = len(info.get("workers", {}))
-    line = f"Dask: {workers} worker{'s' * (workers != 1)} at {client.scheduler.address}"
+    line = f"Dask: {plural(workers, 'worker')} at {client.scheduler.address}"
     link = getattr(client, "dashboard_link", None)
     return f"{line}; dashboard {link}" if link and "status" in link else line
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from whiztap.analyzer.protocol.session import Limits
+from whiztap.analyzer.recording.notice import Notice
 from whiztap.sniffer.record.consumers import Consumer, Consumers
 from whiztap.sniffer.record.feed import WriterError, WriterProcess
 from whiztap.sniffer.record.metadata import base_metadata
@@ -140,6 +141,7 @@ class Recording:
         writer.on_file = lambda path: self.echo(f"finished {path}")
         if self.controller is not None:  # GET /state's verdict: the writer's, as analyze will judge the file
             self.controller.verdict = lambda: writer.verdict
+            self.controller.log = lambda name, line, t_ns: writer.notice(Notice(t_ns, name, line))  # on /log
         self.consumers.add(writer)
         for consumer in self._extra:
             self.consumers.add(consumer)
@@ -157,7 +159,10 @@ class Recording:
         if self._control is not None:
             await self._control.stop()
         await self.proxy.close(detail)  # type: ignore[union-attr]
+        quiet = self.controller.end() if self.controller is not None else []  # faults that chose no frame: said
         self.summary = await self.writer.stop(self.proxy.clock(), detail)  # type: ignore[union-attr]
+        if self.summary is not None and quiet:
+            self.summary["quiet_faults"] = [f"{fault.name} ({fault.spec.text})" for fault in quiet]
         return self.summary
 
     def _controller(self) -> Controller | None:
@@ -167,18 +172,15 @@ class Recording:
         middle = self.settings.middle
         if not middle.wanted:
             return None
-        from whiztap.sniffer.mitm.controller import ControlError, Controller, load_fault_file
+        from whiztap.sniffer.mitm.controller import ControlError, Controller, add_start_faults
 
         s = self.settings
         controller = Controller(seed=middle.seed, hold_timeout=middle.hold_timeout, checksum_rule=s.checksum_rule,
                                 limits=s.limits, redact=not s.keep_secrets, report=self.warn)
-        for path in middle.fault_files:
-            try:
-                load_fault_file(controller, path)
-            except ControlError as e:
-                raise StartError(f"{path}: {e}") from None
-        for spec in middle.faults:
-            controller.add_fault(spec)
+        try:
+            add_start_faults(controller, middle.fault_files, middle.faults)
+        except ControlError as e:  # a name taken or a number, one fault too many
+            raise StartError(str(e)) from None
         if middle.scripts:
             from whiztap.sniffer.mitm.scripts import load_script
 

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from typing import Any
 
 from whiztap.analyzer.protocol.session import Limits
+from whiztap.analyzer.recording.notice import Notice
 from whiztap.analyzer.recording.stdout import drop_stdout
 from whiztap.analyzer.traffic import (
     Data,
@@ -37,6 +38,7 @@ from whiztap.sniffer.record.feed import (
     REC_DATA,
     REC_DELIVERED,
     REC_INTERVENTION,
+    REC_NOTICE,
     SECRET,
     TICK_S,
     WRITER_NICE,
@@ -94,6 +96,9 @@ def _apply(recorder, buf: bytearray) -> RecordingStopped | None:  # noqa: ANN001
                 continue
             if kind == REC_INTERVENTION:
                 receive(intervention_from_json(conn, _DIRS[direction], t, json.loads(payload)))
+                continue
+            if kind == REC_NOTICE:
+                receive(Notice(**json.loads(payload)))
                 continue
             event = from_json(json.loads(payload))
             if type(event) is RecordingStopped:

@@ -1,5 +1,11 @@
 -- -- what Wireshark shows: an item's tree, the dissector, the end of a stream ---------------
 
+-- a count and its noun agreeing, digits grouped by threes: whiztap's plural()
+local function plural(n, word, words)
+    local digits = tostring(n):reverse():gsub("(%d%d%d)", "%1,"):reverse():gsub("^,", "")
+    return digits .. " " .. (n == 1 and word or (words or word .. "s"))
+end
+
 local function describe(item, decoded, rec)
     local m = rec and rec.message or decoded.message
     if m then
@@ -16,11 +22,13 @@ local function describe(item, decoded, rec)
                 if counts[unit] then parts[#parts + 1] = ("%d %s"):format(counts[unit], T.units[unit]) end
             end
             local listed = #parts > 0 and (" (" .. table.concat(parts, ", ") .. ")") or ""
-            return ("%s: %d channels%s"):format(title(m), #m.channels, listed)
+            return ("%s: %s%s"):format(title(m), plural(#m.channels, "channel"), listed)
         end
-        if m.name == M.SetConfiguration then return ("Set Configuration: %d entries, checksum %d"):format(#m.entries, m.checksum) end
-        if m.name == M.Password then return ("Password (%d bytes)"):format(m.length) end
-        return ("Camera image (%s, %d bytes)"):format(m.format, m.size)
+        if m.name == M.SetConfiguration then
+            return ("Set Configuration: %s, checksum %d"):format(plural(#m.entries, "entry", "entries"), m.checksum)
+        end
+        if m.name == M.Password then return ("Password (%s)"):format(plural(m.length, "byte")) end
+        return ("Camera image (%s, %s)"):format(m.format, plural(m.size, "byte"))
     end
     if #decoded.candidates > 0 then
         local each = {}
