@@ -209,12 +209,16 @@ async def running_record(upstream: int, output: Path, *args: str):  # noqa: ANN2
             await asyncio.wait_for(rec.proc.wait(), WAIT)
 
 
+CONTROL_TOKEN = "whiztap-test-token"  # what tests give a TCP control API with --control-token
+
+
 def post_status(url: str, body: bytes) -> int:
-    """POST a JSON ``body`` to the control API at ``url``: the HTTP status it answered."""
+    """POST a JSON ``body`` to the TCP control API at ``url`` (its token CONTROL_TOKEN): the HTTP status it answered."""
     import urllib.error
     import urllib.request
 
-    request = urllib.request.Request(url, data=body, method="POST", headers={"Content-Type": "application/json"})
+    headers = {"Content-Type": "application/json", "Authorization": f"Bearer {CONTROL_TOKEN}"}
+    request = urllib.request.Request(url, data=body, method="POST", headers=headers)
     try:
         with urllib.request.urlopen(request, timeout=WAIT) as reply:  # noqa: S310 - a local test server
             return reply.status

@@ -27,7 +27,7 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.middle_drive import C2S, MS, S2C, T0, Drive
-from tests.record_support import LOCAL, WAIT, RecordProcess, post_status, read_all
+from tests.record_support import CONTROL_TOKEN, LOCAL, WAIT, RecordProcess, post_status, read_all
 
 SENSOR, ANSWER = b"rr1-12--0--0-ss1", b"cr1-12--5--0-ss1"
 CLOSING = re.compile(r"^connection \d+ is closing")
@@ -249,7 +249,8 @@ async def test_whiztap_record_shows_no_traceback_when_frames_and_commands_race_t
     server = QuickServer()
     path = tmp_path / "race.mcap"
     try:
-        rec = await RecordProcess.start(server.port, path, "--control", "127.0.0.1:0", "--keep-secrets",
+        rec = await RecordProcess.start(server.port, path, "--control", "127.0.0.1:0", "--control-token",
+                                        CONTROL_TOKEN, "--keep-secrets",
                                         "--fault", "delay:300ms dir:s2c", "--fault", "delay:5ms dir:c2s nth:2")
         m = re.search(r"control: http://(\S+) ", rec.first)
         assert m, rec.first

@@ -35,7 +35,7 @@ from whiztap.analyzer.mitm.lane import HIGH_WATER, INJECT_ROOM, Lane
 from whiztap.analyzer.mitm.spec import MAX_REPLACEMENT
 
 from tests.middle_drive import MS, S2C, TRANSPORT_HIGH_WATER, Drive
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, post_status, running_record
+from tests.record_support import CONTROL_TOKEN, LOCAL, WAIT, WHIZTAP, RecordProcess, post_status, running_record
 from tests.test_flow_control import _ThreadedServer, rss_kib, watch_memory
 
 RSS_BOUND_KIB = 150 << 10  # the bound for the proxy process (it starts at about 30 MB)
@@ -259,13 +259,15 @@ async def test_the_proxy_stays_under_150_MB_when_a_fault_multiplies_what_a_clien
 
 async def test_the_proxy_stays_under_150_MB_through_1500_injections_and_ctl_says_no_in_one_line(tmp_path):
     with Answers() as server:
-        async with running_record(server.port, tmp_path / "r.mcap", "--keep-secrets", "--control", "127.0.0.1:0") as rec:
+        async with running_record(server.port, tmp_path / "r.mcap", "--keep-secrets", "--control", "127.0.0.1:0",
+                                  "--control-token", CONTROL_TOKEN) as rec:
             control = await _control_address(rec)
             writer = await _never_reading_client(rec.port)
             await asyncio.sleep(0.2)
             statuses = await asyncio.to_thread(_inject_many, rec.proc.pid, control, 1500)
             high = max(await watch_memory(rec.proc.pid, 0.5, RSS_BOUND_KIB, SAMPLE_S), statuses.pop())
-            refused = await asyncio.to_thread(subprocess.run, [WHIZTAP, "ctl", "--control", control, "inject", "1",
+            refused = await asyncio.to_thread(subprocess.run, [WHIZTAP, "ctl", "--control", control, "--control-token",
+                                                               CONTROL_TOKEN, "inject", "1",
                                                                "s2c", INJECTED, "--force"],
                                               capture_output=True, text=True, timeout=WAIT)
             print(f"highest RSS {high >> 10} MiB; {statuses.count(200)} injections taken, "

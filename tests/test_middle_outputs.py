@@ -48,7 +48,7 @@ from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.middle_drive import C2S, MS, S2C, T0, Drive
 from tests.middle_support import Raw
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, StepServer, play_client, read_all
+from tests.record_support import CONTROL_TOKEN, LOCAL, WAIT, WHIZTAP, RecordProcess, StepServer, play_client, read_all
 from tests.outputs import (
     API_OUTPUTS,
     FILE_COMMANDS,
@@ -434,7 +434,8 @@ def test_every_output_is_registered():
 
 async def _ctl(control: str, *args: str) -> str:
     """``whiztap ctl`` as a user runs it; what it printed (it must not fail)."""
-    proc = await asyncio.create_subprocess_exec(WHIZTAP, "ctl", "--control", control, *args,
+    proc = await asyncio.create_subprocess_exec(WHIZTAP, "ctl", "--control", control, "--control-token", CONTROL_TOKEN,
+                                                *args,
                                                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     out, err = await proc.communicate()
     assert proc.returncode == 0, err
@@ -442,7 +443,8 @@ async def _ctl(control: str, *args: str) -> str:
 
 
 async def _get(url: str) -> str:
-    return await asyncio.to_thread(lambda: urllib.request.urlopen(url, timeout=10).read().decode())  # noqa: S310
+    request = urllib.request.Request(url, headers={"Authorization": f"Bearer {CONTROL_TOKEN}"})
+    return await asyncio.to_thread(lambda: urllib.request.urlopen(request, timeout=10).read().decode())  # noqa: S310
 
 
 async def test_whiztap_record_in_the_middle_shows_the_password_nowhere(tmp_path, logging_script):
@@ -458,7 +460,8 @@ async def test_whiztap_record_in_the_middle_shows_the_password_nowhere(tmp_path,
     async with server:
         proc = await asyncio.create_subprocess_exec(
             WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}", "-o", str(path),
-            "--control", "127.0.0.1:0", "--foxglove", "127.0.0.1:0", "--script", str(logging_script),
+            "--control", "127.0.0.1:0", "--control-token", CONTROL_TOKEN, "--foxglove", "127.0.0.1:0",
+            "--script", str(logging_script),
             "--fault", "dup dir:c2s nth:1", "--fault", "delay:5ms dir:c2s",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         rec = RecordProcess(proc)

@@ -11,6 +11,7 @@ import json
 from whiztap.analyzer.mitm.spec import parse_fault
 from whiztap.analyzer.protocol.codec import encode
 from whiztap.analyzer.protocol.messages import FetchConfiguration
+from whiztap.sniffer.mitm.control_endpoint import Endpoint
 from whiztap.sniffer.record.record_run import MiddleSettings, RecordSettings
 from whiztap.sniffer.record.summary import summary_lines
 from whiztap.sniffer.sim.simulator import Simulator
@@ -30,7 +31,7 @@ DROP_ANSWER_14 = "drop dir:s2c kind:response ch:14 nth:1"
 async def test_the_tui_the_api_the_summary_and_analyze_give_one_verdict(tmp_path):
     output = tmp_path / "live.mcap"
     async with Simulator(port=0, mode="vpn", seed=7) as sim:
-        middle = MiddleSettings(faults=(parse_fault(DROP_ANSWER_14),), control=(LOCAL, 0))
+        middle = MiddleSettings(faults=(parse_fault(DROP_ANSWER_14),), control=Endpoint(path=""))
         rig = ProxyRig(RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(output), quiet=True, middle=middle))
         app = WhiztapApp(LiveSource(rig, "live"))
         async with app.run_test(size=SIZE) as pilot:
@@ -48,10 +49,9 @@ async def test_the_tui_the_api_the_summary_and_analyze_give_one_verdict(tmp_path
             model = app.model
             await until(pilot, lambda: model.verdict().connections == 1 and not model.analyzer.sessions,
                         "the connection judged in the TUI")
-            url = rig.recording.control_url
             state = {}
             for _ in range(100):  # the writer reports its verdict as it changes
-                state = (await ok(url, "GET", "/state"))["verdict"] or {}
+                state = (await ok(rig.recording, "GET", "/state"))["verdict"] or {}
                 if state.get("connections") == 1 and state.get("open") == 0:
                     break
                 await pilot.pause(0.05)

@@ -1,65 +1,64 @@
 """``whiztap ctl``: drive a running ``whiztap record --control`` from the
-command line, through its JSON control API (``whiztap.sniffer.mitm.http_api``).
+command line, through its JSON control API (docs/faults.md).
 
-Only the standard library talks to the API (urllib), so this command costs
-nothing to load; the API's own one-line errors are shown as they come.
+The client (``whiztap.sniffer.mitm.control_client``) recognises the API
+before it sends anything that matters, and reads answers up to a bound; the
+API's own one-line errors are shown as they come.  ``--control``,
+``--control-token`` and ``--format`` are taken before the subcommand or
+after it, alike.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from typing import Any, NoReturn
+from typing import Any
 from urllib.parse import quote
 
 import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import output_stream, say
-from whiztap.sniffer.cli.params import Address
 
-TIMEOUT_S = 10.0
+FORCE_HINT = "send it anyway with force"  # the controller's words; here the option is --force
 
 
 class Api:
-    """The control API at ``address``: one JSON request, one JSON answer."""
+    """The control API the options name: one JSON request, one JSON answer."""
 
-    def __init__(self, address: tuple[str, int] | None, fmt: str) -> None:
-        from whiztap.sniffer.nettext import show_address
-
-        self.where = show_address(*address) if address is not None else None
-        self.fmt = fmt
+    def __init__(self) -> None:
+        self.control: str | None = None  # --control or WHIZTAP_CONTROL, as typed
+        self.control_token: str | None = None
+        self.fmt = "text"
+        self._client: Any = None  # a ControlClient, made at the first call
 
     def call(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
         """The answer's JSON; any failure is one line and exit status 2."""
-        import urllib.error
-        import urllib.request
+        from whiztap.sniffer.mitm.control_client import ControlClientError
 
-        if self.where is None:  # checked here, not by click, so that every subcommand's --help works without it
-            fail("say where the control API is: --control [HOST:]PORT or WHIZTAP_CONTROL (see 'whiztap ctl --help')")
-        data = None if body is None else json.dumps(body).encode()
-        request = urllib.request.Request(f"http://{self.where}{path}", data=data, method=method,
-                                         headers={"Content-Type": "application/json"})
+        if self._client is None:  # here, not in click, so that every subcommand's --help works without it
+            self._client = self._connect()
         try:
-            with urllib.request.urlopen(request, timeout=TIMEOUT_S) as reply:  # noqa: S310 - http only
-                return json.loads(reply.read() or b"null")
-        except urllib.error.HTTPError as e:
-            fail(_error_text(e.code, e.read()))
-        except urllib.error.URLError as e:
-            self._unreachable(e.reason)
-        except OSError as e:  # a timeout or a reset after connecting
-            self._unreachable(e)
-        except ValueError as e:
-            fail(f"the control API at {self.where} answered something that is not JSON: {e}")
+            return self._client.call(method, path, body)
+        except ControlClientError as e:
+            fail(str(e).replace(FORCE_HINT, "send it anyway with --force"))
 
-    def _unreachable(self, why: object) -> NoReturn:
-        from whiztap.sniffer.nettext import reason
+    def _connect(self) -> Any:
+        """A client of the endpoint named, or of the one running for this user."""
+        from whiztap.sniffer.mitm.control_client import ControlClient
+        from whiztap.sniffer.mitm.control_endpoint import Endpoint, EndpointError, check_token, parse_endpoint
 
-        text = reason(why) if isinstance(why, OSError) else str(why)
-        if isinstance(why, TimeoutError):
-            text = f"no answer within {TIMEOUT_S:g} s"
-        fail(f"cannot reach the control API at {self.where}: {text[:1].lower()}{text[1:]}; "
-             f"is 'whiztap record --control' running there?")
+        try:
+            if self.control:
+                endpoint = parse_endpoint(self.control, "--control")
+            else:
+                endpoint = Endpoint(path=_running_socket())
+            if self.control_token and not endpoint.unix:
+                endpoint = Endpoint(host=endpoint.host, port=endpoint.port,
+                                    token=check_token(self.control_token, "--control-token"))
+        except EndpointError as e:
+            fail(str(e))
+        return ControlClient(endpoint)
 
     def show(self, answer: Any, lines: list[str]) -> None:
         """The answer as JSON (``--format json``) or as ``lines`` of text."""
@@ -71,11 +70,61 @@ class Api:
                 say(line)
 
 
-def _error_text(status: int, body: bytes) -> str:
+def _running_socket() -> str:
+    """The socket of the one control API this user runs with a bare
+    ``--control``; one line naming what to do when there is none or several."""
+    from whiztap.sniffer.mitm.control_endpoint import live_sockets, runtime_dir
+
     try:
-        return str(json.loads(body)["error"])
-    except (ValueError, KeyError, TypeError):
-        return f"the control API answered HTTP {status}"
+        found = live_sockets()
+    except OSError as e:
+        fail(f"cannot look for a running control API in {runtime_dir()}: {e.strerror or e}")
+    if len(found) == 1:
+        return str(found[0])
+    if not found:
+        fail(f"no control API is running for you (none in {runtime_dir()}): start 'whiztap record --control', "
+             f"or say where one is with --control PATH|[HOST:]PORT or WHIZTAP_CONTROL")
+    fail(f"{len(found)} control APIs are running ({', '.join(p.name for p in found)} in {runtime_dir()}): "
+         f"choose one with --control PATH")
+
+
+def _setter(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+    """An option's value onto the Api, whichever command it was given to."""
+    if value is not None:
+        setattr(ctx.ensure_object(Api), param.name, value)  # type: ignore[arg-type]
+    return value
+
+
+def _options(top: bool) -> list[click.Option]:
+    """The options every ctl command takes; the group's alone read the
+    environment and have the defaults, so a subcommand's override only what is typed."""
+    return [
+        click.Option(["--control"], envvar="WHIZTAP_CONTROL" if top else None, metavar="PATH|[HOST:]PORT",
+                     callback=_setter, expose_value=False,
+                     help="The control API, as 'whiztap record --control' printed it (or set WHIZTAP_CONTROL) "
+                          "[default: the one socket running for you]."),
+        click.Option(["--control-token"], envvar="WHIZTAP_CONTROL_TOKEN" if top else None, metavar="TOKEN",
+                     callback=_setter, expose_value=False,
+                     help="A TCP control API's token, as printed at its start (or set WHIZTAP_CONTROL_TOKEN)."),
+        click.Option(["--format", "fmt"], type=click.Choice(["text", "json"]), default="text" if top else None,
+                     show_default=top, callback=_setter, expose_value=False,
+                     help="Text lines, or the API's JSON as it answered."),
+    ]
+
+
+class Number(click.ParamType):
+    """A count or an id: digits only, at most 18 (more is no id of the API's, and
+    Python will not even turn thousands of digits into an int)."""
+
+    name = "number"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, int):
+            return value
+        if not (value.isascii() and value.isdigit() and len(value) <= 18):
+            shown = value if len(value) <= 20 else value[:20] + "..."
+            self.fail(f"{shown!r} is not a number of at most 18 digits", param, ctx)
+        return int(value)
 
 
 # -- how the API's objects read as text ------------------------------------------------------
@@ -126,23 +175,22 @@ def _listing(api: Api, path: str, key: str, line: Callable[[dict], str], none: s
 
 
 @click.group("ctl")
-@click.option("--control", type=Address("127.0.0.1", "--control"), envvar="WHIZTAP_CONTROL", metavar="[HOST:]PORT",
-              help="The control API, as given to 'whiztap record --control' (or set WHIZTAP_CONTROL).  "
-                   "[required]")
-@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
-              help="Text lines, or the API's JSON as it answered.")
 @click.pass_context
-def ctl_command(ctx: click.Context, control: tuple[str, int] | None, fmt: str) -> None:
+def ctl_command(ctx: click.Context) -> None:
     """Drive a running 'whiztap record --control': faults, interception, held
     frames, injection.
 
+    With no --control, ctl finds the Unix socket that 'record --control'
+    opened for you (one running at a time); a TCP one takes its token.
+
     \b
     Example:
-      whiztap record --upstream robot:5000 -o run.mcap --control 7000
-      whiztap ctl --control 127.0.0.1:7000 fault add 'drop dir:s2c kind:response every:2'
-      export WHIZTAP_CONTROL=127.0.0.1:7000; whiztap ctl state
+      whiztap record --upstream robot:5000 -o run.mcap --control
+      whiztap ctl fault add 'drop dir:s2c kind:response every:2'
+      whiztap ctl held --format json
+      whiztap ctl --control http://127.0.0.1:7000 --control-token TOKEN state
     """
-    ctx.obj = Api(control, fmt)
+    ctx.ensure_object(Api)
 
 
 @ctl_command.group("fault")
@@ -261,7 +309,7 @@ def held(api: Api) -> None:
 
 
 @ctl_command.command("release")
-@click.argument("held_id", metavar="ID", type=int)
+@click.argument("held_id", metavar="ID", type=Number())
 @click.option("--edit", default=None, metavar="TEXT",
               help="Send this frame instead (escaped text like rr1-13--0--0-ss1, or console words like "
                    "'sensor 13').")
@@ -279,7 +327,7 @@ def release(api: Api, held_id: int, edit: str | None, force: bool) -> None:
 
 
 @ctl_command.command("drop")
-@click.argument("held_id", metavar="ID", type=int)
+@click.argument("held_id", metavar="ID", type=Number())
 @click.pass_obj
 def drop(api: Api, held_id: int) -> None:
     """Drop a held frame: the other side never gets it.
@@ -306,7 +354,7 @@ def release_all(api: Api) -> None:
 
 
 @ctl_command.command("inject")
-@click.argument("conn", type=int)
+@click.argument("conn", type=Number())
 @click.argument("direction", metavar="c2s|s2c", type=click.Choice(["c2s", "s2c"]))
 @click.argument("text")
 @click.option("--force", is_flag=True, help="Send it even if it breaks a rule of the spec.")
@@ -347,3 +395,15 @@ def state(api: Api) -> None:
     """
     answer = api.call("GET", "/state")
     api.show(answer, state_lines(answer))
+
+
+def _share_options(group: click.Group) -> None:
+    """Every subcommand, at any depth, takes the group's options too."""
+    for command in group.commands.values():
+        command.params.extend(_options(top=False))
+        if isinstance(command, click.Group):
+            _share_options(command)
+
+
+ctl_command.params.extend(_options(top=True))
+_share_options(ctl_command)

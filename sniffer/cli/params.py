@@ -7,10 +7,12 @@ from collections.abc import Callable
 from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
 from whiztap.analyzer.cli.params import ByteSize, checksum_rule_option, force_option
+from whiztap.sniffer.mitm.control_endpoint import DEFAULT as CONTROL_DEFAULT  # --control alone
 
 
 class Address(click.ParamType):
@@ -82,6 +84,22 @@ def check_recording_output(output: str, split: bool, force: bool, inputs: tuple[
                  f"use --force to overwrite it or -o to choose another name")
 
 
+class ControlParam(click.ParamType):
+    """Where the control API is: a socket PATH, or TCP [HOST:]PORT (sniffer/mitm/control_endpoint.py)."""
+
+    name = "control"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if not isinstance(value, str):
+            return value
+        from whiztap.sniffer.mitm.control_endpoint import EndpointError, parse_endpoint
+
+        try:
+            return parse_endpoint(value, "--control")
+        except EndpointError as e:
+            fail(str(e))
+
+
 class FaultSpecParam(click.ParamType):
     """A fault SPEC (docs/faults.md), parsed at once: an unknown word is a usage error naming it."""
 
@@ -107,9 +125,14 @@ def middle_options(f: Callable) -> Callable:
                           "'drop dir:s2c kind:response every:2'; see docs/faults.md."),
         click.option("--faults", "fault_files", type=click.Path(dir_okay=False), multiple=True, metavar="FILE",
                      help="A TOML file of named faults ([faults.NAME] spec = \"...\")."),
-        click.option("--control", type=Address("127.0.0.1"), default=None, metavar="[HOST:]PORT",
-                     help="Serve the JSON control API here (faults, intercept, release, inject; "
-                          "'whiztap ctl' uses it)."),
+        click.option("--control", type=ControlParam(), is_flag=False, flag_value=CONTROL_DEFAULT, default=None,
+                     metavar="[PATH|[HOST:]PORT]",
+                     help="Serve the JSON control API (faults, intercept, release, inject; 'whiztap ctl' "
+                          "finds it): alone, on a Unix socket only you can open; PATH, on that socket; "
+                          "[HOST:]PORT, on TCP with a bearer token (printed at start).  See docs/faults.md."),
+        click.option("--control-token", envvar="WHIZTAP_CONTROL_TOKEN", default=None, metavar="TOKEN",
+                     help="The token a TCP --control takes (or set WHIZTAP_CONTROL_TOKEN) [default: a new "
+                          "one, printed at start]."),
         click.option("--script", "scripts", type=click.Path(dir_okay=False), multiple=True, metavar="FILE.py",
                      help="Hooks (frame, opened, closed) that may pass, drop, replace, delay or inject."),
         click.option("--seed", type=int, default=None, help="Seed for prob:, jitter: and slice ranges."),
@@ -120,7 +143,7 @@ def middle_options(f: Callable) -> Callable:
     return f
 
 
-def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: tuple[str, int] | None,
+def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: Any, control_token: str | None,
                     scripts: tuple[str, ...], seed: int | None, hold_timeout: float,
                     always: bool = False):  # noqa: ANN201 - a MiddleSettings, imported lazily
     """The ``middle_options`` as the recording's MiddleSettings; ``always``
@@ -128,10 +151,37 @@ def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: tuple[
     mode and the demo, whose keys drive it)."""
     from whiztap.sniffer.record.record_run import MiddleSettings
 
-    return MiddleSettings(tuple(faults), tuple(fault_files), control, tuple(scripts), seed, hold_timeout, always)
+    return MiddleSettings(tuple(faults), tuple(fault_files), control_with_token(control, control_token),
+                          tuple(scripts), seed, hold_timeout, always)
 
 
-def middle_given(faults: tuple, fault_files: tuple[str, ...], control: tuple[str, int] | None,
+def control_with_token(control: Any, token: str | None) -> Any:  # an Endpoint or None, imported lazily
+    """``--control``'s endpoint with ``--control-token`` in it: a TCP one's.  A
+    Unix socket takes none (its folder is its lock): given on the command line
+    with one, it is an error; from WHIZTAP_CONTROL_TOKEN (set for ctl, say), ignored."""
+    if control is None or not token:
+        return control
+    if control.unix:
+        if click.get_current_context().get_parameter_source("control_token") is ParameterSource.COMMANDLINE:
+            fail("--control-token goes with a TCP --control [HOST:]PORT; a Unix socket needs no token")
+        return control
+    from dataclasses import replace
+
+    from whiztap.sniffer.mitm.control_endpoint import EndpointError, check_token
+
+    try:
+        return replace(control, token=check_token(token, "--control-token"))
+    except EndpointError as e:
+        fail(str(e))
+
+
+def control_text(url: str, token: str | None) -> str:
+    """Where the control API is, as the start line says it: its socket, or its
+    URL and token, which 'whiztap ctl' takes as they are printed."""
+    return url if token is None else f"{url} token {token}"
+
+
+def middle_given(faults: tuple, fault_files: tuple[str, ...], control: Any, control_token: str | None,
                  scripts: tuple[str, ...], seed: int | None, hold_timeout: float) -> bool:
     """Whether any of the ``middle_options`` was given (a command that takes
     them only in one of its modes refuses them in the others)."""

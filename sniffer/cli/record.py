@@ -19,6 +19,7 @@ from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.cli.params import (
     Address,
     check_recording_output,
+    control_text,
     foxglove_option,
     middle_options,
     middle_settings,
@@ -108,7 +109,8 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     with stop_signals(recording.stopped.set):
         # even with -q: with port 0 this line is the only way to learn the port
         live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""
-        live += f", control: {recording.control_url}" if recording.control_url else ""
+        live += f", control: {control_text(recording.control_url, recording.control_token)}" \
+            if recording.control_url else ""
         say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output}{live} (Ctrl-C to stop)")
         await recording.stopped.wait()
         summary = await recording.stop("write error" if recording.error else "recording stopped")

@@ -18,10 +18,10 @@ from whiztap.sniffer.record.consumers import Consumer, Consumers
 from whiztap.sniffer.record.feed import WriterError, WriterProcess
 from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.record.proxy import Connection, RecordingProxy
-from whiztap.sniffer.nettext import show_address
 from whiztap.sniffer.record.summary import clock_text
 
 if TYPE_CHECKING:
+    from whiztap.sniffer.mitm.control_endpoint import Endpoint
     from whiztap.sniffer.mitm.controller import Controller
 
 
@@ -33,12 +33,12 @@ class StartError(Exception):
 @dataclass(frozen=True)
 class MiddleSettings:
     """The proxy as the man in the middle (docs/faults.md): faults (parsed
-    SPECs), fault files, the control API's address, scripts, the seed for
+    SPECs), fault files, the control API's endpoint, scripts, the seed for
     chance and the hold timeout."""
 
     faults: tuple = ()
     fault_files: tuple[str, ...] = ()
-    control: tuple[str, int] | None = None
+    control: Endpoint | None = None  # a Unix socket or TCP (with its token), sniffer/mitm/control_endpoint.py
     scripts: tuple[str, ...] = ()
     seed: int | None = None
     hold_timeout: float = 60.0
@@ -89,7 +89,8 @@ class Recording:
         self.echo = echo or (lambda line: None)
         self.warn = warn or (lambda text: print(text, file=sys.stderr, flush=True))
         self.controller: Controller | None = None
-        self.control_url: str | None = None
+        self.control_url: str | None = None  # the control API's socket path, or http://HOST:PORT
+        self.control_token: str | None = None  # the bearer token a TCP control API takes
         self._control = None
         self.consumers = Consumers(self._consumer_failed)
         self._extra = tuple(consumers)
@@ -189,17 +190,23 @@ class Recording:
         return controller
 
     async def _serve_control(self) -> None:
-        address = self.settings.middle.control
-        if address is None or self.controller is None:
+        endpoint = self.settings.middle.control
+        if endpoint is None or self.controller is None:
             return
-        from whiztap.sniffer.mitm.http_api import ControlServer
+        from whiztap.sniffer.mitm.control_endpoint import EndpointError
+        from whiztap.sniffer.mitm.control_server import ControlServer
 
-        self._control = ControlServer(self.controller, *address)
+        self._control = ControlServer(self.controller, endpoint)
         try:
             await self._control.start()
+        except EndpointError as e:
+            raise StartError(f"cannot serve the control API: {e}") from None
         except OSError as e:
-            raise StartError(f"cannot serve the control API on {show_address(*address)}: {e.strerror or e}") from None
-        self.control_url = self._control.url
+            raise StartError(f"cannot serve the control API on {endpoint}: {e.strerror or e}") from None
+        self.control_url, self.control_token = self._control.url, self._control.token
+        if not endpoint.loopback:
+            self.warn(f"warning: the control API listens on {self._control.endpoint}, which other "
+                      f"machines may reach: whoever has its token can drop, edit and inject the traffic")
 
     def _opened(self, conn: Connection) -> None:
         self.echo(f"#{conn.id} opened from {conn.client_addr}")
