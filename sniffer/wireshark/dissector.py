@@ -103,6 +103,7 @@ def _handshake() -> dict[str, Any]:
         "table": table,
         "mode_told": {f"{state.value} {step.value}": mode.value for (state, step), mode in handshake.MODE_TOLD.items()},
         "expected": {state.value: text for state, text in handshake.EXPECTED_IN_STATE.items()},
+        "step_words": {step.value: text for step, text in handshake.STEP_WORDS.items()},
         "server_steps": {cls.title: step.value for cls, step in handshake.SERVER_STEPS.items()},
     }
 
@@ -130,6 +131,7 @@ def _protocol() -> dict[str, Any]:
                     "png": framing.PNG_SIGNATURE.decode("latin-1")},
         "unframed_rules": {reason.value: codec.decode(framing.ItemKind.UNFRAMED, b"x", reason).violations[0].rule_id
                            for reason in framing.Unframed},
+        "kind_words": {kind.value: kind.words for kind in framing.ItemKind},
         "travels": {kind.value: direction.value for kind in framing.ItemKind for direction in Direction
                     if direction_violation(kind, direction) is None
                     and direction_violation(kind, Direction.S2C if direction is Direction.C2S else Direction.C2S)},

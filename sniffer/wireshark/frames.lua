@@ -242,6 +242,12 @@ end
 
 -- -- decoding: what one item's bytes say on their own ----------------------------------
 
+-- a count and its noun agreeing, digits grouped by threes: whiztap's plural()
+local function plural(n, word, words)
+    local digits = tostring(n):reverse():gsub("(%d%d%d)", "%1,"):reverse():gsub("^,", "")
+    return digits .. " " .. (n == 1 and word or (words or word .. "s"))
+end
+
 local function show_bytes(s)
     return (s:gsub("[^ -~]", function(c) return ("\\x%02x"):format(c:byte()) end))
 end
@@ -414,8 +420,8 @@ local function decode(item)
     end
     if kind == "eol" then return {candidates = {}, violations = {}} end
     return {candidates = {}, violations = {{rule = T.unframed_rules[item.reason or "garbage"],
-                                            detail = ("%d bytes that form no message"):format(#raw)}}}
+                                            detail = ("%s forming no message"):format(plural(#raw, "byte"))}}}
 end
 
 return {FR = FR, M = M, RULE = RULE, scan_item = scan_item, opener = opener, decode = decode, add = add,
-        title = title, show_bytes = show_bytes}
+        title = title, show_bytes = show_bytes, plural = plural}

@@ -7,7 +7,7 @@
 -- never answered is known only once the whole file was read, so it shows on
 -- the second pass (Wireshark's details pane, or tshark -2).
 
-local M, RULE, add, title = P.M, P.RULE, P.add, P.title
+local M, RULE, add, title, plural = P.M, P.RULE, P.add, P.title, P.plural
 local proto = Proto("progwhiz", "Progwhiz Robotics Server API")
 local F = {
     kind = ProtoField.string("progwhiz.kind", "Item kind"),
@@ -83,7 +83,7 @@ local function advance(conv, step, out)
         next_state, rule = conv.state, conv.state == "failed" and "PW-HS-AFTER-FAILED" or "PW-HS-ORDER"
     end
     conv.mode = HS.mode_told[conv.state .. " " .. step] or conv.mode
-    if rule then add(out, rule, ("got %s, expected %s"):format(step, HS.expected[conv.state])) end
+    if rule then add(out, rule, ("got %s, expected %s"):format(HS.step_words[step], HS.expected[conv.state])) end
     conv.state = next_state
 end
 
@@ -154,7 +154,7 @@ end
 
 local function frame(conv, dir, kind, message, candidates, out)
     if T.travels[kind] and T.travels[kind] ~= dir then
-        add(out, "PW-DIRECTION", ("a %s item came from the %s"):format(kind, dir == "c2s" and "client" or "server"))
+        add(out, "PW-DIRECTION", ("%s came from the %s"):format(T.kind_words[kind], dir == "c2s" and "client" or "server"))
         return message
     end
     advance(conv, dir == "s2c" and "server_frame" or (kind == "password" and "password" or "client_frame"), out)
@@ -220,7 +220,7 @@ local function answer(conv, kind, message, t, rec, out)
         rec.request, rec.latency = found, t - found.t
         found.answered_in = rec.frame
     else
-        add(out, "PW-PAIR-UNSOLICITED", ("no outstanding request is answered by a %s"):format(kind))
+        add(out, "PW-PAIR-UNSOLICITED", ("no outstanding request is answered by %s"):format(T.kind_words[kind]))
     end
     if message and message.name == M.ConfigurationSettings then
         conv.map = {}
@@ -262,7 +262,8 @@ local function observe(conv, dir, item, decoded, t, number)
     elseif FRAME_KINDS[kind] then
         rec.message = frame(conv, dir, kind, decoded.message, decoded.candidates, out)
     elseif kind == "eol" and conv.last[dir] ~= "handshake" and conv.last[dir] ~= "password" then
-        add(out, "PW-FRAME-EOL", ("line break %s after a %s"):format(P.show_bytes(item.raw), tostring(conv.last[dir])))
+        local after = conv.last[dir] and ("after " .. T.kind_words[conv.last[dir]]) or "before anything else"
+        add(out, "PW-FRAME-EOL", ("line break %s %s"):format(P.show_bytes(item.raw), after))
     end
     if dir == "s2c" and SERVER_KINDS[kind] then answer(conv, kind, rec.message, t, rec, out) end
     conv.last[dir] = kind

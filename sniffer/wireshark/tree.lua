@@ -1,11 +1,5 @@
 -- -- what Wireshark shows: an item's tree, the dissector, the end of a stream ---------------
 
--- a count and its noun agreeing, digits grouped by threes: whiztap's plural()
-local function plural(n, word, words)
-    local digits = tostring(n):reverse():gsub("(%d%d%d)", "%1,"):reverse():gsub("^,", "")
-    return digits .. " " .. (n == 1 and word or (words or word .. "s"))
-end
-
 local function describe(item, decoded, rec)
     local m = rec and rec.message or decoded.message
     if m then
