@@ -3,6 +3,7 @@ connection failed (in the system's own words)."""
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import socket
 
@@ -18,6 +19,20 @@ def reason(e: OSError) -> str:
     if isinstance(e, socket.gaierror) or not e.errno:
         return e.strerror or str(e)
     return os.strerror(e.errno)
+
+
+LOOPBACK_NAMES = frozenset({"localhost"})
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) means this machine only: a
+    server bound anywhere else can be reached from other machines."""
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def show_address(host: str, port: int) -> str:

@@ -16,6 +16,7 @@ import subprocess
 from collections import defaultdict
 from pathlib import Path
 
+import pytest
 import websockets
 from mcap.reader import make_reader
 
@@ -24,6 +25,7 @@ from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.record.feed import WriterError
 from whiztap.sniffer.record.live import LiveRecordingFile
+from whiztap.sniffer.record.live_gate import LiveAddress
 from whiztap.sniffer.record.record_run import Recording, RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.sim.client import Client
@@ -54,8 +56,8 @@ class FoxgloveClient:
         self._task: asyncio.Task | None = None
 
     @classmethod
-    async def connect(cls, url: str, stall: bool = False) -> FoxgloveClient:
-        ws = await websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None)
+    async def connect(cls, url: str, stall: bool = False, origin: str | None = None) -> FoxgloveClient:
+        ws = await websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None, origin=origin)
         assert ws.subprotocol == SUBPROTOCOL
         client = cls(ws, stall)
         client.server_info = json.loads(await asyncio.wait_for(ws.recv(), WAIT))
@@ -281,13 +283,14 @@ async def test_record_says_where_foxglove_connects_and_serves_there(tmp_path):
     async with EchoServer() as server:
         proc = await asyncio.create_subprocess_exec(
             WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}", "-o", str(out),
-            "--foxglove", "127.0.0.1:0", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            "--foxglove", "127.0.0.1:0", "--foxglove-origin", "https://Studio.Example.com/",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         try:
             first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
             m = re.fullmatch(rf"recording 127\.0\.0\.1:(\d+) -> {LOCAL}:{server.port} into {re.escape(str(out))}, "
                              r"foxglove: (ws://127\.0\.0\.1:(\d+)) \(Ctrl-C to stop\)\n", first)
             assert m and m.group(3) != "0", first
-            fox = await FoxgloveClient.connect(m.group(2))
+            fox = await FoxgloveClient.connect(m.group(2), origin="https://studio.example.com")
             await asyncio.wait_for(fox.subscribed.wait(), WAIT)
             reader, writer = await asyncio.open_connection(LOCAL, int(m.group(1)))
             writer.write(SENSOR_REQUEST)
@@ -355,8 +358,122 @@ async def test_the_live_tui_names_the_foxglove_url_in_its_title(tmp_path):
             await source.stop()
 
 
+@pytest.mark.parametrize(("args", "says"), [
+    (["--foxglove-origin", "https://studio.example.com"], "--foxglove-origin goes with --foxglove"),
+    (["--foxglove", "0", "--foxglove-origin", "studio.example.com"], "is not an origin"),
+    (["--foxglove", "0", "--foxglove-origin", "https://studio.example.com/app"], "is not an origin"),
+])
+def test_a_foxglove_origin_option_that_cannot_be_used_is_one_line_and_exit_2(tmp_path, args, says):
+    result = subprocess.run([WHIZTAP, "record", "--upstream", "127.0.0.1:1", "-o", str(tmp_path / "x.mcap"), *args],
+                            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert result.returncode == 2 and says in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.mcap").exists()
+
+
 def test_tui_foxglove_without_upstream_is_one_line_and_exit_2(tmp_path):
     result = subprocess.run([WHIZTAP, "tui", str(tmp_path / "a.mcap"), "--foxglove"],
                             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert result.returncode == 2
     assert "--foxglove" in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+# -- who may read it live: web pages you chose, and nothing from the network unannounced -------------------
+
+
+def _upgrade(origin: str | None = None, key: bool = True) -> bytes:
+    """A browser's WebSocket handshake for the Foxglove subprotocol, byte for byte."""
+    lines = ["GET / HTTP/1.1", "Host: 127.0.0.1", "Upgrade: websocket", "Connection: Upgrade",
+             "Sec-WebSocket-Version: 13", f"Sec-WebSocket-Protocol: {SUBPROTOCOL}"]
+    if key:
+        lines.append("Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==")
+    if origin is not None:
+        lines.append(f"Origin: {origin}")
+    return ("\r\n".join(lines) + "\r\n\r\n").encode()
+
+
+async def _raw_answer(port: int, request: bytes) -> bytes:
+    """Everything the server sends for ``request`` until it closes (it must)."""
+    reader, writer = await asyncio.open_connection(LOCAL, port)
+    writer.write(request)
+    try:
+        return await asyncio.wait_for(reader.read(-1), WAIT)
+    finally:
+        writer.close()
+
+
+async def test_a_web_page_you_did_not_choose_cannot_read_the_traffic_live(tmp_path):
+    """A page on http://evil.example opens a WebSocket to the live server as a
+    browser would: refused (403) before any Foxglove message, with one warning
+    naming it however often it tries.  The Foxglove app, a page on localhost,
+    the origin given with --foxglove-origin and a client with no Origin (not
+    a browser) are served."""
+    warnings: list[str] = []
+    async with EchoServer() as server:
+        settings = RecordSettings((LOCAL, 0), (LOCAL, server.port), str(tmp_path / "o.mcap"), keep_secrets=True,
+                                  foxglove=LiveAddress(LOCAL, 0, ("https://studio.example.com",)))
+        rec = Recording(settings, warn=warnings.append)
+        await rec.start()
+        try:
+            url, port = rec.foxglove_url, int(rec.foxglove_url.rsplit(":", 1)[1])
+            for _ in range(2):
+                with pytest.raises(websockets.InvalidStatus) as refused:
+                    await websockets.connect(url, subprotocols=[SUBPROTOCOL], origin="http://evil.example")
+                assert refused.value.response.status_code == 403
+            for request in (_upgrade("http://evil.example"),  # no traffic, even to a socket kept reading
+                            _upgrade("http://localhost:8080").replace(b"\r\n\r\n", b"\r\nOrigin: http://evil.example\r\n\r\n"),
+                            _upgrade("null"), _upgrade("https://app.foxglove.dev.evil.example")):
+                answer = await _raw_answer(port, request)
+                assert answer.startswith(b"HTTP/1.1 403 ") and b"serverInfo" not in answer and b"101" not in answer
+            clients = [await FoxgloveClient.connect(url, origin=origin) for origin in (
+                "https://app.foxglove.dev", "http://localhost:5173", "http://127.0.0.1:8080",
+                "https://studio.example.com", None)]
+            for fox in clients:
+                await asyncio.wait_for(fox.subscribed.wait(), WAIT)
+            reader, writer = await asyncio.open_connection(LOCAL, rec.proxy.port)
+            writer.write(SENSOR_REQUEST)
+            await asyncio.wait_for(reader.readexactly(len(SENSOR_REQUEST)), WAIT)
+            for fox in clients:
+                await until(lambda fox=fox: any(json.loads(d)["raw"] == RAW_SENSOR_REQUEST for _, d in fox.got["/frames"]),
+                            "the Sensor Request, live, to each allowed client")
+            writer.close()
+            for fox in clients:
+                await fox.close()
+        finally:
+            await rec.stop()
+    refusals = [w for w in warnings if "evil.example" in w]
+    assert len(refusals) == 3, warnings  # one per origin, however many tries
+    assert any("refused a connection" in w and "--foxglove-origin http://evil.example" in w for w in refusals)
+
+
+def test_the_sdks_own_lines_and_a_network_bind_are_said_by_whiztap(tmp_path):
+    """A handshake the SDK fails itself (no Sec-WebSocket-Key) makes it log
+    'Dropping client ...': that reaches the user as whiztap's warning, not raw
+    on the terminal; serving on 0.0.0.0 says that other machines can read it."""
+    out = tmp_path / "net.mcap"
+
+    async def main() -> tuple[int, str]:
+        async with EchoServer() as server:
+            proc = await asyncio.create_subprocess_exec(
+                WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
+                "-o", str(out), "--foxglove", "0.0.0.0:0", stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE)
+            seen = b""
+            try:
+                first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
+                port = int(re.search(r"foxglove: ws://0\.0\.0\.0:(\d+)", first).group(1))
+                assert not (await _raw_answer(port, _upgrade(key=False))).startswith(b"HTTP/1.1 101")
+                while b"Dropping client" not in seen:  # the SDK logs from its own thread, a moment later
+                    line = await asyncio.wait_for(proc.stderr.readline(), WAIT)
+                    assert line, seen
+                    seen += line
+            finally:
+                proc.send_signal(signal.SIGINT)
+                _, err = await asyncio.wait_for(proc.communicate(), WAIT)
+            return proc.returncode, (seen + err).decode()
+
+    code, err = asyncio.run(main())
+    assert code == 0, err
+    lines = err.splitlines()
+    assert all(line.startswith("warning: ") for line in lines), err  # nothing raw from the SDK
+    assert any("other machines" in line and "0.0.0.0" in line for line in lines), err
+    assert any("foxglove server: Dropping client" in line for line in lines), err

@@ -41,12 +41,44 @@ FOXGLOVE_DEFAULT = "127.0.0.1:8765"
 HOLD_TIMEOUT_S = 60.0  # a held frame nobody acts on goes on as it is after this
 
 
+_ORIGINS = "whiztap.foxglove_origins"
+
+
+def _foxglove_origins(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> None:
+    """--foxglove-origin, checked, kept for --foxglove (read first: it is eager)."""
+    from whiztap.sniffer.record.live_gate import origin_text
+
+    try:
+        ctx.meta[_ORIGINS] = tuple(origin_text(v) for v in values)
+    except ValueError as e:
+        raise click.BadParameter(str(e), ctx, param) from None
+
+
+def _foxglove_value(ctx: click.Context, param: click.Parameter, value: tuple[str, int] | None):  # noqa: ANN202
+    """--foxglove as a LiveAddress: where, and the web origins also allowed."""
+    origins = ctx.meta.get(_ORIGINS, ())
+    if value is None:
+        if origins:
+            raise click.UsageError("--foxglove-origin goes with --foxglove", ctx)
+        return None
+    from whiztap.sniffer.record.live_gate import LiveAddress
+
+    return LiveAddress(*value, origins)
+
+
 def foxglove_option(f: Callable) -> Callable:
     """--foxglove [HOST:]PORT: also serve the recording live to the Foxglove app
-    (``whiztap.sniffer.record.live``); alone, on 127.0.0.1:8765."""
+    (``whiztap.sniffer.record.live``); alone, on 127.0.0.1:8765.  With
+    --foxglove-origin ORIGIN (repeatable), the web pages also allowed to read
+    it; the value is one LiveAddress, so a command takes both as one."""
+    f = click.option(
+        "--foxglove-origin", "foxglove_origins", multiple=True, metavar="ORIGIN", is_eager=True,
+        expose_value=False, callback=_foxglove_origins,
+        help="Also let the web page at ORIGIN (https://HOST[:PORT]) read --foxglove; the Foxglove app "
+             "(https://app.foxglove.dev) and pages on localhost may already; repeatable.")(f)
     return click.option(
         "--foxglove", type=Address("127.0.0.1"), is_flag=False, flag_value=FOXGLOVE_DEFAULT, default=None,
-        metavar="[[HOST:]PORT]",
+        metavar="[[HOST:]PORT]", callback=_foxglove_value,
         help=f"Also serve the traffic live to the Foxglove app (Foxglove WebSocket, the recording's topics); "
              f"alone: {FOXGLOVE_DEFAULT}.  Another host exposes the traffic to the network.")(f)
 

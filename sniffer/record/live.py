@@ -21,58 +21,140 @@ The server is never stopped: it ends with the writer process, right after the
 file is finished, and clients see their connection close.  ``stop()`` would
 wait for each client's close, and one that stopped reading holds it up (50 s,
 measured here): the summary would wait for a viewer.
+
+Who may connect: the SDK's server checks no ``Origin``, so it listens on a
+loopback address of its own and ``live_gate.py`` listens where the user
+asked, refusing web pages the user did not choose.  The SDK's log lines
+(``Dropping client ...: handshake failed``) go to the writer's ``warn`` (the
+proxy's stderr, or the TUI's notices), never raw onto the terminal.
 """
 
 from __future__ import annotations
 
 import errno
-import os
-import re
-import sys
+import logging
+import secrets
+import socket
 from collections.abc import Callable
 
+from whiztap.analyzer.protocol.text import printable, shorten
 from whiztap.analyzer.recording.format import KNOWN_TOPICS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
-from whiztap.sniffer.nettext import show_address
+from whiztap.sniffer.nettext import is_loopback, reason, show_address
+from whiztap.sniffer.record.live_gate import MAX_CLIENTS, LiveGate
 from whiztap.sniffer.record.writer import RecordingFile
 
 SERVER_NAME = "whiztap"
-_OS_ERROR = re.compile(r"\(os error (\d+)\)")
+SDK_LINES = 20  # the SDK's log lines passed on; after them, one line says more were left out
 
 Log = Callable[..., None]
+Warn = Callable[[str], None]
 
 
 class LiveServerError(Exception):
     """The live server could not start; the message is one line for the user."""
 
 
-def _bind_failure(host: str, port: int, error: Exception) -> str:
-    """The SDK says 'FoxgloveError: Failed to bind port: Address already in
-    use (os error 98)'; the user gets the address, the reason and what to do."""
-    text = str(error).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
-    m = _OS_ERROR.search(text)
-    code = int(m.group(1)) if m else None
-    reason = os.strerror(code) if code else text
-    todo = ("stop what listens there, or give another port with --foxglove [HOST:]PORT (0 picks a free one)"
-            if code == errno.EADDRINUSE else "check the address given to --foxglove")
-    return f"cannot serve Foxglove on {show_address(host, port)}: {reason}; {todo}"
+def _listen(host: str, port: int) -> socket.socket:
+    """The socket the gate serves on, bound and listening; LiveServerError
+    names the address, the reason and what to do."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as e:
+        raise LiveServerError(f"cannot serve Foxglove on {show_address(host, port)}: {reason(e)}; "
+                              "check the address given to --foxglove") from None
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(MAX_CLIENTS)
+    except OSError as e:
+        sock.close()
+        todo = ("stop what listens there, or give another port with --foxglove [HOST:]PORT (0 picks a free one)"
+                if e.errno == errno.EADDRINUSE else "check the address given to --foxglove")
+        raise LiveServerError(f"cannot serve Foxglove on {show_address(host, port)}: {reason(e)}; {todo}") from None
+    sock.setblocking(False)
+    return sock
+
+
+# A viewer that went away without a goodbye (a closed laptop, a killed app) is
+# the life of a viewer, not news: the SDK logs it as an error, whiztap says nothing.
+_VIEWER_GONE = ("without closing handshake", "Connection reset by peer")
+
+
+class _SdkLog(logging.Handler):
+    """The SDK's log records (Rust, forwarded to Python's logging) as warnings,
+    at most ``SDK_LINES`` of them: a client failing its handshake over and
+    over must not fill the screen."""
+
+    def __init__(self, warn: Warn) -> None:
+        super().__init__(logging.WARNING)
+        self.warn = warn
+        self.said = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if any(words in message for words in _VIEWER_GONE):
+            return
+        self.said += 1
+        if self.said <= SDK_LINES:
+            self.warn(f"warning: foxglove server: {shorten(printable(message), 400)}")
+        elif self.said == SDK_LINES + 1:
+            self.warn("warning: foxglove server: more lines left out")
+
+
+def _route_sdk_logs(foxglove, warn: Warn) -> None:  # noqa: ANN001 - the foxglove module
+    """Before the server starts (the SDK takes its level once): warnings and
+    errors go to ``warn``, nothing to stderr."""
+    logger = logging.getLogger("foxglove")
+    logger.handlers[:] = [_SdkLog(warn)]
+    logger.propagate = False
+    foxglove.set_log_level(logging.WARNING)
+
+
+def _hidden_server(foxglove, context) -> tuple[object, tuple[str, int]]:  # noqa: ANN001 - the SDK's
+    """The SDK's server on a loopback address no web page can guess
+    (127.R.R.R; 127.0.0.1 where the system has no other), port chosen by the
+    system; the server and where it listens."""
+    hosts = (f"127.{secrets.randbelow(254) + 1}.{secrets.randbelow(254) + 1}.{secrets.randbelow(254) + 1}",
+             "127.0.0.1")
+    for host in hosts:
+        try:
+            server = foxglove.start_server(name=SERVER_NAME, host=host, port=0, context=context)
+        except RuntimeError as e:
+            failure = e
+            continue
+        return server, (host, server.port)
+    raise LiveServerError(f"cannot start the Foxglove server on a loopback address: {failure}")
 
 
 class LiveServer:
     """A Foxglove WebSocket server with a channel per topic, each made when
-    first asked for.  Raises LiveServerError when it cannot listen."""
+    first asked for, served at (``host``, ``port``) through the gate that
+    lets only the web ``origins`` allowed in (``live_gate.py``).  ``warn``
+    receives one line for each thing the user should know.  Raises
+    LiveServerError when it cannot listen."""
 
-    def __init__(self, host: str, port: int) -> None:
+    def __init__(self, host: str, port: int, origins: tuple[str, ...] = (), *, warn: Warn) -> None:
         import foxglove
 
+        sock = _listen(host, port)  # first: a port in use is the user's error, before anything starts
         self._foxglove = foxglove
+        _route_sdk_logs(foxglove, warn)
         self.context = foxglove.Context()
         try:
-            self.server = foxglove.start_server(name=SERVER_NAME, host=host, port=port, context=self.context)
-        except RuntimeError as e:
-            raise LiveServerError(_bind_failure(host, port, e)) from None
+            self.server, inner = _hidden_server(foxglove, self.context)
+        except LiveServerError:
+            sock.close()
+            raise
+        self.gate = LiveGate(sock, inner, tuple(origins), warn)
+        self.gate.start()
         self.host = host
-        self.port = self.server.port  # the bound one when 0 was asked
+        self.port = sock.getsockname()[1]  # the bound one when 0 was asked
         self.channels: dict[str, object] = {}
+        if not is_loopback(host):
+            warn(f"warning: foxglove: {self.url} can be reached from other machines: whoever reaches it reads "
+                 "all the traffic (no password, no encryption); the origin check stops only web pages")
 
     @property
     def url(self) -> str:
@@ -135,8 +217,8 @@ class LiveRecordingFile(RecordingFile):
                 logs.get(channel_id, _nowhere)(data, t_ns)
         except Exception as e:  # noqa: BLE001 - whatever the live server does wrong, the file goes on
             self.serving = False
-            sys.stderr.write(f"whiztap: the live Foxglove server stopped ({type(e).__name__}: {e}); "
-                             "the recording goes on\n")
+            self.warn(f"warning: the live Foxglove server stopped ({type(e).__name__}: {e}); "
+                      "the recording goes on")
 
     def _remap(self, ids: dict[str, int]) -> None:
         """Channel ids back to topics, and a live channel for every topic the

@@ -17,6 +17,7 @@ import os
 import select
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -46,16 +47,20 @@ from whiztap.sniffer.record.feed import (
 )
 
 VERDICT_S = 0.25  # the verdict is reported at most this often
+_SAYING = threading.Lock()  # the live server's threads (its gate, the SDK's log) say things too
 
 
 def _say(message: dict) -> None:
-    """One status line to the proxy.  A proxy that is gone (killed on its own)
-    hears nothing more, but the recording must still be finished: the first
-    failed write points stdout at /dev/null and later ones go nowhere."""
-    try:
-        os.write(1, json.dumps(message).encode() + b"\n")
-    except OSError:  # EPIPE: nobody reads the other end any more
-        drop_stdout()
+    """One status line to the proxy, whole, whichever thread says it.  A proxy
+    that is gone (killed on its own) hears nothing more, but the recording must
+    still be finished: the first failed write points stdout at /dev/null and
+    later ones go nowhere."""
+    line = json.dumps(message).encode() + b"\n"
+    with _SAYING:
+        try:
+            os.write(1, line)
+        except OSError:  # EPIPE: nobody reads the other end any more
+            drop_stdout()
 
 
 def _warning(text: str) -> None:
@@ -153,7 +158,7 @@ def _recording_file(config: dict[str, Any]):  # noqa: ANN202 - a RecordingFile, 
     from whiztap.sniffer.record.live import LiveRecordingFile, LiveServer, LiveServerError
 
     try:
-        live = LiveServer(*config["foxglove"])
+        live = LiveServer(*config["foxglove"], warn=_warning)
     except LiveServerError as e:
         raise WriterError(str(e)) from None
     return LiveRecordingFile(live, *args, **options), {"foxglove": live.url}
