@@ -434,8 +434,10 @@ def test_reports_on_recordings_without_interventions_are_as_before():
     format but HTML, whose plots differ from run to run) and cat before
     recordings could hold interventions (made by the tree of 9591b36, the commit
     before the man in the middle, on the files in tests/data, which stay as
-    they are when samples are regenerated).  The one change: each violation
-    in the JSON says its side."""
+    they are when samples are regenerated).  The changes since: each
+    violation in the JSON says its side; and (issue 26, a deliberate edit of
+    the file) rule details in the spec's words, a fixed field cited in its
+    message's section, counts that agree with their nouns."""
     before = json.loads((DATA / "reports-before-middle.json").read_text())
     runner = CliRunner()
     for command, expected in before.items():

@@ -17,7 +17,6 @@ from whiztap.analyzer.analysis.report.words import (
     CLIENT_LATENCY,
     EFFECTS_HEADING,
     SERVER_LATENCY,
-    conn_words,
     fleet_headings,
     fleet_key,
     group_name,
@@ -294,9 +293,11 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
                      + "</p>")
     if report["set_configurations"]:
         parts.append("<h2>Set Configuration checksums</h2>")
-        parts.append(_table(["conn", "checksum", "expected", "candidate rules it fits"],
-                            [[e(conn_words(report, c)), str(c["checksum"]), str(c["expected"]),
-                              e(", ".join(c["satisfies"]) or "none")] for c in report["set_configurations"]]))
+        files = several_files(report)
+        parts.append(_table((["file"] if files else []) + ["conn", "checksum", "expected", "candidate rules it fits"],
+                            [([e(c["file"])] if files else []) + [
+                                str(c["conn"]), str(c["checksum"]), str(c["expected"]),
+                                e(", ".join(c["satisfies"]) or "none")] for c in report["set_configurations"]]))
     if report.get("unreadable"):
         parts.append("<h2>Not in this report (could not be read)</h2><ul>")
         parts += [f"<li class='error'>{e(u['error'])}</li>" for u in report["unreadable"]]

@@ -320,10 +320,11 @@ def render_markdown(report: dict[str, Any]) -> str:
     if report["unanswered"]:
         out += ["", "Never answered: " + ", ".join(f"{n} × {t(title)}" for title, n in report["unanswered"].items())]
     if report["set_configurations"]:
-        out += ["", "## Set Configuration checksums", "", "| conn | checksum | expected | fits |",
-                "|---|---:|---:|---|"]
+        files = several_files(report)
+        out += ["", "## Set Configuration checksums", "", ("| file " if files else "") + "| conn | checksum | expected "
+                "| fits |", ("|---" if files else "") + "|---:|---:|---:|---|"]
         for c in report["set_configurations"]:
-            out.append(f"| {t(conn_words(report, c))} | {c['checksum']} | {c['expected']} "
+            out.append((f"| {t(c['file'])} " if files else "") + f"| {c['conn']} | {c['checksum']} | {c['expected']} "
                        f"| {t(', '.join(c['satisfies']) or '-')} |")
     if report.get("unreadable"):
         out += ["", "## Not in this report (could not be read)", ""]
