@@ -59,10 +59,9 @@ class ControlClient:
     """Requests to the control API at ``endpoint``, the first one after the
     endpoint was recognised as one."""
 
-    def __init__(self, endpoint: Endpoint, quiet_s: float = QUIET_S) -> None:
+    def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
         self.where = str(endpoint)
-        self.quiet_s = quiet_s
         self._recognised = False
 
     def call(self, method: str, path: str, body: Any = None) -> Any:
@@ -114,8 +113,8 @@ class ControlClient:
                                   f"is 'whiztap record --control' running there?")
 
     def _listen_first(self, sock: socket.socket) -> None:
-        """Nothing is sent until the peer was quiet for ``quiet_s``."""
-        sock.settimeout(self.quiet_s)
+        """Nothing is sent until the peer was quiet for ``QUIET_S``."""
+        sock.settimeout(QUIET_S)
         try:
             said = sock.recv(SHOWN)
         except TimeoutError:
@@ -159,6 +158,9 @@ class ControlClient:
             try:
                 event = conn.next_event()
             except h11.RemoteProtocolError:
+                if status:  # its head was HTTP, and whiztap's: the rest broke off
+                    raise ControlClientError(f"the control API at {self.where} closed before its answer "
+                                             f"ended") from None
                 raise self._stranger(f"it answered {escape(first[:SHOWN])!r}, which is not HTTP") from None
             if event is h11.NEED_DATA:
                 chunk = self._read(sock, deadline)

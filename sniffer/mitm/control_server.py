@@ -204,8 +204,9 @@ class ControlServer:
         while True:
             try:
                 event = conn.next_event()
-            except h11.RemoteProtocolError as e:
-                raise HttpError(e.error_status_hint, f"not a request the control API takes: {e}") from None
+            except h11.RemoteProtocolError as e:  # h11's 501 is a Transfer-Encoding it does not know: no length
+                raise HttpError(411 if e.error_status_hint == 501 else e.error_status_hint,
+                                f"not a request the control API takes: {e}") from None
             if event is h11.NEED_DATA:
                 conn.receive_data(await loop.sock_recv(sock, READ_SIZE))
             elif isinstance(event, h11.Request):
