@@ -15,6 +15,7 @@ from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output, output_stream, say
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option
 from whiztap.analyzer.cli.reading import one_recording
+from whiztap.analyzer.protocol.text import plural
 
 
 @contextlib.contextmanager
@@ -72,8 +73,8 @@ def export_command(pcap: str, recording: tuple[str, ...], force: bool, quiet: bo
     except ExportError as e:
         fail(str(e))
     if not quiet and pcap != "-":
-        say(f"exported {summary.connections} connection(s), {summary.packets} packets "
-            f"({summary.bytes:,} bytes of payload) into {pcap}")
+        say(f"exported {plural(summary.connections, 'connection')}, {plural(summary.packets, 'packet')} "
+            f"({plural(summary.bytes, 'byte')} of payload) into {pcap}")
 
 
 @click.command("wireshark-dissector")
