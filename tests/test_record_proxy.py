@@ -8,6 +8,7 @@ import base64
 import itertools
 import json
 import random
+import re
 import socket
 import struct
 import threading
@@ -29,6 +30,7 @@ from tests.record_support import (
     frame_items,
     read_all,
     recording,
+    running_record,
 )
 from tests.streams import stream_pieces
 
@@ -152,17 +154,18 @@ async def test_half_close_passes_through_both_ways(tmp_path):
                                     (1, "s2c"): b"after your FIN: rr1-24--0--0-ss1"}
 
 
-async def test_upstream_down_closes_the_client_and_is_recorded(tmp_path):
+async def test_upstream_down_resets_the_client_and_is_recorded(tmp_path):
+    """The client is reset (as docs/recorder.md says), whether it sent
+    something first or not: never a FIN, which would look like a server that
+    answered and closed."""
     path = tmp_path / "down.mcap"
     port = closed_port()
     async with recording(port, path, connect_timeout=WAIT) as rec:
-        for _ in range(2):
+        for request in (b"rr1-24--0--0-ss1", b""):
             reader, writer = await asyncio.open_connection(LOCAL, rec.proxy.port)
-            writer.write(b"rr1-24--0--0-ss1")
-            try:  # closed at once, no hang: a FIN, or a reset since the request went unread
-                assert await asyncio.wait_for(reader.read(-1), WAIT) == b""
-            except ConnectionResetError:
-                pass
+            writer.write(request)
+            with pytest.raises(ConnectionResetError):
+                await asyncio.wait_for(reader.read(-1), WAIT)
             writer.close()
         # the upstream comes back: the same proxy now forwards
         echo = await asyncio.start_server(_echo, LOCAL, port, reuse_address=True)
@@ -179,7 +182,38 @@ async def test_upstream_down_closes_the_client_and_is_recorded(tmp_path):
     failed = [e for e in by_topic["/tcp/events"] if e["event"] == "upstream_failed"]
     assert all("refused" in e["detail"].lower() for e in failed)
     assert both_ways(str(path))[(3, "s2c")] == b"hello"
-    assert any("#1 closed by server" in line for line in rec.lines)
+    assert any(re.fullmatch(rf"#1 reset after \d+\.\d\d s: cannot connect to {LOCAL}:{port}: Connection refused; "
+                            r"the client's connection was reset \(c2s \d+ B, not forwarded\)", line)
+               for line in rec.lines), rec.lines
+
+
+async def test_record_says_at_start_that_the_upstream_refuses(tmp_path):
+    """whiztap record tries the upstream once as it starts: a wrong
+    --upstream is said at once, and the recording runs anyway."""
+    port = closed_port()
+    async with running_record(port, tmp_path / "r.mcap") as rec:
+        line = (await asyncio.wait_for(rec.proc.stderr.readline(), WAIT)).decode()
+        assert line == (f"warning: the upstream {LOCAL}:{port} does not accept connections (Connection refused); "
+                        "recording anyway: each client is reset until it does\n")
+        reader, writer = await rec.connect()
+        with pytest.raises(ConnectionResetError):
+            await asyncio.wait_for(reader.read(-1), WAIT)
+        writer.close()
+        code, out, err = await rec.finish()
+    assert code == 0 and err == "", err
+    assert "reset after" in out and "recorded 1 connection" in out, out
+
+
+async def test_record_says_nothing_of_an_upstream_that_listens(tmp_path):
+    async with EchoServer() as server, running_record(server.port, tmp_path / "r.mcap") as rec:
+        await asyncio.wait_for(_until(lambda: len(server.received) == 1), WAIT)  # the start's try, closed at once
+        code, _, err = await rec.finish()
+    assert code == 0 and err == "" and server.received == [bytearray()], err
+
+
+async def _until(condition) -> None:  # noqa: ANN001 - a callable
+    while not condition():
+        await asyncio.sleep(0.01)
 
 
 async def _echo(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:

@@ -87,6 +87,8 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
 
 async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, imported lazily
     """Record until Ctrl-C, SIGTERM, SIGHUP or a write error; the error, if any."""
+    import asyncio
+
     from whiztap.sniffer.nettext import show_address
     from whiztap.sniffer.record.feed import WriterError
     from whiztap.sniffer.record.record_run import Recording, StartError
@@ -112,12 +114,26 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
         live += f", control: {control_text(recording.control_url, recording.control_token)}" \
             if recording.control_url else ""
         say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output}{live} (Ctrl-C to stop)")
+        probe = asyncio.ensure_future(_try_upstream(recording))
         await recording.stopped.wait()
+        probe.cancel()
         summary = await recording.stop("write error" if recording.error else "recording stopped")
     if summary is not None:
         for line in summary_lines(summary, "recorded"):
             echo(line)
     return recording.error
+
+
+async def _try_upstream(recording) -> None:  # noqa: ANN001 - a Recording, imported lazily
+    """Connect to the upstream once at start (and close at once): one that
+    refuses is said now, rather than by each client's reset."""
+    from whiztap.sniffer.record.proxy import try_upstream
+
+    settings = recording.settings
+    why = await try_upstream(*settings.upstream, settings.connect_timeout)
+    if why is not None:
+        recording.warn(f"warning: the upstream {recording.proxy.upstream_text} does not accept connections ({why}); "
+                       "recording anyway: each client is reset until it does")
 
 
 @click.command("recover")

@@ -27,7 +27,9 @@ direction, however slowly a client reads.
 Half-close passes through (a FIN from one side becomes ``write_eof()`` on the
 other); a reset or close on one side closes the other once its buffered bytes
 are sent.  A connection that fails in any way is recorded and closed; it never
-affects another.
+affects another.  A client whose upstream cannot be reached is reset (RST,
+never a FIN): the nearest a proxy comes to the refusal the server would have
+given it, and never mistaken for a server that answered and closed.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import socket
+import struct
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -51,6 +54,7 @@ if TYPE_CHECKING:
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
 CLOSE_GRACE_S = 2.0
+_RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends an RST
 
 
 class Clock:
@@ -168,6 +172,7 @@ class Connection:
         self.middle: MiddleShell | None = None  # when the proxy stands in the middle (sniffer/mitm)
         self.closed_by: str | None = None
         self.detail = ""
+        self.upstream_failed = False  # the upstream could not be reached: the client was reset
         self.opened_ns = 0
         self._connect: asyncio.Task | None = None
         self._done = asyncio.get_running_loop().create_future()
@@ -202,7 +207,8 @@ class Connection:
             proxy.receive(UpstreamFailed(self.id, proxy.clock(), detail))
             self.detail = detail
             self.closed_by = "server"
-            self.client.transport.close()  # type: ignore[union-attr]
+            self.upstream_failed = True
+            self._reset_client()
             return
         if self.client.lost:
             self.upstream.transport.close()  # type: ignore[union-attr]
@@ -221,6 +227,17 @@ class Connection:
             self.upstream.transport.write_eof()  # type: ignore[union-attr]
         self.client.target = self.upstream.transport
         self.client.sync()
+
+    def _reset_client(self) -> None:
+        """End the client's connection with an RST, whatever it sent or not."""
+        transport = self.client.transport
+        sock = transport.get_extra_info("socket")  # type: ignore[union-attr]
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _RESET)
+            except OSError:
+                pass
+        transport.abort()  # type: ignore[union-attr]
 
     # -- teardown -------------------------------------------------------------------------
 
@@ -277,6 +294,21 @@ class Connection:
 
     async def wait_closed(self) -> None:
         await asyncio.shield(self._done)
+
+
+async def try_upstream(host: str, port: int, timeout: float) -> str | None:
+    """Connect to the upstream once and close at once: None when it accepts,
+    else why not ('Connection refused', 'timed out').  ``whiztap record``
+    asks at start, so that a wrong --upstream is said before any client
+    finds out."""
+    try:
+        _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
+    except asyncio.TimeoutError:
+        return f"no answer within {timeout:g} s"
+    except OSError as e:
+        return reason(e)
+    writer.close()
+    return None
 
 
 class RecordingProxy:

@@ -213,6 +213,10 @@ class Recording:
 
     def _closed(self, conn: Connection) -> None:
         seconds = (self.proxy.clock() - conn.opened_ns) / 1e9  # type: ignore[union-attr]
+        if conn.upstream_failed:
+            self.echo(f"#{conn.id} reset after {seconds:.2f} s: {conn.detail}; the client's connection was reset "
+                      f"(c2s {conn.client.received} B, not forwarded)")
+            return
         self.echo(f"#{conn.id} closed by {conn.closed_by} after {seconds:.2f} s ({conn.detail}): "
                   f"c2s {conn.client.received} B, s2c {conn.upstream.received} B")
 
