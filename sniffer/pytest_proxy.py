@@ -14,6 +14,8 @@ a loop of its own) call them alike.
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +24,7 @@ from typing import Any
 import pytest
 
 from whiztap.analyzer.traffic import Intervention, TrafficEvent
+from whiztap.sniffer.mitm.control_endpoint import Endpoint
 from whiztap.sniffer.mitm.controller import ControlError, Controller
 from whiztap.analyzer.mitm.faults import Fault
 from whiztap.sniffer.record.record_run import MiddleSettings, Recording, RecordSettings
@@ -80,14 +83,22 @@ class WhiztapProxy:
     def __init__(self, run: Run, path: Path, target: tuple[str, int]) -> None:
         self._run = run
         self._kept = _Interventions()
-        settings = RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True, middle=MiddleSettings(seed=SEED, always=True))
+        # the control API on a socket in a folder of its own: it always can be
+        # made (a runtime folder may not), and a test's is no user's default
+        self._folder = Path(tempfile.mkdtemp(prefix="whiztap-"))
+        middle = MiddleSettings(seed=SEED, always=True, control=Endpoint(path=str(self._folder / "control.sock")))
+        settings = RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True, middle=middle)
         self._recording = Recording(settings, consumers=[self._kept])
         self.recording = path
         self.host, self.port = "127.0.0.1", 0
         self.stopped = False
 
     def start(self) -> WhiztapProxy:
-        self._run(self._recording.start())
+        try:
+            self._run(self._recording.start())
+        except BaseException:
+            shutil.rmtree(self._folder, ignore_errors=True)
+            raise
         self.port = self._recording.proxy.port  # type: ignore[union-attr]
         return self
 
@@ -99,6 +110,12 @@ class WhiztapProxy:
     def address(self) -> str:
         """Where the client under test connects: "127.0.0.1:PORT"."""
         return f"{self.host}:{self.port}"
+
+    @property
+    def control(self) -> str:
+        """The control API's Unix socket, for ``whiztap ctl --control PATH``
+        or a tool under test that drives the proxy over HTTP."""
+        return self._recording.control_url  # type: ignore[return-value]
 
     def call(self, function: Callable[..., Any], *args: Any) -> Any:
         """``function(*args)`` on the proxy's loop, and its result (or its exception)."""
@@ -157,6 +174,7 @@ class WhiztapProxy:
         if not self.stopped:
             self.stopped = True
             self._run(self._recording.stop())
+            shutil.rmtree(self._folder, ignore_errors=True)
             if self._recording.error:
                 pytest.fail(f"whiztap: recording {self.recording} failed: {self._recording.error}", pytrace=False)
         return self.recording

@@ -250,3 +250,31 @@ async def test_ctl_takes_its_options_before_or_after_the_subcommand(tmp_path, ru
         nested = await ctl("fault", "--format", "json", "list", "--control", rec.control_url)
         assert json.loads(nested.stdout) == {"faults": []}
         assert (await ctl("--format", "json", "held", "--format", "text")).stdout == "no held frames\n"
+
+
+# -- the TUI's proxy and the demo's -----------------------------------------------------------------------
+
+
+async def test_the_live_tui_and_the_demo_say_where_their_control_api_is(tmp_path, runtime):
+    from whiztap.sniffer.record.record_run import RecordSettings
+    from whiztap.tui.demo import run_headless
+    from whiztap.tui.sources import LiveSource, ProxyRig
+
+    async with Simulator(port=0, mode="vpn") as sim:
+        middle = MiddleSettings(control=Endpoint(host=LOCAL, port=0), always=True)
+        source = LiveSource(ProxyRig(RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(tmp_path / "live.mcap"),
+                                                    quiet=True, middle=middle)), "live")
+        await source.start()
+        try:
+            rec = source.recording
+            assert source.title.endswith(f", control {rec.control_url} token {rec.control_token}")
+            result = await ctl("--control", rec.control_url, "--control-token", rec.control_token, "held")
+            assert (result.exit_code, result.stdout) == (0, "no held frames\n")
+        finally:
+            await source.stop()
+    said: list[str] = []
+    await run_headless(str(tmp_path / "demo.mcap"), 0.2, middle=MiddleSettings(control=Endpoint(path="")),
+                       announce=said.append)
+    [line] = said
+    assert line.startswith(f"control: {runtime}/control-") and line.endswith(".sock")
+    assert list(runtime.iterdir()) == []

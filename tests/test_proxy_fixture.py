@@ -29,6 +29,7 @@ def whiztap_target():
 
 TESTS = r'''
 import asyncio
+import os
 
 import pytest
 
@@ -126,6 +127,24 @@ def test_the_recording_keeps_what_the_proxy_did(whiztap_proxy):
     changes = [m for topic, _, m in messages if topic == "/interventions"]
     assert [(m["action"], m["cause"]) for m in changes] == [("delay", "fault slow: delay:50ms dir:s2c kind:response")]
     assert any(topic == "/tcp/delivered" for topic, _, _ in messages)
+
+
+def test_whiztap_ctl_drives_the_fixtures_proxy(whiztap_proxy):
+    from click.testing import CliRunner
+    from whiztap.analyzer.cli.root import cli
+
+    def ctl(*args):
+        result = CliRunner().invoke(cli, ["ctl", "--control", whiztap_proxy.control, *args])
+        assert result.exit_code == 0, result.stderr
+        return result.stdout
+
+    assert ctl("fault", "add", "drop dir:s2c kind:response ch:12 nth:1", "--name", "once").startswith("added fault #1")
+    assert [f["name"] for f in whiztap_proxy.state()["faults"]] == ["once"]
+    attempts, _ = asyncio.run(sensor_with_retry(whiztap_proxy.address, 12))
+    assert attempts == 2 and "once  on  hits 1" in ctl("fault", "list")
+    socket_path = whiztap_proxy.control
+    whiztap_proxy.stop()
+    assert not os.path.exists(socket_path)
 '''
 
 
@@ -140,7 +159,7 @@ def test_a_client_tested_through_the_proxy_in_the_middle(pytester: pytest.Pytest
     pytester.makeconftest(CONFTEST)
     pytester.makepyfile(test_client=TESTS)
     result = run(pytester, "-v")
-    result.assert_outcomes(passed=5)
+    result.assert_outcomes(passed=6)
 
 
 def test_without_a_target_the_fixture_says_how_to_give_one(pytester: pytest.Pytester) -> None:

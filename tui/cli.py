@@ -216,7 +216,7 @@ def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, mid
 
     try:
         client_error = asyncio.run(run_headless(output, seconds, foxglove, middle,
-                                                announce=lambda url: click.echo(f"whiztap demo: foxglove: {url}")))
+                                                announce=lambda line: click.echo(f"whiztap demo: {line}")))
     except (WriterError, FaultSpecError, ScriptError, StartError) as e:
         fail(str(e))
     except OSError as e:

@@ -156,12 +156,15 @@ class DemoRig:
 async def run_headless(output: str, seconds: float, foxglove: tuple[str, int] | None = None, middle=None,  # noqa: ANN001
                        announce: Callable[[str], None] | None = None) -> str | None:
     """The demo without a screen for ``seconds``; the client's error, if it had
-    one.  With ``foxglove``, ``announce`` is told where the Foxglove app
-    connects; ``middle`` (a MiddleSettings) adds faults or scripts."""
+    one.  ``announce`` is told where the Foxglove app connects (``foxglove:
+    URL``) and where the control API is (``control: ...``), with either asked
+    for; ``middle`` (a MiddleSettings) adds faults, scripts or the control API."""
     rig = DemoRig(output, foxglove, middle)
     recording = await rig.start(tap=None)
     if recording.foxglove_url and announce is not None:
-        announce(recording.foxglove_url)
+        announce(f"foxglove: {recording.foxglove_url}")
+    if recording.control_text and announce is not None:
+        announce(f"control: {recording.control_text}")
     try:
         await asyncio.sleep(seconds)
     finally:

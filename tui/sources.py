@@ -276,8 +276,8 @@ class LiveSource:
         self.title = f"{self.title}: {proxy.listen_text} -> {proxy.upstream_text}, recording {self.rig.output}"
         if self.recording.foxglove_url:
             self.title += f", foxglove {self.recording.foxglove_url}"
-        if self.recording.control_url:
-            self.title += f", control {self.recording.control_url}"
+        if self.recording.control_text:
+            self.title += f", control {self.recording.control_text}"
         self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
 
     def _warn(self, text: str) -> None:

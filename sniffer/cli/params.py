@@ -207,12 +207,6 @@ def control_with_token(control: Any, token: str | None) -> Any:  # an Endpoint o
         fail(str(e))
 
 
-def control_text(url: str, token: str | None) -> str:
-    """Where the control API is, as the start line says it: its socket, or its
-    URL and token, which 'whiztap ctl' takes as they are printed."""
-    return url if token is None else f"{url} token {token}"
-
-
 def middle_given(faults: tuple, fault_files: tuple[str, ...], control: Any, control_token: str | None,
                  scripts: tuple[str, ...], seed: int | None, hold_timeout: float) -> bool:
     """Whether any of the ``middle_options`` was given (a command that takes

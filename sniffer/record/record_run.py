@@ -104,6 +104,14 @@ class Recording:
         return self.writer.error if self.writer is not None else None
 
     @property
+    def control_text(self) -> str | None:
+        """Where the control API is, as the start line and the TUI say it: its
+        socket, or its URL and token, which 'whiztap ctl' takes as they are shown."""
+        if self.control_url is None:
+            return None
+        return self.control_url if self.control_token is None else f"{self.control_url} token {self.control_token}"
+
+    @property
     def foxglove_url(self) -> str | None:
         """Where the Foxglove app connects (``ws://HOST:PORT``, the bound port), with ``foxglove`` set."""
         return self.writer.ready.get("foxglove") if self.writer is not None else None
