@@ -19,7 +19,6 @@ from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.cli.params import (
     Address,
     check_recording_output,
-    control_text,
     foxglove_option,
     middle_options,
     middle_settings,
@@ -111,8 +110,7 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     with stop_signals(recording.stopped.set):
         # even with -q: with port 0 this line is the only way to learn the port
         live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""
-        live += f", control: {control_text(recording.control_url, recording.control_token)}" \
-            if recording.control_url else ""
+        live += f", control: {recording.control_text}" if recording.control_text else ""
         say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output}{live} (Ctrl-C to stop)")
         probe = asyncio.ensure_future(_try_upstream(recording))
         await recording.stopped.wait()
