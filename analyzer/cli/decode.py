@@ -52,7 +52,7 @@ def decode_command(inputs: tuple[str, ...], frames: tuple[str, ...], direction: 
     FILE   a file of frames, one per line; '-' (or a pipe, when nothing
            else is given) for standard input.  The lines run through one
            session, so handshake order, pairing and the channel map are
-           checked as on a live connection
+           checked as on a live connection (one line alone: as a FRAME)
     \b
     A frame or line may begin with 'c2s ' or 's2c ' to say who sent it.  An
     argument is a FILE when it names one; one with a '/' or a file extension
