@@ -2,6 +2,8 @@
 
 import contextlib
 
+from textual import events
+
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Direction
 from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
@@ -155,6 +157,19 @@ async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
         assert ("servo", 2) in plots and ("sensor", 12) in plots
         await pilot.press("d")
         assert app.tabs.active == "detail"
+
+
+async def test_s_pressed_twice_at_once_draws_the_plots():
+    """The second s came while the first one's plots were mounted but not yet
+    composed: updating one looked for its sparkline and found nothing."""
+    async with loaded_app("vpn.mcap") as (app, pilot):
+        for _ in range(2):  # both keys queued before the app deals with either, as a quick typist sends them
+            app.post_message(events.Key("s", "s"))
+        await settled(pilot)
+        assert app.tabs.active == "stats" and app.is_running
+        plots = app.stats.plot_of
+        assert set(plots) == set(app.model.channel_values())
+        assert all(plot.sparkline.data for plot in plots.values())
 
 
 async def test_q_quits():

@@ -268,15 +268,16 @@ class BisectPrompt(ModalScreen[int | Divergence | None]):
         self.view = view
         self.prefill = prefill
         self.settled = settled  # every frame loaded and judged by the filter
+        self.said = Static("", id="bisect-said")
 
     def compose(self) -> ComposeResult:
         with Vertical():
             yield Static(PROMPT)
             yield Input(self.prefill, placeholder="PW-PAIR-UNANSWERED, error, or 1 2", id="bisect-query")
-            yield Static("", id="bisect-said")
+            yield self.said
 
     def _say(self, line: str, busy: bool = False) -> None:
-        said = self.query_one("#bisect-said", Static)
+        said = self.said
         said.set_class(busy, "busy")
         said.update(Text(line))  # quotes what was typed: never markup
 

@@ -300,17 +300,17 @@ class DetailPane(VerticalScroll):
         self.store = store
         self.controls = controls
         self.frame: int | HeldKey | None = None
+        self.body = Static("No frame yet.", id="detail-body")  # made here: updates never wait on a query
 
     def compose(self):  # noqa: ANN201
-        yield Static("No frame yet.", id="detail-body")
+        yield self.body
 
     def show(self, frame: int | HeldKey | None) -> None:
         """Show a stored frame, or a frame the proxy holds (the list's rows after its own)."""
         if frame == self.frame:
             return
         self.frame = frame
-        body = self.query_one("#detail-body", Static)
-        body.update(self._describe(frame))
+        self.body.update(self._describe(frame))
         self.scroll_home(animate=False)
 
     def _describe(self, frame: int | HeldKey | None) -> RenderableType:

@@ -88,13 +88,14 @@ class FaultsPane(Vertical):
         self.table: DataTable = DataTable(id="fault-table", cursor_type="row", zebra_stripes=True)
         self.spec = SpecInput(placeholder="ACTION [FILTER WORDS] [OPTIONS]: drop dir:s2c kind:response every:2",
                               suggester=SpecSuggester(), id="fault-spec")
+        self.error = Static("", id="fault-error")
         self.ids: list[int] = []  # the table's rows: fault ids, in order
         self._shown: tuple = ()
 
     def compose(self) -> ComposeResult:
         yield self.table
         yield self.spec
-        yield Static("", id="fault-error")
+        yield self.error
         yield Static("a add · d remove · space off/on · Esc back to the frames\n"
                      "hits: frames each fault acted on", id="fault-keys")
 
@@ -168,7 +169,7 @@ class FaultsPane(Vertical):
 
     def _close_spec(self) -> None:
         self.spec.remove_class("shown")
-        self.query_one("#fault-error", Static).update("")
+        self.error.update("")
         self.table.focus()
 
     # -- the SPEC line -----------------------------------------------------------------------------
@@ -182,7 +183,7 @@ class FaultsPane(Vertical):
                 parse_fault(event.value)
             except FaultSpecError as e:
                 error = str(e)
-        self.query_one("#fault-error", Static).update(Text(printable(error)))
+        self.error.update(Text(printable(error)))
 
     @on(Input.Submitted, "#fault-spec")
     def _add(self, event: Input.Submitted) -> None:
@@ -190,7 +191,7 @@ class FaultsPane(Vertical):
         try:
             fault = self.controls.controller.add_fault(event.value.strip())
         except (FaultSpecError, ControlError) as e:
-            self.query_one("#fault-error", Static).update(Text(printable(str(e))))
+            self.error.update(Text(printable(str(e))))
             return
         self.notify(f"fault {fault.name} added: {fault.spec.text}", timeout=3, markup=False)
         self.show()

@@ -56,10 +56,14 @@ class FrameDialog(ModalScreen[None]):
     def __init__(self, controls: Controls, text: str, direction: Direction, title: str) -> None:
         super().__init__()
         self.controls = controls
-        self.text = text
         self.direction = direction
         self.title_text = title
         self._confirming: str | None = None  # the text whose broken rules were shown: Enter again forces it
+        # the parts a keystroke updates, made here: never a query of a subtree not composed yet
+        self.heading_line = Static("", id="dialog-heading")
+        self.typed_input = Input(text, placeholder="rr1-12--0--0-ss1, sensor 12, servo 3 1500 …", id="typed")
+        self.status_line = Static("", id="dialog-status")
+        self.preview = Static("", id="preview")
 
     # -- for subclasses --------------------------------------------------------------------------
 
@@ -79,25 +83,21 @@ class FrameDialog(ModalScreen[None]):
         with Horizontal(id="dialog") as dialog:
             dialog.border_title = Text(self.title_text)
             with Vertical(id="typed-column"):
-                yield Static(Text(printable(self.heading())), id="dialog-heading")
-                yield Input(self.text, placeholder="rr1-12--0--0-ss1, sensor 12, servo 3 1500 …", id="typed")
-                yield Static("", id="dialog-status")
+                yield self.heading_line
+                yield self.typed_input
+                yield self.status_line
                 yield Static(Text(self.keys()), id="dialog-keys")
-            yield Static("", id="preview")
+            yield self.preview
 
     def on_mount(self) -> None:
-        self.query_one("#typed", Input).focus()
+        self.typed_input.focus()
         self.judge()
-
-    @property
-    def typed_input(self) -> Input:
-        return self.query_one("#typed", Input)
 
     def judge(self) -> None:
         """Read and judge the text as it stands; show what it is beside it."""
         typed = read_typed(self.typed_input.value, self.direction, self.controls.checksum_rule)
-        self.query_one("#preview", Static).update(describe_typed(typed))
-        self.query_one("#dialog-heading", Static).update(Text(printable(self.heading())))
+        self.preview.update(describe_typed(typed))
+        self.heading_line.update(Text(printable(self.heading())))
         if typed.error:
             self.say(typed.error, "red")
         elif typed.violations:
@@ -106,7 +106,7 @@ class FrameDialog(ModalScreen[None]):
             self.say("")
 
     def say(self, text: str, style: str = "") -> None:
-        self.query_one("#dialog-status", Static).update(Text(printable(text), style=style))
+        self.status_line.update(Text(printable(text), style=style))
 
     @on(Input.Changed, "#typed")
     def _changed(self, event: Input.Changed) -> None:

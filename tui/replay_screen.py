@@ -105,41 +105,54 @@ class ReplayScreen(Screen):
         self.runner = None
         self._shown_finished = None  # the finished runner whose end is on screen
         self.comparisons = ComparisonList(id="comparisons")
+        # the form's fields and the lines the timer updates, made here: never a query of a subtree
+        self.target = Input(DEFAULT_TARGET, id="target")
+        self.password = Input(os.environ.get("WHIZTAP_PASSWORD", ""), password=True, id="password",
+                              placeholder="winsock password")
+        self.output = Input("", id="output", placeholder="replay.mcap (optional)")
+        self.pace = Select([(p, p) for p in ("recorded", "lockstep", "max")], value="recorded",
+                           allow_blank=False, id="pace")
+        self.rate = Input("1", id="rate")
+        self.compare = Select([(m, m) for m in ("structure", "exact", "none")], value="structure",
+                              allow_blank=False, id="compare")
+        self.faults = Select(FAULT_CHOICES, value="none", allow_blank=False, id="faults")
+        self.fault_specs = Input("", id="fault-specs", disabled=True,
+                                 placeholder="as record --fault: drop dir:s2c every:2; delay:200ms")
+        self.pause_button = Button("Pause (F6)", id="pause", disabled=True)
+        self.stop_button = Button("Stop (F8)", id="stop", disabled=True)
+        self.status_line = Static(Text(f"Replay {printable(path)}: choose a target and start."), id="replay-status")
+        self.diff = Static("", id="diff")
 
     def compose(self) -> ComposeResult:
         yield Header(show_clock=False)
         with Horizontal(classes="form"):
             yield Label("Target")
-            yield Input(DEFAULT_TARGET, id="target")
+            yield self.target
             yield Label("Password")
-            yield Input(os.environ.get("WHIZTAP_PASSWORD", ""), password=True, id="password",
-                        placeholder="winsock password")
+            yield self.password
             yield Label("Save as")
-            yield Input("", id="output", placeholder="replay.mcap (optional)")
+            yield self.output
         with Horizontal(classes="form"):
             yield Label("Pace")
-            yield Select([(p, p) for p in ("recorded", "lockstep", "max")], value="recorded",
-                         allow_blank=False, id="pace")
+            yield self.pace
             yield Label("Rate")
-            yield Input("1", id="rate")
+            yield self.rate
             yield Label("Compare")
-            yield Select([(m, m) for m in ("structure", "exact", "none")], value="structure",
-                         allow_blank=False, id="compare")
+            yield self.compare
         with Horizontal(classes="form"):
             yield Label("Faults")
-            yield Select(FAULT_CHOICES, value="none", allow_blank=False, id="faults")
+            yield self.faults
             yield Label("SPECs (; between)")
-            yield Input("", id="fault-specs", disabled=True,
-                        placeholder="as record --fault: drop dir:s2c every:2; delay:200ms")
+            yield self.fault_specs
         with Horizontal(classes="buttons"):
             yield Button("Start (F5)", id="start", variant="primary")
-            yield Button("Pause (F6)", id="pause", disabled=True)
+            yield self.pause_button
             yield Button("Step (F7)", id="step")
-            yield Button("Stop (F8)", id="stop", disabled=True)
-        yield Static(Text(f"Replay {printable(self.path)}: choose a target and start."), id="replay-status")
+            yield self.stop_button
+        yield self.status_line
         with Vertical():
             yield self.comparisons
-            yield Static("", id="diff")
+            yield self.diff
         yield Footer()
 
     def on_mount(self) -> None:
@@ -155,30 +168,30 @@ class ReplayScreen(Screen):
         from whiztap.sniffer.nettext import parse_address
         from whiztap.sniffer.replay.options import Pace, ReplayOptions
 
-        target = parse_address(self.query_one("#target", Input).value.strip(), None, "target")  # AddressError is a ValueError
+        target = parse_address(self.target.value.strip(), None, "target")  # AddressError is a ValueError
         try:
-            rate = float(self.query_one("#rate", Input).value)
+            rate = float(self.rate.value)
         except ValueError:
             raise ValueError("rate: a number such as 1 (as recorded) or 2 (twice as fast)") from None
         if rate <= 0:
             raise ValueError("rate must be above 0")
         try:
-            rules = CompareRules.parse(str(self.query_one("#compare", Select).value))
+            rules = CompareRules.parse(str(self.compare.value))
         except CompareError as e:
             raise ValueError(str(e)) from None
         if output is not None:
             self._check_output(output)
-        password = self.query_one("#password", Input).value
-        faults = self._typed_faults() if self.query_one("#faults", Select).value == "typed" else ()
+        password = self.password.value
+        faults = self._typed_faults() if self.faults.value == "typed" else ()
         return ReplayOptions(target=target, password=password.encode() if password else None,
-                             pace=Pace(str(self.query_one("#pace", Select).value)), rate=rate, rules=rules,
+                             pace=Pace(str(self.pace.value)), rate=rate, rules=rules,
                              output=output, faults=faults)
 
     def _typed_faults(self) -> tuple[FaultSpec, ...]:
         """The typed SPECs, parsed; FaultSpecError (a ValueError) for the first that does not read."""
         from whiztap.analyzer.mitm.spec import FaultSpecError, parse_fault
 
-        specs = split_specs(self.query_one("#fault-specs", Input).value)
+        specs = split_specs(self.fault_specs.value)
         if not specs:
             raise FaultSpecError("type a SPEC, such as drop dir:s2c kind:response every:2, or choose no faults")
         return tuple(parse_fault(spec) for spec in specs)
@@ -203,7 +216,7 @@ class ReplayScreen(Screen):
         from whiztap.analyzer.mitm.spec import FaultSpecError
         from whiztap.tui.replay_runner import ReplayRunner
 
-        output = self.query_one("#output", Input).value.strip() or None
+        output = self.output.value.strip() or None
         try:
             options = self._options(output)
         except FaultSpecError as e:
@@ -212,7 +225,7 @@ class ReplayScreen(Screen):
         except ValueError as e:
             self.notify(str(e), severity="error", timeout=6, markup=False)
             return False
-        from_recording = self.query_one("#faults", Select).value == "recording"
+        from_recording = self.faults.value == "recording"
         self.runner = ReplayRunner(self.path, options, start_paused=paused, faults_from_recording=from_recording)
         self.comparisons.runner = self.runner
         self.comparisons.tail = True
@@ -259,7 +272,7 @@ class ReplayScreen(Screen):
 
     @on(Select.Changed, "#faults")
     def _on_faults_chosen(self, event: Select.Changed) -> None:
-        specs = self.query_one("#fault-specs", Input)
+        specs = self.fault_specs
         specs.disabled = event.value != "typed"
         self._fault_error("")
         if not specs.disabled:
@@ -271,12 +284,12 @@ class ReplayScreen(Screen):
 
     def _fault_error(self, error: str) -> None:
         """Say on the SPEC field what is wrong with it (or nothing)."""
-        specs = self.query_one("#fault-specs", Input)
+        specs = self.fault_specs
         specs.set_class(bool(error), "-invalid")
         specs.border_subtitle = Text(error) if error else None  # quotes what was typed: never markup
         if error:
             specs.focus()
-            self.query_one("#replay-status", Static).update(Text(f"faults: {error}", style="red"))
+            self.status_line.update(Text(f"faults: {error}", style="red"))
 
     @on(VirtualList.Moved, "#comparisons")
     def _on_moved(self, message: VirtualList.Moved) -> None:
@@ -293,10 +306,10 @@ class ReplayScreen(Screen):
             self._shown_finished = runner
         state = runner.state
         running = not runner.done
-        self.query_one("#pause", Button).disabled = not running
-        self.query_one("#stop", Button).disabled = not running
-        self.query_one("#pause", Button).label = "Resume (F6)" if state == "paused" else "Pause (F6)"
-        self.query_one("#replay-status", Static).update(self._status_text(runner))
+        self.pause_button.disabled = not running
+        self.stop_button.disabled = not running
+        self.pause_button.label = "Resume (F6)" if state == "paused" else "Pause (F6)"
+        self.status_line.update(self._status_text(runner))
         self.comparisons.border_subtitle = self._faults_text(runner)
 
     @staticmethod
@@ -328,7 +341,7 @@ class ReplayScreen(Screen):
         return text
 
     def _show_diff(self, row: int | None) -> None:
-        diff = self.query_one("#diff", Static)
+        diff = self.diff
         if row is None or self.runner is None:
             diff.update("")
             return

@@ -24,7 +24,11 @@ SAME_NS = 1_000_000  # latencies closer than this are the same: the proxy's own 
 
 
 class ChannelPlot(Horizontal):
-    """One channel: its name, its values over time, and the latest value."""
+    """One channel: its name, its values over time, and the latest value.
+
+    Its parts are made here, not found by a query: a plot is mounted while
+    the pane is shown, and until Textual has composed it a query finds
+    nothing (``s`` pressed twice at once updated a plot in that gap)."""
 
     DEFAULT_CSS = """
     ChannelPlot { height: 1; }
@@ -36,17 +40,19 @@ class ChannelPlot(Horizontal):
     def __init__(self, kind: str, channel: int) -> None:
         super().__init__(id=f"plot-{kind}-{channel}")
         self.kind, self.channel = kind, channel
+        self.sparkline = Sparkline([], summary_function=lambda values: sum(values) / len(values))
+        self.value = Label("", classes="value")
 
     def compose(self) -> ComposeResult:
         yield Label(f"{self.kind} {self.channel}", classes="name")
-        yield Sparkline([], summary_function=lambda values: sum(values) / len(values))
-        yield Label("", classes="value")
+        yield self.sparkline
+        yield self.value
 
     def show(self, points: list[tuple[int, float]]) -> None:
         values = [v for _, v in points]
-        self.query_one(Sparkline).data = values
+        self.sparkline.data = values
         if values:
-            self.query_one(".value", Label).update(f"{values[-1]:g} ({min(values):g}-{max(values):g})")
+            self.value.update(f"{values[-1]:g} ({min(values):g}-{max(values):g})")
 
 
 def _rows(out: Text, latencies: dict[str, LatencyStats]) -> None:
@@ -90,30 +96,37 @@ class StatsPane(VerticalScroll):
         super().__init__(id=id)
         self.model = model
         self.live = live
+        # the parts the timer updates, made here as ChannelPlot's are
+        self.rate_title = Static("Frames per second", classes="title", id="rate-title")
+        self.rates = {direction: (Sparkline([]), Label("", classes="now")) for direction in ("c2s", "s2c")}
+        self.latency = Static("no answered request yet", id="latency")
+        self.plots = Vertical(id="plots")
+        self.plot_of: dict[tuple[str, int], ChannelPlot] = {}
 
     def compose(self) -> ComposeResult:
-        yield Static("Frames per second", classes="title", id="rate-title")
+        yield self.rate_title
         for direction, label in (("c2s", "client →"), ("s2c", "server ←")):
+            sparkline, now = self.rates[direction]
             with Horizontal(classes="rate", id=f"rate-{direction}"):
                 yield Label(label)
-                yield Sparkline([])
-                yield Label("", classes="now")
+                yield sparkline
+                yield now
         yield Static("Latency", classes="title")
-        yield Static("no answered request yet", id="latency")
+        yield self.latency
         yield Static("Channels (sensor value, servo position)", classes="title")
-        yield Vertical(id="plots")
+        yield self.plots
 
     def update_stats(self) -> None:
         window = LIVE_WINDOW_S if self.live else None
         c2s, s2c = self.model.store.rate_series(window)
         span = f"last {len(c2s)} s" if self.live else f"{len(c2s)} s recorded"
-        self.query_one("#rate-title", Static).update(f"Frames per second ({span})")
+        self.rate_title.update(f"Frames per second ({span})")
         for direction, series in (("c2s", c2s), ("s2c", s2c)):
-            row = self.query_one(f"#rate-{direction}")
-            row.query_one(Sparkline).data = series
+            sparkline, now = self.rates[direction]
+            sparkline.data = series
             peak = max(series, default=0)
-            row.query_one(".now", Label).update(f"{series[-1] if series else 0:,}/s (max {peak:,})")
-        self.query_one("#latency", Static).update(self._latency_table())
+            now.update(f"{series[-1] if series else 0:,}/s (max {peak:,})")
+        self.latency.update(self._latency_table())
         self._plots()
 
     def _latency_table(self) -> Text:
@@ -136,12 +149,9 @@ class StatsPane(VerticalScroll):
         return out
 
     def _plots(self) -> None:
-        holder = self.query_one("#plots", Vertical)
-        for (kind, channel), points in self.model.channel_values().items():
-            plots = holder.query(f"#plot-{kind}-{channel}")
-            if plots:
-                plots.first(ChannelPlot).show(points)
-            else:
-                plot = ChannelPlot(kind, channel)
-                holder.mount(plot)
-                plot.call_after_refresh(plot.show, points)
+        for key, points in self.model.channel_values().items():
+            plot = self.plot_of.get(key)
+            if plot is None:
+                plot = self.plot_of[key] = ChannelPlot(*key)
+                self.plots.mount(plot)
+            plot.show(points)
