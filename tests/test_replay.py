@@ -383,17 +383,39 @@ async def test_command_dry_run_prints_the_plan_and_sends_nothing(recorded):
     assert stdout.startswith("conn 1 (winsock,")
 
 
-async def test_ctrl_c_stops_the_replay_with_what_was_found_so_far(recorded):
+async def _interrupted(recorded, *args: str) -> tuple[int, bytes, bytes]:  # noqa: ANN001 - a Path
+    """A replay stopped by Ctrl-C once its first write has left: status, stdout, stderr."""
     async with simulator(seed=1) as sim:
         proc = await asyncio.create_subprocess_exec(
             WHIZTAP, "replay", str(recorded), "--target", f"{LOCAL}:{sim.port}", "--password", PASSWORD,
-            "--rate", "0.001", "-v", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-        while b" c1 > " not in await asyncio.wait_for(proc.stdout.readline(), WAIT):
-            pass  # until the first write has left
+            "--rate", "0.001", *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        if "--format" in args:  # prints nothing until the end: the server has answered a first request
+            await asyncio.wait_for(_until_answered(sim), WAIT)
+        else:
+            while b" c1 > " not in await asyncio.wait_for(proc.stdout.readline(), WAIT):
+                pass  # until the first write has left
         proc.send_signal(signal.SIGINT)
         out, err = await asyncio.wait_for(proc.communicate(), WAIT)
-    assert proc.returncode == 2 and err == b"whiztap: interrupted\n"
+    return proc.returncode, out, err
+
+
+async def _until_answered(sim) -> None:  # noqa: ANN001 - a Simulator
+    while not sim.stats.answers_sent:
+        await asyncio.sleep(0.01)
+
+
+async def test_ctrl_c_stops_the_replay_with_what_was_found_so_far_and_one_status(recorded):
+    code, out, err = await _interrupted(recorded, "-v")
+    assert code == 2 and err == b"whiztap: interrupted\n"
     assert re.search(rb"^replayed 1 connection\(s\), \d+ writes; answers: ", out, re.M)
+    assert b"result:" not in out  # 'interrupted' is the one status, not a verdict on half a replay too
+
+
+async def test_ctrl_c_in_json_says_the_status_the_command_exits_with(recorded):
+    code, out, err = await _interrupted(recorded, "--format", "json")
+    assert code == 2 and err == b"whiztap: interrupted\n"
+    report = json.loads(out)
+    assert report["stopped"] is True and report["exit_status"] == 2 and report["ok"] is False
 
 
 @pytest.mark.parametrize("sent", [b"", b"repl"])

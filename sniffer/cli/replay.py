@@ -238,7 +238,8 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
         _echo(f"drift: none measured (pace {options.pace} keeps no schedule)")
     if options.output:
         _echo(f"wrote {options.output}")
-    _echo("result: " + ("all answers matched" if result.ok else "DIFFERENCES (exit status 1)"))
+    if not result.stopped:  # stopped: 'interrupted' (exit status 2) is the one status, said by the command
+        _echo("result: " + ("all answers matched" if result.ok else "DIFFERENCES (exit status 1)"))
     return result
 
 

@@ -123,11 +123,13 @@ class ReplayResult:
 
     @property
     def ok(self) -> bool:
-        return self.error is None and not self.differences
+        """The whole replay ran and every answer matched."""
+        return self.error is None and not self.stopped and not self.differences
 
     @property
     def exit_status(self) -> int:
-        return 2 if self.error is not None else 0 if self.ok else 1
+        """0 all matched, 1 a difference, 2 an error or stopped (Ctrl-C: 'interrupted')."""
+        return 2 if self.error is not None or self.stopped else 0 if self.ok else 1
 
     def as_dict(self) -> dict:
         """The result as plain data (``whiztap replay --format json``); bytes as
