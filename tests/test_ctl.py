@@ -16,11 +16,14 @@ import os
 import shutil
 import socket
 import tempfile
+import threading
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner, Result
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from whiztap.analyzer.cli.root import cli
 from whiztap.sniffer.mitm import control_client
@@ -278,3 +281,70 @@ async def test_the_live_tui_and_the_demo_say_where_their_control_api_is(tmp_path
     [line] = said
     assert line.startswith(f"control: {runtime}/control-") and line.endswith(".sock")
     assert list(runtime.iterdir()) == []
+
+
+# -- bytes from outside, drawn ---------------------------------------------------------------------------
+
+
+class _Answering:
+    """A Unix socket server in a thread that answers each connection's request with ``answer``."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = str(folder / "peer.sock")
+        self.answer = b""
+        self._sock = socket.socket(socket.AF_UNIX)
+        self._sock.bind(self.path)
+        self._sock.listen(8)
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                conn, _ = self._sock.accept()
+            except OSError:
+                return
+            with conn:
+                got = b""
+                while b"\r\n\r\n" not in got:
+                    data = conn.recv(4096)
+                    if not data:
+                        break
+                    got += data
+                with contextlib.suppress(OSError):
+                    conn.sendall(self.answer)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+@pytest.fixture(scope="module")
+def answering() -> Iterator[_Answering]:
+    folder = Path(tempfile.mkdtemp(prefix="wt-", dir="/tmp"))
+    server = _Answering(folder)
+    yield server
+    server.close()
+    shutil.rmtree(folder)
+
+
+answers = st.one_of(
+    st.binary(max_size=300),
+    st.builds(lambda status, headers, body: f"HTTP/1.1 {status} X\r\n{headers}\r\n".encode() + body,
+              st.integers(100, 999),
+              st.lists(st.sampled_from(["Server: whiztap/0.1.0", "Content-Length: 2", "Content-Length: 99",
+                                        "Transfer-Encoding: chunked", "Content-Type: application/json",
+                                        "Server: other"]), max_size=4).map(lambda h: "".join(x + "\r\n" for x in h)),
+              st.one_of(st.binary(max_size=100), st.sampled_from([b"{}", b'{"error": "no"}', b"[1]", b"2\r\n{}\r\n0\r\n\r\n"]))))
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(answer=answers)
+def test_whatever_a_peer_answers_ctl_says_one_line_or_takes_json(answering, answer):
+    """The client's only outcomes: the answer's JSON, or ControlClientError
+    (which ctl shows as one line); never another exception."""
+    answering.answer = answer
+    client = control_client.ControlClient(Endpoint(path=answering.path))
+    try:
+        client.call("GET", "/state")
+    except control_client.ControlClientError as e:
+        assert "\n" not in str(e) and str(e)
