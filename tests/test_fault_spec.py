@@ -9,13 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from whiztap.analyzer.analysis.item_filter import ItemFilter, parse_filter
+from whiztap.analyzer.mitm.fault_file import load_faults
+from whiztap.analyzer.mitm.faults import MAX_FAULTS
 from whiztap.analyzer.mitm.spec import (
     ACTIONS,
     ACTIONS_WITH_ARGUMENT,
     OPTIONS,
     FaultSpec,
     FaultSpecError,
-    load_faults,
     parse_duration,
     parse_fault,
 )
@@ -50,7 +51,8 @@ EXAMPLES = [
     ("close dir:c2s after:10", dict(action="close", after_frames=10, after_ns=None)),
     ("drop prob:0.25 for:1.5s conn:2,3", dict(action="drop", prob=0.25, for_ns=1500 * MS,
                                              select=ItemFilter(conns=frozenset({2, 3})))),
-    ("drop violations hello", dict(select=ItemFilter(violations_only=True, text="hello"))),
+    ("drop violations text:hello", dict(select=ItemFilter(violations_only=True, text="hello"))),
+    ('drop text:"a b" dir:c2s', dict(select=ItemFilter(direction="c2s", text="a b"))),
     ("delay:250 jitter:1m", dict(delay_ns=250 * MS, jitter_ns=60 * S)),
     ("replace:'rr1-0--0--2-ss1\\r\\n'", dict(replacement=b"rr1-0--0--2-ss1\r\n")),
     ('replace:"sr1-\\x01000-ss1"', dict(replacement=b"sr1-\x01000-ss1")),
@@ -152,6 +154,10 @@ ERRORS = [
     ("drop dup", "dup"),
     ("drop delay:5ms", "delay:5ms"),
     ("replace:'\ud800'", "replace:"),
+    ("drop hello", "hello"),
+    ("drop text:", "text:"),
+    ("drop text:a text:b", "text:b"),
+    ("drop dir", "dir"),
 ]
 
 
@@ -168,7 +174,65 @@ def test_an_unknown_word_lists_the_words_there_are():
     with pytest.raises(FaultSpecError) as caught:
         parse_fault("delay:200ms dri:s2c")
     assert str(caught.value).startswith("unknown word 'dri:s2c' in fault 'delay:200ms dri:s2c' "
-                                        "(filter words: dir: kind: ch: conn: violations, options: nth: every: ")
+                                        "(filter words: dir: kind: ch: conn: text: violations, options: nth: every: ")
+    assert str(caught.value).endswith("; did you mean dir:s2c?")
+
+
+# A word without a colon was text to find: these typos made faults that never acted, silently.
+BARE_WORDS = [
+    ("delay:200 ms dir:s2c", "ms", "did you mean delay:200ms?"),
+    ("drop dir:s2c every2", "every2", "did you mean every:2?"),
+    ("drop ch:12 dir:s2c nth:1 respones", "respones", "did you mean kind:response?"),
+    ("bandwidth:2 kB/s", "kB/s", "did you mean bandwidth:2kB/s?"),
+    ("drop dirs2c", "dirs2c", "did you mean dir:s2c?"),
+    ("drop s2c", "s2c", "did you mean dir:s2c?"),
+    ("drop violation", "violation", "did you mean violations?"),
+    ("drop hello", "hello", "words after the action are KEY:VALUE or violations"),
+    ('drop "a b"', "a b", "text:'a b'"),
+]
+
+
+@pytest.mark.parametrize("text, word, hint", BARE_WORDS, ids=[t for t, _, _ in BARE_WORDS])
+def test_a_bare_word_is_an_error_that_guesses_what_was_meant(text, word, hint):
+    with pytest.raises(FaultSpecError) as caught:
+        parse_fault(text)
+    message = str(caught.value)
+    assert message.startswith(f"bare word {word!r} in fault {text!r}: ") and "\n" not in message
+    assert hint in message
+    assert "text:" in message  # how to find text in frames, now that a bare word does not
+
+
+def test_text_to_find_is_an_explicit_word_and_its_canonical_form_quotes_it():
+    spec = parse_fault('drop text:"sensor 12" dir:c2s')
+    assert spec.select.text == "sensor 12"
+    assert spec.describe() == "drop dir:c2s text:'sensor 12'"
+    assert parse_fault(spec.describe()).select == spec.select
+    assert parse_fault("drop TEXT:Ok").select.text == "Ok"
+
+
+EXPLAINED = [
+    ("delay:200ms dir:s2c", "delay 200 ms, s2c, all frames"),
+    ("drop dir:s2c kind:response ch:12 every:2",
+     "drop, s2c, every 2nd frame of kind response on channel 12 of each connection"),
+    ("dup dir:c2s kind:command nth:1", "dup, c2s, only the 1st frame of kind command of each connection"),
+    ("delay:1.5s jitter:50ms", "delay 1500 ms ± 50 ms, both directions, all frames"),
+    ("slice:2-8 pause:5ms dir:s2c", "slice in pieces of 2 to 8 bytes, 5 ms apart, s2c, all frames"),
+    ("bandwidth:2kB/s dir:s2c", "bandwidth 2 kB/s, s2c, all frames"),
+    ("replace:'cr1-12--999--0-ss1\\r\\n' ch:12,13", "replace with 'cr1-12--999--0-ss1\\r\\n', "
+                                                      "both directions, all frames on channels 12, 13"),
+    ("reset after:3s", "reset each connection 3 s after it opens (or the fault is added)"),
+    ("close dir:c2s after:10", "close, c2s, all frames, right after the 10th such frame of each connection"),
+    ("drop prob:0.25 for:2m conn:2 violations text:ok",
+     "drop, both directions, all frames of connection 2 that break a rule containing 'ok', "
+     "each with probability 0.25, for 2 min once it begins"),
+    ("blackhole dir:s2c after:2s kind:image",
+     "blackhole, s2c, all frames of kind image, from 2 s after the connection opens (or the fault is added)"),
+]
+
+
+@pytest.mark.parametrize("text, words", EXPLAINED, ids=[t for t, _ in EXPLAINED])
+def test_a_fault_says_what_it_will_do_in_words(text, words):
+    assert parse_fault(text).explain() == words
 
 
 @pytest.mark.parametrize("text", ["", "   ", 'drop "dir:s2c'])
@@ -218,6 +282,27 @@ def test_a_bad_file_is_one_line_naming_it(tmp_path, content, words):
         assert word in message
 
 
+@pytest.mark.parametrize("content", [
+    "[faults.x]\nspec = " + "[" * 5000 + "]" * 5000 + "\n",
+    "[faults.x]\nspec = " + "{a = " * 5000 + "1" + "}" * 5000 + "\n",
+])
+def test_a_file_nested_thousands_deep_is_one_line(tmp_path, content):
+    path = tmp_path / "deep.toml"
+    path.write_text(content)
+    with pytest.raises(FaultSpecError) as caught:
+        load_faults(path)
+    assert str(caught.value) == f"{path}: not a fault file: its values are nested too deeply to read"
+
+
+def test_a_file_of_more_faults_than_may_be_in_force_is_one_line(tmp_path):
+    path = tmp_path / "many.toml"
+    path.write_text("".join(f'[faults.f{i}]\nspec = "drop ch:{i}"\n' for i in range(MAX_FAULTS + 1)))
+    with pytest.raises(FaultSpecError, match=f"^{path}: 257 faults; at most 256 may be in force at once$"):
+        load_faults(path)
+    path.write_text("".join(f'[faults.f{i}]\nspec = "drop ch:{i}"\n' for i in range(MAX_FAULTS)))
+    assert len(load_faults(path)) == MAX_FAULTS
+
+
 def test_a_missing_or_unreadable_file_names_it(tmp_path):
     for path, why in ((tmp_path / "nowhere.toml", "no such file"), (tmp_path, "cannot read")):
         with pytest.raises(FaultSpecError, match=why) as caught:
@@ -234,7 +319,7 @@ def test_a_missing_or_unreadable_file_names_it(tmp_path):
 _WORDS = st.sampled_from([
     *ACTIONS, *(f"{a}:" for a in ACTIONS), *(f"{o}:" for o in OPTIONS), "dir:", "kind:", "ch:", "conn:",
     "since:", "violations", "!", "200ms", "2kB/s", "1-3", "s2c", "response", "0", "1", "2", "0.5", "'", '"',
-    "\\x0", "\\r", ":", ",", " ", "nan", "\ud800", "é", "-",
+    "\\x0", "\\r", ":", ",", " ", "nan", "\ud800", "é", "-", "text:", "every2", "ms", "kB/s", "respones",
 ])
 
 
@@ -248,3 +333,4 @@ def test_any_text_parses_or_raises_a_fault_spec_error(text):
     else:
         assert isinstance(spec, FaultSpec) and spec.action in ACTIONS
         assert parse_fault(spec.describe()).describe() == spec.describe()
+        assert spec.explain()

@@ -115,13 +115,16 @@ def parse_word(word: str, options: dict[str, Any]) -> bool:
 
 
 def parse_filter(text: str) -> ItemFilter:
-    """The filter bar's words as an ItemFilter (an empty text accepts everything)."""
+    """The filter bar's words as an ItemFilter (an empty text accepts everything).
+    Any other word is text to find, as is ``text:WORD``, the only way a fault
+    SPEC takes it (analyzer/mitm/spec.py): both are accepted here."""
     try:
         words = shlex.split(text)
     except ValueError as e:
         raise FilterSyntaxError(str(e)) from None
     options: dict[str, Any] = {}
-    free = [word for word in words if not parse_word(word, options) and not _intervention_word(word, options)]
+    free = [word[5:] if word[:5].lower() == "text:" else word for word in words
+            if not parse_word(word, options) and not _intervention_word(word, options)]
     return ItemFilter(text=" ".join(free), **options)
 
 

@@ -17,12 +17,14 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass, field
 
-from whiztap.analyzer.mitm.spec import FaultSpec
-from whiztap.analyzer.protocol.codec import checksum_offset
+from whiztap.analyzer.mitm.spec import CONNECTION_ACTIONS, FaultSpec
 from whiztap.analyzer.mitm.frame import Frame
+from whiztap.analyzer.protocol.codec import checksum_offset
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action, Cause, Source
 
-CONNECTION_ACTIONS = ("reset", "close")
+MAX_FAULTS = 256  # faults in force at once (a file of faults, --fault, the control API, the TUI)
 MAX_DUP_FAULTS = 64  # dup faults in force at once: each frame they all choose goes out at most 65 times
 
 
@@ -46,7 +48,8 @@ class Fault:
     added_ns: int
     id: int = 0  # given by the controller: 1, 2, ... in the order added
     enabled: bool = True
-    hits: int = 0
+    hits: int = 0  # times it acted
+    matched: int = 0  # frames its filter words chose (whether or not it acted on them), of every connection
     _counts: dict[int, _Count] = field(default_factory=dict)
 
     @property
@@ -59,6 +62,22 @@ class Fault:
         return self.enabled
 
     @property
+    def direction(self) -> Direction | None:
+        """The direction it chooses frames from (None: both)."""
+        direction = self.spec.select.direction
+        return Direction(direction) if direction else None
+
+    @property
+    def quiet(self) -> bool:
+        """It chose no frame and never acted (``quiet.py``)."""
+        return not self.matched and not self.hits
+
+    def chooses(self, direction: Direction, kind: ItemKind) -> bool:
+        """It may choose a frame of ``direction`` and ``kind`` (``Stages`` offers it no other)."""
+        select = self.spec.select
+        return (not select.direction or select.direction == direction) and (not select.kinds or kind in select.kinds)
+
+    @property
     def cause(self) -> Cause:
         return Cause(Source.FAULT, self.name, self.spec.text)
 
@@ -68,7 +87,7 @@ class Fault:
 
     def as_dict(self) -> dict:
         return {"id": self.id, "name": self.name, "spec": self.spec.text, "action": self.spec.action,
-                "enabled": self.enabled, "hits": self.hits}
+                "enabled": self.enabled, "hits": self.hits, "matched": self.matched, "meaning": self.spec.explain()}
 
     def forget(self, conn: int) -> None:
         self._counts.pop(conn, None)
@@ -87,6 +106,7 @@ class Fault:
         spec = self.spec
         if not self.enabled or frame.dropped or not spec.selects(frame.conn, frame.observation):
             return
+        self.matched += 1
         count = self._counts.get(frame.conn)
         if count is None:
             count = self._counts[frame.conn] = _Count(max(opened_ns, self.added_ns))

@@ -11,9 +11,13 @@ The ACTION comes first; ``ACTIONS`` describes each:
 
 FILTER WORDS choose the frames, and are the TUI's filter bar words
 (analyzer/analysis/item_filter.py): ``dir:c2s|s2c``, ``kind:K[,K]``,
-``ch:N[,N]``, ``conn:N[,N]``, ``violations``, and any word without a colon is
-text to find in the frame's bytes or meaning.  ``since:`` and ``until:`` are not
-taken: a fault says when with ``after:`` and ``for:``.
+``ch:N[,N]``, ``conn:N[,N]``, ``violations``, and ``text:WORD`` (quotes for
+spaces: ``text:"a b"``), text to find in the frame's bytes or meaning.  Unlike
+the filter bar, a word without a colon (but ``violations``) is an error, with a
+guess at what was meant: a typo such as ``every2`` or ``delay:200 ms`` would
+otherwise be taken as text to find and the fault would silently never act.
+``since:`` and ``until:`` are not taken: a fault says when with ``after:`` and
+``for:``.
 
 OPTIONS (``OPTIONS`` describes each): ``nth:N`` or ``every:N`` (not both),
 ``prob:P`` (0 to 1), ``after:D`` or ``after:N`` (a duration, or a count of
@@ -35,35 +39,25 @@ backslash: ``replace:'cr1-12--999--0-ss1\\r\\n'``.  Examples::
     bandwidth:2kB/s dir:s2c
     blackhole dir:s2c after:2s
 
-``--faults FILE`` reads named faults from a TOML file, one table under
-``faults`` per fault, named by its key, with the SPEC as ``spec`` (and no other
-key)::
-
-    [faults.slow-server]
-    spec = "delay:200ms dir:s2c"
-
-    [faults.flaky-answers]
-    spec = "drop dir:s2c kind:response every:2"
-
-This module only says what a fault is; carrying it out is the proxy's.  Every
-error is a FaultSpecError of one line that names the offending word (and the
-file and fault, for a file).
+This module only says what a fault is (``fault_file.py`` reads a file of
+them; carrying them out is the proxy's).  Every error is a FaultSpecError of
+one line that names the offending word.
 """
 
 from __future__ import annotations
 
 import re
 import shlex
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
-from pathlib import Path
 from typing import Any
 
 from whiztap.analyzer.analysis.item_filter import FilterSyntaxError, ItemFilter, parse_word
+from whiztap.analyzer.mitm.hints import did_you_mean
+from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Observation
-from whiztap.analyzer.protocol.text import escape, printable, unescape
+from whiztap.analyzer.protocol.text import escape, shorten, unescape
 
 ACTIONS: dict[str, str] = {
     "delay": "delay:D  hold each chosen frame for the duration D before forwarding it",
@@ -78,6 +72,7 @@ ACTIONS: dict[str, str] = {
     "close": "close  close the connection (FIN)",
 }
 ACTIONS_WITH_ARGUMENT = {"delay", "replace", "slice", "bandwidth"}
+CONNECTION_ACTIONS = ("reset", "close")  # they end the connection rather than act on a frame
 MAX_REPLACEMENT = 64 << 10  # bytes a replace: fault may deliver in place of one frame (memory stays bounded)
 FILTER_WORDS: dict[str, str] = {
     "dir": "dir:c2s|s2c  frames of one direction",
@@ -85,6 +80,7 @@ FILTER_WORDS: dict[str, str] = {
     "ch": "ch:N[,N]  frames about these channels",
     "conn": "conn:N[,N]  frames of these connections",
     "violations": "violations  frames that break a rule",
+    "text": "text:WORD  frames whose bytes or meaning contain WORD (quotes for spaces: text:\"a b\")",
 }
 OPTIONS: dict[str, str] = {
     "nth": "nth:N  only the Nth chosen frame (1 is the first)",
@@ -96,6 +92,9 @@ OPTIONS: dict[str, str] = {
     "pause": "pause:D  time between slices (1ms unless given)",
 }
 DEFAULT_PAUSE_NS = 1_000_000
+# what a word that is not taken may have meant (hints.did_you_mean): the KEY: words, and their known values
+_HINT_KEYS = (*OPTIONS, *(w for w in FILTER_WORDS if w != "violations"))
+_HINT_VALUES = {"dir": ("c2s", "s2c"), "kind": tuple(k.value for k in ItemKind if k is not ItemKind.PASSWORD)}
 _WORD_LIST = ("filter words: " + " ".join(f"{w}:" for w in FILTER_WORDS if w != "violations")
               + " violations, options: " + " ".join(f"{w}:" for w in OPTIONS))
 _ACTION_LIST = " ".join(f"{a}:" if a in ACTIONS_WITH_ARGUMENT else a for a in ACTIONS)
@@ -143,6 +142,62 @@ class FaultSpec:
         action, the filter words, then the options, each in one fixed order."""
         return " ".join([self._action_word(), *_filter_words(self.select), *self._option_words()])
 
+    def explain(self) -> str:
+        """What the fault will do, in words (``delay 200 ms, s2c, all frames``):
+        what ``record``, ``tui`` and ``demo`` print for each fault at start, so
+        a SPEC that says something else than meant is seen before traffic flows."""
+        direction = self.select.direction or "both directions"
+        if self.action in CONNECTION_ACTIONS and self.after_ns is not None:  # on a timer: no frame is chosen
+            return f"{self.action} each connection {_spoken(self.after_ns)} after it opens (or the fault is added)"
+        return ", ".join([self._doing(), direction, self._choosing(), *self._when()])
+
+    def _doing(self) -> str:
+        if self.action == "delay":
+            return f"delay {_spoken(self.delay_ns)}" + (f" ± {_spoken(self.jitter_ns)}" if self.jitter_ns else "")
+        if self.action == "replace":
+            return f"replace with '{shorten(escape(self.replacement or b''), 40)}'"
+        if self.action == "slice" and self.slice_sizes is not None:
+            low, high = self.slice_sizes
+            return f"slice in pieces of {low if low == high else f'{low} to {high}'} bytes, " \
+                   f"{_spoken(self.pause_ns)} apart"
+        if self.action == "bandwidth" and self.rate is not None:
+            return f"bandwidth {_apart(_format_rate(self.rate))}"
+        return self.action
+
+    def _choosing(self) -> str:
+        """The frames chosen: how many of which."""
+        select = self.select
+        if select.kinds:
+            frames = "frames of kind " + " or ".join(sorted(str(k) for k in select.kinds))
+        else:
+            frames = "frames"
+        if select.channels:
+            frames += f" on channel{'s' if len(select.channels) > 1 else ''} " + _listed(select.channels)
+        if select.conns:
+            frames += f" of connection{'s' if len(select.conns) > 1 else ''} " + _listed(select.conns)
+        if select.violations_only:
+            frames += " that break a rule"
+        if select.text:
+            frames += f" containing '{shorten(select.text, 40)}'"
+        singular = frames.replace("frames", "frame", 1)
+        if self.nth is not None:
+            return f"only the {_ordinal(self.nth)} {singular} of each connection"
+        if self.every is not None and self.every > 1:
+            return f"every {_ordinal(self.every)} {singular} of each connection"
+        return f"all {frames}"
+
+    def _when(self) -> list[str]:
+        when = [] if self.prob is None else [f"each with probability {self.prob:g}"]
+        if self.after_ns is not None:
+            when.append(f"from {_spoken(self.after_ns)} after the connection opens (or the fault is added)")
+        if self.after_frames and self.action in CONNECTION_ACTIONS:
+            when.append(f"right after the {_ordinal(self.after_frames)} such frame of each connection")
+        elif self.after_frames:
+            when.append(f"once {self.after_frames} such frames of each connection went by")
+        if self.for_ns is not None:
+            when.append(f"for {_spoken(self.for_ns)} once it begins")
+        return when
+
     def _action_word(self) -> str:
         if self.action == "delay":
             return f"delay:{_format_duration(self.delay_ns)}"
@@ -176,7 +231,7 @@ def _filter_words(select: ItemFilter) -> list[str]:
     if select.violations_only:
         words.append("violations")
     if select.text:
-        words.append(shlex.quote(select.text))
+        words.append("text:" + shlex.quote(select.text))
     return words
 
 
@@ -187,6 +242,26 @@ def _format_duration(ns: int) -> str:
         if ns % _DURATION_UNITS[unit] == 0:
             return f"{ns // _DURATION_UNITS[unit]}{unit}"
     return f"{ns}ns"
+
+
+def _spoken(ns: int) -> str:
+    """A duration as people read it: ``1500 ms``, ``2 s``, ``3 min``."""
+    return _apart(_format_duration(ns)).replace(" m", " min") if ns % _DURATION_UNITS["m"] == 0 and ns else \
+        _apart(_format_duration(ns))
+
+
+def _apart(text: str) -> str:
+    """``200ms`` as ``200 ms``: the number, a space, the unit."""
+    unit = text.lstrip("0123456789")
+    return f"{text[:len(text) - len(unit)]} {unit}"
+
+
+def _ordinal(n: int) -> str:
+    return f"{n}{'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
+
+
+def _listed(numbers: frozenset[int]) -> str:
+    return ", ".join(str(n) for n in sorted(numbers))
 
 
 def _format_rate(rate: int) -> str:
@@ -306,18 +381,23 @@ def _action(word: str, text: str) -> dict[str, Any]:
     return {"action": action, **_value(_ACTION_FIELDS, word, text)}
 
 
-def _word(word: str, text: str, select: dict[str, Any], options: dict[str, str], free: list[str]) -> None:
-    """Sort one word after the action into the filter's fields (``select``),
-    the options (``options``: key -> the word) or the free text."""
-    key, sep, _ = word.partition(":")
+def _word(word: str, text: str, select: dict[str, Any], options: dict[str, str], previous: str) -> None:
+    """Sort one word after the action into the filter's fields (``select``,
+    ``text:`` included) or the options (``options``: key -> the word);
+    FaultSpecError for any other, with a guess at what was meant (``previous``
+    is the word before it: ``delay:200 ms`` meant ``delay:200ms``)."""
+    key, sep, value = word.partition(":")
     key = key.lower()
     if key in ACTIONS:
         raise FaultSpecError(f"second action {word!r} in fault {text!r}: one action per fault, first")
     if sep and key in ("since", "until"):
         raise FaultSpecError(f"word {word!r} in fault {text!r} is not allowed: a fault says when with after: and for:")
-    if sep and key in OPTIONS:
+    if sep and (key in OPTIONS or key == "text"):
         if key in options:
-            raise FaultSpecError(f"word {word!r} in fault {text!r}: {key}: is given twice")
+            raise FaultSpecError(f"word {word!r} in fault {text!r}: {key}: is given twice"
+                                 + (' (quote a phrase: text:"a b")' if key == "text" else ""))
+        if key == "text" and not value:
+            raise FaultSpecError(f"word {word!r} in fault {text!r}: text: needs the text to find, as in text:sensor")
         options[key] = word
         return
     try:
@@ -325,11 +405,16 @@ def _word(word: str, text: str, select: dict[str, Any], options: dict[str, str],
             return
     except FilterSyntaxError as e:
         raise FaultSpecError(f"bad word {word!r} in fault {text!r}: {e}") from None
+    if not sep and key in _HINT_KEYS:
+        raise FaultSpecError(f"word {word!r} in fault {text!r} wants a value: "
+                             f"{(OPTIONS.get(key) or FILTER_WORDS[key]).split()[0]}")
+    guess = did_you_mean(word, previous, _HINT_KEYS, _HINT_VALUES, ("violations",))
     if sep:
-        raise FaultSpecError(f"unknown word {word!r} in fault {text!r} ({_WORD_LIST})")
-    if key in OPTIONS:
-        raise FaultSpecError(f"word {word!r} in fault {text!r} wants a value: {OPTIONS[key].split()[0]}")
-    free.append(word)
+        raise FaultSpecError(f"unknown word {word!r} in fault {text!r} ({_WORD_LIST})"
+                             + (f"; did you mean {guess}?" if guess else ""))
+    meant = f"did you mean {guess}?" if guess else "words after the action are KEY:VALUE or violations"
+    raise FaultSpecError(f"bare word {word!r} in fault {text!r}: {meant} "
+                         f"(text to find in frames is written text:{shlex.quote(word)})")
 
 
 def parse_fault(text: str, name: str = "") -> FaultSpec:
@@ -341,64 +426,15 @@ def parse_fault(text: str, name: str = "") -> FaultSpec:
         raise FaultSpecError(f"fault {text!r} does not split into words: {e}") from None
     if not words:
         raise FaultSpecError(f"empty fault {text!r}: it starts with one of: {_ACTION_LIST}")
-    fields = _action(words[0], text)
     select: dict[str, Any] = {}
     options: dict[str, str] = {}
-    free: list[str] = []
-    for word in words[1:]:
-        _word(word, text, select, options, free)
+    for previous, word in zip(words, words[1:]):  # before the action: "bandwidth:2 kB/s" is about kB/s
+        _word(word, text, select, options, previous)
+    fields = _action(words[0], text)
     if "nth" in options and "every" in options:
         raise FaultSpecError(f"both {options['nth']!r} and {options['every']!r} in fault {text!r}: "
                              "nth: and every: do not go together")
+    found = options.pop("text", ":").partition(":")[2]
     for word in options.values():
         fields.update(_value(_OPTION_FIELDS, word, text))
-    return FaultSpec(text=text, name=name, select=ItemFilter(text=" ".join(free), **select), **fields)
-
-
-# -- files ----------------------------------------------------------------------------------
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    where = printable(str(path))
-    try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError:
-        raise FaultSpecError(f"{where}: no such file") from None
-    except OSError as e:
-        raise FaultSpecError(f"{where}: cannot read it: {e.strerror or e}") from None
-    except UnicodeDecodeError:
-        raise FaultSpecError(f"{where}: not TOML: not UTF-8 text") from None
-    except tomllib.TOMLDecodeError as e:
-        raise FaultSpecError(f"{where}: not TOML: {e}") from None
-
-
-def load_faults(path: str | Path) -> list[FaultSpec]:
-    """The named faults of a TOML file (the format is this module's docstring),
-    in the file's order; FaultSpecError naming the file (and the fault)."""
-    path = Path(path)
-    where = printable(str(path))
-    document = _read_toml(path)
-    faults = document.get("faults")
-    extra = sorted(set(document) - {"faults"})
-    if extra:
-        raise FaultSpecError(f"{where}: unknown key {printable(extra[0])!r}: faults go in [faults.NAME] tables")
-    if not isinstance(faults, dict) or not faults:
-        raise FaultSpecError(f'{where}: no faults: expected tables such as [faults.slow-server] with spec = "..."')
-    specs = []
-    for name, table in faults.items():
-        fault = f"{where}: fault {printable(name)!r}"
-        if not isinstance(table, dict):
-            raise FaultSpecError(f'{fault} is not a table with spec = "..."')
-        if "spec" not in table:
-            raise FaultSpecError(f"{fault} has no spec")
-        if not isinstance(table["spec"], str):
-            raise FaultSpecError(f"{fault}: spec is not a string")
-        unknown = sorted(set(table) - {"spec"})
-        if unknown:
-            raise FaultSpecError(f"{fault}: unknown key {printable(unknown[0])!r} (a fault has only spec)")
-        try:
-            specs.append(parse_fault(table["spec"], name))
-        except FaultSpecError as e:
-            raise FaultSpecError(f"{fault}: {e}") from None
-    return specs
+    return FaultSpec(text=text, name=name, select=ItemFilter(text=found, **select), **fields)

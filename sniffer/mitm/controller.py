@@ -15,24 +15,21 @@ from __future__ import annotations
 
 import json
 import random
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 from whiztap.analyzer.mitm.commands import Closing, Command, Full
 from whiztap.analyzer.mitm.core import MiddleContext, MiddleCore
-from whiztap.analyzer.mitm.faults import MAX_DUP_FAULTS, Fault
+from whiztap.analyzer.mitm.faults import MAX_DUP_FAULTS, MAX_FAULTS, Fault
 from whiztap.analyzer.mitm.intercept import Held, HeldFrames, Intercept
 from whiztap.analyzer.mitm.spec import FaultSpec, parse_fault
 from whiztap.analyzer.mitm.stages import Stages, stage_name
 from whiztap.analyzer.protocol.frame_text import check_frame, frame_from_text
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
-from whiztap.analyzer.protocol.text import escape
+from whiztap.analyzer.protocol.text import escape, plural, printable
 from whiztap.analyzer.traffic import Cause, Source
-
-MAX_FAULTS = 256  # faults in force at once: every frame is weighed against each
-
 
 def middle_metadata(faults: Iterable[FaultSpec], seed: int | None) -> dict[str, str]:
     """The metadata of a recording made with the proxy in the middle (docs/faults.md):
@@ -68,12 +65,15 @@ class Controller:
         self.report = report
         self.scripts: list[Any] = []
         self.intercept = Intercept()
-        self.context = MiddleContext(Stages(report), rng=random.Random(seed), limits=limits, redact=redact,
-                                     hold_timeout_ns=int(hold_timeout * 1e9))
+        self.context = MiddleContext(Stages(report, self._quiet), rng=random.Random(seed), limits=limits,
+                                     redact=redact, hold_timeout_ns=int(hold_timeout * 1e9))
         self.clock: Callable[[], int] = lambda: 0  # the proxy's, from attach()
         self.emit: Callable[[object], None] = lambda event: None
         # analyze's verdict on the traffic so far, as the recording's writer judges it (None: not known)
         self.verdict: Callable[[], dict | None] = lambda: None
+        # a line about a fault for the recording's /log: (the fault's name, the line, when); the Recording's
+        self.log: Callable[[str, str, int], None] = lambda name, line, t_ns: None
+        self.quiet_at_end: list[Fault] = []  # the faults that chose no frame, once the proxy stopped (``end``)
         self.cores: dict[int, tuple[MiddleCore, Shell]] = {}
         self._fault_ids = 0
         self._restage()
@@ -146,7 +146,7 @@ class Controller:
         if spec.name and any(f.name == spec.name for f in self.faults):
             raise ControlError(f"a fault named {spec.name!r} is already in force")
         if len(self.faults) >= MAX_FAULTS:
-            raise ControlError(f"{MAX_FAULTS} faults are in force, the most there may be; remove one first")
+            raise ControlError(f"{MAX_FAULTS} faults are in force, the most there may be at once; remove one first")
         if spec.action == "dup" and sum(f.spec.action == "dup" for f in self.faults) >= MAX_DUP_FAULTS:
             raise ControlError(f"{MAX_DUP_FAULTS} dup faults are in force, the most there may be "
                                f"(a frame goes out at most {MAX_DUP_FAULTS + 1} times)")
@@ -158,6 +158,24 @@ class Controller:
         for core, shell in self.cores.values():
             shell.run(core.schedule(fault, now))
         return fault
+
+    def _quiet(self, fault: Fault, frames: int, ending: bool) -> None:
+        """A fault chose none of ``frames`` of its direction (``quiet.py``): said
+        where warnings go (stderr, the TUI's notices) and on the recording's /log."""
+        way = "" if fault.direction is None else f"{fault.direction.value} "
+        line = f"{fault.name} ({fault.spec.text}) chose none of the {plural(frames, way + 'frame')} " + \
+            ("it saw" if ending else "since it was put in force; is its SPEC what you meant?")
+        self.report(f"warning: fault {line}")
+        self.log(fault.name, f"fault {line}", self.clock())
+        if ending:
+            self.quiet_at_end.append(fault)
+
+    def end(self) -> list[Fault]:
+        """The proxy has stopped: each fault in force that saw frames and chose
+        none of them is named (as ``_quiet`` says); those faults."""
+        self.quiet_at_end = []
+        self.context.stages.quiet.end()
+        return self.quiet_at_end
 
     def fault(self, key: str | int) -> Fault:
         for fault in self.faults:
@@ -266,8 +284,21 @@ class Controller:
                 "scripts": [stage_name(s) for s in self.scripts], "verdict": self.verdict()}
 
 
-def load_fault_file(controller: Controller, path: str | Path) -> None:
-    from whiztap.analyzer.mitm.spec import load_faults
+def add_start_faults(controller: Controller, files: Iterable[str | Path], specs: Sequence[FaultSpec]) -> None:
+    """The faults a run starts with (``--faults FILE``, then ``--fault SPEC``),
+    added in that order.  FaultSpecError for a file that does not read;
+    ControlError for a fault refused (a name taken, one fault too many),
+    naming its file."""
+    from whiztap.analyzer.mitm.fault_file import load_faults
 
-    for spec in load_faults(path):
+    for path in files:
+        try:
+            for spec in load_faults(path):
+                controller.add_fault(spec)
+        except ControlError as e:
+            raise ControlError(f"{printable(str(path))}: {e}") from None
+    given = len(controller.faults) + len(specs)
+    if given > MAX_FAULTS:
+        raise ControlError(f"{given} faults given (--faults and --fault); at most {MAX_FAULTS} may be in force at once")
+    for spec in specs:
         controller.add_fault(spec)

@@ -33,7 +33,8 @@ Record layout: ``<BIBQI`` = type, connection id, direction (0 c2s, 1 s2c),
 t_ns, payload length; then the payload: for a read (``REC_DATA``) the bytes
 read; for bytes the proxy in the middle delivered (``REC_DELIVERED``) those
 bytes (direction plus ``SECRET`` for a password's); for an intervention
-(``REC_INTERVENTION``) its fields as JSON, bytes in base64; for any other
+(``REC_INTERVENTION``) its fields as JSON, bytes in base64; for a line of
+the proxy's own for /log (``REC_NOTICE``, connection 0) its fields as JSON; for any other
 event (``REC_EVENT``) its ``/tcp/events`` message (``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
 """
 
@@ -52,6 +53,7 @@ from collections.abc import Callable
 from typing import Any
 
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.recording.notice import Notice
 from whiztap.analyzer.traffic import (
     Closed,
     ConnectionEvent,
@@ -67,7 +69,7 @@ from whiztap.analyzer.traffic import (
     to_json,
 )
 
-REC_DATA, REC_EVENT, REC_DELIVERED, REC_INTERVENTION = 1, 2, 3, 4
+REC_DATA, REC_EVENT, REC_DELIVERED, REC_INTERVENTION, REC_NOTICE = 1, 2, 3, 4, 5
 SECRET = 2  # added to a delivery's direction byte: the bytes are a password's
 _HEAD = struct.Struct("<BIBQI")
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -222,6 +224,12 @@ class WriterProcess:
             self._pipe.close()
         await self._reap()
         return self.summary
+
+    def notice(self, notice: Notice) -> None:
+        """A line of the proxy's own for the recording's /log (a fault that chose nothing)."""
+        body = json.dumps(notice.as_dict()).encode()
+        self._batch += _HEAD.pack(REC_NOTICE, 0, 0, notice.t_ns, len(body)) + body
+        self._queued()
 
     def fail(self, message: str) -> None:
         """The recording cannot go on (the first reason is the one kept)."""

@@ -56,6 +56,7 @@ from whiztap.analyzer.recording.format import (
     TOPIC_READS,
     TOPIC_VIOLATIONS,
 )
+from whiztap.analyzer.recording.notice import Notice
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, Redactor
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
@@ -155,7 +156,7 @@ class Recorder:
             Opened: self._input_opened, UpstreamConnected: self._input_upstream_connected,
             UpstreamFailed: self._input_upstream_failed, HalfClosed: self._input_half_closed,
             Gap: self._input_gap, Closed: self._input_closed, Delivered: self._input_delivered,
-            Intervention: self._input_intervention}
+            Intervention: self._input_intervention, Notice: self._input_notice}
         self._frames = FrameEncoder()
         self._frame_counts = {C2S: 0, S2C: 0}
         self._bytes = {C2S: 0, S2C: 0}  # of closed connections
@@ -284,9 +285,11 @@ class Recorder:
             self._at(e.t_ns)
             self.file.write_late(TOPIC_INTERVENTIONS, e.t_ns,
                                  encode(intervention_message(e, not self.keep_secrets)))
-            if self.judge is not None:
-                self.judge.receive(e)
+            self._judged(e)
         return work
+
+    def _input_notice(self, e: Notice) -> Work:  # the proxy's own line (a fault that chose nothing) for /log
+        return lambda: self.file.write(TOPIC_LOG, max(e.t_ns, self._now), e.log())
 
     def _input_closed(self, e: Closed) -> Work:
         c = self._conns.pop(e.conn)
@@ -351,7 +354,7 @@ class Recorder:
         return verdict_dict(judge.verdict(), len(analyzer.sessions), sum(analyzer.result.interventions.values()))
 
     def _judged(self, e: TrafficEvent) -> None:
-        """A connection event written: the judge takes it in the same place."""
+        """An event written: the judge (in the middle) takes it in the same place."""
         if self.judge is not None:
             self.judge.receive(e)
 
@@ -359,8 +362,7 @@ class Recorder:
         self._at(e.t_ns)
         self._live[e.conn] = c
         self._write_event(e)
-        if self.judge is not None:
-            self.judge.receive(e)
+        self._judged(e)
 
     def _upstream_failed(self, c: _Conn, e: UpstreamFailed) -> None:
         self._observe_all(e.conn, c, self._traffic.receive(e))  # the server will never speak

@@ -11,10 +11,14 @@ as it changes (``GET /state`` serves the latest) and closes with it.
 from __future__ import annotations
 
 import datetime
-from typing import Any
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Any
 
 from whiztap.analyzer.analysis.verdict import Verdict
 from whiztap.analyzer.protocol.text import human_bytes
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.mitm.faults import Fault
 
 
 def clock_text(t_ns: int) -> str:
@@ -54,4 +58,14 @@ def summary_lines(summary: dict, what: str) -> list[str]:
         lines.append(f"  in the middle: {verdict['interventions']} intervention(s)"
                      + (f", {effects} effect(s) of them (no side's violation)" if effects else "")
                      + f"; {'PASS' if verdict['passed'] else 'FAIL'}, as whiztap analyze judges the file")
+    if summary.get("quiet_faults"):  # the proxy in the middle's faults that chose no frame (Recording.stop)
+        lines.append(f"  faults that chose no frame: {', '.join(summary['quiet_faults'])}")
     return lines
+
+
+def fault_lines(faults: Iterable[Fault]) -> list[str]:
+    """The faults a run starts with, in words, one line each, as ``record``,
+    ``tui`` and ``demo`` print them at start (``fault-1: delay 200 ms, s2c,
+    all frames``): a SPEC that says something else than meant shows before
+    any traffic."""
+    return [f"{fault.name}: {fault.spec.explain()}" for fault in faults]
