@@ -174,3 +174,50 @@ async def test_the_demo_runs_its_robot_live_and_finishes_demo_mcap_on_quit(tmp_p
         await until(pilot, lambda: not app.is_running, "the app to quit")
     rules = set(analyse_file(output, "dev-sum").violation_counts)
     assert {"PW-SETCFG-CHECKSUM", "PW-FRAME-GARBAGE", "PW-HS-AFTER-FAILED"} <= rules
+
+
+def test_an_unexpected_failure_finishes_the_recording_says_where_it_is_and_exits_2(tmp_path, monkeypatch, capsys):
+    """`whiztap demo` in-process, its screen broken on purpose once traffic flows:
+    the recording is finished as q would finish it, the hints name it, and the
+    failure is one line and a non-zero exit, not a traceback and status 0."""
+    import sys
+
+    import pytest
+    import textual.constants
+
+    from whiztap.analyzer.cli.root import main
+
+    output = tmp_path / "live-demo.mcap"
+    tick = WhiztapApp._tick
+
+    def breaking_tick(app: WhiztapApp) -> None:
+        if app.model.store.count >= 20:
+            raise RuntimeError("broken on purpose")
+        tick(app)
+
+    monkeypatch.setattr(WhiztapApp, "_tick", breaking_tick)
+    monkeypatch.setattr(textual.constants, "DRIVER", "textual.drivers.headless_driver:HeadlessDriver")
+    for stream in (sys.stdin, sys.stdout):  # the demo wants a terminal; Textual's headless driver stands in
+        monkeypatch.setattr(stream, "isatty", lambda: True)
+    monkeypatch.setattr(sys, "argv", ["whiztap", "demo", "-o", str(output)])
+    monkeypatch.delenv("WHIZTAP_DEBUG", raising=False)
+    with pytest.raises(SystemExit) as ended:
+        main()
+    out, err = capsys.readouterr()
+    assert ended.value.code == 2
+    assert f"recorded {output}" in out and "no recording was written" not in out
+    [line] = err.strip().splitlines()
+    assert "unexpected error: RuntimeError: broken on purpose" in line and "Traceback" not in err
+    assert read_metadata(str(output))["source"] == "proxy"  # finished: indexed, renamed from .part
+    assert analyse_file(output, "dev-sum").frames >= 20
+
+
+def test_the_hints_name_an_unfinished_recording_and_say_none_was_written_only_when_none_was(tmp_path):
+    from whiztap.tui.cli import _hints
+
+    path = tmp_path / "it's.mcap"
+    assert _hints(str(path))[0] == f"no recording was written to {path}"
+    Path(f"{path}.part").write_bytes(b"")
+    said = "\n".join(_hints(str(path)))
+    assert f"the recording was not finished: {path}.part" in said and "no recording" not in said
+    assert "recover '" in said  # the path, quoted for a shell: it holds a '

@@ -9,10 +9,12 @@ worker, replaced (``exclusive``) whenever the filter changes.
 from __future__ import annotations
 
 import gc
+import os
 import sys
 import threading
 import time
 from collections import deque
+from typing import Any
 
 from rich.text import Text
 from textual import on, work
@@ -95,6 +97,7 @@ class WhiztapApp(App):
         self.quit_after = quit_after
         self.controls = Controls(source)  # the live proxy's Controller: held frames, faults, injection
         self.error: str | None = None  # why the app ended early (the CLI prints it)
+        self.failure: BaseException | None = None  # what broke the app, unexpectedly (the CLI says so)
         self.fed = False
         self.lags: deque[int] = deque(maxlen=10_000)  # live, per tick: ns the oldest new frame waited to show
         self.filter_text = ""
@@ -397,12 +400,40 @@ class WhiztapApp(App):
             return
         self._quitting = True
         try:
-            if isinstance(self.source, LiveSource) and self.source.recording is not None:
+            if self._recording_unfinished():
                 self.notify("finishing the recording…", timeout=30)
                 await self.source.stop()
         finally:
             self._stop.set()
             self.exit()
+
+    def _recording_unfinished(self) -> bool:
+        source = self.source
+        return isinstance(source, LiveSource) and source.recording is not None and not source.stopped.is_set()
+
+    async def run_async(self, **options: Any) -> Any:
+        """Run the app (``App.run`` comes here); whatever ended it, ``q`` or
+        an unexpected failure, a live recording is finished before this
+        returns, on the loop the proxy runs on: a failure of the screen
+        closes the connections as ``q`` does and never leaves the file to
+        the writer's own end."""
+        try:
+            return await super().run_async(**options)
+        finally:
+            if self._recording_unfinished():
+                await self.source.stop()
+
+    def _handle_exception(self, error: Exception) -> None:
+        """An unexpected failure (Textual ends the app on one): kept for the
+        command, which says it in one line with where the recording is.
+        Textual's traceback shows each frame's local variables, which may
+        hold what the screen masks (a password): printed only with
+        WHIZTAP_DEBUG, as the root command prints tracebacks."""
+        if self.failure is None:
+            self.failure = error
+        super()._handle_exception(error)
+        if not os.environ.get("WHIZTAP_DEBUG"):
+            self._exit_renderables.clear()
 
     def on_unmount(self) -> None:
         self._stop.set()
