@@ -72,6 +72,34 @@ def _hints(path: str, password: str = "PASSWORD") -> list[str]:
             f"                                replay it against a server (e.g. '{w} sim --port 5000')"]
 
 
+def _announce_faults(middle) -> None:  # noqa: ANN001 - a MiddleSettings
+    """Each fault the live proxy starts with, in words, on stderr before the
+    app takes the screen (``record`` prints the same); a fault file that does
+    not read, or a fault refused, is one line here rather than in the app."""
+    from whiztap.analyzer.mitm.spec import FaultSpecError
+    from whiztap.analyzer.protocol.text import printable
+    from whiztap.sniffer.mitm.controller import ControlError, Controller, add_start_faults
+    from whiztap.sniffer.record.summary import fault_lines
+
+    controller = Controller()
+    try:
+        add_start_faults(controller, middle.fault_files, middle.faults)
+    except (FaultSpecError, ControlError) as e:
+        fail(str(e))
+    for line in fault_lines(controller.faults):
+        click.echo(printable(line), err=True)
+
+
+def _quiet_faults(source) -> None:  # noqa: ANN001 - a LiveSource
+    """The faults that chose no frame, said once the app is gone (its own
+    notice of them went with the screen)."""
+    from whiztap.analyzer.protocol.text import printable
+
+    summary = source.recording.summary if source.recording is not None else None
+    for fault in (summary or {}).get("quiet_faults", ()):
+        click.echo(printable(f"warning: fault {fault} chose no frame"), err=True)
+
+
 def _failed(app) -> None:  # noqa: ANN001 - a WhiztapApp
     """The app broke unexpectedly: one line and exit status 2, after the hints
     said where the recording is (the app finished it first)."""
@@ -157,6 +185,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
         settings = RecordSettings(listen, upstream, output,
                                   keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits,
                                   foxglove=foxglove, middle=middle_settings(**middle, always=True))
+        _announce_faults(settings.middle)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")
     from whiztap.tui.app import WhiztapApp
@@ -166,6 +195,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
     if app.error:
         fail(app.error)
     if isinstance(source, LiveSource):
+        _quiet_faults(source)
         for line in _hints(source.rig.output):
             click.echo(line)
     _failed(app)
@@ -196,6 +226,7 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
     """
     check_output(output, force=force, recording=True)
     settings = middle_settings(**middle, always=True)
+    _announce_faults(settings)
     if not headless and not (sys.stdin.isatty() and sys.stdout.isatty()):
         seconds = seconds or HEADLESS_SECONDS
         click.echo(f"whiztap demo: no terminal, so no TUI: running headless for {seconds:g} s "
@@ -213,6 +244,7 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
     app.run()
     if app.error:
         fail(app.error)
+    _quiet_faults(app.source)
     for line in _hints(output, PASSWORD):
         click.echo(line)
     _failed(app)
