@@ -245,8 +245,8 @@ def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
     result = run("analyze", "--format", "json", "--jobs", jobs, tmp_path)
     assert result.returncode == 2  # an input could not be read, even though a report was made
     assert result.stderr.strip().splitlines() == [
-        f"whiztap: {cut}: the file is truncated (no footer); it looks like a recording that was cut short. "
-        f"Run 'whiztap recover {cut}' to turn it into a complete file"]
+        f"whiztap: {cut}: the file is truncated (no footer); it looks like a recording that was cut short; "
+        f"to turn it into a complete file: whiztap recover {cut}"]
     data = json.loads(result.stdout)
     jsonschema.validate(data, REPORT_SCHEMA)
     assert data["files"] == [str(tmp_path / CLEAN.name)]

@@ -129,7 +129,7 @@ async def test_an_existing_recording_is_not_overwritten_without_force(tmp_path):
         crashed = tmp_path / "crashed.mcap"
         Path(f"{crashed}.part").write_bytes(first[:len(first) // 2])
         code, err = await record("-o", str(crashed))
-        assert code == 2 and f"run 'whiztap recover {crashed}.part' to save it".encode() in err
+        assert code == 2 and f"or save it first: whiztap recover {crashed}.part".encode() in err
         assert Path(f"{crashed}.part").read_bytes() == first[:len(first) // 2]
         rec = await RecordProcess.start(server.port, out, "--force")
         assert await _talk(rec.port, b"rr1-2--0--0-ss1") == b"rr1-2--0--0-ss1"

@@ -53,8 +53,10 @@ def _need_terminal(what: str) -> None:
         fail(f"{what} needs a terminal; for a report use 'whiztap analyze', for frames 'whiztap cat'")
 
 
-def _hints(path: str, password: str = "PASSWORD") -> list[str]:
-    """What to do with a recording just made (printed when the app ends)."""
+def _hints(path: str, password: str = "PASSWORD", seed: int | None = None) -> list[str]:
+    """What to do with a recording just made (printed when the app ends), as
+    commands a shell takes as they are (paths quoted).  ``seed``: the demo's
+    robot's, so that the simulator the replay hint names answers as it did."""
     import shlex
     from pathlib import Path
 
@@ -64,12 +66,14 @@ def _hints(path: str, password: str = "PASSWORD") -> list[str]:
             return [f"the recording was not finished: {path}.part",
                     f"  {w} recover {shlex.quote(path + '.part')}      makes a complete copy"]
         return [f"no recording was written to {path}"]
+    c, q = shlex.quote(w), shlex.quote(path)
+    sim = f"{c} sim --port 5000" + (f" --seed {seed}" if seed is not None else "")
     return [f"recorded {path}",
-            f"  {w} analyze {path}      conformance report",
-            f"  {w} cat {path}          every frame, decoded",
-            f"  {w} tui {path}          browse it again (r: replay it from the TUI)",
-            f"  {w} replay {path} --target HOST:PORT --password {password}",
-            f"                                replay it against a server (e.g. '{w} sim --port 5000')"]
+            f"  {c} analyze {q}      conformance report",
+            f"  {c} cat {q}          every frame, decoded",
+            f"  {c} tui {q}          browse it again (r: replay it from the TUI)",
+            f"  {c} replay {q} --target HOST:PORT --password {shlex.quote(password)}",
+            f"                                replay it against a server, such as: {sim}"]
 
 
 def _announce_faults(middle) -> None:  # noqa: ANN001 - a MiddleSettings
@@ -236,7 +240,7 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
         _headless(output, seconds or HEADLESS_SECONDS, foxglove, settings)
         return
     from whiztap.tui.app import WhiztapApp
-    from whiztap.tui.demo import PASSWORD, DemoRig
+    from whiztap.tui.demo import PASSWORD, SEED, DemoRig
     from whiztap.tui.sources import LiveSource
 
     app = WhiztapApp(LiveSource(DemoRig(output, foxglove, settings), "demo", redact_passwords=True),
@@ -245,7 +249,7 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
     if app.error:
         fail(app.error)
     _quiet_faults(app.source)
-    for line in _hints(output, PASSWORD):
+    for line in _hints(output, PASSWORD, SEED):
         click.echo(line)
     _failed(app)
 
@@ -260,7 +264,7 @@ def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, mid
     from whiztap.sniffer.mitm.scripts import ScriptError
     from whiztap.sniffer.record.feed import WriterError
     from whiztap.sniffer.record.record_run import StartError
-    from whiztap.tui.demo import DELIBERATE_RULES, PASSWORD, run_headless
+    from whiztap.tui.demo import DELIBERATE_RULES, PASSWORD, SEED, run_headless
 
     try:
         client_error = asyncio.run(run_headless(output, seconds, foxglove, middle,
@@ -277,5 +281,5 @@ def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, mid
     if text:
         click.echo(text, nl=not text.endswith("\n"))
     click.echo(f"The demo breaks these rules on purpose: {', '.join(DELIBERATE_RULES)}.")
-    for line in _hints(output, PASSWORD):
+    for line in _hints(output, PASSWORD, SEED):
         click.echo(line)

@@ -13,6 +13,7 @@ import asyncio
 import dataclasses
 import gc
 import os
+import shlex
 import threading
 import time
 from collections import deque
@@ -84,7 +85,7 @@ class FileSource:
         except PartError as e:
             if e.truncated:
                 self.note = (f"{e.path} is truncated (no footer): showing what was complete; "
-                             f"'whiztap recover {e.path}' makes a complete copy")
+                             f"to make a complete copy: whiztap recover {shlex.quote(str(e.path))}")
             else:
                 self.note = f"{e}; showing what came before"
         self.progress = 1.0

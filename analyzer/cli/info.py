@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shlex
+
 import click
 
 from whiztap.analyzer.cli.errors import fail
@@ -60,4 +62,4 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     for topic, n in info["topics"].items():
         click.echo(f"  {topic:16} {n:,}")
     if not info["complete"] and not info["state"].startswith("being written"):
-        click.echo(f"Run 'whiztap recover {printable(str(path_))}' to make a complete, indexed copy.")
+        click.echo(printable(f"To make a complete, indexed copy: whiztap recover {shlex.quote(str(path_))}"))

@@ -3,6 +3,7 @@ status 2 for anything that is not a readable recording, with what to do."""
 
 from __future__ import annotations
 
+import shlex
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -52,11 +53,11 @@ def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[
         if not isinstance(e.path, Path):  # a URL: what the reader said is all there is to say
             fail(str(e))
         if being_written(e.path):
-            fail(f"{e.path} is being written by a running recorder: 'whiztap cat --follow {e.path}' shows it "
-                 "as it grows; analyze it once the recorder has finished")
+            fail(f"{e.path} is being written by a running recorder; analyze it once the recorder has finished, "
+                 f"or watch it grow: whiztap cat --follow {shlex.quote(str(e.path))}")
         if e.truncated or e.path.name.endswith(".part"):
-            fail(f"{e}; it looks like a recording that was cut short. "
-                 f"Run 'whiztap recover {e.path}' to turn it into a complete file")
+            fail(f"{e}; it looks like a recording that was cut short; "
+                 f"to turn it into a complete file: whiztap recover {shlex.quote(str(e.path))}")
         fail(str(e))
 
 

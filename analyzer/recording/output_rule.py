@@ -16,6 +16,7 @@ terminal) holds nothing to lose and is written to as it is.
 from __future__ import annotations
 
 import os
+import shlex
 import stat
 from collections.abc import Iterable
 from pathlib import Path
@@ -61,8 +62,8 @@ def check_output(output: str, inputs: Iterable[str | Path] = (), *, force: bool 
     if occupied(first):
         raise OutputRefused(f"{first} exists; use --force to overwrite it or -o to choose another name", first)
     if recording and occupied(first + ".part"):
-        raise OutputRefused(f"{first}.part exists (a recording cut short?): run 'whiztap recover {first}.part' "
-                            f"to save it, or use --force to overwrite it", first + ".part")
+        raise OutputRefused(f"{first}.part exists (a recording cut short?); use --force to overwrite it, "
+                            f"or save it first: whiztap recover {shlex.quote(first + '.part')}", first + ".part")
 
 
 def occupied(path: str) -> bool:

@@ -35,6 +35,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import shlex
 import signal
 import sys
 import time
@@ -467,8 +468,8 @@ class RecordingFile:
             except OSError:
                 pass
             raise RecordingWriteError(
-                f"cannot write {part}: {what}; recording stopped, "
-                f"run 'whiztap recover {part}' to save what was written") from None
+                f"cannot write {part}: {what}; recording stopped; "
+                f"to save what was written: whiztap recover {shlex.quote(part)}") from None
         raise RecordingWriteError(
             f"cannot write {part}: {what}; recording stopped, "
             f"what was written before is in {self.finished[-1]}") from None

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import base64
 import itertools
+import shlex
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import IO, NamedTuple
@@ -92,7 +93,7 @@ def recorded_streams(recording: RecordingSet) -> Iterator[Read | ConnectionEvent
                     yield event
                 if scan.truncated:
                     raise ExportError(f"{path}: the file is truncated (no footer); "
-                                      f"run 'whiztap recover {path}' first")
+                                      f"first make a complete copy: whiztap recover {shlex.quote(str(path))}")
                 if METADATA_NAME not in scan.metadata and not scan.channels:
                     raise ExportError(f"{path}: not a whiztap recording")
         except OSError as e:
