@@ -248,6 +248,11 @@ def test_the_filter_bar_still_parses_as_before():
                            text="hello world")
 
 
+def test_the_filter_bar_and_the_intercept_filter_take_text_as_a_fault_writes_it_too():
+    assert parse_filter('text:"hello world" dir:c2s') == parse_filter('dir:c2s "hello world"')
+    assert parse_filter("TEXT:Servo").text == "Servo"
+
+
 # -- files -----------------------------------------------------------------------------------
 
 
