@@ -204,17 +204,24 @@ async def test_ctl_finds_the_one_control_api_running_for_the_user(tmp_path, runt
                                            f"--control PATH|[HOST:]PORT or WHIZTAP_CONTROL")
     async with proxies(tmp_path, Endpoint(path="")) as [rec]:
         assert Path(rec.control_url).parent == runtime
-        assert oct(runtime.stat().st_mode & 0o777) == "0o700" and oct(Path(rec.control_url).stat().st_mode & 0o777) == "0o600"
-        stale = socket.socket(socket.AF_UNIX)  # a socket a killed recorder left: bound, nobody listening
-        stale.bind(str(runtime / "control-1.sock"))
+        assert oct(runtime.stat().st_mode & 0o777) == "0o700"
+        assert oct(Path(rec.control_url).stat().st_mode & 0o777) == "0o600"
+        # sockets nobody serves: one of a live process (pid 1: as if bound, not yet listening), one of a dead one
+        dead = await asyncio.create_subprocess_exec("true")
+        await dead.wait()
+        stale = [socket.socket(socket.AF_UNIX) for _ in range(2)]
+        for sock, pid in zip(stale, (1, dead.pid)):
+            sock.bind(str(runtime / f"control-{pid}.sock"))
         result = await ctl("held")
-        assert (result.exit_code, result.stdout) == (0, "no held frames\n")
+        assert (result.exit_code, result.stdout) == (0, "no held frames\n")  # neither counts
         async with proxies(tmp_path, Endpoint(path="")) as [other]:
+            assert not (runtime / f"control-{dead.pid}.sock").exists()  # a new server swept the dead one's away
             names = ", ".join(sorted(Path(r.control_url).name for r in (rec, other)))
             assert one_line(await ctl("held")) == (f"2 control APIs are running ({names} in {runtime}): "
                                                    f"choose one with --control PATH")
             assert (await ctl("held", "--control", other.control_url)).exit_code == 0
-        stale.close()
+        for sock in stale:
+            sock.close()
     assert list(runtime.iterdir()) == [runtime / "control-1.sock"]  # each server took its own socket away
 
 

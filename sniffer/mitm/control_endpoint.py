@@ -18,6 +18,7 @@ put a socket of theirs where ``ctl`` looks.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import ipaddress
 import itertools
@@ -138,11 +139,36 @@ def private_dir(create: bool) -> Path | None:
 
 def default_socket_path() -> Path:
     """A new socket name in the runtime folder (made if need be): one per
-    server, so that several recorders of one user never meet."""
+    server, so that several recorders of one user never meet.  Sockets that
+    killed recorders left there are removed first."""
     folder = private_dir(create=True)
     assert folder is not None  # made just now
+    _sweep(folder)
     n = next(_serial)
     return folder / (f"control-{os.getpid()}.sock" if n == 1 else f"control-{os.getpid()}-{n}.sock")
+
+
+def _sweep(folder: Path) -> None:
+    """Remove the sockets whose process is gone and that nobody serves.  Both
+    are asked: a socket another server has bound but not yet listens on
+    refuses connections too, but its process is alive."""
+    for path in folder.glob(SOCKET_GLOB):
+        pid = path.name.removeprefix("control-").removesuffix(".sock").split("-")[0]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        with contextlib.suppress(OSError):
+            if socket_state(path) == "stale":
+                path.unlink()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's: alive
+        return True
+    return True
 
 
 def live_sockets() -> list[Path]:
