@@ -162,6 +162,17 @@ async def test_a_viewer_that_stops_reading_stops_the_gate_reading(gate):
     writer.close()
 
 
+async def test_a_viewer_that_ends_before_its_request_does_is_closed(gate, caplog):
+    reader, writer = await asyncio.open_connection(LOCAL, gate.port)
+    writer.write(b"GET / HTTP/1.1\r\nOrigin: http://localhost")
+    writer.write_eof()
+    assert await asyncio.wait_for(reader.read(-1), WAIT) == b""
+    writer.close()
+    await _until(lambda: not gate.conns)
+    assert gate.behind.heads == []
+    assert not [r for r in caplog.records if r.name == "asyncio"], caplog.text  # closed, not failed
+
+
 async def test_a_head_too_large_or_too_slow_is_refused_and_closed(gate, monkeypatch):
     big = await _answer(gate.port, b"GET / HTTP/1.1\r\nX-Junk: " + b"a" * (HEAD_LIMIT + 1))
     assert big.startswith(b"HTTP/1.1 431 ")
@@ -189,6 +200,51 @@ async def test_a_refused_origin_is_said_once_and_answered_403(gate):
     assert gate.behind.heads == []
     [warning] = gate.warnings
     assert "http://evil.example\\x1b[2J" in warning and "\x1b" not in warning
+
+
+# Every container the gate keeps, with its bound: a new one fails
+# test_every_container_of_the_gate_is_registered_and_bounded until it joins.
+READ = 256 << 10  # at most one read past a limit
+GATE_BUFFERS: dict[str, dict[str, int]] = {
+    "LiveGate": {"origins": 64, "conns": MAX_CLIENTS + 1},  # origins: those given with --foxglove-origin
+    "_Refusals": {"said": live_gate.MAX_ORIGINS_SAID},
+    "_Conn": {},
+    "_Client": {"head": HEAD_LIMIT + READ},
+    "_Side": {},
+}
+
+
+def _containers(gate) -> list[tuple[str, str, object]]:  # noqa: ANN001 - a LiveGate
+    owners = [gate, gate.refusals]
+    for conn in list(gate.conns):
+        owners += [conn, conn.client] + ([conn.upstream] if conn.upstream is not None else [])
+    return [(type(owner).__name__, name, value) for owner in owners for name, value in list(vars(owner).items())
+            if isinstance(value, (bytes, bytearray, list, dict, set, frozenset)) and name not in _FIXTURE]
+
+
+_FIXTURE = ("behind", "warnings", "port")  # what the fixture hangs on the gate for the tests
+
+
+async def test_every_container_of_the_gate_is_registered_and_bounded(gate):
+    """Abuse it every way at once: many refused origins, every slot taken
+    by a connection sending a head that never ends (one of them past the
+    limit), then look at every container it keeps."""
+    for n in range(3 * live_gate.MAX_ORIGINS_SAID):
+        await _answer(gate.port, head(f"Origin: http://evil{n}.example") + b"\r\n\r\n")
+    held = [await asyncio.open_connection(LOCAL, gate.port) for _ in range(MAX_CLIENTS)]
+    try:
+        for _, writer in held:
+            writer.write(b"GET / HTTP/1.1\r\nX-Junk: " + b"a" * (HEAD_LIMIT // 2))
+        await _until(lambda: sum(len(c.client.head) for c in list(gate.conns)) >= MAX_CLIENTS * HEAD_LIMIT // 2)
+        found = _containers(gate)
+        assert {(owner, name) for owner, name, _ in found} <= {
+            (owner, name) for owner, names in GATE_BUFFERS.items() for name in names}, found
+        for owner, name, value in found:
+            assert len(value) <= GATE_BUFFERS[owner][name], (owner, name, len(value))
+        assert len(gate.warnings) == live_gate.MAX_ORIGINS_SAID + 1  # and one line saying more were refused
+    finally:
+        for _, writer in held:
+            writer.close()
 
 
 async def _answer(port: int, data: bytes) -> bytes:

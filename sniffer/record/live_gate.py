@@ -207,7 +207,8 @@ class _Client(_Side):
                 self._refuse(431, "the request head is too large")
             return
         self.timer.cancel()
-        status, origin = verdict(bytes(self.head[:end]), self.conn.gate.origins)
+        head, self.head = bytes(self.head), bytearray()  # judged once; not kept for the connection's life
+        status, origin = verdict(head[:end], self.conn.gate.origins)
         if status == 403:
             self.conn.gate.refusals.refused(origin or "", self.conn.peer)
             self._refuse(403, f"the web page at {origin} may not read this recording live; "
@@ -217,7 +218,12 @@ class _Client(_Side):
                                          "(a Foxglove WebSocket connection) and nothing else")
         else:
             self.transport.pause_reading()  # type: ignore[union-attr]  # until the SDK's side is there
-            self.conn.open_upstream(bytes(self.head))
+            self.conn.open_upstream(head)
+
+    def eof_received(self) -> bool:
+        if self.other is None:  # it ended before its request did: nothing to pass on
+            return False
+        return super().eof_received()
 
     def _refuse(self, status: int, text: str) -> None:
         self.timer.cancel()
