@@ -181,8 +181,10 @@ class WhiztapServer:
     def check(self) -> None:
         missing = self.unanswered
         if missing:
+            from whiztap.analyzer.protocol.text import plural
+
             lines = "\n".join("  " + m.line() for m in missing)
-            pytest.fail(f"whiztap: {len(missing)} request(s) not in {self.path} (record mode none):\n{lines}\n"
+            pytest.fail(f"whiztap: {plural(len(missing), 'request')} not in {self.path} (record mode none):\n{lines}\n"
                         f"re-record with --whiztap-record=all if the client changed on purpose", pytrace=False)
 
 

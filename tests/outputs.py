@@ -36,6 +36,7 @@ from click.testing import CliRunner
 
 from whiztap.analyzer.analysis.report.formats import FORMATS
 from whiztap.analyzer.recording.format import MITM_TOPICS, TOPICS
+from whiztap.analyzer.protocol.text import plural
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.sniffer.mitm import http_api
 from whiztap.sniffer.mitm.scripts import Flow
@@ -224,7 +225,7 @@ API_OUTPUTS: dict[tuple[str, str], tuple[tuple[str, ...], Callable[[dict], list[
     ("GET", "/intercept"): (("intercept",), lambda a: [f"intercept: {a['filter']}"]),
     ("PUT", "/intercept"): (("intercept",), lambda a: [f"intercept: {a['filter']}"]),
     ("GET", "/held"): (("held",), _held),
-    ("POST", "/held/release-all"): (("release-all",), lambda a: [f"released {a['released']} held frame(s)"]),
+    ("POST", "/held/release-all"): (("release-all",), lambda a: [f"released {plural(a['released'], 'held frame')}"]),
     ("POST", "/held/{id}/release"): (("release",), _held_one("released")),
     ("POST", "/held/{id}/drop"): (("drop",), _held_one("dropped")),
     ("POST", "/inject"): (("inject",), lambda a: [f"injected {a['frame']} on #{a['conn']} {a['dir']}"]),

@@ -404,9 +404,9 @@ def line(result: Result, code: int = 0) -> str:
 async def test_ctl_drives_faults(tmp_path):
     async with proxied(tmp_path / "r.mcap") as (rec, client):
         added = line(await ctl(rec, "fault", "add", DROP_EVERY_SECOND, "--name", "lossy"))
-        assert added.startswith("added fault #") and "lossy  on  hits 0  " + DROP_EVERY_SECOND in added
+        assert added.startswith("added fault #") and "lossy  on  matched 0  hits 0  " + DROP_EVERY_SECOND + "  (drop, s2c," in added
         assert [await answered(client, 12) for _ in range(2)] == [True, False]
-        assert "lossy  on  hits 1" in line(await ctl(rec, "fault", "list"))
+        assert "lossy  on  matched 2  hits 1" in line(await ctl(rec, "fault", "list"))
         listed = json.loads((await ctl(rec, "--format", "json", "fault", "list")).stdout)
         assert [(f["name"], f["hits"]) for f in listed["faults"]] == [("lossy", 1)]
         assert "lossy  off" in line(await ctl(rec, "fault", "off", "lossy"))
@@ -435,7 +435,7 @@ async def test_ctl_holds_releases_drops_and_injects(tmp_path):
         await held_frames(rec, 1)
         assert line(await ctl(rec, "drop", "2")) == "dropped #2 rr1-14--0--0-ss1"
         assert line(await ctl(rec, "drop", "2"), 2).startswith("whiztap: no held frame #2")
-        assert line(await ctl(rec, "release-all")) == "released 0 held frame(s)"
+        assert line(await ctl(rec, "release-all")) == "released 0 held frames"
         assert line(await ctl(rec, "intercept", "--off")) == "intercept: (off)"
         second.cancel()
         assert line(await ctl(rec, "inject", "1", "c2s", "sensor 12")) == "injected rr1-12--0--0-ss1 on #1 c2s"

@@ -141,7 +141,7 @@ def test_whiztap_ctl_drives_the_fixtures_proxy(whiztap_proxy):
     assert ctl("fault", "add", "drop dir:s2c kind:response ch:12 nth:1", "--name", "once").startswith("added fault #1")
     assert [f["name"] for f in whiztap_proxy.state()["faults"]] == ["once"]
     attempts, _ = asyncio.run(sensor_with_retry(whiztap_proxy.address, 12))
-    assert attempts == 2 and "once  on  hits 1" in ctl("fault", "list")
+    assert attempts == 2 and "once  on  matched 2  hits 1" in ctl("fault", "list")
     socket_path = whiztap_proxy.control
     whiztap_proxy.stop()
     assert not os.path.exists(socket_path)

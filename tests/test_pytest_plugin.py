@@ -111,7 +111,7 @@ def test_record_once_then_serve_from_the_recording(project, monkeypatch):
     monkeypatch.setenv("NEW_REQUEST", "1")  # the client asks for something new
     new = run(project, "-k", "test_sensors")
     new.assert_outcomes(failed=1)
-    new.stdout.fnmatch_lines([f"*whiztap: 1 request(s) not in {recording} (record mode none):*",
+    new.stdout.fnmatch_lines([f"*whiztap: 1 request not in {recording} (record mode none):*",
                               "*#1: no recorded answer for rr1-14--0--0-ss1 (Sensor Request ch 14)*"])
 
     monkeypatch.delenv("NO_TARGET")

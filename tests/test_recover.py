@@ -73,8 +73,8 @@ async def test_sigkill_mid_session_then_recover_gets_back_everything_flushed(tmp
             pass
     code, stdout, stderr = await _run("recover", part)
     assert (code, stderr) == (0, ""), stderr
-    assert stdout == f"recovered {on_disk} messages into {out}\n" or \
-        stdout.startswith(f"recovered {on_disk} messages into {out}; the file ended mid-write at byte ")
+    assert stdout == f"recovered {on_disk:,} messages into {out}\n" or \
+        stdout.startswith(f"recovered {on_disk:,} messages into {out}; the file ended mid-write at byte ")
     by_topic = read_all(str(out))  # indexed, CRCs checked, schemas valid
     assert sum(len(m) for m in by_topic.values()) == on_disk
     assert streams(str(out))[(1, "c2s")].startswith(sent)
@@ -185,7 +185,7 @@ def test_a_damaged_chunk_is_skipped_and_every_chunk_after_it_recovered(tmp_path,
     assert (code, stderr) == (0, ""), stderr
     lost = _chunk_messages(data, at)
     expected = _without(_messages(original), lost)
-    assert stdout.startswith(f"recovered {len(expected)} messages into {out}; skipped 1 damaged region "
+    assert stdout.startswith(f"recovered {len(expected):,} messages into {out}; skipped 1 damaged region "
                              f"(at byte {at}: ") and stdout.count("\n") == 1, stdout
     assert lost and _messages(out) == sorted(expected)
 

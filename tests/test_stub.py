@@ -98,7 +98,7 @@ async def test_whiztap_client_gets_what_the_simulator_gave_it(tmp_path):
         WHIZTAP, "stub", str(path), "--listen", "127.0.0.1:0", "--once", "--strict", "--password", PASSWORD,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
-    m = re.match(r"whiztap stub: serving .*client\.mcap on 127\.0\.0\.1:(\d+) \(1 recorded connection\(s\)\)$",
+    m = re.match(r"whiztap stub: serving .*client\.mcap on 127\.0\.0\.1:(\d+) \(1 recorded connection\)$",
                  first.rstrip("\n"))
     assert m, first
     code, after, err = await whiztap("client", f"{LOCAL}:{m.group(1)}", "-p", PASSWORD, stdin=script)
@@ -106,7 +106,7 @@ async def test_whiztap_client_gets_what_the_simulator_gave_it(tmp_path):
     assert after == before and "sensor 12 = " in after
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert proc.returncode == 0, err
-    assert "served 1 connection(s), 5 answers; 0 request(s) without a recorded answer" in out.decode()
+    assert "served 1 connection, 5 answers; 0 requests without a recorded answer" in out.decode()
 
 
 async def test_strict_fails_when_a_request_has_no_recorded_answer(recorded):
@@ -123,7 +123,7 @@ async def test_strict_fails_when_a_request_has_no_recorded_answer(recorded):
     assert proc.returncode == 1 and err == b""
     assert (b"! #1: no recorded answer for rr1-5--0--2-ss1 (Servo Position Request ch 5); connection closed"
             in out)
-    assert b"1 request(s) without a recorded answer" in out
+    assert b"1 request without a recorded answer" in out
 
 
 async def test_used_up_answers_repeat_the_last_or_fail(recorded):
@@ -190,7 +190,7 @@ async def test_sigterm_stops_the_stub_with_a_summary(recorded):
     proc.send_signal(signal.SIGTERM)
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert (proc.returncode, err) == (0, b"")
-    assert out == b"served 1 connection(s), 1 answers; 0 request(s) without a recorded answer\n"
+    assert out == b"served 1 connection, 1 answer; 0 requests without a recorded answer\n"
 
 
 async def test_an_unmatched_request_can_get_a_chosen_answer(recorded):

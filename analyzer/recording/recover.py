@@ -37,7 +37,7 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Metadata, Schema
 from mcap.writer import Writer
 
-from whiztap.analyzer.protocol.text import human_bytes
+from whiztap.analyzer.protocol.text import human_bytes, plural
 from whiztap.analyzer.recording.format import PROFILE
 from whiztap.analyzer.recording.mcap import (
     CHUNK_HEAD,
@@ -96,7 +96,7 @@ class RecoverResult:
 
     def summary(self) -> str:
         """What recovery did, in one line for the user."""
-        text = f"recovered {self.messages} messages into {self.output}"
+        text = f"recovered {plural(self.messages, 'message')} into {self.output}"
         if self.skipped:
             where = ", ".join(str(s.offset) for s in self.skipped[:5]) + (", ..." if len(self.skipped) > 5 else "")
             lost = human_bytes(sum(s.length for s in self.skipped))
@@ -106,7 +106,7 @@ class RecoverResult:
             if too_big:
                 text += f", {too_big} of them larger than {MAX_CHUNK_ENV} allows (raise it for a file you trust)"
         if self.orphans:
-            text += f"; dropped {self.orphans} messages whose channel was in a damaged region"
+            text += f"; dropped {plural(self.orphans, 'message')} whose channel was in a damaged region"
         if self.cut_at is not None:
             text += f"; the file ended mid-write at byte {self.cut_at}"
             if self.cut_bytes:

@@ -76,7 +76,8 @@ class RecordingSet:
         if not self.missing:
             return None
         listed = ", ".join(str(n) for n in self.missing)
-        return (f"{self.parts[0]}: part(s) {listed} of this split recording are missing; connections "
+        return (f"{self.parts[0]}: {'part' if len(self.missing) == 1 else 'parts'} {listed} of this split recording "
+                f"{'is' if len(self.missing) == 1 else 'are'} missing; connections "
                 f"that crossed them are judged as if the missing bytes were a capture gap")
 
 

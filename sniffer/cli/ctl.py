@@ -19,6 +19,7 @@ import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import output_stream, say
+from whiztap.analyzer.protocol.text import plural
 
 FORCE_HINT = "send it anyway with force"  # the controller's words; here the option is --force
 
@@ -131,7 +132,10 @@ class Number(click.ParamType):
 
 
 def fault_line(f: dict) -> str:
-    return f"#{f['id']} {f['name']}  {'on' if f['enabled'] else 'off'}  hits {f['hits']}  {f['spec']}"
+    """One fault as ``ctl`` lists it: what it chose (``matched``) beside what it did (``hits``), and its
+    SPEC with what it means in words."""
+    return (f"#{f['id']} {f['name']}  {'on' if f['enabled'] else 'off'}  matched {f['matched']}  hits {f['hits']}  "
+            f"{f['spec']}  ({f['meaning']})")
 
 
 def held_line(h: dict) -> str:
@@ -350,7 +354,7 @@ def release_all(api: Api) -> None:
       whiztap ctl release-all
     """
     answer = api.call("POST", "/held/release-all")
-    api.show(answer, [f"released {answer['released']} held frame(s)"])
+    api.show(answer, [f"released {plural(answer['released'], 'held frame')}"])
 
 
 @ctl_command.command("inject")

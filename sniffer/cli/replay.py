@@ -14,6 +14,7 @@ from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.output import check_output, recording_output, say
 from whiztap.analyzer.cli.params import force_option
 from whiztap.analyzer.cli.reading import one_recording
+from whiztap.analyzer.protocol.text import plural
 from whiztap.sniffer.cli.params import Address, FaultSpecParam
 from whiztap.sniffer.cli.run import run, stop_signals
 
@@ -205,7 +206,7 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
     replay.check()
     if not (quiet or as_json):
         target = f"{options.target[0]}:{options.target[1]}"
-        _echo(f"replaying {recording.path} against {target}: {len(replay.plans)} connection(s), "
+        _echo(f"replaying {recording.path} against {target}: {plural(len(replay.plans), 'connection')}, "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
                    + f", {options.rules.describe()}")
         for line in _fault_lines(options.faults, options.fault_seed):
@@ -331,8 +332,8 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     if error:
         fail(error)
     missing = len(stub.unanswered)
-    _echo(f"served {stub.connections} connection(s), {stub.answers} answers; "
-               f"{missing} request(s) without a recorded answer")
+    _echo(f"served {plural(stub.connections, 'connection')}, {plural(stub.answers, 'answer')}; "
+               f"{plural(missing, 'request')} without a recorded answer")
     sys.exit(1 if strict and missing else 0)
 
 
@@ -343,7 +344,7 @@ async def _serve(stub, once: bool) -> str | None:  # noqa: ANN001 - Stub, import
         return f"cannot listen on {stub.host}:{stub.requested_port}: {e.strerror or e}"
     where = ", ".join(f"{h}:{p}" for h, p in stub.addresses)
     _echo(f"whiztap stub: serving {stub.recording.path} on {where} "
-               f"({len(stub.recording.connections)} recorded connection(s))")
+               f"({plural(len(stub.recording.connections), 'recorded connection')})")
     import asyncio
 
     stopped = asyncio.Event()

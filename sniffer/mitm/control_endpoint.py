@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import ipaddress
 import itertools
 import os
 import re
@@ -30,12 +29,11 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from whiztap.sniffer.nettext import AddressError, parse_address, show_address
+from whiztap.sniffer.nettext import AddressError, is_loopback, parse_address, show_address
 
 DEFAULT = "default"  # what ``--control`` without a value stands for: a socket in the runtime folder
 SOCKET_GLOB = "control-*.sock"
 TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~+/=-]{1,512}")  # RFC 6750's token68: safe in a header
-LOOPBACK_NAMES = frozenset({"localhost"})
 _serial = itertools.count(1)
 
 
@@ -92,16 +90,6 @@ def check_token(token: str, what: str = "the control token") -> str:
         raise EndpointError(f"{what} may hold only letters, digits and ._~+/=- (at most 512), "
                             f"got {len(token)} characters")
     return token
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` (a name or an address) means this machine only."""
-    if host.lower() in LOOPBACK_NAMES:
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 # -- the runtime folder -------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 from whiztap.analyzer.analysis.verdict import Verdict
-from whiztap.analyzer.protocol.text import human_bytes
+from whiztap.analyzer.protocol.text import human_bytes, plural
 
 if TYPE_CHECKING:
     from whiztap.analyzer.mitm.faults import Fault
@@ -46,17 +46,17 @@ def summary_lines(summary: dict, what: str) -> list[str]:
     frames, nbytes, violations = summary["frames"], summary["bytes"], summary["violations"]
     files = summary["files"]
     where = files[0] if len(files) == 1 else f"{len(files)} files ({files[0]} ... {files[-1]})" if files else "no file"
-    per_dir = "; ".join(f"{d} {frames.get(d, 0)} frames {human_bytes(nbytes.get(d, 0))}" for d in ("c2s", "s2c"))
+    per_dir = "; ".join(f"{d} {plural(frames.get(d, 0), 'frame')} {human_bytes(nbytes.get(d, 0))}" for d in ("c2s", "s2c"))
     counts = ", ".join(f"{violations.get(s, 0)} {s}" for s in ("error", "warning", "info"))
-    lines = [f"{what} {summary['connections']} connection(s) into {where} ({human_bytes(summary['size'])}, "
-             f"{summary['messages']} messages)",
+    lines = [f"{what} {plural(summary['connections'], 'connection')} into {where} ({human_bytes(summary['size'])}, "
+             f"{plural(summary['messages'], 'message')})",
              f"  {per_dir}",
              f"  violations: {counts}"]
     verdict = summary.get("verdict")
     if verdict is not None:  # in the middle: the counts are analyze's verdict, each side judged on its own
         effects = sum(verdict["effects"].values())
-        lines.append(f"  in the middle: {verdict['interventions']} intervention(s)"
-                     + (f", {effects} effect(s) of them (no side's violation)" if effects else "")
+        lines.append(f"  in the middle: {plural(verdict['interventions'], 'intervention')}"
+                     + (f", {plural(effects, 'effect')} of them (no side's violation)" if effects else "")
                      + f"; {'PASS' if verdict['passed'] else 'FAIL'}, as whiztap analyze judges the file")
     if summary.get("quiet_faults"):  # the proxy in the middle's faults that chose no frame (Recording.stop)
         lines.append(f"  faults that chose no frame: {', '.join(summary['quiet_faults'])}")

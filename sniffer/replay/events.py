@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from whiztap.analyzer.analysis.compare import Status
-from whiztap.analyzer.protocol.text import escape
+from whiztap.analyzer.protocol.text import escape, plural
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,7 +66,7 @@ class Drift:
     shift_ns: int = 0  # the most a slow handshake moved a connection's schedule
 
     def text(self) -> str:
-        text = (f"drift from schedule over {self.count} writes: p50 {self.p50_ns / 1e6:.3f} ms, "
+        text = (f"drift from schedule over {plural(self.count, 'write')}: p50 {self.p50_ns / 1e6:.3f} ms, "
                 f"p99 {self.p99_ns / 1e6:.3f} ms, max {self.max_ns / 1e6:.3f} ms")
         if self.shift_ns:
             text += f" (schedule moved up to {self.shift_ns / 1e6:.3f} ms later by the server's handshake)"
@@ -148,7 +148,7 @@ class ReplayResult:
         return out
 
     def summary(self) -> str:
-        return f"replayed {self.connections} connection(s), {self.writes} writes; answers: {_judged(self.counts)}"
+        return f"replayed {plural(self.connections, 'connection')}, {plural(self.writes, 'write')}; answers: {_judged(self.counts)}"
 
 
 @dataclass(frozen=True, slots=True)
