@@ -6,10 +6,13 @@ from textual import events
 
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.recording.info import recording_info
+from whiztap.analyzer.traffic import Data, Opened
 from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.help import HelpScreen
 from whiztap.tui.sources import FileSource
+from tests.test_tui_live import GrowingRecording
 
 
 @contextlib.asynccontextmanager
@@ -111,14 +114,21 @@ async def test_free_text_and_violations_only_in_the_filter():
         assert all("junk" in store.observation(n).item.raw.decode("latin-1") for n in shown)
 
 
-async def test_a_bad_filter_is_reported_and_changes_nothing():
+async def test_a_bad_filter_is_refused_on_the_bar_and_the_filter_in_force_stays():
     async with loaded_app("vpn.mcap") as (app, pilot):
-        await pilot.press("slash", *"dir:sideways", "enter")
+        await pilot.press("slash", *"kind:response", "enter")
+        await until(pilot, lambda: app.frames.view.complete and app.frames.rows == len(app.frames.view))
+        shown = frames_shown(app)
+        await pilot.press("slash", *" dir:sideways", "enter")
         await pilot.pause()
-        assert app.frames.view.all
-        assert any("c2s or s2c" in n.message for n in app._notifications)  # noqa: SLF001
-        await pilot.press("escape")
-        assert app.frames.has_focus
+        bar = app.filter_bar
+        assert frames_shown(app) == shown and app.filter_text == "kind:response"
+        status = str(app.status.render())
+        assert "filter: kind:response →" in status and "sideways" not in status  # not shown as applied
+        assert bar.has_class("-invalid") and bar.has_focus
+        assert "c2s or s2c" in str(bar.border_subtitle) and "in force: kind:response" in str(bar.border_subtitle)
+        await pilot.press("escape")  # the words in force come back
+        assert app.frames.has_focus and bar.value == "kind:response" and not bar.has_class("-invalid")
 
 
 async def test_choosing_a_connection_shows_only_its_frames():
@@ -133,6 +143,22 @@ async def test_choosing_a_connection_shows_only_its_frames():
         assert app.frames.has_focus
         await pilot.press("c", "g", "enter")  # "all"
         await until(pilot, lambda: app.frames.view.all and app.frames.rows == store.count)
+
+
+async def test_the_connections_pane_shows_every_row_while_there_is_room(tmp_path):
+    path = tmp_path / "eight.mcap"
+    recording = GrowingRecording(path)  # connection 1, and seven more
+    for conn in range(2, 9):
+        recording.recorder.receive(Opened(conn, recording.t, f"127.0.0.1:{40000 + conn}", "127.0.0.1:5000"))
+        recording.recorder.receive(Data(conn, Direction.C2S, recording.t + conn, b"rr1-12--0--0-ss1"))
+    recording.finish()
+    app = WhiztapApp(FileSource(str(path)))
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        await settled(pilot)
+        pane = app.connections
+        assert len(pane.rows) == 9  # "all" and eight connections
+        assert pane.max_scroll_y == 0 and pane.size.height >= 10  # each row on screen, with the header
 
 
 async def test_help_opens_over_the_list_and_closes():
@@ -155,6 +181,8 @@ async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
         await until(pilot, lambda: len(app.stats.query("ChannelPlot")) == len(app.model.channel_values()))
         plots = {(p.kind, p.channel) for p in app.stats.query("ChannelPlot")}
         assert ("servo", 2) in plots and ("sensor", 12) in plots
+        span = recording_info(SAMPLES / "vpn.mcap")["duration_s"]  # first to last timestamp of the file
+        assert f"over the recording's {span:.3f} s" in str(app.stats.rate_title.render())
         await pilot.press("d")
         assert app.tabs.active == "detail"
 
@@ -191,8 +219,6 @@ async def test_z_gives_the_list_the_whole_width_and_d_brings_the_pane_back():
 
 
 async def test_a_recording_cut_short_shows_what_was_complete_and_says_how_to_recover(tmp_path):
-    from tests.test_tui_live import GrowingRecording
-
     crashed = GrowingRecording(tmp_path / "crashed.mcap")  # flushed, never finished: a crash leftover
     crashed.exchange(b"rr1-24--0--0-ss1", b"sr1-\x01200-ss1")
     crashed.flush()

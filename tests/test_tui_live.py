@@ -1,8 +1,12 @@
 """Traffic that keeps coming: following a growing recording, the proxy inside
 the app in front of the simulator, and the demo."""
 
+import asyncio
+import io
 import time
 from pathlib import Path
+
+from rich.console import Console
 
 from whiztap.analyzer.cli.analyze import analyse_file
 from whiztap.analyzer.protocol.examples import CONFIG
@@ -15,9 +19,13 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
+from whiztap.sniffer.mitm.controller import Controller
 from whiztap.tui.app import WhiztapApp
+from whiztap.tui.controls import HeldKey
 from whiztap.tui.demo import PASSWORD, DemoRig
-from whiztap.tui.sources import FollowSource, LiveSource, ProxyRig
+from whiztap.tui.detail import describe_frame
+from whiztap.tui.inject import InjectScreen
+from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig
 
 from tests.tui_support import SIZE, until
 
@@ -221,3 +229,107 @@ def test_the_hints_name_an_unfinished_recording_and_say_none_was_written_only_wh
     said = "\n".join(_hints(str(path)))
     assert f"the recording was not finished: {path}.part" in said and "no recording" not in said
     assert "recover '" in said  # the path, quoted for a shell: it holds a '
+
+
+# -- the proxy in the middle: counts, held frames, injection ---------------------------------------------------
+
+
+async def test_the_pane_the_list_and_the_detail_count_the_same_rows_with_frames_the_server_never_got(tmp_path):
+    from whiztap.analyzer.mitm.spec import parse_fault
+    from whiztap.analyzer.protocol.codec import encode
+    from whiztap.analyzer.protocol.messages import SensorRequest
+    from whiztap.sniffer.record.record_run import MiddleSettings
+
+    drop = MiddleSettings(faults=(parse_fault("drop dir:c2s kind:command every:2"),))
+    async with Simulator(mode="vpn", seed=7) as sim:
+        settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(tmp_path / "live.mcap"), quiet=True, middle=drop)
+        app = WhiztapApp(LiveSource(ProxyRig(settings), "live"))
+        async with app.run_test(size=SIZE) as pilot:
+            source = app.source
+            await until(pilot, lambda: source.recording is not None and source.recording.proxy is not None, "the proxy")
+            reader, writer = await asyncio.open_connection(LOCAL, source.recording.proxy.port)
+            writer.write(b"".join(encode(SensorRequest(12 + n % 3)) for n in range(6)))
+            store, frames = app.model.store, app.frames
+            await until(pilot, lambda: store.count == 9 and frames.store_rows == 9, "6 requests (3 dropped) and 3 answers")
+            app.refresh_summaries()
+            [row] = app.model.connections()
+            assert row.frames == 9 == store.count  # the session saw 6 of them; the list shows 9
+            assert str(app.connections.get_cell("1", "frames")) == "9"
+            assert frames.border_subtitle == "following · 9"
+            await until(pilot, lambda: app.detail.frame == frames.view[8], "the last frame in detail")
+            assert "frame 9 of conn #1," in plain(app.detail.body.content)
+            assert len(store.unseen[1]) == 3
+            for place, n in enumerate(frames.view[row] for row in range(9)):  # a dropped one's too, not the session's
+                assert f"frame {place + 1} of conn #1," in plain(describe_frame(store, n))
+            writer.close()
+            await app.action_quit()
+            await until(pilot, lambda: not app.is_running, "the app to quit")
+
+
+def plain(renderable) -> str:  # noqa: ANN001
+    console = Console(file=io.StringIO(), width=100)
+    console.print(renderable)
+    return console.file.getvalue()
+
+
+T0 = 1_700_000_000_000_000_000
+
+
+class _Shell:
+    """A connection's shell that carries out nothing: the core's lanes write nowhere."""
+
+    client_addr = "127.0.0.1:40000"
+
+    def run(self, commands: list) -> None:
+        pass
+
+
+class BesideAController(FileSource):
+    """A fixed recording, with a Controller (driven by no proxy, its clock the test's) as the live source has one."""
+
+    def __init__(self, path: str, controller: Controller) -> None:
+        super().__init__(path)
+        self.controller = controller
+
+
+def recording_beside_a_controller(tmp_path: Path) -> tuple[WhiztapApp, Controller, list[int]]:
+    """The app on a small finished recording (its connection 1 closed), beside a
+    Controller whose connection 1 holds a Sensor Request: (app, controller, clock)."""
+    growing = GrowingRecording(tmp_path / "robot.mcap", t_ns=T0)
+    growing.exchange(b"rr1-13--0--0-ss1", b"cr1-13--97--0-ss1")
+    growing.finish()
+    now = [T0]
+    controller = Controller(seed=0, hold_timeout=60)
+    controller.attach(lambda: now[0], lambda event: None)
+    controller.set_intercept("kind:command ch:12")
+    core, _ = controller.open(1, _Shell())
+    core.received(C2S, b"rr1-12--0--0-ss1", T0)
+    return WhiztapApp(BesideAController(str(tmp_path / "robot.mcap"), controller)), controller, now
+
+
+async def test_a_held_frames_wait_and_countdown_tick_in_its_row_and_in_the_detail(tmp_path):
+    app, controller, now = recording_beside_a_controller(tmp_path)
+    async with app.run_test(size=SIZE) as pilot:
+        await until(pilot, lambda: app.fed and app.frames.rows == 3, "the recording and the held frame")
+        await pilot.press("G")
+        await until(pilot, lambda: isinstance(app.detail.frame, HeldKey), "the held frame in detail")
+        assert "waiting 0 s; goes on as it is in 60 s" in plain(app.detail.body.content)
+        for waited in (1, 2, 7):
+            now[0] = T0 + waited * 1_000_000_000 + 300_000_000
+            shown = f"waiting {waited} s; goes on as it is in {60 - waited} s"
+            await until(pilot, lambda shown=shown: shown in plain(app.detail.body.content), shown)
+            line = "".join(segment.text for segment in app.frames.render_line(2))
+            assert f"#1, {60 - waited} s left:" in line
+        assert app.frames.border_subtitle == "following · 2"  # the held frame is counted in the title
+        assert "1 held" in str(app.frames.border_title)
+
+
+async def test_inject_on_a_closed_connection_says_so_and_opens_no_dialog(tmp_path):
+    app, controller, _ = recording_beside_a_controller(tmp_path)
+    controller.closed(1)  # the proxy's connection 1 is gone; the recording's frames of it stay
+    async with app.run_test(size=SIZE) as pilot:
+        await until(pilot, lambda: app.fed and app.frames.rows == 2, "the recording")
+        assert app.frames.frame == 0
+        await pilot.press("I")
+        assert not isinstance(app.screen, InjectScreen)
+        assert any("conn #1 is closed" in n.message for n in app._notifications)  # noqa: SLF001

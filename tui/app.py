@@ -34,9 +34,10 @@ from whiztap.tui.connections import ConnectionsPane
 from whiztap.tui.controls import Controls
 from whiztap.tui.detail import DetailPane
 from whiztap.tui.faults_pane import FaultsPane
+from whiztap.tui.filter_bar import FilterBar
 from whiztap.tui.frame_list import FrameList
 from whiztap.tui.help import HelpScreen
-from whiztap.tui.inject import InjectScreen, target_connection
+from whiztap.tui.inject import InjectScreen, closed_to_injection, target_connection
 from whiztap.tui.intercept_bar import InterceptBar
 from whiztap.tui.model import TrafficModel, verdict_text
 from whiztap.tui.sources import LiveSource, Source, SourceError
@@ -68,8 +69,6 @@ class WhiztapApp(App):
     #frames { width: 3fr; min-width: 60; }
     #side { width: 2fr; min-width: 44; }
     #side.hidden { display: none; }
-    #filter { display: none; border: round $accent; }
-    #filter.shown { display: block; }
     #status { height: 1; background: $panel; color: $text-muted; padding: 0 1; }
     """
     BINDINGS = [
@@ -121,7 +120,7 @@ class WhiztapApp(App):
         self.faults = FaultsPane(self.controls, id="faults-pane")
         self.intercept_bar = InterceptBar(self.controls, id="intercept")
         self.stats = StatsPane(self.model, self.live, id="stats-pane")
-        self.filter_bar = Input(placeholder=FILTER_HELP, id="filter")
+        self.filter_bar = FilterBar(placeholder=FILTER_HELP, id="filter")
         self.status = Static("", id="status")
         yield Header(show_clock=False)
         yield self.connections
@@ -302,19 +301,23 @@ class WhiztapApp(App):
 
     @on(Input.Submitted, "#filter")
     def _on_filter(self, message: Input.Submitted) -> None:
-        self.filter_text = message.value.strip()
-        if self._apply_filter():
-            self.frames.focus()
-            if not self.filter_text:
-                self.filter_bar.remove_class("shown")
-
-    def _apply_filter(self) -> bool:
+        """Words that do not parse are refused on the bar; the filter in force
+        stays, and the status line goes on naming it."""
+        text = message.value.strip()
         try:
-            item_filter = parse_filter(self.filter_text)
+            parse_filter(text)
         except FilterSyntaxError as e:
-            self.notify(f"filter: {e}", severity="error", timeout=6, markup=False)
-            return False
-        item_filter = with_connection(item_filter, self.chosen_conn)
+            self.filter_bar.refuse(f"not applied: {e}; in force: {self.filter_text or 'nothing'}")
+            return
+        self.filter_text = text
+        self._apply_filter()
+        self.frames.focus()
+        if not text:
+            self.filter_bar.remove_class("shown")
+
+    def _apply_filter(self) -> None:
+        """The list through the filter in force (which parsed) and the connection chosen."""
+        item_filter = with_connection(parse_filter(self.filter_text), self.chosen_conn)
         view = FrameView(self.model.store, item_filter)
         self.frames.set_view(view)
         if item_filter != ItemFilter():
@@ -322,7 +325,6 @@ class WhiztapApp(App):
         else:
             self.workers.cancel_group(self, "filter")
         self._show_status()
-        return True
 
     # -- actions -----------------------------------------------------------------------------
 
@@ -387,6 +389,10 @@ class WhiztapApp(App):
         if conn is None:
             self.notify("which connection? select one of its frames, or choose it in the connections pane (c)",
                         severity="warning", timeout=4)
+            return
+        closed = closed_to_injection(self.controls, conn)
+        if closed:
+            self.notify(closed, severity="warning", timeout=4, markup=False)
             return
         self.push_screen(InjectScreen(self.controls, conn))
 

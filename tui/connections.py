@@ -2,7 +2,9 @@
 
 A DataTable is right here (and wrong for frames): connections are few, and a
 row is added once and then updated in place.  Choosing a row (Enter or a
-click) narrows the frame list to that connection.
+click) narrows the frame list to that connection.  The pane grows with the
+connections, up to a third of the screen (then it scrolls): the frame list
+keeps the rest.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ class ConnectionsPane(DataTable):
         Binding("G", "scroll_bottom", "Last", show=False),
     ]
     DEFAULT_CSS = """
-    ConnectionsPane { height: auto; max-height: 8; border: round $primary 50%; }
+    ConnectionsPane { height: auto; max-height: 33%; min-height: 5; border: round $primary 50%; }
     ConnectionsPane:focus { border: round $primary; }
     """
 

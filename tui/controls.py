@@ -57,6 +57,14 @@ class Controls:
     def key(self, held: Any) -> HeldKey:
         return HeldKey(held.id, (self.now_ns - held.since_ns) // NS)
 
+    def waits(self, held: Any) -> tuple[int, int]:
+        """Whole seconds ``held`` has waited, as of the last poll, and those
+        left before it goes on as it is (``--hold-timeout``): what its row
+        and the detail pane show, drawn again each second."""
+        waited = self.now_ns - held.since_ns
+        left = self.controller.context.hold_timeout_ns - waited
+        return waited // NS, max(0, -(-left // NS))
+
     def poll(self) -> None:
         """Take in what is held now.  The Held objects themselves, not
         ``held_frames()``: that builds every frame's text and meaning, and with

@@ -140,10 +140,11 @@ def describe_frame(store: FrameStore, n: int) -> RenderableType:
         paired_latency = abs(store.t_end[n] - store.t_end[paired]) if paired >= 0 else 0
         clients = client_latency(store, n, paired) if paired >= 0 else None
         conn = store.conn[n]
+        ordinal = store.conn_ordinal(n)
         relative = store.relative_s(n)
         marks = list(store.marks.get(n, ()))
         secret = store.redact_passwords and obs.item.kind is ItemKind.PASSWORD
-    parts: list[RenderableType] = [_heading(obs, meaning, conn, relative)]
+    parts: list[RenderableType] = [_heading(obs, meaning, conn, ordinal, relative)]
     if obs.message is None and obs.candidates:
         parts.append(Text(printable("may mean: " + " / ".join(c.describe() for c in obs.candidates)),
                           style="yellow"))
@@ -184,12 +185,14 @@ def client_latency(store: FrameStore, n: int, paired: int) -> str | None:
     return latency_text(times.get(answer, store.t_end[answer]) - times.get(request, store.t_end[request]))
 
 
-def _heading(obs: Observation, meaning: str, conn: int, relative: float) -> Text:
-    """What the frame means, where it belongs and when it came."""
+def _heading(obs: Observation, meaning: str, conn: int, ordinal: int, relative: float) -> Text:
+    """What the frame means, where it belongs and when it came.  ``ordinal``:
+    its place among the connection's rows, counted as the connections pane
+    and the list (with the connection chosen) count them."""
     item = obs.item
     head = Text()
     head.append(printable(meaning), style="bold")
-    head.append("\n" + printable(f"conn #{conn}, item {obs.index} of the session, {obs.direction.sender} → "
+    head.append("\n" + printable(f"frame {ordinal:,} of conn #{conn}, {obs.direction.sender} → "
                                  f"{'server' if obs.direction.sender == 'client' else 'client'}, {item.kind}"
                                  + (f" ({item.reason})" if item.reason else "")), style="dim")
     head.append(f"\nat {relative:.6f} s  ({clock(item.t_end_ns)})", style="dim")
@@ -265,16 +268,19 @@ def describe_typed(typed: TypedFrame) -> RenderableType:
     return Group(*parts)
 
 
-def describe_held(held: Any, now_ns: int, checksum_rule: str) -> RenderableType:
-    """A frame the proxy holds (a ``Held``): where it goes, why it waits, the
-    keys that let it go, and the frame as the editor would judge it."""
-    state = held.as_dict(now_ns)
+def describe_held(held: Any, controls: Controls) -> RenderableType:
+    """A frame the proxy holds (a ``Held``): where it goes, why it waits and
+    for how much longer, the keys that let it go, and the frame as the
+    editor would judge it."""
+    state = held.as_dict(controls.now_ns)
     sender = held.direction.sender
-    head = Text(f"Held #{held.id}, waiting {state['waited_s']:.1f} s", style="bold cyan")
+    waited, left = controls.waits(held)
+    head = Text(f"Held #{held.id}, waiting {waited} s; goes on as it is in {left} s (--hold-timeout)",
+                style="bold cyan")
     head.append("\n" + printable(f"conn #{held.conn}, {sender} → {'server' if sender == 'client' else 'client'}, "
                                   f"{state['kind']}; {state['cause']}"), style="dim")
     head.append("\na accept · x drop · e edit · A accept all", style="bold")
-    return Group(head, describe_typed(judge_bytes(held.shown, held.direction, checksum_rule)))
+    return Group(head, describe_typed(judge_bytes(held.shown, held.direction, controls.checksum_rule)))
 
 
 def _bytes_parts(kept: bytes, size: int) -> list[RenderableType]:
@@ -322,7 +328,7 @@ class DetailPane(VerticalScroll):
         held = controls.find(frame.id) if controls is not None else None
         if held is None or controls is None:
             return Text(f"Held #{frame.id} has been let go.")
-        return describe_held(held, controls.now_ns, controls.checksum_rule)
+        return describe_held(held, controls)
 
     def refresh_frame(self) -> None:
         """Show the frame again: a late violation may have marked it."""

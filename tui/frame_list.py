@@ -146,8 +146,16 @@ class FrameList(HeldActions, VirtualList):
             if isinstance(on, HeldKey) and not self.tail:
                 self._stay_on(on.id)
             self.refresh()  # the held rows show how long they have waited
+            self._announce()  # and so does the detail pane, on the held frame under the cursor
         self.show_held()
         return changed
+
+    def position(self) -> str:
+        """The border's count: the view's rows (held frames are counted in the title)."""
+        at = self.cursor - self.store_rows
+        if 0 <= at < len(self._held):
+            return f"held {at + 1} of {len(self._held)} · {self.store_rows:,} frames"
+        return f"{min(self.cursor + 1, self.store_rows):,} / {self.store_rows:,}"
 
     def _stay_on(self, held_id: int) -> None:
         """Keep the cursor on the held frame it was on, as rows come before it."""
@@ -237,9 +245,11 @@ class FrameList(HeldActions, VirtualList):
 
     def _held_cells(self, held: Any) -> list[tuple[str, Style]]:
         """A frame waiting at the proxy: where the time goes, that it is held;
-        where the meaning goes, its number and how long it has waited."""
+        where the meaning goes, its number and the seconds left before it goes
+        on as it is (``--hold-timeout``; the detail pane says it in full)."""
         style = self.get_component_rich_style
         state = held.as_dict(self.controls.now_ns)  # type: ignore[union-attr]
+        _, left = self.controls.waits(held)  # type: ignore[union-attr]
         c2s = held.direction is Direction.C2S
         waiting = style("framelist--held")
         return [
@@ -249,6 +259,6 @@ class FrameList(HeldActions, VirtualList):
             ("→ " if c2s else "← ", style("framelist--c2s" if c2s else "framelist--s2c")),
             (f"{state['kind']:<10} ", style("framelist--kind")),
             (f"{_bytes_text(held.shown, len(held.shown)):<{BYTES_WIDTH}} ", style("framelist--bytes")),
-            (f"#{held.id} waiting {state['waited_s']:.1f} s: ", waiting),
+            (f"#{held.id}, {left} s left: ", waiting),
             (state["meaning"], Style()),
         ]

@@ -32,6 +32,17 @@ def target_connection(frames: FrameList, chosen: int | None, controls: Controls)
     return open_now[0] if len(open_now) == 1 else None
 
 
+def closed_to_injection(controls: Controls, conn: int) -> str:
+    """Why nothing can be injected into ``conn`` now ("" if something can):
+    said before the dialog opens, not after a frame was typed into it."""
+    entry = controls.controller.cores.get(conn)
+    if entry is None:
+        return f"conn #{conn} is closed: nothing can be injected into it (select a frame of an open one)"
+    if entry[0].closing:
+        return f"conn #{conn} is closing: nothing can be injected into it (select a frame of an open one)"
+    return ""
+
+
 class InjectScreen(FrameDialog):
     BINDINGS = [
         Binding("ctrl+t", "turn", "Toward the other side"),

@@ -3,7 +3,7 @@
 From Enter on, every frame the words choose waits at the proxy for a person
 (``Controller.set_intercept``, as ``whiztap ctl intercept`` sets it); an empty
 line holds nothing more (frames held already stay held).  A filter that does
-not parse is reported and the one in force stays.
+not parse is refused on the bar (``FilterBar``) and the one in force stays.
 """
 
 from __future__ import annotations
@@ -16,13 +16,13 @@ from textual.widgets import Input
 from whiztap.analyzer.analysis.item_filter import FILTER_HELP
 from whiztap.sniffer.mitm.controller import ControlError
 from whiztap.tui.controls import Controls
+from whiztap.tui.filter_bar import FilterBar
 
 
-class InterceptBar(Input):
+class InterceptBar(FilterBar):
     BINDINGS = [Binding("escape", "close", "Leave", show=False)]
     DEFAULT_CSS = """
-    InterceptBar { display: none; border: round $warning; }
-    InterceptBar.shown { display: block; }
+    InterceptBar { border: round $warning; }
     """
 
     def __init__(self, controls: Controls, *, id: str | None = None) -> None:  # noqa: A002
@@ -47,7 +47,7 @@ class InterceptBar(Input):
         try:
             self.controls.controller.set_intercept(text)
         except ControlError as e:
-            self.notify(str(e), severity="error", timeout=6, markup=False)
+            self.refuse(str(e))
             return
         if text:
             self.notify(f"intercepting {text}: a lets a held frame go, x drops it, e edits it", timeout=4,

@@ -41,7 +41,7 @@ class ConnectionRow:
     upstream: str
     mode: str
     handshake: str
-    frames: int
+    frames: int  # the list's rows of the connection (in the middle, with those the server never got)
     violations: int  # as analyze counts them (in the middle, an open one as if it ended now)
     state: str  # "open", or who closed it
 
@@ -62,6 +62,9 @@ class TrafficModel:
         self.judge: Judge | None = None  # in the middle: analyze's judging (without it, the analyzer's)
         self._redact_delivered = False
         self._settings = (checksum_rule, limits, name)
+        # the recording's time span: its first and last event (what 'whiztap info' gives as a file's span)
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
 
     def in_the_middle(self, redact: bool) -> None:
         """From now on, traffic is that of a proxy in the middle (a recording
@@ -75,6 +78,11 @@ class TrafficModel:
 
     def receive(self, event: TrafficEvent) -> None:
         with self.lock:
+            t = event.t_ns
+            if self.first_ns is None or t < self.first_ns:
+                self.first_ns = t
+            if self.last_ns is None or t > self.last_ns:
+                self.last_ns = t
             if self.middle is not None:
                 self.middle.receive(event)
                 if self._redact_delivered and type(event) is Delivered and event.secret:
@@ -104,16 +112,14 @@ class TrafficModel:
                 violations = judged.get(conn, 0)
                 if session is not None:  # still open: the live session knows more than the summary
                     mode, handshake = str(session.mode), session.handshake_outcome
-                    frames = sum(session.counts.values())
                     if self.judge is None:
                         violations = sum(session.violation_counts.values())
                     state = "open"
                 else:
                     mode, handshake = summary.mode, summary.handshake
-                    frames = sum(summary.frames.values())
                     state = f"closed by {summary.closed_by}" if summary.closed_by else "ended"
                 rows.append(ConnectionRow(conn, summary.client, summary.upstream, mode, handshake,
-                                          frames, violations, state))
+                                          self.store.conn_rows(conn), violations, state))
         return rows
 
     def _judged_violations(self) -> dict[int, int]:
@@ -133,6 +139,14 @@ class TrafficModel:
                 return self.judge.verdict()
             result = self.analyzer.result
             return verdict_of(result.side_counts, result.effect_counts, len(self.analyzer.summaries))
+
+    @property
+    def duration_s(self) -> float:
+        """From the first event to the last: a recording's own span, whenever it is looked at."""
+        with self.lock:
+            if self.first_ns is None or self.last_ns is None:
+                return 0.0
+            return (self.last_ns - self.first_ns) / 1e9
 
     def latencies(self) -> dict[str, LatencyStats]:
         """Latency by request title over every session, open or closed (in

@@ -119,7 +119,7 @@ class StatsPane(VerticalScroll):
     def update_stats(self) -> None:
         window = LIVE_WINDOW_S if self.live else None
         c2s, s2c = self.model.store.rate_series(window)
-        span = f"last {len(c2s)} s" if self.live else f"{len(c2s)} s recorded"
+        span = f"last {len(c2s)} s" if self.live else f"over the recording's {self.model.duration_s:.3f} s"
         self.rate_title.update(f"Frames per second ({span})")
         for direction, series in (("c2s", c2s), ("s2c", s2c)):
             sparkline, now = self.rates[direction]

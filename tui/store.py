@@ -69,6 +69,7 @@ class FrameStore:
         # (s2c), the row's own time being the server's
         self.client_t: dict[int, int] = {}
         self.marked: list[int] = []  # frames given a mark after they were stored (lines to redraw)
+        self.unseen: dict[int, list[int]] = {}  # conn -> its rows no session saw (add_unseen), in order
 
     # -- writing (the ingest worker) ------------------------------------------------------
 
@@ -165,6 +166,7 @@ class FrameStore:
         self.raws += raw[:self.raw_cap]
         self.raw_end.append(len(self.raws))
         self.marks[n] = marks
+        self.unseen.setdefault(conn, []).append(n)
         if self.start_ns is None:
             self.start_ns = t_ns
         self.count = n + 1
@@ -226,6 +228,22 @@ class FrameStore:
     def size(self, n: int) -> int:
         capped = self.capped.get(n)
         return capped[0] if capped else self.raw_end[n] - (self.raw_end[n - 1] if n else 0)
+
+    def conn_rows(self, conn: int) -> int:
+        """The rows of connection ``conn``: what the list shows with it chosen,
+        and what the connections pane counts (its session's frames, and
+        those no session saw)."""
+        return len(self._by_conn.get(conn, ())) + len(self.unseen.get(conn, ()))
+
+    def conn_ordinal(self, n: int) -> int:
+        """Frame ``n``'s place among its connection's rows, from 1: the last
+        row's is what the connections pane counts."""
+        conn = self.conn[n]
+        unseen = self.unseen.get(conn, [])
+        at = bisect_left(unseen, n)
+        if at < len(unseen) and unseen[at] == n:  # seen by no session: after the session's frames before it
+            return bisect_left(self._by_conn.get(conn, array("i")), n) + at + 1
+        return self.session_index[n] + at + 1
 
     def relative_s(self, n: int) -> float:
         return (self.t_end[n] - (self.start_ns or 0)) / NS

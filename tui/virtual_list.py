@@ -117,7 +117,7 @@ class VirtualList(ScrollView, can_focus=True):
         """Take in rows that arrived since the last look (or went: a subclass's
         rows after the data's own, such as frames held at the proxy)."""
         rows = self.row_count()
-        if rows == self.rows:
+        if rows == self.rows and self.counted_rows() == self._counted:
             return
         before, self.rows = self.rows, rows
         counted, self._counted = self._counted, self.counted_rows()
@@ -173,10 +173,15 @@ class VirtualList(ScrollView, can_focus=True):
             self.scroll_to(y=row, animate=False)
         elif height and row >= top + height:
             self.scroll_to(y=row - height + 1, animate=False)
+        self._announce()
+
+    def _announce(self) -> None:
+        """Tell the app what the cursor is on when that changed: another row,
+        or its row showing something else (the seconds a held frame waited)."""
         key = self.current
         if key != self._announced:
             self._announced = key
-            self.post_message(self.Moved(self, row if self.rows else None, key))
+            self.post_message(self.Moved(self, self.cursor if self.rows else None, key))
 
     def watch_tail(self, tail: bool) -> None:
         self.new_rows = 0
@@ -186,11 +191,15 @@ class VirtualList(ScrollView, can_focus=True):
 
     def _update_subtitle(self) -> None:
         if self.tail:
-            self.border_subtitle = f"following · {self.rows:,}"
+            self.border_subtitle = f"following · {self.counted_rows():,}"
         elif self.new_rows and self.counts_new:
             self.border_subtitle = f"{self.new_rows:,} new (End follows)"
         else:
-            self.border_subtitle = f"{min(self.cursor + 1, self.rows):,} / {self.rows:,}"
+            self.border_subtitle = self.position()
+
+    def position(self) -> str:
+        """Where the cursor is, for the border (a subclass counts its own rows)."""
+        return f"{min(self.cursor + 1, self.rows):,} / {self.rows:,}"
 
     # -- actions ---------------------------------------------------------------------------------
 
