@@ -26,7 +26,8 @@ they pass.  A mark before a frame means it breaks a rule: **●** error,
 - `G` / `End`: last frame, and follow new frames (live and follow mode)
 - `n` / `N`: next / previous frame with a violation
 - `p`: the paired frame: a response's request, a request's response
-- `/`: the filter bar (`Enter` applies, an empty filter shows everything, `Esc` leaves it)
+- `/`: the filter bar (`Enter` applies, an empty filter shows everything, `Esc` leaves it);
+  words that do not parse are refused on the bar and the filter in force stays
 - `c`: the connections pane (`Enter` on a row shows only that connection; `all` shows every one)
 - `d` / `s`: detail / statistics in the right pane
 - `z`: hide or show the right pane (a wide frame list)
@@ -46,8 +47,8 @@ shows as a glyph before the time (⏸ held, + injected, ✎ edited, ✗ dropped,
 `injected`, `edited`, `dropped`, `delayed`, `faulted` select those frames.
 
 - `i`: intercept: hold the frames these filter words choose (`Enter` sets it; empty holds nothing
-  more; `Esc` leaves it).  Held frames wait after the list's rows, with how long they have waited;
-  the list's title counts them
+  more; `Esc` leaves it).  Held frames wait after the list's rows, with the seconds left before
+  `--hold-timeout` lets them go as they are; the list's title counts them
 - on a held frame: `a` let it go as it is, `x` drop it, `e` edit it; `A` let every held frame go
 - `e`, the editor: the frame as escaped text (or console words, `sensor 13`), its fields and the
   rules it breaks beside it as you type; `Enter` lets it go as typed (a frame that breaks a rule
