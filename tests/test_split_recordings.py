@@ -89,7 +89,7 @@ def test_a_missing_middle_part_is_said_and_the_rest_is_judged(tmp_path):
     files = split_vpn_session(tmp_path / "s.mcap", parts=4)
     Path(files[1]).unlink()
     result = run("analyze", files[0], "--format", "json")
-    assert "part(s) 2 of this split recording are missing" in result.stderr
+    assert "part 2 of this split recording is missing" in result.stderr
     assert "unexpected error" not in result.stderr
     assert result.returncode in (0, 1)
 

@@ -78,7 +78,7 @@ class RecordingSet:
         listed = ", ".join(str(n) for n in self.missing)
         return (f"{self.parts[0]}: {'part' if len(self.missing) == 1 else 'parts'} {listed} of this split recording "
                 f"{'is' if len(self.missing) == 1 else 'are'} missing; connections "
-                f"that crossed them are judged as if the missing bytes were a capture gap")
+                f"that crossed {'it' if len(self.missing) == 1 else 'them'} are judged as if the missing bytes were a capture gap")
 
 
 def being_written(path: Path | str) -> bool:
