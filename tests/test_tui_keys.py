@@ -11,6 +11,8 @@ frames, a frame to inject, a fault, a bisect query."""
 from __future__ import annotations
 
 import contextlib
+import importlib
+import pkgutil
 import tempfile
 from pathlib import Path
 from unittest import mock
@@ -21,30 +23,31 @@ from textual import events
 from textual.app import App
 from textual.screen import Screen
 
+import whiztap.tui
 from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.tui import replay_screen
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.bisect import BisectPrompt, DivergenceScreen
-from whiztap.tui.connections import ConnectionsPane
 from whiztap.tui.demo import DemoRig
-from whiztap.tui.faults_pane import FaultsPane, SpecInput
-from whiztap.tui.frame_dialog import FrameDialog
-from whiztap.tui.frame_list import FrameList
-from whiztap.tui.help import HelpScreen
-from whiztap.tui.inject import InjectScreen
-from whiztap.tui.intercept_bar import InterceptBar
-from whiztap.tui.replay_screen import ReplayScreen
 from whiztap.tui.sources import FileSource, LiveSource
-from whiztap.tui.virtual_list import VirtualList
 
 from tests.tui_support import SAMPLES, SIZE, loaded, until
 
-BOUND = (App, Screen, WhiztapApp, FrameList, VirtualList, ConnectionsPane, FaultsPane, SpecInput, InterceptBar,
-         FrameDialog, InjectScreen, HelpScreen, ReplayScreen, BisectPrompt, DivergenceScreen)
-KEYS = sorted({key.strip() for cls in BOUND for binding in cls.BINDINGS
+
+def bound_classes() -> set[type]:
+    """Every class of the TUI that declares keys, and Textual's app and screen
+    (Tab, Ctrl+Q, Ctrl+C, the command palette's Ctrl+P)."""
+    found: set[type] = {App, Screen}
+    for info in pkgutil.iter_modules(whiztap.tui.__path__):
+        module = importlib.import_module(f"whiztap.tui.{info.name}")
+        found |= {cls for cls in vars(module).values()
+                  if isinstance(cls, type) and cls.__module__ == module.__name__ and "BINDINGS" in vars(cls)}
+    return found
+
+
+KEYS = sorted({key.strip() for cls in bound_classes() for binding in cls.BINDINGS
                for key in (binding.key if hasattr(binding, "key") else binding[0]).split(",")}
-              | {"enter", "backspace", "shift+tab", "left", "right", "1", "2", ":"})
+              | {App.COMMAND_PALETTE_BINDING, "enter", "backspace", "shift+tab", "left", "right", "1", "2", ":"})
 CHARACTERS = {"question_mark": "?", "slash": "/", "space": " ", "colon": ":", "enter": "\r", "tab": "\t",
               "escape": "\x1b", "backspace": "\x7f"}
 TEXTS = ("sensor 12", "servo 3 1500", "rr1-31--0--2-ss1", "kind:command ch:12", "dir:sideways", "violations",
