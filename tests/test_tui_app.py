@@ -227,3 +227,21 @@ async def test_a_recording_cut_short_shows_what_was_complete_and_says_how_to_rec
         await loaded(pilot)
         assert app.model.store.count == 2
         assert any("whiztap recover" in n.message for n in app._notifications)  # noqa: SLF001
+
+
+def test_the_detail_cites_the_section_of_the_message_a_violation_is_in():
+    """A channel out of range in a response is cited by the response's
+    section, not the rule's own (the Servo Position Request's)."""
+    from rich.console import Console
+
+    from whiztap.analyzer.protocol.frame_text import frame_alone
+    from whiztap.analyzer.protocol.observations import Direction
+    from whiztap.tui.detail import violations_text
+
+    [observation], _ = frame_alone(b"cr1-99--5--0-ss1", Direction.S2C)
+    [violation] = [v for v in observation.violations if v.rule_id == "PW-RANGE-CHANNEL"]
+    assert violation.section != violation.rule.section
+    console = Console(width=200, file=None)
+    with console.capture() as shown:
+        console.print(violations_text([violation]))
+    assert f"(error, {violation.section})" in shown.get() and violation.rule.section not in shown.get()

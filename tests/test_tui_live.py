@@ -25,9 +25,9 @@ from whiztap.tui.controls import HeldKey
 from whiztap.tui.demo import PASSWORD, DemoRig
 from whiztap.tui.detail import describe_frame
 from whiztap.tui.inject import InjectScreen
-from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig
+from whiztap.tui.sources import FollowSource, LiveSource, ProxyRig
 
-from tests.tui_support import SIZE, until
+from tests.tui_support import SIZE, BesideAController, IdleShell, until
 
 LOCAL = "127.0.0.1"
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -275,23 +275,6 @@ def plain(renderable) -> str:  # noqa: ANN001
 T0 = 1_700_000_000_000_000_000
 
 
-class _Shell:
-    """A connection's shell that carries out nothing: the core's lanes write nowhere."""
-
-    client_addr = "127.0.0.1:40000"
-
-    def run(self, commands: list) -> None:
-        pass
-
-
-class BesideAController(FileSource):
-    """A fixed recording, with a Controller (driven by no proxy, its clock the test's) as the live source has one."""
-
-    def __init__(self, path: str, controller: Controller) -> None:
-        super().__init__(path)
-        self.controller = controller
-
-
 def recording_beside_a_controller(tmp_path: Path) -> tuple[WhiztapApp, Controller, list[int]]:
     """The app on a small finished recording (its connection 1 closed), beside a
     Controller whose connection 1 holds a Sensor Request: (app, controller, clock)."""
@@ -302,7 +285,7 @@ def recording_beside_a_controller(tmp_path: Path) -> tuple[WhiztapApp, Controlle
     controller = Controller(seed=0, hold_timeout=60)
     controller.attach(lambda: now[0], lambda event: None)
     controller.set_intercept("kind:command ch:12")
-    core, _ = controller.open(1, _Shell())
+    core, _ = controller.open(1, IdleShell())
     core.received(C2S, b"rr1-12--0--0-ss1", T0)
     return WhiztapApp(BesideAController(str(tmp_path / "robot.mcap"), controller)), controller, now
 

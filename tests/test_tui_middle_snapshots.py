@@ -17,31 +17,13 @@ from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.mitm.controller import Controller
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.controls import HeldKey
-from whiztap.tui.sources import FileSource
 
 from tests.test_tui_live import GrowingRecording
-from tests.tui_support import loaded, paste, settled, until
+from tests.tui_support import BesideAController, IdleShell, loaded, paste, settled, until
 
 SIZE = (120, 36)
 T0 = 1_700_000_000_000_000_000
 WAITED_NS = 2_500_000_000
-
-
-class _Shell:
-    """A connection's shell that carries out nothing: the core's lanes write nowhere."""
-
-    client_addr = "127.0.0.1:40000"
-
-    def run(self, commands: list) -> None:
-        pass
-
-
-class BesideAController(FileSource):
-    """A fixed recording, with a Controller as the live source has one."""
-
-    def __init__(self, path: str, controller: Controller) -> None:
-        super().__init__(path)
-        self.controller = controller
 
 
 @pytest.fixture
@@ -50,7 +32,7 @@ def controller() -> Controller:
     controller = Controller(seed=0)
     controller.attach(lambda: now[0], lambda event: None)
     controller.set_intercept("kind:command ch:12")
-    core, _ = controller.open(1, _Shell())
+    core, _ = controller.open(1, IdleShell())
     core.received(Direction.C2S, b"rr1-12--0--0-ss1", T0)  # held: the lane has nowhere to write it anyway
     now[0] += WAITED_NS
     return controller

@@ -6,6 +6,9 @@ import asyncio
 from collections.abc import Callable
 from pathlib import Path
 
+from whiztap.sniffer.mitm.controller import Controller
+from whiztap.tui.sources import FileSource
+
 ROOT = Path(__file__).parent.parent
 SAMPLES = ROOT / "samples"
 WAIT = 20.0  # a generous bound on anything awaited; never a timing assertion
@@ -59,3 +62,21 @@ def frames_shown(app) -> list[int]:  # noqa: ANN001
     """The frame ids of the list's rows."""
     view = app.frames.view
     return [view[row] for row in range(app.frames.rows)]
+
+
+class IdleShell:
+    """A connection's shell that carries out nothing: a Controller's core
+    (driven by no proxy, its clock the test's) whose lanes write nowhere."""
+
+    client_addr = "127.0.0.1:40000"
+
+    def run(self, commands: list) -> None:
+        pass
+
+
+class BesideAController(FileSource):
+    """A fixed recording, with a Controller beside it as the live source has one."""
+
+    def __init__(self, path: str, controller: Controller) -> None:
+        super().__init__(path)
+        self.controller = controller

@@ -216,7 +216,7 @@ def violations_text(found: Iterable[Violation]) -> Text:
     for v in found:
         rule = RULES[v.rule_id]
         violations.append(f"● {v.rule_id}", style=SEVERITY_STYLE[rule.severity])
-        violations.append(f" ({rule.severity}, {rule.section})\n", style="dim")
+        violations.append(f" ({rule.severity}, {v.section})\n", style="dim")  # the message's section
         violations.append(f"  {rule.summary}\n  {printable(v.detail)}\n")
     return violations
 
