@@ -4,7 +4,6 @@ import base64
 import html
 import json
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -12,12 +11,10 @@ import jsonschema
 import pytest
 from junitparser import Error, Failure, JUnitXml, Skipped
 
-from click.testing import CliRunner
-
 from whiztap.analyzer.analysis.analyzer import Analyzer
 from whiztap.analyzer.analysis.report.html import NO_PLOTS
-from whiztap.analyzer.cli.analyze import analyze_command
 from whiztap.analyzer.cli.analyze import scan_recording
+from tests.cli_support import run_cli
 from tests.record_support import rebuild_streams, stream_bytes
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
@@ -25,18 +22,13 @@ from whiztap.analyzer.analysis.report.text import md_text
 from whiztap.analyzer.protocol.rules import RULES
 from whiztap.analyzer.protocol.text import shorten
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SAMPLES = Path(__file__).parent.parent / "samples"
 CLEAN, VPN, FAILED, VIOLATIONS = (SAMPLES / f"{n}.mcap" for n in ("clean-winsock", "vpn", "failed-password",
                                                                     "violations"))
 
 
-def run(*args):
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
-
-
 def report(*args):
-    result = run("analyze", "--format", "json", *args)
+    result = run_cli("analyze", "--format", "json", *args)
     assert result.returncode in (0, 1), result.stderr
     data = json.loads(result.stdout)
     jsonschema.validate(data, REPORT_SCHEMA)
@@ -128,7 +120,7 @@ def test_a_report_on_several_files_names_the_file_of_each_connection_and_violati
     shutil.copy(VIOLATIONS, second)
     _, data = report(first, second)
     per_file = len(data["violations"]) // 2
-    text = run("analyze", first, second).stdout.splitlines()
+    text = run_cli("analyze", first, second).stdout.splitlines()
     lines = [line for line in text if line.startswith("PW-")]
     assert len(lines) == 2 * per_file and per_file > 30
     assert all(f" {first} conn " in line or f" {second} conn " in line for line in lines)
@@ -139,15 +131,15 @@ def test_a_report_on_several_files_names_the_file_of_each_connection_and_violati
     assert all(row.split()[0] in (str(first), str(second)) for row in rows)
     assert sum(line.startswith(f"  {first} conn 1: ") or line.startswith(f"  {first} conn 1 channels: ")
                for line in text) >= 1
-    markdown = run("analyze", "--format", "markdown", first, second).stdout
+    markdown = run_cli("analyze", "--format", "markdown", first, second).stdout
     assert markdown.count(f"| {md_text(second)} |") >= per_file  # its connections' and violations' rows
-    alone = run("analyze", VIOLATIONS).stdout
+    alone = run_cli("analyze", VIOLATIONS).stdout
     assert str(VIOLATIONS) not in alone and "] conn 1 c2s" in alone  # one file: nothing to tell apart
 
 
 def test_text_report_to_a_pipe_is_never_wrapped():
     """Each escaped frame stays on one line, whole, for grep."""
-    result = run("analyze", VIOLATIONS)
+    result = run_cli("analyze", VIOLATIONS)
     assert result.returncode == 1
     assert "FAIL" in result.stdout and "PW-SETCFG-CHECKSUM" in result.stdout
     _, data = report(VIOLATIONS)
@@ -159,7 +151,7 @@ def test_text_report_to_a_pipe_is_never_wrapped():
 
 def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
     out = tmp_path / "report.xml"
-    assert run("analyze", VIOLATIONS, "--format", "junit", "-o", out).returncode == 1
+    assert run_cli("analyze", VIOLATIONS, "--format", "junit", "-o", out).returncode == 1
     xml = JUnitXml.fromfile(str(out))
     [suite] = list(xml)
     assert suite.timestamp and suite.hostname  # CI shows when and where
@@ -171,7 +163,7 @@ def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
     failing = [c for c in cases if any(isinstance(r, Failure) for r in c.result)]
     assert {(c.name.split(":")[0], int(c.name.rsplit(" conn ", 1)[1].rstrip("]"))) for c in failing} == {
         (r, conn) for r, conn in broken if RULES[r].severity == 3}
-    run("analyze", VIOLATIONS, "--format", "junit", "-o", out, "--force", "--ignore", "PW-DIRECTION")
+    run_cli("analyze", VIOLATIONS, "--format", "junit", "-o", out, "--force", "--ignore", "PW-DIRECTION")
     skipped = [c for suite in JUnitXml.fromfile(str(out)) for c in suite
                if any(isinstance(r, Skipped) for r in c.result)]
     assert [c.name.split(":")[0] for c in skipped] == ["PW-DIRECTION"]
@@ -179,7 +171,7 @@ def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
 
 def test_html_is_self_contained_with_plots(tmp_path):
     out = tmp_path / "report.html"
-    assert run("analyze", CLEAN, "--format", "html", "-o", out).returncode == 0
+    assert run_cli("analyze", CLEAN, "--format", "html", "-o", out).returncode == 0
     page = out.read_text()
     assert page.count("<svg") >= 4  # items over time, latency, sensor values, servo positions
     for caption in ("Items over time", "Response latency", "Sensor values", "Servo positions"):
@@ -193,9 +185,8 @@ def test_html_without_matplotlib_is_written_without_plots_and_says_so(tmp_path, 
     whole report for want of its plots."""
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # 'import matplotlib' fails, as when it is not installed
     out = tmp_path / "report.html"
-    result = CliRunner().invoke(analyze_command, [str(VIOLATIONS), "--format", "html", "-o", str(out), "-q",
-                                                  "--group-by", "robot"])
-    assert result.exit_code == 1, result.output  # the verdict's status, the report written
+    result = run_cli("analyze", VIOLATIONS, "--format", "html", "-o", out, "-q", "--group-by", "robot")
+    assert result.returncode == 1, result.stderr  # the verdict's status, the report written
     page = out.read_text()
     assert f"<p class='warning'>{html.escape(NO_PLOTS)}.</p>" in page
     assert "<svg" not in page and "<h2>Violations</h2>" in page and "Fleet by robot" in page
@@ -204,7 +195,7 @@ def test_html_without_matplotlib_is_written_without_plots_and_says_so(tmp_path, 
 
 def test_markdown(tmp_path):
     out = tmp_path / "report.md"
-    run("analyze", VIOLATIONS, "--format", "markdown", "-o", out)
+    run_cli("analyze", VIOLATIONS, "--format", "markdown", "-o", out)
     text = out.read_text()
     assert text.startswith("# whiztap conformance report") and "| `PW-RANGE-CHANNEL` |" in text
 
@@ -220,13 +211,13 @@ def one_line_error(result):
 
 
 def test_missing_file():
-    assert "no such file" in one_line_error(run("analyze", "/nonexistent/x.mcap"))
+    assert "no such file" in one_line_error(run_cli("analyze", "/nonexistent/x.mcap"))
 
 
 def test_not_a_recording(tmp_path):
     bogus = tmp_path / "notes.mcap"
     bogus.write_text("hello")
-    assert "not an MCAP file" in one_line_error(run("analyze", bogus))
+    assert "not an MCAP file" in one_line_error(run_cli("analyze", bogus))
 
 
 @pytest.mark.parametrize("command", ["analyze", "cat"])
@@ -234,7 +225,7 @@ def test_truncated_part_file_names_recover(tmp_path, command):
     part = tmp_path / "session.mcap.part"
     data = CLEAN.read_bytes()
     part.write_bytes(data[: len(data) // 2])
-    assert f"whiztap recover {part}" in one_line_error(run(command, part))
+    assert f"whiztap recover {part}" in one_line_error(run_cli(command, part))
 
 
 @pytest.mark.parametrize("jobs", ["1", "2"])
@@ -242,7 +233,7 @@ def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
     shutil.copy(CLEAN, tmp_path / CLEAN.name)
     cut = tmp_path / "cut-short.mcap"
     cut.write_bytes(VPN.read_bytes()[:len(VPN.read_bytes()) // 2])
-    result = run("analyze", "--format", "json", "--jobs", jobs, tmp_path)
+    result = run_cli("analyze", "--format", "json", "--jobs", jobs, tmp_path)
     assert result.returncode == 2  # an input could not be read, even though a report was made
     assert result.stderr.strip().splitlines() == [
         f"whiztap: {cut}: the file is truncated (no footer); it looks like a recording that was cut short; "
@@ -254,26 +245,26 @@ def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
     _, alone = report(tmp_path / CLEAN.name)
     assert data["summary"] == alone["summary"] and "unreadable" not in alone
 
-    text = run("analyze", "--jobs", jobs, tmp_path).stdout
+    text = run_cli("analyze", "--jobs", jobs, tmp_path).stdout
     assert "INCOMPLETE: 1 input could not be read. PASS" in text and "cut-short.mcap" in text
     out = tmp_path / "report.xml"
-    assert run("analyze", "--format", "junit", "-o", out, tmp_path).returncode == 2
+    assert run_cli("analyze", "--format", "junit", "-o", out, tmp_path).returncode == 2
     cases = [case for suite in JUnitXml.fromfile(str(out)) for case in suite]
     assert len(cases) == len(RULES) + 1
     [broken] = [c for c in cases if any(isinstance(r, Error) for r in c.result)]
     assert broken.result[0].text == str(cut)
     for fmt, heading, shown in (("markdown", "## Not in this report", md_text),
                                 ("html", "<h2>Not in this report", str)):
-        page = run("analyze", "--format", fmt, tmp_path).stdout
+        page = run_cli("analyze", "--format", fmt, tmp_path).stdout
         assert heading in page and shown(f"{cut}: the file is truncated") in page, fmt
 
 
 def test_unknown_rule_in_ignore():
-    assert "--rules" in one_line_error(run("analyze", CLEAN, "--ignore", "PW-NOPE"))
+    assert "--rules" in one_line_error(run_cli("analyze", CLEAN, "--ignore", "PW-NOPE"))
 
 
 def test_rules_listing():
-    result = run("analyze", "--rules")
+    result = run_cli("analyze", "--rules")
     assert result.returncode == 0 and len(result.stdout.splitlines()) == len(RULES)
 
 
@@ -281,7 +272,7 @@ def test_rules_listing():
 
 
 def cat_jsonl(*args):
-    result = run("cat", "--format", "jsonl", *args)
+    result = run_cli("cat", "--format", "jsonl", *args)
     assert result.returncode == 0, result.stderr
     return [json.loads(line) for line in result.stdout.splitlines()]
 
@@ -314,7 +305,7 @@ def test_cat_filters():
 
 
 def test_cat_text_marks_violations():
-    result = run("cat", VIOLATIONS, "--violations-only")
+    result = run_cli("cat", VIOLATIONS, "--violations-only")
     assert result.returncode == 0 and "! PW-" in result.stdout
 
 
@@ -322,7 +313,7 @@ def test_cat_text_marks_violations():
 
 
 def test_info_on_a_complete_recording():
-    result = run("info", CLEAN, "--format", "json")
+    result = run_cli("info", CLEAN, "--format", "json")
     info = json.loads(result.stdout)
     assert info["complete"] and info["format_version"] == "3" and info["connections"] == 1
     assert info["topics"]["/tcp/reads"] > 0 and info["duration_s"] > 0
@@ -332,7 +323,7 @@ def test_info_on_a_crash_leftover(tmp_path):
     part = tmp_path / "x.mcap.part"
     data = CLEAN.read_bytes()
     part.write_bytes(data[: len(data) * 2 // 3])
-    result = run("info", part)
+    result = run_cli("info", part)
     assert result.returncode == 0
     assert "NO: truncated" in result.stdout and "whiztap recover" in result.stdout
 
@@ -352,4 +343,4 @@ def _damaged(tmp_path, how):
 @pytest.mark.parametrize("how", ["chunk", "length"])
 @pytest.mark.parametrize("command", ["analyze", "cat", "info"])
 def test_damaged_files_are_one_line_errors(tmp_path, how, command):
-    assert "damaged" in one_line_error(run(command, _damaged(tmp_path, how)))
+    assert "damaged" in one_line_error(run_cli(command, _damaged(tmp_path, how)))

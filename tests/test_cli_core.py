@@ -1,4 +1,5 @@
-"""The whiztap command line as a user runs it: a real subprocess."""
+"""The whiztap command line as a user runs it: in this process, through the
+command's own ``main``, and the installed entry point once."""
 
 import json
 import os
@@ -14,44 +15,40 @@ from hypothesis import strategies as st
 from whiztap.analyzer.cli.decode import decode_command
 from whiztap.analyzer.protocol.rules import RULES
 from whiztap.analyzer.protocol.text import escape
+from tests.cli_support import run_cli, run_process
 from tests.spec_vectors import ALL_FRAMES, HANDSHAKE_SERVER
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SAMPLES = Path(__file__).parent.parent / "samples"
 
 
-def run(*args, stdin=None):
-    return subprocess.run([WHIZTAP, *args], capture_output=True, text=True, input=stdin, timeout=60)
-
-
-def test_help_lists_the_commands():
-    result = run("--help")
+def test_the_installed_command_lists_the_commands():
+    result = run_process("--help")
     assert result.returncode == 0
     assert "decode" in result.stdout and "rules" in result.stdout
 
 
 def test_rules_json_lists_every_rule():
-    result = run("rules", "--format", "json")
+    result = run_cli("rules", "--format", "json")
     assert result.returncode == 0
     assert [r["id"] for r in json.loads(result.stdout)] == list(RULES)
 
 
 def test_decode_clean_sample_session():
-    result = run("decode", str(SAMPLES / "spec-session.txt"))
+    result = run_cli("decode", str(SAMPLES / "spec-session.txt"))
     assert result.returncode == 0, result.stdout + result.stderr
     assert "Sensor value ch 8 = 512" in result.stdout
     assert result.stdout.strip().endswith("mode winsock, handshake readytogo, 0 violations")
 
 
 def test_decode_reports_violations_with_exit_1():
-    result = run("decode", "-", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\nrr1-0--2500--0-ss1\n")
+    result = run_cli("decode", "-", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\nrr1-0--2500--0-ss1\n")
     assert result.returncode == 1
     assert "PW-RANGE-SEND-VALUE (error): Normal Send value must be 0-2000, got 2500" in result.stdout
 
 
 def test_decode_reads_a_pipe_without_being_told():
-    piped = run("decode", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\n")
-    dashed = run("decode", "-", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\n")
+    piped = run_cli("decode", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\n")
+    dashed = run_cli("decode", "-", stdin="rr1-24--0--0-ss1\ns2c sr1-\\x01000-ss1\n")
     assert piped.returncode == dashed.returncode == 0, piped.stderr
     assert piped.stdout == dashed.stdout and "Fetch Configuration Settings" in piped.stdout
 
@@ -65,12 +62,12 @@ def test_decode_takes_frames_as_arguments_each_judged_on_its_own():
     """A response alone was unsolicited, a command alone not the configuration
     first and never answered: rules about a session, broken by no frame."""
     vectors = [escape(raw) for raw in ALL_FRAMES + HANDSHAKE_SERVER]
-    result = run("decode", *vectors)
+    result = run_cli("decode", *vectors)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "  ! " not in result.stdout
     assert result.stdout.splitlines()[-1] == f"{len(vectors)} frames, each judged on its own: 0 violations"
     assert "Servo Position Request ch 3" in result.stdout and "Response ch 2 data 100" in result.stdout
-    broken = run("decode", "rr1-31--0--2-ss1", "-f", "s2c cr1-3--5--0-ss1")
+    broken = run_cli("decode", "rr1-31--0--2-ss1", "-f", "s2c cr1-3--5--0-ss1")
     assert broken.returncode == 1
     assert broken.stdout.splitlines() == [
         "c2s command    rr1-31--0--2-ss1  ->  Servo Position Request ch 31",
@@ -80,9 +77,9 @@ def test_decode_takes_frames_as_arguments_each_judged_on_its_own():
 
 
 def test_decode_judges_one_line_of_a_pipe_as_a_frame_and_more_as_a_session():
-    one = run("decode", stdin="rr1-0--0--2-ss1\n")
+    one = run_cli("decode", stdin="rr1-0--0--2-ss1\n")
     assert one.returncode == 0 and one.stdout.endswith("1 frame, each judged on its own: 0 violations\n")
-    two = run("decode", stdin="rr1-0--0--2-ss1\nrr1-0--0--2-ss1\n")
+    two = run_cli("decode", stdin="rr1-0--0--2-ss1\nrr1-0--0--2-ss1\n")
     assert two.returncode == 1 and "PW-VPN-CONFIG-FIRST" in two.stdout and "PW-PAIR-UNANSWERED" in two.stdout
     assert two.stdout.endswith("mode vpn, handshake none (vpn), 3 violations\n")
 
@@ -109,7 +106,7 @@ def test_decode_never_judges_a_session_on_frames_given_alone(texts):
     ("decode", "-f", "rr1-24--0--0-ss1", "--checksum-rule", "crc99"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args):
-    result = run(*args, stdin="")  # an empty pipe: a bare 'decode' reads it and finds nothing
+    result = run_cli(*args, stdin="")  # an empty pipe: a bare 'decode' reads it and finds nothing
     assert result.returncode == 2
     assert result.stderr.startswith("whiztap: ")
     assert len(result.stderr.strip().splitlines()) == 1
@@ -125,12 +122,12 @@ def test_bad_input_is_one_line_and_exit_2(args):
                           "(see 'whiztap info --help')"),
 ])
 def test_usage_errors_are_one_line_that_names_the_help(args, says):
-    result = run(*args)
+    result = run_cli(*args)
     assert (result.returncode, result.stderr) == (2, says + "\n")
 
 
 def test_a_bare_whiztap_shows_the_help():
-    result = run()
+    result = run_cli()
     assert result.returncode == 2 and result.stderr.startswith("Usage: whiztap [OPTIONS] COMMAND")
     assert "Commands:" in result.stderr
 

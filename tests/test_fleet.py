@@ -8,7 +8,6 @@ import io
 import json
 import pickle
 import random
-import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -20,6 +19,7 @@ from hypothesis import strategies as st
 
 from rich.console import Console
 
+from tests.cli_support import run_cli
 from tests.fleet_support import FLEET, write_fleet
 from whiztap.analyzer.analysis.report.text import render_text
 from whiztap.analyzer.analysis.report.words import group_name, rule_counts_each, rules_since_each
@@ -32,15 +32,8 @@ from whiztap.analyzer.protocol import session as session_module
 from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.analyzer.recording.scan import read_metadata
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
-
-
-def run(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
-
-
 def report(*args: object) -> dict:
-    done = run("analyze", "--format", "json", *args)
+    done = run_cli("analyze", "--format", "json", *args)
     assert done.returncode in (0, 1), done.stderr
     data = json.loads(done.stdout)
     jsonschema.validate(data, REPORT_SCHEMA)
@@ -62,14 +55,14 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     ("ro bot=1", "is not a key"),
 ])
 def test_record_refuses_a_meta_it_cannot_write(tmp_path: Path, meta: str, why: str) -> None:
-    done = run("record", "--upstream", "127.0.0.1:1", "--listen", "127.0.0.1:0", "-o", tmp_path / "x.mcap",
+    done = run_cli("record", "--upstream", "127.0.0.1:1", "--listen", "127.0.0.1:0", "-o", tmp_path / "x.mcap",
                "--meta", meta)
     assert done.returncode == 2 and why in done.stderr and len(done.stderr.splitlines()) == 1, done.stderr
     assert not list(tmp_path.iterdir())
 
 
 def test_record_refuses_a_key_given_twice(tmp_path: Path) -> None:
-    done = run("record", "--upstream", "127.0.0.1:1", "-o", tmp_path / "x.mcap", "--meta", "robot=a",
+    done = run_cli("record", "--upstream", "127.0.0.1:1", "-o", tmp_path / "x.mcap", "--meta", "robot=a",
                "--meta", "robot=b")
     assert done.returncode == 2 and "given twice" in done.stderr
 
@@ -127,7 +120,7 @@ def test_group_by_several_keys_together(fleet: list[Path]) -> None:
 
 
 def test_a_key_no_recording_carries_is_said(fleet: list[Path]) -> None:
-    done = run("analyze", *fleet, "--group-by", "site", "--format", "json")
+    done = run_cli("analyze", *fleet, "--group-by", "site", "--format", "json")
     assert done.returncode == 1 and "no recording carries the metadata key site" in done.stderr
     assert [g["group"] for g in json.loads(done.stdout)["fleet"][0]["groups"]] == [{"site": None}]
 
@@ -141,21 +134,21 @@ def test_ignore_and_threshold_apply_to_the_groups(fleet: list[Path]) -> None:
 
 @pytest.mark.parametrize("value", ["", "robot,,firmware", "robot,robot", "ro bot"])
 def test_a_group_by_that_is_no_key_is_refused(fleet: list[Path], value: str) -> None:
-    done = run("analyze", fleet[0], "--group-by", value)
+    done = run_cli("analyze", fleet[0], "--group-by", value)
     assert done.returncode == 2 and "--group-by" in done.stderr and len(done.stderr.splitlines()) == 1
 
 
 def test_the_fleet_table_is_in_every_format(fleet: list[Path], tmp_path: Path) -> None:
     args = [*fleet, "--group-by", "robot", "-o"]
     text = tmp_path / "r.txt"
-    run("analyze", *args, text)
+    run_cli("analyze", *args, text)
     assert "Fleet by robot" in text.read_text() and "PW-PAIR-UNANSWERED 7 since 2026-03-02" in text.read_text()
     md = tmp_path / "r.md"
-    run("analyze", *args, md, "--format", "markdown")
+    run_cli("analyze", *args, md, "--format", "markdown")
     lines = md.read_text().splitlines()
     assert "## Fleet by robot" in lines and "| r2 | 2026-03-02 | 1 | 1 | PW-PAIR-UNANSWERED 1 |" in lines
     junit = tmp_path / "r.xml"
-    run("analyze", *args, junit, "--format", "junit")
+    run_cli("analyze", *args, junit, "--format", "junit")
     suites = ET.parse(junit).getroot()
     [suite] = [s for s in suites if s.get("name") == "whiztap fleet by robot"]
     cases = {c.get("name"): c for c in suite}
@@ -163,7 +156,7 @@ def test_the_fleet_table_is_in_every_format(fleet: list[Path], tmp_path: Path) -
     assert [c.find("failure") is not None for c in cases.values()] == [True, True, True, False]
     assert int(suites.get("tests")) == sum(int(s.get("tests")) for s in suites)
     html = tmp_path / "r.html"
-    run("analyze", *args, html, "--format", "html")
+    run_cli("analyze", *args, html, "--format", "html")
     page = html.read_text()
     assert "<h2>Fleet by robot</h2>" in page and "Violations per day (UTC), by robot" in page
     assert page.count("<svg") >= 4  # the fleet's two plots, and the report's own
@@ -310,7 +303,7 @@ def test_file_urls_read_as_the_files_do(fleet: list[Path]) -> None:
     ("s3://bucket/x.mcap", "s3fs"),
 ])
 def test_a_url_that_names_nothing_readable_is_one_line(url: str, why: str) -> None:
-    done = run("analyze", url)
+    done = run_cli("analyze", url)
     assert done.returncode == 2 and why in done.stderr and len(done.stderr.splitlines()) == 1, done.stderr
 
 

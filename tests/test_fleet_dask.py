@@ -11,7 +11,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +19,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from tests.cli_support import run_cli
 from tests.fleet_support import SLOW_S, DaskCluster, slow_analysis, write_fleet
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.formats import FORMATS
@@ -30,7 +30,6 @@ from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.sets import find_recordings
 from whiztap.sniffer.fleet import cluster as cluster_module
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 WAIT = 60.0  # a bound on waiting for the cluster; never a timing assertion
 
 
@@ -46,10 +45,6 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     return write_fleet(tmp_path_factory.mktemp("fleet"))
 
 
-def run(*args: object, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120, cwd=cwd)
-
-
 def test_the_cluster_writes_the_report_this_machine_writes_in_every_format(dask_cluster: DaskCluster,
                                                                            fleet: list[Path],
                                                                            tmp_path: Path) -> None:
@@ -59,9 +54,9 @@ def test_the_cluster_writes_the_report_this_machine_writes_in_every_format(dask_
     names = [p.name for p in fleet]
     for fmt in FORMATS:
         here, there = tmp_path / f"here.{fmt}", tmp_path / f"there.{fmt}"
-        local = run("analyze", *names, "--group-by", "robot", "--group-by", "firmware", "--format", fmt,
+        local = run_cli("analyze", *names, "--group-by", "robot", "--group-by", "firmware", "--format", fmt,
                     "-j", "1", "-o", here, cwd=folder)
-        remote = run("analyze", *names, "--group-by", "robot", "--group-by", "firmware", "--format", fmt,
+        remote = run_cli("analyze", *names, "--group-by", "robot", "--group-by", "firmware", "--format", fmt,
                      "--dask", dask_cluster.address, "-o", there, cwd=folder)
         assert local.returncode == remote.returncode == 1, (local.stderr, remote.stderr)
         assert f"Dask: 2 workers at {dask_cluster.address}" in remote.stderr
@@ -72,8 +67,8 @@ def test_the_cluster_writes_the_report_this_machine_writes_in_every_format(dask_
 
 def test_urls_on_the_cluster(dask_cluster: DaskCluster, fleet: list[Path]) -> None:
     url = f"file://{fleet[0].parent}"
-    local = run("analyze", url, "--format", "json", "--group-by", "robot")
-    remote = run("analyze", url, "--format", "json", "--group-by", "robot", "--dask", dask_cluster.address, "-q")
+    local = run_cli("analyze", url, "--format", "json", "--group-by", "robot")
+    remote = run_cli("analyze", url, "--format", "json", "--group-by", "robot", "--dask", dask_cluster.address, "-q")
     assert local.stdout == remote.stdout and remote.stderr == ""
     assert json.loads(remote.stdout)["files"][0].startswith("file:///")
 
@@ -82,8 +77,8 @@ def test_an_unreadable_file_costs_only_itself_on_the_cluster(dask_cluster: DaskC
                                                              tmp_path: Path) -> None:
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"not a recording")
-    local = run("analyze", fleet[0], bad, "--format", "json", "-j", "1")
-    remote = run("analyze", fleet[0], bad, "--format", "json", "--dask", dask_cluster.address, "-q")
+    local = run_cli("analyze", fleet[0], bad, "--format", "json", "-j", "1")
+    remote = run_cli("analyze", fleet[0], bad, "--format", "json", "--dask", dask_cluster.address, "-q")
     assert remote.returncode == local.returncode == 2 and remote.stdout == local.stdout
     assert remote.stderr == local.stderr and "bad.mcap" in remote.stderr
 
@@ -130,15 +125,15 @@ def _kill_the_first_worker_to_start(marks: Path) -> tuple[str, int]:
 
 
 def test_dask_local_starts_a_cluster_on_this_machine(fleet: list[Path]) -> None:
-    local = run("analyze", *fleet, "--format", "json", "-j", "1")
-    on_cluster = run("analyze", *fleet, "--format", "json", "--dask", "local", "-j", "2")
+    local = run_cli("analyze", *fleet, "--format", "json", "-j", "1")
+    on_cluster = run_cli("analyze", *fleet, "--format", "json", "--dask", "local", "-j", "2")
     assert on_cluster.stdout == local.stdout
     [line] = on_cluster.stderr.splitlines()  # the cluster's one line, none of Dask's logging
     assert line.startswith("Dask: 2 workers at tcp://127.0.0.1:") and "dashboard http://127.0.0.1:" in line
 
 
 def test_jobs_with_a_remote_scheduler_is_refused(fleet: list[Path]) -> None:
-    done = run("analyze", fleet[0], "--dask", "tcp://127.0.0.1:8786", "-j", "2")
+    done = run_cli("analyze", fleet[0], "--dask", "tcp://127.0.0.1:8786", "-j", "2")
     assert done.returncode == 2 and "the cluster's workers do the work" in done.stderr
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import shlex
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -16,15 +15,10 @@ import pytest
 from whiztap.analyzer.recording.output_rule import OutputRefused, check_output
 from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError
 
-from tests.record_support import WHIZTAP
+from tests.cli_support import run_cli
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "clean-winsock.mcap"
 NAME = "it's a $HOME `run`"  # what a shell would cut, expand or run unquoted
-
-
-def run(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120,
-                          stdin=subprocess.DEVNULL)
 
 
 def command_in(text: str, *words: str) -> list[str]:
@@ -53,7 +47,7 @@ def test_the_output_rule_names_recover_for_a_part_left_by_a_crash(tmp_path):
 def test_readers_name_recover_for_a_file_cut_short(tmp_path, command):
     cut = cut_short(tmp_path)
     args = ("export", cut, "--pcap", tmp_path / "x.pcapng") if command == "export" else (command, cut)
-    result = run(*args)
+    result = run_cli(*args)
     said = result.stdout + result.stderr
     assert command_in(said, "whiztap", "recover") == ["whiztap", "recover", str(cut)], said
 
@@ -71,7 +65,7 @@ def test_a_write_failure_that_leaves_a_part_names_recover(tmp_path):
 
 def test_the_demo_hints_are_shell_commands_and_its_replay_hint_seeds_the_simulator(tmp_path):
     out = tmp_path / f"{NAME}.mcap"
-    result = run("demo", "--headless", "--seconds", "1", "-o", out)
+    result = run_cli("demo", "--headless", "--seconds", "1", "-o", out)
     assert result.returncode == 0, result.stderr
     hints = result.stdout[result.stdout.index(f"recorded {out}\n"):].splitlines()[1:]
     commands = {words[1]: words for words in map(shlex.split, hints) if len(words) > 2 and words[2] == str(out)}

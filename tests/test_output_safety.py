@@ -19,7 +19,6 @@ import json
 import os
 import re
 import shutil
-import subprocess
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -46,6 +45,7 @@ from whiztap.tui.detail import describe_frame
 from whiztap.tui.replay_screen import ReplayScreen
 from whiztap.tui.sources import FileSource
 
+from tests.cli_support import Ran, run_cli
 from tests.record_support import (
     LOCAL,
     WAIT,
@@ -62,11 +62,7 @@ from tests.tui_support import SIZE, loaded, settled, until
 SAMPLE = Path(__file__).parent.parent / "samples" / "vpn.mcap"
 
 
-def run(*args: object, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120, cwd=cwd)
-
-
-def refused(result: subprocess.CompletedProcess, *words: str) -> str:
+def refused(result: Ran, *words: str) -> str:
     """The command said no in one line, exit status 2; the line."""
     assert result.returncode == 2, (result.returncode, result.stderr)
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("whiztap: "), result.stderr
@@ -115,7 +111,7 @@ def test_no_command_writes_over_its_input_even_with_force(tmp_path, command, nam
     elif named == "hardlink":
         os.link(source, output)
     for force in ([], ["--force"]):
-        line = refused(run(*WRITERS[command](source.name, output), *force, cwd=tmp_path), "input", "even with --force")
+        line = refused(run_cli(*WRITERS[command](source.name, output), *force, cwd=tmp_path), "input", "even with --force")
         assert source.read_bytes() == before, (force, line)
     assert sorted(p.name for p in tmp_path.iterdir() if ".part" in p.name or "recover" in p.name) == []
 
@@ -125,7 +121,7 @@ def test_no_part_of_a_split_input_is_written_over(tmp_path, command):
     parts = [Path(p) for p in split_vpn_session(tmp_path / "s.mcap")]
     before = [p.read_bytes() for p in parts]
     for target in parts:  # named by its first part, each part is an input
-        refused(run(*WRITERS[command](parts[0], target), "--force"), "input")
+        refused(run_cli(*WRITERS[command](parts[0], target), "--force"), "input")
     assert [p.read_bytes() for p in parts] == before
 
 
@@ -133,7 +129,7 @@ def test_cat_follow_never_writes_where_the_recording_it_follows_will_be(tmp_path
     part = tmp_path / "live.mcap.part"
     shutil.copy(SAMPLE, part)  # as a recorder leaves it: the name it will be renamed to is free
     for output in (part, tmp_path / "live.mcap"):
-        refused(run("cat", "--follow", part, "-o", output, "--force"), "input")
+        refused(run_cli("cat", "--follow", part, "-o", output, "--force"), "input")
     assert not (tmp_path / "live.mcap").exists() and part.read_bytes() == SAMPLE.read_bytes()
 
 
@@ -145,9 +141,9 @@ def test_an_existing_output_is_kept_unless_forced(tmp_path, command):
     source = _input_for(command, tmp_path)
     output = tmp_path / "out"
     output.write_bytes(b"an earlier file")
-    refused(run(*WRITERS[command](source, output)), f"{output} exists; use --force")
+    refused(run_cli(*WRITERS[command](source, output)), f"{output} exists; use --force")
     assert output.read_bytes() == b"an earlier file"
-    forced = run(*WRITERS[command](source, output), "--force")
+    forced = run_cli(*WRITERS[command](source, output), "--force")
     assert forced.returncode in (0, 1), forced.stderr  # 1: a report with violations
     assert output.read_bytes() != b"an earlier file" and output.stat().st_size > 0
     if command not in ("analyze", "analyze-junit", "cat"):
@@ -171,10 +167,10 @@ async def test_replay_keeps_an_existing_output_unless_forced(tmp_path):
 def test_demo_and_the_live_tui_keep_an_existing_recording_unless_forced(tmp_path):
     output = tmp_path / "demo.mcap"
     output.write_bytes(b"an earlier demo")
-    refused(run("demo", "--headless", "--seconds", "0.3", "-o", output), f"{output} exists; use --force")
-    refused(run("tui", "--upstream", f"{LOCAL}:{closed_port()}", "-o", output), f"{output} exists; use --force")
+    refused(run_cli("demo", "--headless", "--seconds", "0.3", "-o", output), f"{output} exists; use --force")
+    refused(run_cli("tui", "--upstream", f"{LOCAL}:{closed_port()}", "-o", output), f"{output} exists; use --force")
     assert output.read_bytes() == b"an earlier demo"
-    forced = run("demo", "--headless", "--seconds", "0.3", "-o", output, "--force")
+    forced = run_cli("demo", "--headless", "--seconds", "0.3", "-o", output, "--force")
     assert forced.returncode == 0, forced.stderr
     assert read_all(str(output))
 
@@ -203,7 +199,7 @@ async def test_client_camera_keeps_an_existing_picture_unless_forced(tmp_path):
 def test_standard_output_and_devices_are_never_refused(tmp_path):
     for args in (["analyze", SAMPLE, "-o", "-"], ["cat", SAMPLE, "-o", "-"], ["analyze", SAMPLE, "-o", os.devnull],
                  ["cat", SAMPLE, "-o", os.devnull]):
-        result = run(*args)
+        result = run_cli(*args)
         assert result.returncode == 0 and result.stderr == "", (args, result.stderr)
 
 
@@ -293,9 +289,9 @@ def test_no_raw_control_character_reaches_the_output(hostile, args):
     if args == ["decode"]:  # decode reads escaped text: the frames, as cat shows them
         lines = hostile.with_suffix(".txt")
         lines.write_text(f"c2s {escape(HOSTILE_BYTES)}\n")
-        result = run("decode", lines)
+        result = run_cli("decode", lines)
     else:
-        result = run(*args, hostile)
+        result = run_cli(*args, hostile)
     assert result.returncode in (0, 1), result.stderr
     shows_no_raw_control(result.stdout + result.stderr)
     if args[0] in ("info", "cat", "analyze") and "--format" not in args:
@@ -303,10 +299,10 @@ def test_no_raw_control_character_reaches_the_output(hostile, args):
 
 
 def test_info_shows_metadata_escaped(hostile):
-    result = run("info", hostile)
+    result = run_cli("info", hostile)
     assert f"  host           {shown(HOSTILE)}\n" in result.stdout
     assert f"  {shown(HOSTILE)} {shown(HOSTILE)}\n" in result.stdout  # a key from the file, too
-    data = json.loads(run("info", "--format", "json", hostile).stdout)
+    data = json.loads(run_cli("info", "--format", "json", hostile).stdout)
     assert data["metadata"]["host"] == HOSTILE  # the JSON keeps the value exact (escaped by JSON)
 
 
@@ -314,16 +310,16 @@ def test_errors_naming_a_hostile_file_are_escaped(tmp_path):
     cut = tmp_path / "cut-\x1b[2J.mcap"
     cut.write_bytes(SAMPLE.read_bytes()[:2000])
     for args in (["analyze", cut], ["cat", cut], ["replay", cut, "--dry-run"], ["recover", cut, "-o", cut]):
-        result = run(*args)
+        result = run_cli(*args)
         assert result.returncode == 2 and "cut-\\x1b[2J.mcap" in result.stderr, result.stderr
         shows_no_raw_control(result.stderr)
-    result = run("info", cut)  # says what the file is: truncated, and how to recover it
+    result = run_cli("info", cut)  # says what the file is: truncated, and how to recover it
     assert "cut-\\x1b[2J.mcap" in result.stdout
     shows_no_raw_control(result.stdout + result.stderr)
 
 
 def test_markdown_holds_no_live_html_and_shows_values_as_they_are(hostile):
-    text = run("analyze", "--format", "markdown", hostile).stdout
+    text = run_cli("analyze", "--format", "markdown", hostile).stdout
     page = MarkdownIt("commonmark").enable("table").render(text)  # raw HTML allowed, as on many sites
     assert "<script" not in page.lower() and "-<b>.mcap" not in page
     cells = _html_cells(page)
@@ -335,7 +331,7 @@ def test_markdown_holds_no_live_html_and_shows_values_as_they_are(hostile):
 
 
 def test_html_escapes_every_value(hostile):
-    page = run("analyze", "--format", "html", hostile).stdout
+    page = run_cli("analyze", "--format", "html", hostile).stdout
     shows_no_raw_control(page)
     assert "<script" not in page.lower() and "-<b>.mcap" not in page
     cells = _html_cells(page)
@@ -343,7 +339,7 @@ def test_html_escapes_every_value(hostile):
 
 
 def test_junit_parses_and_holds_the_values_escaped(hostile, tmp_path):
-    result = run("analyze", "--format", "junit", hostile)
+    result = run_cli("analyze", "--format", "junit", hostile)
     shows_no_raw_control(result.stdout)
     root = ET.fromstring(result.stdout)
     texts = [e.text or "" for e in root.iter()] + [v for e in root.iter() for v in e.attrib.values()]
@@ -471,6 +467,6 @@ def test_a_replay_that_reached_no_server_leaves_no_output(tmp_path):
     then refused because the output existed."""
     out = tmp_path / "replayed.mcap"
     for _ in range(2):  # the retry is not refused
-        result = run("replay", SAMPLE, "--target", f"{LOCAL}:{closed_port()}", "-o", out)
+        result = run_cli("replay", SAMPLE, "--target", f"{LOCAL}:{closed_port()}", "-o", out)
         assert result.returncode == 2 and "cannot connect" in result.stderr
         assert list(tmp_path.iterdir()) == []
