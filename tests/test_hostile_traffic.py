@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from whiztap.analyzer.protocol import pairing
 from whiztap.analyzer.protocol.examples import CONFIG, VPN_OPEN
 from whiztap.analyzer.protocol.observations import Direction, LateViolation, Observation
-from whiztap.analyzer.protocol.session import PENDING_KEPT, Session
+from whiztap.analyzer.protocol.pairing import PENDING_KEPT
+from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.recording.format import TOPIC_EVENTS
 from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.traffic import Closed, Data, Opened
@@ -178,7 +179,7 @@ def test_pairing_stays_linear_when_a_client_pipelines_before_the_channel_map(mon
 
 def test_requests_past_the_cap_are_reported_unanswered_and_still_pair_late():
     s = Session()
-    s.pending_kept = 3
+    s.awaited.pending_kept = 3
     events = []
     for t, (d, data) in enumerate(VPN_OPEN + [(C, b"rr1-3--0--0-ss1")] * 4 + [(S, b"cr1-3--1--0-ss1")] * 5,
                                   start=1):
@@ -251,8 +252,8 @@ class ReferenceSession(SlowSession):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        self._pending = ListBook()
-        self._expired = ListBook()
+        self.awaited.pending = ListBook()
+        self.awaited.expired = ListBook()
 
 
 # Without a channel map, rr1-N--0--0 may be a Sensor Request (not certain); with
@@ -281,7 +282,7 @@ def test_indexed_pairing_gives_the_verdicts_of_a_plain_scan(steps, configured, k
         times.append((times[-1] if times else 0) + gap)
 
     def run(session):
-        session.pending_kept, session.expired_kept = kept, expired_kept
+        session.awaited.pending_kept, session.awaited.expired_kept = kept, expired_kept
         events = []
         for (d, data), t in zip(script, times):
             events += session.receive(d, data, t)

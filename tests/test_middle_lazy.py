@@ -194,9 +194,9 @@ def test_a_view_begun_as_a_copy_goes_its_own_way():
     for direction, data in _pairs(3) + [(C2S, REQUEST * 5)]:
         session.receive(direction, data, T0)
     copy = sides_module._copy(session)
-    assert len(copy._pending) == len(session._pending) == 5
+    assert len(copy.awaited.pending) == len(session.awaited.pending) == 5
     copy.receive(S2C, ANSWER * 5, T0 + MS)
-    assert (len(copy._pending), len(session._pending)) == (0, 5)
+    assert (len(copy.awaited.pending), len(session.awaited.pending)) == (0, 5)
     assert copy.latencies["Sensor Request"].count == 8 and session.latencies["Sensor Request"].count == 3
 
 

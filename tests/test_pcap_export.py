@@ -23,7 +23,6 @@ from whiztap.analyzer.recording.scan import RecordingScan, read_metadata
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, UpstreamConnected, UpstreamFailed
 from whiztap.sniffer.record.capture import CaptureSettings, import_pcap
-from whiztap.sniffer.record.detect import opener
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.wireshark.export import addresses, export_pcapng
@@ -204,12 +203,6 @@ def test_the_export_command_writes_to_standard_output_and_refuses_what_it_should
 
 
 # -- capture without --port ---------------------------------------------------------------------
-
-
-def test_openers_tell_the_server_from_the_client():
-    assert [opener(b) for b in (b"rr1-24--0--0-ss1", b"sr1-25--\x0c", b"cr1-3--1--0-ss1", b"sr1-\x01000-ss1",
-                                b"sendchkpass", b"Failed Validation", b"sr1-2", b"send", b"GET / HTTP/1.1")] == [
-        "client", "client", "server", "server", "server", "server", "", "", None]
 
 
 def _conversation(client, server, c2s: bytes, s2c: bytes, t: float, syn: bool = True):  # noqa: ANN001, ANN202

@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 from collections.abc import Callable
 
+from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, SENDCHKPASS
 from whiztap.sniffer.sim.client import Client, ClientError
 from whiztap.sniffer.sim.tour import SPEC_EXAMPLE_ENTRIES, every_command
 
@@ -70,10 +71,10 @@ async def wrong_password(port: int) -> None:
     """A client that gets the password wrong, then sends a command anyway."""
     reader, writer = await asyncio.open_connection(LOCAL, port)
     try:
-        await asyncio.wait_for(reader.readexactly(len(b"sendchkpass")), 5)
+        await asyncio.wait_for(reader.readexactly(len(SENDCHKPASS)), 5)
         writer.write(b"not-the-password")
         await writer.drain()
-        await asyncio.wait_for(reader.readexactly(len(b"Failed Validation")), 5)
+        await asyncio.wait_for(reader.readexactly(len(FAILED_VALIDATION)), 5)
         writer.write(b"rr1-24--0--0-ss1")  # after Failed Validation: PW-HS-AFTER-FAILED
         await writer.drain()
         await asyncio.sleep(0.1)

@@ -46,7 +46,7 @@ from bisect import bisect_right, insort
 from collections.abc import Callable
 from itertools import count
 
-from whiztap.analyzer.mitm.frame import observe_bytes
+from whiztap.analyzer.protocol.frame_text import frame_alone
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Event
 from whiztap.analyzer.protocol.rules import Violation
@@ -71,11 +71,11 @@ DROPPED_ANSWER = frozenset({Action.DROP, Action.BLACKHOLE})  # the client never 
 
 def kind_of(raw: bytes, direction: Direction) -> ItemKind:
     """The kind of bytes dropped or injected on their own, framed as the proxy
-    frames typed bytes (``observe_bytes``); UNFRAMED unless they are one item.
+    frames typed bytes (``frame_alone``); UNFRAMED unless they are one item.
     (Not the Intervention's recorded ``kind``: that is the sender's frame's,
     and an earlier stage may have changed the bytes since.)"""
-    item = observe_bytes(raw, direction).item
-    return item.kind if len(item.raw) == len(raw) else ItemKind.UNFRAMED
+    observations, _ = frame_alone(raw, direction)
+    return observations[0].item.kind if len(observations) == 1 else ItemKind.UNFRAMED
 
 
 class _Track:

@@ -11,10 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from whiztap.analyzer.protocol.frame_text import check_frame, frame_from_text
+from whiztap.analyzer.protocol.frame_text import check_frame, frame_alone, frame_from_text
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.rules import Violation
-from whiztap.analyzer.mitm.frame import observe_bytes
 
 
 @dataclass(frozen=True)
@@ -36,7 +35,8 @@ def judge_bytes(data: bytes, direction: Direction, checksum_rule: str, text: str
         violations = tuple(check_frame(data, direction, checksum_rule))
     except ValueError as e:  # an unknown checksum rule: the Controller would fail the same way
         return TypedFrame(text, direction, data, str(e))
-    return TypedFrame(text, direction, data, "", violations, observe_bytes(data, direction))
+    observations, _ = frame_alone(data, direction, checksum_rule)
+    return TypedFrame(text, direction, data, "", violations, observations[0] if observations else None)
 
 
 def read_typed(text: str, direction: Direction, checksum_rule: str) -> TypedFrame:

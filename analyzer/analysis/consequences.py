@@ -30,8 +30,8 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from whiztap.analyzer.protocol.codec import decode
-from whiztap.analyzer.protocol.framing import Framer, ItemKind
+from whiztap.analyzer.protocol.frame_text import frame_alone
+from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ChannelResponse
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.pairing import answer_spec
@@ -65,22 +65,15 @@ def request_key(request: Observation) -> Key | None:
 def _keys(data: bytes, direction: Direction) -> Counter[Key]:
     """The requests (c2s) or answers (s2c) in ``data``, by what pairs them."""
     keys: Counter[Key] = Counter()
-    if not data:
-        return keys
-    framer = Framer()
-    for item in framer.feed(data, 0) + framer.end(0):
-        if direction is Direction.C2S and item.kind is not ItemKind.COMMAND:
-            continue
-        if direction is Direction.S2C and item.kind not in ANSWER_KINDS:
-            continue
-        decoded = decode(item.kind, item.raw, item.reason)
-        if direction is Direction.C2S:
-            kind, channel, _ = answer_spec(decoded.message, decoded.candidates)
-            if kind is not None:
-                keys[(kind, channel)] += 1
-        else:
-            message = decoded.message
-            keys[(item.kind, message.channel if isinstance(message, ChannelResponse) else None)] += 1
+    observations, _ = frame_alone(data, direction)
+    for observation in observations:
+        kind, message = observation.item.kind, observation.message
+        if direction is Direction.C2S and kind is ItemKind.COMMAND:
+            answer_kind, channel, _ = answer_spec(message, observation.candidates)
+            if answer_kind is not None:
+                keys[(answer_kind, channel)] += 1
+        elif direction is Direction.S2C and kind in ANSWER_KINDS:
+            keys[(kind, message.channel if isinstance(message, ChannelResponse) else None)] += 1
     return keys
 
 

@@ -30,7 +30,6 @@ def rules_command(fmt: str) -> None:
 
 _PATH_LIKE = re.compile(r"^(?!(c2s |s2c )?[rcs]r1-).*(/|\.[A-Za-z][A-Za-z0-9]{0,4}$)", re.DOTALL)
 """A folder or a file extension in it, and no frame header at its start: meant as a file."""
-_SERVER_FIRST = ("cr1-", "sendchkpass", "readytogo", "Failed")
 
 
 @click.command("decode")
@@ -99,14 +98,14 @@ def _read_lines(source: str) -> list[str]:
 def _sender(text: str, direction: str):  # noqa: ANN202 - (Direction, str), imported lazily
     """Who sent a frame written as ``text`` (its 'c2s '/'s2c ' prefix, else
     --dir, else a guess from its first bytes), and the frame without the prefix."""
-    from whiztap.analyzer.protocol.observations import Direction
+    from whiztap.analyzer.protocol.observations import Direction, sender_of
 
     side, _, rest = text.partition(" ")
     if side in ("c2s", "s2c"):
         return Direction(side), rest
     if direction != "auto":
         return Direction(direction), text
-    server = text.startswith(_SERVER_FIRST) or (text.startswith("sr1-") and not text.startswith("sr1-25--"))
+    server = sender_of(text.encode("utf-8", "replace")) is Direction.S2C  # by its opening
     return (Direction.S2C if server else Direction.C2S), text
 
 

@@ -28,11 +28,14 @@ from dataclasses import dataclass, field, replace
 
 from whiztap.analyzer.mitm.commands import Closing, Command, Deliver, EndConnection, Full, PassEof, Tell, WakeAt
 from whiztap.analyzer.mitm.faults import Fault
-from whiztap.analyzer.mitm.frame import Frame, masked, observation_of
+from whiztap.analyzer.mitm.frame import Frame, masked
 from whiztap.analyzer.mitm.intercept import Held, HeldFrames
 from whiztap.analyzer.mitm.lane import Lane, Notes, Out, Segments
 from whiztap.analyzer.mitm.stages import Stages
+from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
+from whiztap.analyzer.protocol.frame_text import item_alone
 from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
+from whiztap.analyzer.protocol.handshake import SENDCHKPASS, VERDICTS
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, LoginMask
@@ -40,8 +43,6 @@ from whiztap.analyzer.traffic import Action, Cause, Data, Delivered, Interventio
 
 C2S, S2C = Direction.C2S, Direction.S2C
 OTHER = {C2S: S2C, S2C: C2S}
-_ASKS = b"sendchkpass"
-_VERDICTS = (b"readytogo", b"Failed Validation")
 _LOGIN_HOLD_NS = int(HOLD_LIMIT_S * 1e9)
 _MASKABLE = re.compile(rb"[^\r\n]+")
 CLOSING = Cause(Source.CLOSING)
@@ -51,15 +52,20 @@ CLOSING = Cause(Source.CLOSING)
 class MiddleContext:
     """What every connection's core shares (the ``Controller`` owns it): the
     stages, the faults in force, the held frames, chance, the framer's limits,
-    whether passwords are hidden, and how long a frame may stay held."""
+    the checksum rule a frame is judged by, whether passwords are hidden, and
+    how long a frame may stay held."""
 
     stages: Stages
     held: HeldFrames = field(default_factory=HeldFrames)
     faults: list[Fault] = field(default_factory=list)
     rng: random.Random = field(default_factory=random.Random)
     limits: Limits = field(default_factory=Limits)
+    checksum_rule: str = DEFAULT_CHECKSUM_RULE
     redact: bool = True
     hold_timeout_ns: int = 60_000_000_000
+
+    def __post_init__(self) -> None:
+        get_rule(self.checksum_rule)  # an unknown rule fails here (ValueError), not at the first frame
 
 
 class MiddleCore:
@@ -218,9 +224,9 @@ class MiddleCore:
         """Follow the handshake as the session model does (see ``session.py``)."""
         if direction is S2C and item.kind is ItemKind.HANDSHAKE:
             c2s = self.lanes[C2S]
-            if item.raw == _ASKS:
+            if item.raw == SENDCHKPASS:
                 c2s.framer.expect_password()
-            elif item.raw in _VERDICTS:
+            elif item.raw in VERDICTS:
                 c2s.password_closed(t_ns)
 
     def decide(self, lane: Lane, item: Item, index: int, offset: int, t_ns: int) -> Frame:
@@ -228,8 +234,9 @@ class MiddleCore:
         its interventions, now if it is not delivered, else when it is."""
         direction = lane.direction
         context = self.context
-        frame = Frame(self.conn, direction, item, observation_of(item, direction, index), t_ns, self.opened_ns,
-                      index, offset, self._secret(direction, item, offset), context.redact)
+        observation = item_alone(item, direction, index, context.checksum_rule)
+        frame = Frame(self.conn, direction, item, observation, t_ns, self.opened_ns, index, offset,
+                      self._secret(direction, item, offset), context.redact)
         if item.kind is not ItemKind.PASSWORD:
             context.stages.frame(frame)
         return frame

@@ -1,7 +1,9 @@
 """One frame on its way through the proxy's stages, and what they decided.
 
 Every stage (the faults, the scripts, the person intercepting) sees the same
-``Frame``: what the sender sent, decoded, and what is to be delivered so far.
+``Frame``: what the sender sent, judged alone as every frame on its own is
+(``item_alone``, analyzer/protocol/frame_text.py: the proxy judges frames one
+by one, not as a session), and what is to be delivered so far.
 A stage changes the delivery through the methods here, each of which also
 notes an ``Intervention`` (the recording's account of every change: what
 changed it, the frame before and after, as facts).  The middle's core
@@ -17,8 +19,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-from whiztap.analyzer.protocol.codec import decode
-from whiztap.analyzer.protocol.framing import Framer, Item, ItemKind
+from whiztap.analyzer.protocol.framing import Item, ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.traffic import Action, Cause, Intervention
 
@@ -152,15 +153,3 @@ class Frame:
             if instead:
                 self.data = None
 
-
-def observation_of(item: Item, direction: Direction, index: int) -> Observation:
-    """What an item means on its own (the proxy judges frames one by one, not as a session)."""
-    decoded = decode(item.kind, item.raw, item.reason)
-    return Observation(index, direction, item, decoded.message, decoded.candidates, decoded.violations)
-
-
-def observe_bytes(data: bytes, direction: Direction, index: int = 0) -> Observation:
-    """What typed or edited bytes mean (the first item they frame as)."""
-    framer = Framer()
-    items = framer.feed(data, 0) + framer.end(0)
-    return observation_of(items[0] if items else Item(ItemKind.UNFRAMED, data, 0, 0), direction, index)

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from whiztap.analyzer.analysis.item_filter import ItemFilter, parse_filter
-from whiztap.analyzer.mitm.frame import Frame, masked, observe_bytes
+from whiztap.analyzer.mitm.frame import Frame, masked
 from whiztap.analyzer.protocol.describe import meaning
+from whiztap.analyzer.protocol.frame_text import frame_alone
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.text import escape
 
@@ -80,7 +81,8 @@ class Held:
         """Its state, its meaning that of the bytes it holds now (an edit's, once edited)."""
         observation = self.observation
         if self.data != observation.item.raw and not self.hidden:
-            observation = observe_bytes(self.data, self.direction, observation.index)
+            edited, _ = frame_alone(self.data, self.direction)
+            observation = edited[0] if edited else observation
         return {"id": self.id, "conn": self.conn, "dir": self.direction.value, "index": self.index,
                 "kind": observation.item.kind.value, "text": escape(self.shown),
                 "meaning": REDACTED_MEANING if self.hidden else meaning(observation),

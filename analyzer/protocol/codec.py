@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 from whiztap.analyzer.protocol.framing import (
-    HANDSHAKE_WORDS,
+    CONFIG_HEADER,
     JPEG_SOI,
     SET_CONFIG_PREFIX,
     SET_CONFIG_TRAILER,
@@ -18,6 +18,7 @@ from whiztap.analyzer.protocol.framing import (
     ItemKind,
     Unframed,
 )
+from whiztap.analyzer.protocol.handshake import HANDSHAKE_WORDS
 from whiztap.analyzer.protocol.messages import (
     ActivateSwitch,
     CameraImage,
@@ -291,7 +292,7 @@ def checksum_offset(raw: bytes) -> int | None:
     None for any other frame: what a deliberately corrupted frame changes."""
     if raw.startswith(SET_CONFIG_PREFIX) and raw.endswith(SET_CONFIG_TRAILER):
         at = len(raw) - len(SET_CONFIG_TRAILER) - 1
-    elif raw.startswith(b"sr1-\x19") and raw.endswith(TRAILER):
+    elif raw.startswith(CONFIG_HEADER + b"\x19") and raw.endswith(TRAILER):
         at = len(raw) - len(TRAILER) - 2
     else:
         return None
@@ -390,7 +391,7 @@ def encode(message: Message) -> bytes:
             return _text(b"cr1", ch, d, 0)
         case ConfigurationSettings(channels=chs):
             digits = b"".join(b"%d%d%d" % (c.unit_type, c.unused, c.switch_type) for c in chs)
-            return b"sr1-" + bytes([len(chs)]) + digits + TRAILER
+            return CONFIG_HEADER + bytes([len(chs)]) + digits + TRAILER
         case SetConfiguration(entries=entries, checksum=checksum):
             triples = bytes(b for e in entries for b in (e.device, e.port, e.unit_type))
             return SET_CONFIG_PREFIX + triples + bytes([checksum]) + SET_CONFIG_TRAILER

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.codec import encode
+from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, READYTOGO, SENDCHKPASS
 from whiztap.analyzer.protocol.observations import Direction
 
 C, S = Direction.C2S, Direction.S2C
@@ -18,7 +19,7 @@ Step = tuple[Direction, bytes]
 CONFIG = encode(m.ConfigurationSettings((
     m.ChannelConfig(0), m.ChannelConfig(0), m.ChannelConfig(1, 0, 1), m.ChannelConfig(2),
 )))  # ch0-1 servos, ch2 switch, ch3 sensor
-WINSOCK_OPEN: list[Step] = [(S, b"sendchkpass\r\n"), (C, b"secret\r\n"), (S, b"readytogo\r\n"),
+WINSOCK_OPEN: list[Step] = [(S, SENDCHKPASS + b"\r\n"), (C, b"secret\r\n"), (S, READYTOGO + b"\r\n"),
                             (C, b"rr1-24--0--0-ss1"), (S, CONFIG)]
 VPN_OPEN: list[Step] = [(C, b"rr1-24--0--0-ss1"), (S, CONFIG)]
 
@@ -51,12 +52,12 @@ SCENARIOS: dict[str, list[Step]] = {
     "PW-SETCFG-UNIT": VPN_OPEN + [(C, b"sr1-25--\x0c\x01\x07\x0c--0-ss1")],
     "PW-SETCFG-CHECKSUM": VPN_OPEN + [(C, b"sr1-25--\x0c\x01\x00\x0d--0-ss1")],
     "PW-SETCFG-EMPTY": VPN_OPEN + [(C, b"sr1-25--\x00--0-ss1")],
-    "PW-HS-ORDER": [(S, b"sendchkpass"), (S, b"readytogo")],
-    "PW-HS-COMMAND-BEFORE-READY": [(S, b"sendchkpass"), (C, b"rr1-24--0--0-ss1")],
-    "PW-HS-AFTER-FAILED": [(S, b"sendchkpass"), (C, b"wrong"), (S, b"Failed Validation"),
+    "PW-HS-ORDER": [(S, SENDCHKPASS), (S, READYTOGO)],
+    "PW-HS-COMMAND-BEFORE-READY": [(S, SENDCHKPASS), (C, b"rr1-24--0--0-ss1")],
+    "PW-HS-AFTER-FAILED": [(S, SENDCHKPASS), (C, b"wrong"), (S, FAILED_VALIDATION),
                            (C, b"rr1-24--0--0-ss1")],
     "PW-VPN-CONFIG-FIRST": [(C, b"rr1-0--0--2-ss1")],
-    "PW-WINSOCK-CONFIG-FIRST": [(S, b"sendchkpass"), (C, b"pw"), (S, b"readytogo"), (C, b"rr1-0--0--267-ss1")],
+    "PW-WINSOCK-CONFIG-FIRST": [(S, SENDCHKPASS), (C, b"pw"), (S, READYTOGO), (C, b"rr1-0--0--267-ss1")],
     "PW-UNIT-MISMATCH": VPN_OPEN + [(C, b"rr1-3--500--0-ss1")],
     "PW-CHANNEL-UNCONFIGURED": VPN_OPEN + [(C, b"rr1-9--0--2-ss1")],
     "PW-AMBIGUOUS": [(C, b"rr1-24--0--0-ss1"), (C, b"rr1-9--1--0-ss1")],

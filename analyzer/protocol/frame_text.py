@@ -1,4 +1,4 @@
-"""Frames as people type them, to inject or edit, and what is wrong with one.
+"""Frames as people type them, to inject or edit, and a frame judged alone.
 
 Two ways to write a frame:
 
@@ -14,6 +14,13 @@ The console's words live here, not in the console, so that the console, the TUI
 and anything else that turns them into a frame make the same bytes.  Words build
 the frame they name even when its values break the spec (``sensor 99``): a frame
 typed to be injected may be wrong on purpose, and ``check_frame`` says how.
+
+A frame judged alone (``item_alone``, ``frame_alone``, ``check_frame``) is
+judged here once for all of whiztap: the proxy in the middle judges each frame
+it decides on this way, the Controller a frame typed to inject or edit, the
+TUI's dialog the frame as it is typed, ``whiztap decode`` each frame given.
+What only a session can tell (the handshake, the channel map, pairing) is left
+to ``session.py``.
 """
 
 from __future__ import annotations
@@ -23,7 +30,8 @@ from collections.abc import Callable
 from whiztap.analyzer.protocol.channels import ChannelSpecError, parse_channels
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
 from whiztap.analyzer.protocol.codec import EXTERNAL_SCRIPTS, decode, encode
-from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, ItemKind
+from whiztap.analyzer.protocol.framing import (
+    DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, FRAME_HEADERS, Framer, Item, ItemKind)
 from whiztap.analyzer.protocol.messages import (
     ActivateSwitch,
     DeactivateSwitch,
@@ -45,7 +53,7 @@ from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.text import plural, unescape
 
 DEFAULT_DEVICE = 12  # the spec's default Dev#, which setconfig puts in every entry
-HEADERS = ("rr1-", "sr1-", "cr1-")
+HEADERS = tuple(header.decode() for header in FRAME_HEADERS)  # typed text that is escaped frame text
 SWITCH_ON = ("on", "1", "close")
 SWITCH_OFF = ("off", "0", "open")
 
@@ -195,33 +203,40 @@ def frame_from_text(text: str) -> bytes:
     return data
 
 
+def item_alone(item: Item, direction: Direction, index: int = 0,
+               checksum_rule: str = DEFAULT_CHECKSUM_RULE) -> Observation:
+    """An item sent in ``direction``, judged as a session judges it where
+    that needs no context: its meaning and the rules it breaks (the codec's,
+    the direction its kind travels in, the Set Configuration checksum under
+    ``checksum_rule``; ValueError for an unknown rule).  What needs the
+    session (the handshake, the channel map, pairing) is not judged: one
+    frame is no session.  ``index`` numbers it among its sender's items."""
+    rule = get_rule(checksum_rule)
+    decoded = decode(item.kind, item.raw, item.reason)
+    violations = list(decoded.violations)
+    wrong_way = direction_violation(item.kind, direction)
+    if wrong_way is not None:
+        violations.append(wrong_way)
+    if isinstance(decoded.message, SetConfiguration):
+        wrong_sum = checksum_violation(decoded.message, rule)
+        if wrong_sum is not None:
+            violations.append(wrong_sum)
+    return Observation(index, direction, item, decoded.message, decoded.candidates, tuple(violations))
+
+
 def frame_alone(data: bytes, direction: Direction, checksum_rule: str = DEFAULT_CHECKSUM_RULE,
                 max_item: int = DEFAULT_MAX_ITEM, max_image: int = DEFAULT_MAX_IMAGE,
                 ) -> tuple[list[Observation], list[Violation]]:
-    """``data`` sent on its own in ``direction``, judged as a session judges
-    it where that needs no context: each item with its meaning and the rules
-    it breaks (the codec's, the direction the kind travels in, the Set
-    Configuration checksum under ``checksum_rule``, ValueError for an unknown
-    rule); and PW-FRAME-GARBAGE for the bytes as a whole unless they are
-    exactly one complete item.  What needs the session (the handshake, the
-    channel map, pairing) is not judged: one frame is no session."""
+    """``data`` sent on its own in ``direction``: each item it frames as,
+    judged alone (``item_alone``); and PW-FRAME-GARBAGE for the bytes as a
+    whole unless they are exactly one complete item.  The first observation
+    is what the bytes mean, where something wants one meaning (the held
+    frame an edit made, a dropped or injected frame's row)."""
     direction = Direction(direction)
-    rule = get_rule(checksum_rule)
+    get_rule(checksum_rule)  # an unknown rule fails whatever the bytes
     framer = Framer(max_item, max_image)
     items = framer.feed(data, 0) + framer.end(0)
-    observations = []
-    for index, item in enumerate(items):
-        decoded = decode(item.kind, item.raw, item.reason)
-        violations = list(decoded.violations)
-        wrong_way = direction_violation(item.kind, direction)
-        if wrong_way is not None:
-            violations.append(wrong_way)
-        if isinstance(decoded.message, SetConfiguration):
-            wrong_sum = checksum_violation(decoded.message, rule)
-            if wrong_sum is not None:
-                violations.append(wrong_sum)
-        observations.append(Observation(index, direction, item, decoded.message, decoded.candidates,
-                                        tuple(violations)))
+    observations = [item_alone(item, direction, index, checksum_rule) for index, item in enumerate(items)]
     kinds = [item.kind for item in items]
     whole = len(kinds) == 1 and kinds[0] not in (ItemKind.UNFRAMED, ItemKind.EOL)
     if whole or any(v.rule_id == "PW-FRAME-GARBAGE" for o in observations for v in o.violations):

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import re
 
+from whiztap.analyzer.protocol.handshake import HANDSHAKE_WORDS
 from whiztap.analyzer.protocol.images import JPEG_SOI, PNG_SIGNATURE, ImageScanning
 from whiztap.analyzer.protocol.items import NEED_MORE as _NEED_MORE
 from whiztap.analyzer.protocol.items import Item, ItemKind, Unframed
 
 __all__ = [  # the item vocabulary is items.py's; imported from here as ever
-    "DEFAULT_MAX_IMAGE", "DEFAULT_MAX_ITEM", "FRAME_HEADERS", "HANDSHAKE_WORDS", "JPEG_SOI", "MAX_PASSWORD",
-    "MIN_MAX_ITEM", "PNG_SIGNATURE", "SET_CONFIG_PREFIX", "Framer", "Item", "ItemKind", "Unframed", "unasked",
+    "COMMAND_HEADER", "CONFIG_HEADER", "DEFAULT_MAX_IMAGE", "DEFAULT_MAX_ITEM", "FRAME_HEADERS", "JPEG_SOI",
+    "MAX_PASSWORD", "MIN_MAX_ITEM", "PNG_SIGNATURE", "RESPONSE_HEADER", "SET_CONFIG_PREFIX", "Framer", "Item",
+    "ItemKind", "Unframed", "unasked",
 ]
 
 DEFAULT_MAX_ITEM = 64 * 1024
@@ -24,8 +26,10 @@ MIN_MAX_ITEM = 1024  # above the longest Configuration Settings frame (255 chann
 DEFAULT_MAX_IMAGE = 32 * 1024 * 1024  # camera pictures: the spec sets no limit
 MAX_PASSWORD = 256  # a longer first line is no password (docs/protocol.md, A14)
 
-HANDSHAKE_WORDS = (b"sendchkpass", b"readytogo", b"Failed Validation")
-FRAME_HEADERS = (b"rr1-", b"cr1-", b"sr1-")
+COMMAND_HEADER = b"rr1-"  # a client's command
+RESPONSE_HEADER = b"cr1-"  # a server's answer on a channel
+CONFIG_HEADER = b"sr1-"  # Configuration Settings from the server; Set Configuration from the client
+FRAME_HEADERS = (COMMAND_HEADER, RESPONSE_HEADER, CONFIG_HEADER)
 TRAILER = b"-ss1"
 SET_CONFIG_PREFIX = b"sr1-25--"
 SET_CONFIG_TRAILER = b"--0-ss1"
@@ -38,14 +42,11 @@ SMALL_READ = 512  # reads up to this size first try to be whole text frames
 # comes before the next header.
 _TEXT_RUN = re.compile(rb"(?:[rc]r1-[0-9]{1,5}--[0-9]{1,5}--[0-9]{1,5}-ss1)+")
 _new_item = tuple.__new__  # Item without its Python-level __new__: the hot path's biggest cost
-_SYNC = re.compile(
-    rb"rr1-|cr1-|sr1-|sendchkpass|readytogo|Failed Validation|\xff\xd8\xff|\x89PNG\r\n\x1a\n|[\r\n]"
-)
-_HEADER = re.compile(rb"rr1-|cr1-|sr1-")
-_PASSWORD_END = re.compile(rb"[\r\n]|rr1-|cr1-|sr1-")
-_SYNC_TOKENS = (
-    *FRAME_HEADERS, *HANDSHAKE_WORDS, JPEG_SOI, PNG_SIGNATURE,
-)
+_SYNC_TOKENS = (*FRAME_HEADERS, *HANDSHAKE_WORDS, JPEG_SOI, PNG_SIGNATURE)  # where an item may begin
+_HEADERS = b"|".join(FRAME_HEADERS)  # (no header holds a character special to a pattern)
+_SYNC = re.compile(b"|".join(re.escape(token) for token in _SYNC_TOKENS) + rb"|[\r\n]")
+_HEADER = re.compile(_HEADERS)
+_PASSWORD_END = re.compile(rb"[\r\n]|" + _HEADERS)
 _SYNC_LONGEST = max(len(t) for t in _SYNC_TOKENS)
 _FRAMES = frozenset({ItemKind.COMMAND, ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.SET_CONFIG})
 
@@ -96,7 +97,7 @@ class Framer(ImageScanning):
         return self._password_mode
 
     @property
-    def reading_password(self) -> bool:
+    def in_password(self) -> bool:
         """The next line, or the rest of one the server judged early, is still
         taken as a password (``password_pending`` ends at the verdict; this
         ends with the line)."""
@@ -352,8 +353,9 @@ class Framer(ImageScanning):
     def _scan_text(self, pos: int):
         buf, window = self._buf, self._window
         head = bytes(buf[pos:pos + 4])
-        if head not in (b"rr1-", b"cr1-"):
-            return _NEED_MORE if len(head) < 4 and (b"rr1-".startswith(head) or b"cr1-".startswith(head)) else None
+        if head not in (COMMAND_HEADER, RESPONSE_HEADER):
+            begun = COMMAND_HEADER.startswith(head) or RESPONSE_HEADER.startswith(head)
+            return _NEED_MORE if len(head) < 4 and begun else None
         kind = ItemKind.COMMAND if head[0] == 0x72 else ItemKind.RESPONSE
         body_end = pos + 4 + TEXT_FRAME_MAX  # the trailer must start before this
         t = buf.find(TRAILER, pos + 4, min(window, body_end + 3))
@@ -369,8 +371,8 @@ class Framer(ImageScanning):
     def _scan_sr1(self, pos: int):
         buf, window = self._buf, self._window
         head = bytes(buf[pos:min(window, pos + 8)])
-        if not head.startswith(b"sr1-"):
-            return _NEED_MORE if len(head) < 4 and b"sr1-".startswith(head) else None
+        if not head.startswith(CONFIG_HEADER):
+            return _NEED_MORE if len(head) < 4 and CONFIG_HEADER.startswith(head) else None
         if len(head) < 8 and SET_CONFIG_PREFIX.startswith(head):
             return _NEED_MORE  # Set Configuration, or a count byte that happens to be '2'
         if head == SET_CONFIG_PREFIX:

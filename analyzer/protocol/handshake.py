@@ -1,18 +1,29 @@
-"""The Winsock handshake as a transition table, and the mode it reveals.
+"""The Winsock handshake: its words, its transition table, and the mode it reveals.
 
 A Winsock server asks for a password ('sendchkpass'), the client sends it, and
 the server answers 'readytogo' or 'Failed Validation'; a VPN connection has no
 handshake: its first command is Fetch Configuration Settings (docs/protocol.md).
 The session feeds ``advance`` one step per item; the table says the next state,
 the rule a step out of order breaks, and whether the step tells Winsock from VPN.
+
+The three words are spelled here and nowhere else in whiztap: the framer, the
+codec, the messages' titles, the password rule, the proxy in the middle, the
+simulator and the Wireshark dissector all take them from here (a test holds
+every library module to it).
 """
 
 from __future__ import annotations
 
 from enum import StrEnum
 
-from whiztap.analyzer.protocol.messages import FailedValidation, ReadyToGo, SendCheckPassword
 from whiztap.analyzer.protocol.rules import Violation
+
+SENDCHKPASS = b"sendchkpass"  # the server asks for the password
+READYTOGO = b"readytogo"  # the server took it
+FAILED_VALIDATION = b"Failed Validation"  # the server refused it
+VERDICTS = (READYTOGO, FAILED_VALIDATION)
+HANDSHAKE_WORDS = (SENDCHKPASS, *VERDICTS)
+"""Every word of the handshake, each an item of its own on the wire; only a server sends them."""
 
 
 class Mode(StrEnum):
@@ -93,8 +104,8 @@ _OUTCOME = {
     _S.READY: "readytogo",
     _S.FAILED: "failed validation",
 }
-SERVER_STEPS = {SendCheckPassword: _St.SENDCHKPASS, ReadyToGo: _St.READYTOGO, FailedValidation: _St.FAILED}
-"""The step each handshake message of the server's is."""
+SERVER_STEPS = {SENDCHKPASS: _St.SENDCHKPASS, READYTOGO: _St.READYTOGO, FAILED_VALIDATION: _St.FAILED}
+"""The step each handshake word the server sends is."""
 
 
 def advance(state: HandshakeState, step: Step) -> tuple[HandshakeState, Mode | None, Violation | None]:

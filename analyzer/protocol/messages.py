@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, READYTOGO, SENDCHKPASS
 from whiztap.analyzer.protocol.text import LowerNamed, plural
 
 
@@ -199,19 +200,19 @@ class SetConfiguration(Message):
 
 @dataclass(frozen=True, slots=True)
 class SendCheckPassword(Message):
-    title: ClassVar[str] = "sendchkpass"
+    title: ClassVar[str] = SENDCHKPASS.decode()
     sender: ClassVar[str] = "server"
 
 
 @dataclass(frozen=True, slots=True)
 class ReadyToGo(Message):
-    title: ClassVar[str] = "readytogo"
+    title: ClassVar[str] = READYTOGO.decode()
     sender: ClassVar[str] = "server"
 
 
 @dataclass(frozen=True, slots=True)
 class FailedValidation(Message):
-    title: ClassVar[str] = "Failed Validation"
+    title: ClassVar[str] = FAILED_VALIDATION.decode()
     sender: ClassVar[str] = "server"
 
 

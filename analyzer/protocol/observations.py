@@ -9,7 +9,9 @@ from __future__ import annotations
 from enum import StrEnum
 from typing import NamedTuple
 
-from whiztap.analyzer.protocol.framing import Item, ItemKind
+from whiztap.analyzer.protocol.framing import (
+    COMMAND_HEADER, CONFIG_HEADER, RESPONSE_HEADER, SET_CONFIG_PREFIX, Item, ItemKind)
+from whiztap.analyzer.protocol.handshake import HANDSHAKE_WORDS
 from whiztap.analyzer.protocol.messages import Message
 from whiztap.analyzer.protocol.rules import Violation
 
@@ -39,6 +41,39 @@ def direction_violation(kind: ItemKind, direction: Direction) -> Violation | Non
     if travels is None or travels is direction:
         return None
     return Violation("PW-DIRECTION", f"{kind.words} came from the {direction.sender}")
+
+
+# What an item of each kind begins with, where the spec fixes it, longest first
+# where one begins another (a client's Set Configuration begins like the
+# server's Configuration Settings).
+OPENINGS: tuple[tuple[bytes, ItemKind], ...] = (
+    (SET_CONFIG_PREFIX, ItemKind.SET_CONFIG), (COMMAND_HEADER, ItemKind.COMMAND),
+    (RESPONSE_HEADER, ItemKind.RESPONSE), (CONFIG_HEADER, ItemKind.CONFIG),
+    *((word, ItemKind.HANDSHAKE) for word in HANDSHAKE_WORDS),
+)
+LONGEST_OPENING = max(len(opening) for opening, _ in OPENINGS)
+
+
+def sender_of(first: bytes) -> Direction | None:
+    """Which side sends bytes that begin with ``first``, by the opening of the
+    item they begin with and the way that kind travels: C2S for a command or a
+    Set Configuration, S2C for an answer, Configuration Settings or a
+    handshake word.  So a conversation's first bytes tell which side serves
+    (a Winsock server speaks first, a VPN client does).  None when ``first``
+    does not tell: it begins with no opening, or too little of one has come
+    (``may_tell``)."""
+    for opening, kind in OPENINGS:
+        if first.startswith(opening):
+            return _TRAVELS[kind]
+        if opening.startswith(first):
+            return None  # more bytes may make it this opening, or one after it
+    return None
+
+
+def may_tell(first: bytes) -> bool:
+    """Whether ``first`` is all or the start of an opening: bytes that begin
+    with it tell their sender (``sender_of``) now or once more of them come."""
+    return any(opening.startswith(first) for opening, _ in OPENINGS)
 
 
 def line_break_violation(raw: bytes, last: ItemKind | None) -> Violation | None:

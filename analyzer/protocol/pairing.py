@@ -1,4 +1,4 @@
-"""Requests waiting for their answers, found by what answers them.
+"""Requests waiting for their answers, found by what answers them, and given up.
 
 The session pairs each answer with the oldest waiting request it fits: the
 same item kind, the same channel (an answer without a channel fits any), and a
@@ -15,11 +15,15 @@ the live ones every queue is rebuilt, so memory stays proportional to the
 entries still waiting.  Entries join the keyed queues only when an answer
 first has to look past the oldest: established traffic, answered in order,
 never pays for them.
+
+``Awaited`` keeps one session's two books, the requests awaited and those
+given up, and their deadlines: the bookkeeping of pairing, apart from the
+session that decides what pairs.
 """
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Iterator
 from typing import NamedTuple
 
@@ -31,9 +35,12 @@ from whiztap.analyzer.protocol.messages import (
     SensorRequest,
     ServoPositionRequest,
 )
-from whiztap.analyzer.protocol.observations import Observation
+from whiztap.analyzer.protocol.observations import Event, LateViolation, Observation
+from whiztap.analyzer.protocol.rules import Violation
 
 REBUILD_SLACK = 1024  # taken entries tolerated in the queues beyond the live ones
+PENDING_KEPT = 250_000  # requests awaited at once per connection; the oldest is given up beyond
+EXPIRED_KEPT = 1024  # requests given up (deadline or cap) that a late answer may still pair with
 # The item kind that answers each request.
 _ANSWER_KIND = {
     FetchConfiguration: ItemKind.CONFIG,
@@ -193,3 +200,72 @@ class Book:
             else:
                 del self._queues[key]
         taken.clear()
+
+
+class Awaited:
+    """One session's requests and their answers' deadlines: the only code
+    that touches its books (tests put plain lists in their place).
+
+    ``pending`` holds the requests awaited, at most ``pending_kept``: past
+    that the oldest is given up, as at its deadline (``timeout_ns`` after it
+    was sent).  ``expired`` holds the latest ``expired_kept`` given up: an
+    answer that comes late still answers one of them, and is not
+    unsolicited.  A request that certainly asked and is given up, or still
+    awaited when the session closes, is reported unanswered
+    (PW-PAIR-UNANSWERED, counted in the session's ``violation_counts``)."""
+
+    def __init__(self, timeout_ns: int, violation_counts: Counter[str]) -> None:
+        self.timeout_ns = timeout_ns
+        self.violation_counts = violation_counts
+        self.pending = Book()
+        self.expired = Book()
+        self.pending_kept = PENDING_KEPT
+        self.expired_kept = EXPIRED_KEPT
+        self.ended_why = "the session ended first"  # of requests still awaited at close
+
+    def add(self, pending: Pending, events: list[Event]) -> None:
+        """Await the answer to ``pending`` (the oldest request is given up if
+        ``pending_kept`` are awaited already)."""
+        if self.pending.live >= self.pending_kept:
+            self.give_up_oldest(pending.t_ns, events)
+        self.pending.add(pending)
+
+    def take(self, kind: ItemKind, channel: int | None) -> Pending | None:
+        """The request an answer of ``kind`` on ``channel`` (None: any) answers,
+        taken out: the oldest awaited one it fits, one that certainly asked
+        before a frame that only may be a Sensor Request (no channel map yet);
+        else the oldest given up (already reported unanswered), so a late
+        answer is not unsolicited."""
+        return (self.pending.take(kind, channel, certain_first=True)
+                or self.expired.take(kind, channel, certain_first=False))
+
+    def expire(self, t: int, events: list[Event]) -> None:
+        """Give up the requests whose deadline passed by ``t``, oldest first."""
+        pending = self.pending.order
+        while pending and t - pending[0].t_ns > self.timeout_ns:
+            self._give_up(self.pending.pop_oldest(), t, events, f"no answer within {self.timeout_ns / 1e9:g} s")
+
+    def give_up_oldest(self, t: int, events: list[Event]) -> None:
+        """A request arrives while ``pending_kept`` are awaited: give up the oldest."""
+        cap = self.pending_kept
+        self._give_up(self.pending.pop_oldest(), t, events,
+                      f"not answered while {cap} later requests were waiting (whiztap awaits at most {cap} at once)")
+
+    def close(self, t: int, events: list[Event]) -> None:
+        """The session is over: every request still awaited that certainly asked is unanswered."""
+        for pending in self.pending:
+            if pending.certain:
+                events.append(self._unanswered(pending, t, self.ended_why))
+        self.pending.clear()
+
+    def _give_up(self, pending: Pending, t: int, events: list[Event], why: str) -> None:
+        self.expired.add(pending)
+        if self.expired.live > self.expired_kept:
+            self.expired.pop_oldest()
+        if pending.certain:
+            events.append(self._unanswered(pending, t, why))
+
+    def _unanswered(self, pending: Pending, t: int, why: str) -> LateViolation:
+        self.violation_counts["PW-PAIR-UNANSWERED"] += 1
+        title = pending.request.message.title if pending.request.message else "request"
+        return LateViolation(Violation("PW-PAIR-UNANSWERED", f"{title}: {why}"), pending.request, t)

@@ -16,7 +16,7 @@ from whiztap.analyzer.protocol.channels import ChannelMap, command_meaning, data
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
 from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SERVO_DATA, decode, decode_cache
 from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item, ItemKind, unasked
-from whiztap.analyzer.protocol.handshake import SERVER_STEPS, HandshakeState, Mode, Step, advance, outcome
+from whiztap.analyzer.protocol.handshake import SENDCHKPASS, SERVER_STEPS, HandshakeState, Mode, Step, advance, outcome
 from whiztap.analyzer.protocol.messages import (
     ChannelConfig,
     ChannelResponse,
@@ -27,8 +27,8 @@ from whiztap.analyzer.protocol.messages import (
     SetConfiguration,
 )
 from whiztap.analyzer.protocol.observations import (
-    Direction, Event, LateViolation, Observation, direction_violation, line_break_violation)
-from whiztap.analyzer.protocol.pairing import Book, Pending, answer_spec
+    Direction, Event, Observation, direction_violation, line_break_violation)
+from whiztap.analyzer.protocol.pairing import Awaited, Pending, answer_spec
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.stats import LatencyStats
 
@@ -56,8 +56,6 @@ class Limits:
                 "max_image": self.max_image}
 
 
-PENDING_KEPT = 250_000  # requests awaited at once per connection; the oldest is given up beyond
-EXPIRED_KEPT = 1024  # requests given up (deadline or cap) that a late answer may still pair with
 EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'
 
 
@@ -98,7 +96,6 @@ class Session:
         commands, and not handing them over saves a pass over them."""
         self.checksum_rule = get_rule(checksum_rule)
         self.clean_commands = clean_commands
-        self.answer_timeout_ns = answer_timeout_ns
         self.framers = {Direction.C2S: Framer(max_item, max_image), Direction.S2C: Framer(max_item, max_image)}
         self.framers[Direction.C2S].expect_password()  # the client's first line may be its password
         self.state = HandshakeState.START
@@ -109,14 +106,7 @@ class Session:
         self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
         self.first_t_ns: int | None = None
         self.last_t_ns: int | None = None
-        # Requests awaiting their answer, at most ``pending_kept``: past that, the
-        # oldest is given up as at its deadline (reported unanswered).
-        self._pending = Book()
-        self.pending_kept = PENDING_KEPT
-        # Requests given up: an answer that comes later still answers one of them,
-        # and is not unsolicited.  The oldest are forgotten past ``expired_kept``.
-        self._expired = Book()
-        self.expired_kept = EXPIRED_KEPT
+        self.awaited = Awaited(answer_timeout_ns, self.violation_counts)  # requests and their deadlines
         # The client's first line (a password item) and what follows it, when they
         # come before the server's first item, which says whether it is a password.
         self._early: list[Item] | None = None
@@ -129,7 +119,6 @@ class Session:
         self._last_kind = {Direction.C2S: None, Direction.S2C: None}
         self._ended: set[Direction] = set()
         self._closed = False
-        self._ended_why = "the session ended first"  # of requests still unanswered at close
 
     # -- input ------------------------------------------------------------------------
 
@@ -148,7 +137,7 @@ class Session:
     def server_unreachable(self, detail: str) -> None:
         """The proxy could not reach the server (``detail`` says why): requests
         left unanswered at close are still reported, as no server reached."""
-        self._ended_why = f"the server was never reached ({detail})"
+        self.awaited.ended_why = f"the server was never reached ({detail})"
 
     def close(self, t_ns: int) -> list[Event]:
         if self._closed:
@@ -156,10 +145,7 @@ class Session:
         events = self.end(Direction.S2C, t_ns) + self.end(Direction.C2S, t_ns)
         self._release_early(events, None)
         self._closed = True
-        for pending in self._pending:
-            if pending.certain:
-                events.append(self._unanswered(pending, t_ns, self._ended_why))
-        self._pending.clear()
+        self.awaited.close(t_ns, events)
         return events
 
     # -- state ------------------------------------------------------------------------
@@ -186,13 +172,15 @@ class Session:
 
     def _fast_start(self) -> tuple:
         """The locals both fast paths start from: a new events list and its append,
-        the book of pending requests and its order, the answer timeout, readiness, the index."""
+        the requests awaited, their book and its order, the answer timeout, readiness, the index."""
         events: list[Event] = []
-        book = self._pending
-        return events, events.append, book, book.order, self.answer_timeout_ns, self.state is _S.READY, self._index
+        awaited = self.awaited
+        book = awaited.pending
+        return (events, events.append, awaited, book, book.order, awaited.timeout_ns, self.state is _S.READY,
+                self._index)
 
     def _observe_commands(self, items: list[Item]) -> list[Event]:
-        events, append, book, pending, timeout, ready, index = self._fast_start()
+        events, append, awaited, book, pending, timeout, ready, index = self._fast_start()
         plans = self._plans
         command = ItemKind.COMMAND
         direction = Direction.C2S
@@ -207,7 +195,7 @@ class Session:
                 fast = 0
                 continue
             if pending and t - pending[0][4] > timeout:
-                self._expire(t, events)
+                awaited.expire(t, events)
             message, candidates, violations, answer_kind, channel, certain = plan
             index += 1
             fast += 1
@@ -218,8 +206,8 @@ class Session:
                 continue  # nobody will see it
             obs = _new(Observation, (index - 1, direction, item, message, candidates, violations, None, None))
             if answer_kind is not None:
-                if book.live >= self.pending_kept:
-                    self._give_up_oldest(t, events)
+                if book.live >= awaited.pending_kept:
+                    awaited.give_up_oldest(t, events)
                 book.add(_new(Pending, (obs, answer_kind, channel, certain, t)))
             if every or violations:
                 append(obs)
@@ -227,7 +215,7 @@ class Session:
         return events
 
     def _observe_responses(self, items: list[Item]) -> list[Event]:
-        events, append, book, pending, timeout, ready, index = self._fast_start()
+        events, append, _, book, pending, timeout, ready, index = self._fast_start()
         response = ItemKind.RESPONSE
         direction = Direction.S2C
         waited: dict[str, list[int]] = {}  # latencies by request title, added in bulk at the end
@@ -301,16 +289,14 @@ class Session:
         if self.first_t_ns is None:
             self.first_t_ns = item.t_start_ns
         self.last_t_ns = t
-        pending = self._pending.order
-        if pending and t - pending[0].t_ns > self.answer_timeout_ns:
-            self._expire(t, events)
+        self.awaited.expire(t, events)
         decoded = decode(kind, item.raw, item.reason)
         message = decoded.message
         violations = list(decoded.violations)
         candidates = decoded.candidates
         was_ready = self.state is _S.READY
         if kind is ItemKind.HANDSHAKE and message is not None and direction is Direction.S2C:
-            self._server_handshake(message, item, violations, events)
+            self._server_handshake(item, violations, events)
         elif kind in _FRAME_KINDS or kind is ItemKind.PASSWORD or kind is ItemKind.HANDSHAKE:
             message = self._frame(direction, item, message, candidates, violations)
         elif kind is ItemKind.EOL and (broken := line_break_violation(item.raw, self._last_kind[direction])):
@@ -329,10 +315,9 @@ class Session:
             self._await_answer(observation, was_ready, t, events)
         events.append(observation)
 
-    def _server_handshake(self, message: Message, item: Item, violations: list[Violation],
-                          events: list[Event]) -> None:
-        """'sendchkpass', 'readytogo' or 'Failed Validation' from the server."""
-        step = SERVER_STEPS[type(message)]
+    def _server_handshake(self, item: Item, violations: list[Violation], events: list[Event]) -> None:
+        """A handshake word from the server (SERVER_STEPS)."""
+        step = SERVER_STEPS[item.raw]
         t = item.t_end_ns
         if step is not _St.SENDCHKPASS and self._asks_password:
             # a verdict before the password's end: what came of it is observed first
@@ -370,9 +355,7 @@ class Session:
         keep what its bytes mean as a plan for the fast path."""
         answer_kind, channel, certain = answer_spec(observation.message, observation.candidates)
         if answer_kind is not None:
-            if self._pending.live >= self.pending_kept:
-                self._give_up_oldest(t, events)
-            self._pending.add(Pending(observation, answer_kind, channel, certain, t))
+            self.awaited.add(Pending(observation, answer_kind, channel, certain, t), events)
         if was_ready and self.state is _S.READY and self._commands > 1:
             # from now on these bytes mean the same until the channel map changes
             self._plans[observation.item.raw] = _Plan(observation.message, observation.candidates,
@@ -401,7 +384,7 @@ class Session:
         if not self._may_hold_early:
             return
         self._may_hold_early = False
-        self._asks_password = server_first is not None and server_first.raw == b"sendchkpass"
+        self._asks_password = server_first is not None and server_first.raw == SENDCHKPASS
         early, self._early = self._early, None
         for held in early or ():
             self._observe(Direction.C2S, held, events)
@@ -442,7 +425,7 @@ class Session:
     def _answer(self, kind: ItemKind, message: Message | None, t: int,
                 violations: list[Violation]) -> tuple[Observation | None, int | None]:
         channel = message.channel if isinstance(message, ChannelResponse) else None
-        found = self._match(kind, channel)
+        found = self.awaited.take(kind, channel)
         if found is None:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by {kind.words}"))
             request = None
@@ -461,39 +444,3 @@ class Session:
         title = request.message.title if request.message is not None else "Sensor Request"
         self.latencies[title].add(latency)
         return request, latency
-
-    # -- pairing: the only code that touches the books of requests (tests replace it) --
-
-    def _match(self, kind: ItemKind, channel: int | None) -> Pending | None:
-        """The request an answer of ``kind`` on ``channel`` (None: any) answers,
-        taken out: the oldest awaited one it fits, one that certainly asked before
-        a frame that only may be a Sensor Request (no channel map yet); else the
-        oldest given up (already reported unanswered), so a late answer is not
-        unsolicited."""
-        return (self._pending.take(kind, channel, certain_first=True)
-                or self._expired.take(kind, channel, certain_first=False))
-
-    def _give_up_oldest(self, t: int, events: list[Event]) -> None:
-        """A request arrives while ``pending_kept`` are awaited: give up the oldest."""
-        cap = self.pending_kept
-        self._give_up(self._pending.pop_oldest(), t, events,
-                      f"not answered while {cap} later requests were waiting (whiztap awaits at most {cap} at once)")
-
-    def _expire(self, t: int, events: list[Event]) -> None:
-        """Give up the requests whose deadline passed, oldest first."""
-        pending = self._pending.order
-        why = f"no answer within {self.answer_timeout_ns / 1e9:g} s"
-        while pending and t - pending[0].t_ns > self.answer_timeout_ns:
-            self._give_up(self._pending.pop_oldest(), t, events, why)
-
-    def _give_up(self, pending: Pending, t: int, events: list[Event], why: str) -> None:
-        self._expired.add(pending)
-        if self._expired.live > self.expired_kept:
-            self._expired.pop_oldest()
-        if pending.certain:
-            events.append(self._unanswered(pending, t, why))
-
-    def _unanswered(self, pending: Pending, t: int, why: str) -> LateViolation:
-        self.violation_counts["PW-PAIR-UNANSWERED"] += 1
-        title = pending.request.message.title if pending.request.message else "request"
-        return LateViolation(Violation("PW-PAIR-UNANSWERED", f"{title}: {why}"), pending.request, t)

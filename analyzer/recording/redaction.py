@@ -40,6 +40,7 @@ from enum import Enum
 from typing import Generic, NamedTuple, TypeVar
 
 from whiztap.analyzer.protocol.framing import MAX_PASSWORD, Framer, ItemKind
+from whiztap.analyzer.protocol.handshake import SENDCHKPASS, VERDICTS
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import MASK_BYTE
 from whiztap.analyzer.traffic import Closed, ConnectionEvent, Gap, HalfClosed, Opened, UpstreamFailed
@@ -47,14 +48,13 @@ from whiztap.analyzer.traffic import Closed, ConnectionEvent, Gap, HalfClosed, O
 HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than this
 UNDECIDED_CAP = 16 * 1024  # ... or once a connection has this many
 QUEUE_CAP = 8 << 20  # ... or once this much traffic waits behind them
-GREETING = b"sendchkpass"
-_VERDICT = re.compile(rb"readytogo|Failed Validation")
-_VERDICT_CARRY = len(b"Failed Validation") - 1
+_VERDICT = re.compile(b"|".join(re.escape(verdict) for verdict in VERDICTS))
+_VERDICT_CARRY = max(len(verdict) for verdict in VERDICTS) - 1
 _MASKABLE = re.compile(rb"[^\r\n]+")
 _ALL = 1 << 62  # an offset past any stream's end
 _NONE = -1  # the first line is no password
 C2S, S2C = Direction.C2S, Direction.S2C
-__all__ = ["GREETING", "HOLD_LIMIT_S", "MAX_PASSWORD", "QUEUE_CAP", "UNDECIDED_CAP", "LoginMask", "Phase",
+__all__ = ["HOLD_LIMIT_S", "MAX_PASSWORD", "QUEUE_CAP", "UNDECIDED_CAP", "LoginMask", "Phase",
            "Redactor", "Released"]
 
 
@@ -183,13 +183,13 @@ class LoginMask:
         """Follow 'sendchkpass' in the server's first bytes; what comes after it."""
         if not self._greeted:
             data = data.lstrip(b"\r\n")
-        wanted = GREETING[self._greeted:]
+        wanted = SENDCHKPASS[self._greeted:]
         n = min(len(wanted), len(data))
         if data[:n] != wanted[:n]:
             self._server = False  # the server spoke first with something else: no login
             return b""
         self._greeted += n
-        if self._greeted < len(GREETING):
+        if self._greeted < len(SENDCHKPASS):
             return b""
         self._server = True
         return data[n:]
@@ -220,7 +220,7 @@ class LoginMask:
                 self._start = self._line_at
             else:
                 break
-        if line is not None and not line.reading_password:
+        if line is not None and not line.in_password:
             # over: at its end, or it began with a frame header, or ran past MAX_PASSWORD
             self._end = self._said if self._said is not None else _NONE
             self._line = None

@@ -66,7 +66,8 @@ class Controller:
         self.scripts: list[Any] = []
         self.intercept = Intercept()
         self.context = MiddleContext(Stages(report, self._quiet), rng=random.Random(seed), limits=limits,
-                                     redact=redact, hold_timeout_ns=int(hold_timeout * 1e9))
+                                     checksum_rule=checksum_rule, redact=redact,
+                                     hold_timeout_ns=int(hold_timeout * 1e9))
         self.clock: Callable[[], int] = lambda: 0  # the proxy's, from attach()
         self.emit: Callable[[object], None] = lambda event: None
         # analyze's verdict on the traffic so far, as the recording's writer judges it (None: not known)

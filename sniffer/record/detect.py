@@ -4,13 +4,12 @@ recording.
 
 Every TCP conversation's segments are held (a few at most) until the first
 bytes one side sends say what it is.  A Progwhiz conversation opens with a
-frame header or a handshake word from one side: ``rr1-`` or ``sr1-25--`` from
-the client (a VPN client's first command, a Set Configuration), ``cr1-``,
-``sr1-``, ``sendchkpass``, ``readytogo`` or ``Failed Validation`` from the
-server (a Winsock server speaks first).  Which side said it tells which is the
-server, and its port; the held segments and everything after them then go to
-a ``Reassembler`` for that port, exactly as with ``--port``.  A conversation
-whose first bytes from both sides are something else is not followed.
+frame header or a handshake word from one side, and which side sends it
+(``sender_of`` in analyzer/protocol/observations.py: the protocol's rule, not
+the capture's) tells which is the server, and its port; the held segments and
+everything after them then go to a ``Reassembler`` for that port, exactly as
+with ``--port``.  A conversation whose first bytes from both sides are
+something else is not followed.
 """
 
 from __future__ import annotations
@@ -19,33 +18,15 @@ import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass, field
 
-from whiztap.analyzer.protocol.framing import HANDSHAKE_WORDS, SET_CONFIG_PREFIX
+from whiztap.analyzer.protocol.observations import LONGEST_OPENING, Direction, may_tell, sender_of
 from whiztap.analyzer.traffic import TrafficEvent
 from whiztap.sniffer.record.consumers import Consumer
 from whiztap.sniffer.record.tcpreasm import ACK, SYN, Reassembler, Segment
 
-CLIENT_OPENINGS = (b"rr1-", SET_CONFIG_PREFIX)
-SERVER_OPENINGS = (b"cr1-", b"sr1-", *HANDSHAKE_WORDS)
-LOOKED_AT = max(len(t) for t in CLIENT_OPENINGS + SERVER_OPENINGS)  # first bytes per side that decide
+LOOKED_AT = LONGEST_OPENING  # first bytes per side that decide
 MAX_HELD = 64  # segments held for one undecided conversation; past that it is not followed
 MAX_UNDECIDED = 10_000  # conversations undecided at once (a SYN flood): the oldest is given up
 MAX_DECIDED = 100_000  # conversations remembered, followed or not
-
-
-def opener(first: bytes) -> str | None:
-    """Who sends ``first`` as the opening bytes of a Progwhiz conversation:
-    "client", "server", "" (too few bytes to tell yet) or None (not Progwhiz)."""
-    for token in CLIENT_OPENINGS:  # before the server's: sr1-25-- is the client's Set Configuration
-        if first.startswith(token):
-            return "client"
-        if token.startswith(first):
-            return ""
-    for token in SERVER_OPENINGS:
-        if first.startswith(token):
-            return "server"
-    if any(token.startswith(first) for token in CLIENT_OPENINGS + SERVER_OPENINGS):
-        return ""
-    return None
 
 
 @dataclass
@@ -128,11 +109,11 @@ class ContentDetector:
     def _look(self, key: frozenset, pending: _Undecided, s: Segment) -> None:
         """The sender's first bytes so far: Progwhiz, not, or not yet known."""
         first = pending.first.get(s.src, b"") + s.payload
-        pending.first[s.src] = first[:LOOKED_AT]
-        who = opener(first[:LOOKED_AT])
-        if who:
-            self._decide(key, s.src[1] if who == "server" else s.dst[1])
-        elif who is None or len(first) >= LOOKED_AT:
+        head = pending.first[s.src] = first[:LOOKED_AT]
+        sender = sender_of(head)
+        if sender is not None:
+            self._decide(key, s.src[1] if sender is Direction.S2C else s.dst[1])
+        elif not may_tell(head) or len(first) >= LOOKED_AT:
             pending.refused.add(s.src)
             if len(pending.refused) == 2:
                 self._decide(key, None)

@@ -123,7 +123,7 @@ def _protocol() -> dict[str, Any]:
         "headers": {"command": codec.encode(m.FetchConfiguration())[:4].decode(),
                     "response": codec.encode(m.ChannelResponse(0, 0))[:4].decode(),
                     "config": codec.encode(m.ConfigurationSettings(()))[:4].decode()},
-        "framing": {"words": [w.decode() for w in framing.HANDSHAKE_WORDS], "trailer": framing.TRAILER.decode(),
+        "framing": {"words": [w.decode() for w in handshake.HANDSHAKE_WORDS], "trailer": framing.TRAILER.decode(),
                     "set_config_prefix": framing.SET_CONFIG_PREFIX.decode(),
                     "set_config_trailer": framing.SET_CONFIG_TRAILER.decode(), "layout_data1": framing.LAYOUT_DATA1,
                     "text_frame_max": framing.TEXT_FRAME_MAX, "max_item": framing.DEFAULT_MAX_ITEM,
