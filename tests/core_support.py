@@ -47,10 +47,11 @@ class FakeClockMiddle:
     """One connection through a Controller with ``specs`` in force, both sides ready."""
 
     def __init__(self, *specs: str, intercept: str | None = None, hold_timeout: float = 60.0, seed: int = 0,
-                 redact: bool = True, ready: bool = True) -> None:
+                 redact: bool = True, ready: bool = True, checksum_rule: str = "dev-sum") -> None:
         self.now = T0
         self.reports: list[str] = []
-        self.controller = Controller(seed=seed, hold_timeout=hold_timeout, redact=redact, report=self.reports.append)
+        self.controller = Controller(seed=seed, hold_timeout=hold_timeout, checksum_rule=checksum_rule, redact=redact,
+                                     report=self.reports.append)
         self.controller.attach(lambda: self.now, lambda event: None)
         for spec in specs:
             self.controller.add_fault(spec)

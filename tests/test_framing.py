@@ -1,5 +1,8 @@
 """The framer's invariants: lossless, chunking-independent, total, bounded."""
 
+import re
+from pathlib import Path
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -15,6 +18,11 @@ from whiztap.analyzer.protocol.framing import (
 )
 from tests.spec_vectors import ALL_FRAMES, COMMANDS, HANDSHAKE_SERVER, RESPONSES
 from tests.streams import big_jpeg, TINY_JPEG, TINY_PNG, chunked, frame_all, stream_pieces
+
+
+REPO = Path(__file__).parent.parent
+# the framer's state about a password, private to framing.py (images.py is the framer's too)
+_PRIVATE = re.compile(r"\._(password_mode|in_password|password_begun|password_left)\b")
 
 
 def shape(items: list[Item]) -> list[tuple]:
@@ -119,8 +127,30 @@ def test_a_verdict_before_the_line_ends_leaves_the_rest_of_the_line_a_password()
     assert framer.feed(b"K", 1) == []
     assert framer.close_password(2) == [Item(P, b"K", 1, 2)]
     assert not framer.password_pending  # the proxy in the middle frames what follows
+    assert framer.in_password  # ... and the password rule masks the rest of the line
     assert shape(framer.feed(b"x9hunter\r\nrr1-24--0--0-ss1", 3)) == [
         (P, b"x9hunter", None), (E, b"\r\n", None), (C, b"rr1-24--0--0-ss1", None)]
+    assert not framer.in_password
+
+
+def test_what_the_framer_says_of_a_password_it_says_publicly():
+    """``password_pending`` (until the server's verdict) and ``in_password``
+    (until the line ends) are what the middle's lane and the password rule
+    read: nothing outside framing.py reads the framer's private state."""
+    framer = Framer()
+    assert (framer.password_pending, framer.in_password) == (False, False)
+    framer.expect_password()
+    assert (framer.password_pending, framer.in_password) == (True, True)
+    framer.feed(b"sec", 1)
+    assert (framer.password_pending, framer.in_password) == (True, True)
+    framer.feed(b"ret\r\n", 2)
+    assert (framer.password_pending, framer.in_password) == (False, False)
+    framer.expect_password()
+    framer.feed(b"rr1-24--0--0-ss1", 3)  # a line that begins with a frame header is no password
+    assert (framer.password_pending, framer.in_password) == (False, False)
+    readers = [path for root in ("analyzer", "sniffer", "tui") for path in (REPO / root).rglob("*.py")
+               if path.name != "framing.py" and _PRIVATE.search(path.read_text())]
+    assert readers == []
 
 
 def test_images_are_recognised_whole():

@@ -96,7 +96,7 @@ class Client:
         return client
 
     async def _login(self, password: bytes) -> None:
-        first = await self._handshake_message("sendchkpass")
+        first = await self._handshake_message(m.SendCheckPassword.title)
         if not isinstance(first, m.SendCheckPassword):
             raise HandshakeError(f"expected sendchkpass, got {first.title!r}")
         await self.send_raw(password)

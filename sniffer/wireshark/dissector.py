@@ -104,7 +104,7 @@ def _handshake() -> dict[str, Any]:
         "mode_told": {f"{state.value} {step.value}": mode.value for (state, step), mode in handshake.MODE_TOLD.items()},
         "expected": {state.value: text for state, text in handshake.EXPECTED_IN_STATE.items()},
         "step_words": {step.value: text for step, text in handshake.STEP_WORDS.items()},
-        "server_steps": {cls.title: step.value for cls, step in handshake.SERVER_STEPS.items()},
+        "server_steps": {word.decode(): step.value for word, step in handshake.SERVER_STEPS.items()},
     }
 
 
