@@ -22,7 +22,6 @@ import asyncio
 import contextlib
 import json
 import socket
-import subprocess
 from collections import deque
 from collections.abc import Callable
 
@@ -35,7 +34,8 @@ from whiztap.analyzer.mitm.lane import HIGH_WATER, INJECT_ROOM, Lane
 from whiztap.analyzer.mitm.spec import MAX_REPLACEMENT
 
 from tests.middle_drive import MS, S2C, TRANSPORT_HIGH_WATER, Drive
-from tests.record_support import CONTROL_TOKEN, LOCAL, WAIT, WHIZTAP, RecordProcess, post_status, running_record
+from tests.cli_support import Ran, run_cli
+from tests.record_support import CONTROL_TOKEN, LOCAL, RecordProcess, post_status, running_record
 from tests.test_flow_control import _ThreadedServer, rss_kib, watch_memory
 
 RSS_BOUND_KIB = 150 << 10  # the issue's bound for the proxy process (it starts at about 30 MB)
@@ -223,8 +223,9 @@ class Answers(_ThreadedServer):
     def serve(self, conn: socket.socket) -> None:
         while not self.stop.is_set():
             with contextlib.suppress(TimeoutError):
-                if conn.recv(64):
-                    break
+                if not conn.recv(64):
+                    return  # closed before it said anything: record trying the upstream at start
+                break
         while not self.stop.is_set():
             with contextlib.suppress(TimeoutError):
                 conn.send(self.DATA)
@@ -266,10 +267,8 @@ async def test_the_proxy_stays_under_150_MB_through_1500_injections_and_ctl_says
             await asyncio.sleep(0.2)
             statuses = await asyncio.to_thread(_inject_many, rec.proc.pid, control, 1500)
             high = max(await watch_memory(rec.proc.pid, 0.5, RSS_BOUND_KIB, SAMPLE_S), statuses.pop())
-            refused = await asyncio.to_thread(subprocess.run, [WHIZTAP, "ctl", "--control", control, "--control-token",
-                                                               CONTROL_TOKEN, "inject", "1",
-                                                               "s2c", INJECTED, "--force"],
-                                              capture_output=True, text=True, timeout=WAIT)
+            refused = await asyncio.to_thread(run_cli, "ctl", "--control", control, "--control-token", CONTROL_TOKEN,
+                                              "inject", "1", "s2c", INJECTED, "--force")
             print(f"highest RSS {high >> 10} MiB; {statuses.count(200)} injections taken, "
                   f"{statuses.count(429)} refused")
             writer.transport.abort()
@@ -305,7 +304,7 @@ def _inject_many(pid: int, control: str, count: int) -> list[int]:
 # -- past the bounds: one line ------------------------------------------------------------------------
 
 
-def _refused(result: subprocess.CompletedProcess, *words: str) -> None:
+def _refused(result: Ran, *words: str) -> None:
     assert result.returncode == 2, (result.returncode, result.stderr)
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("whiztap: "), result.stderr
     for word in words:
@@ -313,12 +312,11 @@ def _refused(result: subprocess.CompletedProcess, *words: str) -> None:
 
 
 def test_record_refuses_a_replacement_past_its_bound_and_one_dup_too_many_in_one_line(tmp_path):
-    base = [WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:9", "-o", str(tmp_path / "r.mcap")]
+    base = ["record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:9", "-o", tmp_path / "r.mcap"]
     too_long = f'replace:"{"9" * (MAX_REPLACEMENT + 1)}" dir:s2c'
-    _refused(subprocess.run([*base, "--fault", too_long], capture_output=True, text=True, timeout=WAIT),
-             "replacement is at most")
+    _refused(run_cli(*base, "--fault", too_long), "replacement is at most")
     dups = [arg for _ in range(MAX_DUP_FAULTS + 1) for arg in ("--fault", "dup dir:s2c")]
-    _refused(subprocess.run([*base, *dups], capture_output=True, text=True, timeout=WAIT), "dup faults")
+    _refused(run_cli(*base, *dups), "dup faults")
     assert not (tmp_path / "r.mcap").exists()
 
 
