@@ -36,12 +36,20 @@ GAP_DETAIL = "bytes missing from the capture; the session model restarts after t
 
 
 class Data(NamedTuple):
-    """One read of ``data`` from one direction of connection ``conn``, at ``t_ns``."""
+    """One read of ``data`` from one direction of connection ``conn``, at ``t_ns``.
+
+    A read scanned from a recording also says where it was: ``offset``, its
+    first byte's place in its direction's stream (a jump in it is bytes
+    missing), and ``masked``, whether the recorder replaced a password in it
+    by mask bytes.  Reads from the wire leave them at -1 and False: the
+    recorder counts offsets and masks passwords itself."""
 
     conn: int
     direction: Direction
     t_ns: int
     data: bytes
+    offset: int = -1
+    masked: bool = False
 
 
 class Delivered(NamedTuple):

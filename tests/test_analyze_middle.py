@@ -495,7 +495,7 @@ def test_without_interventions_the_two_views_judge_as_the_one_session(ops):
         one.receive(event)
         two.receive(event)
         if type(event) is Data:
-            two.receive(Delivered(*event))
+            two.receive(Delivered(*event[:4]))
     single, middle = build(one.finish()), build(two.finish())
     section = middle.pop("interventions", {"count": 0, "effects": []})
     assert (section["count"], section["effects"]) == (0, [])

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import json
 import os
 import shutil
 import signal
@@ -261,3 +262,52 @@ async def test_a_live_capture_without_a_port_finds_the_robot(tmp_path):
     # at the time (another test run on this machine) is recorded too, rightly
     [opened] = [e for e in _events(out, "opened") if e[6] == f"127.0.0.1:{port}"]
     assert b"".join(r[2] for r in _reads(out)[(opened[0], "c2s")]) == b"rr1-24--0--0-ss1rr1-15--0--0-ss1"
+
+
+def test_export_and_the_shared_reader_agree_on_offsets_and_masks_of_a_split_masked_recording(tmp_path):
+    """The one reader of recording sets gives each read the stream offset and
+    masked flag the file says (read here with the mcap package's own reader),
+    across parts and a missing one; the export's sequence numbers and
+    password comments are those."""
+    from mcap.reader import make_reader
+
+    from whiztap.analyzer.recording.sets import scan_set
+
+    file = RecordingFile(str(tmp_path / "s.mcap"), {"session_id": "s", "split_duration": "0.01"},
+                         split_duration_ns=10 * MS)
+    rec = Recorder(file, keep_secrets=False)
+    rec.start(T0)
+    t = T0 + MS
+    for event in [Opened(1, t, "192.0.2.7:40001", "192.0.2.1:5000"), UpstreamConnected(1, t),
+                  Data(1, S, t, b"sendchkpass"), Data(1, C, t, b"hunter2\r\n"), Data(1, S, t, b"readytogo")]:
+        rec.receive(event)
+    for n in range(3):  # each part has a request, its answer and more; the middle part goes missing below
+        t += 20 * MS
+        rec.tick(t)
+        rec.receive(Data(1, C, t, b"rr1-%d--0--0-ss1" % n))
+        rec.receive(Data(1, S, t + MS, b"cr1-%d--43--0-ss1" % n))
+    rec.receive(Closed(1, t + 2 * MS, "client", "closed"))
+    files = rec.stop(t + 3 * MS).files
+    assert len(files) == 4
+    os.unlink(files[2])
+    recording = find_one([files[0]])
+    assert recording.missing == (3,)
+
+    expected = []
+    for part in recording.parts:
+        with open(part, "rb") as f:
+            for _, channel, message in make_reader(f).iter_messages(topics=[TOPIC_READS]):
+                assert channel.topic == TOPIC_READS
+                m = json.loads(message.data)
+                expected.append((m["conn"], Direction(m["dir"]), m["offset"], bool(m.get("redacted"))))
+    got = [(e.conn, e.direction, e.offset, e.masked) for e in scan_set(recording) if type(e) is Data]
+    assert got == expected
+    assert any(masked for *_, masked in got)  # the password, masked
+    c2s = [offset for _, d, offset, _ in got if d is C]
+    assert any(b - a > 15 for a, b in zip(c2s, c2s[1:]))  # the missing part: a jump
+
+    packets = [p for p in rdpcap(str(_export(Path(files[0]), tmp_path / "s.pcapng"))) if TCP in p]
+    syn = {("192.0.2.7" == p[IP].src): p[TCP].seq for p in packets if p[TCP].flags & 0x02}
+    segments = [(C if p[IP].src == "192.0.2.7" else S, p[TCP].seq - syn[p[IP].src == "192.0.2.7"] - 1,
+                 b"password, masked" in (p.comment or b"")) for p in packets if len(p[TCP].payload)]
+    assert segments == [(d, offset, masked) for _, d, offset, masked in got]

@@ -29,7 +29,7 @@ from whiztap.analyzer.protocol.codec import (
     MAX_SERVO_DATA,
 )
 from whiztap.analyzer.protocol.describe import fields, meaning, response_meaning
-from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.items import ItemKind
 from whiztap.analyzer.protocol.messages import CameraImage
 from whiztap.analyzer.protocol.observations import Observation
 from whiztap.analyzer.protocol.rules import RULES, Violation

@@ -20,7 +20,7 @@ from textual.suggester import Suggester
 from textual.widgets import DataTable, Input, Static
 
 from whiztap.analyzer.mitm.spec import ACTIONS, ACTIONS_WITH_ARGUMENT, OPTIONS, FaultSpecError, parse_fault
-from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.items import ItemKind
 from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.mitm.controller import ControlError
 from whiztap.tui.controls import Controls

@@ -47,7 +47,7 @@ from collections.abc import Callable
 from itertools import count
 
 from whiztap.analyzer.protocol.frame_text import frame_alone
-from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.items import ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Event
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.traffic import (

@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from whiztap.analyzer.analysis.analyzer import Analyzer, Series
-from whiztap.analyzer.analysis.verdict import Judge, Verdict, verdict_of
+from whiztap.analyzer.analysis.verdict import Judge, Verdict, both_latencies, verdict_of, violations_by_connection
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.stats import LatencyStats
@@ -125,11 +125,7 @@ class TrafficModel:
     def _judged_violations(self) -> dict[int, int]:
         """Violations by connection as ``analyze`` counts them; in the middle,
         an open connection's as if its traffic ended now."""
-        judged = self.judge.analyzer if self.judge is not None else self.analyzer
-        counts = {conn: sum(s.violations.values()) for conn, s in judged.summaries.items()}
-        for conn, settled in judged.open_judgements():
-            counts[conn] = counts.get(conn, 0) + len(settled.verdicts) + sum(settled.more.values())
-        return counts
+        return violations_by_connection(self.judge.analyzer if self.judge is not None else self.analyzer)
 
     def verdict(self) -> Verdict:
         """What ``analyze`` would say of the traffic so far (open connections
@@ -157,16 +153,12 @@ class TrafficModel:
         """The server's and the client's latency by request title, as
         ``analyze`` reports them; the client's only in the middle (else empty:
         they are the server's)."""
-        merged: dict[str, LatencyStats] = {}
         with self.lock:
             if self.judge is not None:
                 server, client = self.judge.latencies()
                 return dict(sorted(server.items())), dict(sorted(client.items()))
-            sources = [self.analyzer.result.latencies] + [s.latencies for s in self.analyzer.sessions.values()]
-            for source in sources:
-                for title, stats in source.items():
-                    merged.setdefault(title, LatencyStats()).merge(stats)
-        return dict(sorted(merged.items())), {}
+            server, _ = both_latencies(self.analyzer)  # the client's are the server's here
+        return dict(sorted(server.items())), {}
 
     def channel_values(self) -> dict[tuple[str, int], list[tuple[int, float]]]:
         """("sensor" | "servo", channel) -> (t_ns, value) points, down-sampled."""

@@ -21,11 +21,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
-from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
-from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, made_in_the_middle
-from whiztap.analyzer.recording.sets import GrowingFile, PartError, RecordingSet, Stopped, next_part, scan_set, wait_for_part
+from whiztap.analyzer.recording.scan import made_in_the_middle
+from whiztap.analyzer.recording.sets import Follower, PartError, RecordingSet, Stopped, scan_set
 from whiztap.analyzer.recording.redaction import Redactor
-from whiztap.analyzer.traffic import Closed, Continued, Data, RecordingStopped, TrafficEvent
+from whiztap.analyzer.traffic import Closed, Data, TrafficEvent
 from whiztap.tui.model import TrafficModel
 
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
@@ -78,7 +77,7 @@ class FileSource:
             model.in_the_middle(self.redact_passwords)
         receive = model.receive
         try:
-            for event in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):  # noqa: SIM115
+            for event in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):
                 receive(event)
         except Stopped:
             return
@@ -119,7 +118,8 @@ class _Counting:
 class FollowSource:
     """A ``.mcap.part`` that a separate ``whiztap record`` is writing, and, when
     that recording is split (``--split-size``/``--split-duration``), each part
-    after it as the recorder starts it."""
+    after it as the recorder starts it: the analyzer's ``Follower`` reads them,
+    the header says which part it is at."""
 
     live = True
     progress = None
@@ -127,57 +127,36 @@ class FollowSource:
 
     def __init__(self, path: str) -> None:
         self.path = path
-        self.title = f"following {path}"
         self.note = ""
+        self._follower: Follower | None = None
+        self._finished = ""
+
+    @property
+    def title(self) -> str:
+        follower = self._follower
+        if self._finished:
+            return self._finished
+        if follower is not None and follower.waiting_for is not None:
+            return f"waiting for {follower.waiting_for}.part"
+        return f"following {self.path if follower is None else follower.path}"
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
-        path = self.path
-        moved_on = False
-        while True:
-            self.title = f"following {path}"
-            try:
-                with open(path, "rb") as f:
-                    scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
-                    if model.middle is None and made_in_the_middle(path):
-                        model.in_the_middle(self.redact_passwords)
-                    stopped = _feed_scan(scan, model, skip_continued=moved_on)
-            except Stopped:
-                return
-            except RecordingError as e:
-                self.note = f"{path}: {e}"
-                return
-            except OSError as e:
-                self.note = f"{path}: cannot read ({e.strerror})"
-                return
-            following = None if stopped else next_part(path, scan.metadata.get(METADATA_NAME, {}))
-            if following is None:
-                break
-            self.title = f"waiting for {following}.part"
-            path = wait_for_part(following, stop)
-            if path is None:
-                return
-            moved_on = True
-        self.title = f"followed {path.removesuffix('.part')}: the recorder finished it"
+        def on_part(path: str) -> None:
+            if model.middle is None and made_in_the_middle(path):
+                model.in_the_middle(self.redact_passwords)
+
+        follower = self._follower = Follower(self.path, stop, on_part)
+        receive = model.receive
+        try:
+            for event in follower:
+                receive(event)
+        except Stopped:
+            return
+        except PartError as e:
+            self.note = str(e)
+            return
+        self._finished = f"followed {follower.path.removesuffix('.part')}: the recorder finished it"
         model.finish()
-
-
-def _feed_scan(scan: RecordingScan, model: TrafficModel, skip_continued: bool = False) -> bool:
-    """Feed one file of a recording to the model; whether the recording stopped in it.
-
-    A part that ends without the recording's stop event was closed by a
-    rotation.  The next one starts by saying which connections continue from
-    it: news to someone who opened that part alone, not to the follower, whose
-    model already has them."""
-    receive = model.receive
-    stopped = False
-    for event in scan.traffic():
-        kind = type(event)
-        if kind is RecordingStopped:
-            stopped = True
-        elif kind is Continued and skip_continued:
-            continue
-        receive(event)
-    return stopped
 
 
 # -- live -----------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypedDict, Unpack
 
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.rules import RULES, Severity
@@ -80,6 +80,16 @@ def counts_words(by_severity: dict[str, int], effects: int = 0) -> str:
     return text
 
 
+class VerdictOptions(TypedDict, total=False):
+    """The options of ``verdict_of`` that callers pass along as they got them."""
+
+    threshold: Severity
+    ignore: frozenset[str]
+    fail_on_interventions: bool
+    nothing_judged: str | None
+    allow_empty: bool
+
+
 def verdict_of(rule_sides: Counter, effect_counts: Counter, connections: int, *,
                threshold: Severity = Severity.ERROR, ignore: frozenset[str] = frozenset(),
                fail_on_interventions: bool = False, nothing_judged: str | None = None,
@@ -110,10 +120,9 @@ def verdict_of(rule_sides: Counter, effect_counts: Counter, connections: int, *,
                    effects, connections, failing, nothing_judged)
 
 
-def analysis_verdict(analysis: Analysis, **options: object) -> Verdict:
+def analysis_verdict(analysis: Analysis, **options: Unpack[VerdictOptions]) -> Verdict:
     """``verdict_of`` an analysis (``options``: as ``verdict_of`` takes them)."""
-    return verdict_of(analysis.side_counts, analysis.effect_counts, len(analysis.connections),
-                      **options)  # type: ignore[arg-type]
+    return verdict_of(analysis.side_counts, analysis.effect_counts, len(analysis.connections), **options)
 
 
 class Judge:
@@ -133,7 +142,8 @@ class Judge:
         from whiztap.analyzer.protocol.session import Limits
 
         self.analyzer = Analyzer(name, checksum_rule, limits or Limits(), every_event=False, middle=middle)
-        self._options = {"threshold": threshold, "ignore": ignore, "fail_on_interventions": fail_on_interventions}
+        self._options: VerdictOptions = {"threshold": threshold, "ignore": ignore,
+                                         "fail_on_interventions": fail_on_interventions}
         self._finished: Verdict | None = None
 
     def receive(self, event: TrafficEvent) -> None:
@@ -148,7 +158,7 @@ class Judge:
         effects = Counter(analyzer.result.effect_counts)
         for _conn, settled in analyzer.open_judgements():
             _add(settled, rule_sides, effects)
-        return verdict_of(rule_sides, effects, len(analyzer.summaries), **self._options)  # type: ignore[arg-type]
+        return verdict_of(rule_sides, effects, len(analyzer.summaries), **self._options)
 
     def finish(self) -> Verdict:
         """The traffic is over: what ``analyze`` says of it, from now on."""
@@ -181,6 +191,17 @@ def both_latencies(analyzer: Analyzer) -> tuple[dict[str, LatencyStats], dict[st
         _merge(server, settled.latencies or {})
         _merge(client, settled.client_latencies or {})
     return server, client
+
+
+def violations_by_connection(analyzer: Analyzer) -> dict[int, int]:
+    """Each connection's violations as ``analyze`` counts them so far: what
+    its ended sessions found and, in the middle, an open connection's as if
+    its traffic ended now (``Analyzer.open_judgements``); the counts a screen
+    lists beside each connection."""
+    counts = {conn: sum(summary.violations.values()) for conn, summary in analyzer.summaries.items()}
+    for conn, settled in analyzer.open_judgements():
+        counts[conn] = counts.get(conn, 0) + len(settled.verdicts) + sum(settled.more.values())
+    return counts
 
 
 def _merge(into: dict[str, LatencyStats], latencies: dict[str, LatencyStats]) -> None:

@@ -135,17 +135,14 @@ def _followed(path: str) -> Iterator[Any]:
     """The traffic of a recording being written, until it is finished or Ctrl-C."""
     import threading
 
-    from whiztap.analyzer.recording.scan import RecordingError
-    from whiztap.analyzer.recording.sets import Stopped, follow
+    from whiztap.analyzer.recording.sets import Follower, PartError, Stopped
 
     try:
-        yield from follow(path, threading.Event())
+        yield from Follower(path, threading.Event())
     except Stopped:
         return
-    except RecordingError as e:
-        fail(f"{path}: {e}")
-    except OSError as e:
-        fail(f"{path}: cannot read ({e.strerror})")
+    except PartError as e:  # its message names the part it is about
+        fail(str(e))
 
 
 class _CatPrinter:

@@ -375,11 +375,13 @@ class RecordingScan:
                 if topic == TOPIC_READS:
                     m = match(buf, start, stop)
                     if m is not None and m.end() == stop:
-                        conn, direction, t_ns, _offset, _spans, data = m.groups()
-                        yield Data(int(conn), directions[direction], int(t_ns), b64(data))
+                        conn, direction, t_ns, offset, spans, data = m.groups()
+                        yield Data(int(conn), directions[direction], int(t_ns), b64(data), int(offset),
+                                   spans is not None and spans != b"[]")
                     else:
                         d = self.decode(topic, buf, start, stop)
-                        yield Data(d["conn"], directions[d["dir"].encode()], d["t_ns"], b64(d["data"]))
+                        yield Data(d["conn"], directions[d["dir"].encode()], d["t_ns"], b64(d["data"]), d["offset"],
+                                   bool(d.get("redacted")))
                 elif topic == TOPIC_EVENTS:
                     try:
                         yield from_json(self.decode(topic, buf, start, stop))

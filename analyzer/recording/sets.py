@@ -11,12 +11,13 @@ recordings in one folder stay two.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import glob
 import os
 import re
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -76,9 +77,10 @@ class RecordingSet:
         if not self.missing:
             return None
         listed = ", ".join(str(n) for n in self.missing)
-        return (f"{self.parts[0]}: {'part' if len(self.missing) == 1 else 'parts'} {listed} of this split recording "
-                f"{'is' if len(self.missing) == 1 else 'are'} missing; connections "
-                f"that crossed {'it' if len(self.missing) == 1 else 'them'} are judged as if the missing bytes were a capture gap")
+        one = len(self.missing) == 1
+        return (f"{self.parts[0]}: {'part' if one else 'parts'} {listed} of this split recording "
+                f"{'is' if one else 'are'} missing; connections that crossed {'it' if one else 'them'} "
+                "are judged as if the missing bytes were a capture gap")
 
 
 def being_written(path: Path | str) -> bool:
@@ -223,11 +225,13 @@ def _open_binary(path: Path | RemotePart) -> IO[bytes]:
 
 
 def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[TrafficEvent]:  # noqa: ANN001
-    """The traffic of every part, as one stream of typed events: a connection
-    continued from the previous part is the same connection (its ``Continued``
-    event is dropped); after a missing part, a ``Gap`` for each direction of each
-    connection that crossed it comes first.  Raises ``PartError`` (a RecordingError naming
-    the file) for a part that cannot be read or is truncated."""
+    """The traffic of every part, as one stream of typed events, each read with
+    its stream offset and masked flag: a connection continued from the
+    previous part is the same connection (its ``Continued`` event is dropped);
+    after a missing part, a ``Gap`` for each direction of each connection that
+    crossed it comes first (the next read's offset says how much is missing).
+    Raises ``PartError`` (a RecordingError naming the file) for a part that
+    cannot be read or is truncated."""
     seen: set[int] = set()
     expected = None
     for path in recording.parts:
@@ -240,12 +244,8 @@ def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Traffi
             raise PartError(path, f"cannot read ({e.strerror})") from None
         with f:
             scan = RecordingScan(f, STREAM_TOPICS)
-            try:
+            with _part_errors(path):
                 yield from _part_records(scan, seen, hole)
-            except RecordingError as e:  # the reader checks every length and every field it yields
-                raise PartError(path, str(e)) from None
-            except (KeyError, ValueError, TypeError, IndexError) as e:  # a nested field the reader does not check
-                raise PartError(path, f"the file is damaged ({str(e) or type(e).__name__})") from None
             if scan.truncated:
                 raise PartError(path, "the file is truncated (no footer)")
             topics = sorted(set(scan.channels.values()))
@@ -253,6 +253,17 @@ def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[Traffi
                 found = ", ".join(topics[:5]) + (", ..." if len(topics) > 5 else "") if topics else "none"
                 raise PartError(path, f"not a whiztap recording: an MCAP file without /tcp/reads "
                                       f"(its topics: {found})")
+
+
+@contextlib.contextmanager
+def _part_errors(path: Path | RemotePart) -> Iterator[None]:
+    """What reading a part raises, as a ``PartError`` naming it."""
+    try:
+        yield
+    except RecordingError as e:  # the reader checks every length and every field it yields
+        raise PartError(path, str(e)) from None
+    except (KeyError, ValueError, TypeError, IndexError) as e:  # a nested field the reader does not check
+        raise PartError(path, f"the file is damaged ({str(e) or type(e).__name__})") from None
 
 
 def _part_records(scan: RecordingScan, seen: set[int], hole: bool) -> Iterator[TrafficEvent]:
@@ -300,7 +311,7 @@ class GrowingFile:
         return b"".join(chunks)
 
 
-def next_part(path: str, metadata: dict[str, str]) -> str | None:
+def _next_part(path: str, metadata: dict[str, str]) -> str | None:
     """The final name of the part after ``path`` in a split recording, else None."""
     part = _part_number(metadata)
     if part is None:
@@ -313,7 +324,7 @@ def next_part(path: str, metadata: dict[str, str]) -> str | None:
     return part_path(stem.removesuffix(suffix) + ext, part + 1)
 
 
-def wait_for_part(final: str, stop: threading.Event) -> str | None:
+def _wait_for_part(final: str, stop: threading.Event) -> str | None:
     """The next part's file once the recorder has created it (its ``.part``, or
     the finished file if it is already done); None when told to stop."""
     while True:
@@ -324,23 +335,51 @@ def wait_for_part(final: str, stop: threading.Event) -> str | None:
             return None
 
 
-def follow(path: str, stop: threading.Event) -> Iterator[TrafficEvent]:
-    """The traffic of a recording as a running ``whiztap record`` writes
-    them (its ``.part``), and of each part after it, until the recorder stops it
-    (or ``stop`` is set: then ``Stopped``)."""
-    seen: set[int] = set()
-    while True:
-        with open(path, "rb") as f:
-            scan = RecordingScan(GrowingFile(f, stop), STREAM_TOPICS, growing=True)
-            stopped = False
+class Follower:
+    """The traffic of a recording as a running ``whiztap record`` writes it (its
+    ``.part``), and of each part after it, until the recorder stops it, as one
+    stream of events (like ``scan_set``'s).  Iterating raises ``Stopped`` once
+    ``stop`` is set, and ``PartError`` for a part that cannot be read.
+
+    What a screen says while it follows is here: ``path`` is the part being
+    read, ``waiting_for`` the final name of the next one while the recorder
+    has not begun it; ``on_part(path)`` is called as each part is opened,
+    before its first event (the TUI reads its metadata then).
+    """
+
+    def __init__(self, path: str, stop: threading.Event, on_part: Callable[[str], None] | None = None) -> None:
+        self.path = path
+        self.waiting_for: str | None = None
+        self.stop = stop
+        self.on_part = on_part
+
+    def __iter__(self) -> Iterator[TrafficEvent]:
+        seen: set[int] = set()
+        while True:
+            stopped, metadata = yield from self._part(seen)
+            following = None if stopped else _next_part(self.path, metadata)
+            if following is None:
+                return
+            self.waiting_for = following
+            found = _wait_for_part(following, self.stop)
+            if found is None:
+                raise Stopped
+            self.path, self.waiting_for = found, None
+
+    def _part(self, seen: set[int]) -> Generator[TrafficEvent, None, tuple[bool, dict[str, str]]]:
+        """One part's events; whether the recording stopped in it, and its metadata."""
+        path = Path(self.path)
+        if self.on_part is not None:
+            self.on_part(self.path)
+        stopped = False
+        try:
+            f = open(path, "rb")
+        except OSError as e:
+            raise PartError(path, f"cannot read ({e.strerror})") from None
+        with f, _part_errors(path):
+            scan = RecordingScan(GrowingFile(f, self.stop), STREAM_TOPICS, growing=True)
             for event in _part_records(scan, seen, hole=False):
                 if type(event) is RecordingStopped:
                     stopped = True
                 yield event
-        following = None if stopped else next_part(path, scan.metadata.get(METADATA_NAME, {}))
-        if following is None:
-            return
-        found = wait_for_part(following, stop)
-        if found is None:
-            raise Stopped
-        path = found
+        return stopped, scan.metadata.get(METADATA_NAME, {})

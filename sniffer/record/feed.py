@@ -189,8 +189,8 @@ class WriterProcess:
     def receive(self, event: TrafficEvent) -> None:
         """One event into the batch: a read as its bytes (the hot path, once per
         read), any other event as its message."""
-        if type(event) is Data:
-            conn, direction, t_ns, data = event
+        if isinstance(event, Data):
+            conn, direction, t_ns, data, _offset, _masked = event
             if conn in self._unrecorded:
                 self._leave_out(conn, direction, t_ns, len(data))
                 return

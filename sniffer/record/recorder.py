@@ -178,8 +178,8 @@ class Recorder:
         """One traffic event of a connection (the recording's own start and
         stop are ``start()`` and ``stop()``).  Hot loop for reads: each one
         costs a little bookkeeping here before it is written."""
-        if type(event) is Data:
-            conn, direction, t_ns, data = event
+        if isinstance(event, Data):
+            conn, direction, t_ns, data, _offset, _masked = event
             if t_ns > self._t:
                 self._t = t_ns
             t = self._t
@@ -333,7 +333,7 @@ class Recorder:
 
     def _write_read(self, c: _Conn, read: Data, offset: int, spans: list[tuple[int, int]] | tuple) -> None:
         """One read into /tcp/reads (as it may be shown), and what the session makes of it."""
-        conn, direction, t, data = read
+        conn, direction, t, data, _offset, _masked = read
         self._at(t)
         self.file.write(TOPIC_READS, t, encode_read(conn, DIR_TEXT[direction], t, offset, data, spans))
         c.written[direction] = offset + len(data)  # after: a part that begins before the read does not count it

@@ -18,33 +18,39 @@ stay as the recording has them: masked, unless it was made with
 
 from __future__ import annotations
 
-import base64
 import itertools
 import shlex
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import IO, NamedTuple
+from typing import IO
 
 from whiztap.analyzer import __version__
 from whiztap.analyzer.protocol.observations import Direction
-from whiztap.analyzer.recording.format import METADATA_NAME, TOPIC_EVENTS, TOPIC_READS
-from whiztap.analyzer.recording.remote import open_part
-from whiztap.analyzer.recording.scan import RecordingError, RecordingScan
-from whiztap.analyzer.recording.sets import RecordingSet
+from whiztap.analyzer.recording.sets import PartError, RecordingSet, scan_set
 from whiztap.analyzer.traffic import (
     Closed,
-    ConnectionEvent,
     Continued,
+    Data,
     Gap,
     HalfClosed,
     Opened,
-    TrafficError,
+    TrafficEvent,
     UpstreamConnected,
     UpstreamFailed,
-    from_json,
 )
 from whiztap.sniffer.nettext import parse_address
-from whiztap.sniffer.wireshark.pcapng import ACK, FIN, MAX_PAYLOAD, PSH, RST, SYN, Endpoint, PcapNgWriter, endpoint, tcp_packet
+from whiztap.sniffer.wireshark.pcapng import (
+    ACK,
+    FIN,
+    MAX_PAYLOAD,
+    PSH,
+    RST,
+    SYN,
+    Endpoint,
+    PcapNgWriter,
+    endpoint,
+    tcp_packet,
+)
 
 C2S, S2C = Direction.C2S, Direction.S2C
 FALLBACK_SERVER = {4: endpoint("10.0.0.1", 5000), 6: endpoint("fd00::1", 5000)}
@@ -60,46 +66,18 @@ class ExportError(Exception):
     """A recording could not be exported; one line for the user."""
 
 
-class Read(NamedTuple):
-    """One ``/tcp/reads`` message with what the traffic events leave out: its
-    stream offset (gaps are jumps in it) and whether a password was masked."""
-
-    conn: int
-    direction: Direction
-    t_ns: int
-    offset: int
-    data: bytes
-    masked: bool
-
-
-def recorded_streams(recording: RecordingSet) -> Iterator[Read | ConnectionEvent]:
-    """The reads and connection events of every part of a recording, in file
-    (= arrival) order; a connection continued from an earlier part is the same
-    connection.  Raises ``ExportError``."""
-    seen: set[int] = set()
-    for path in recording.parts:
-        try:
-            with open_part(path) as f:  # a local file, or a URL's (docs/fleet.md)
-                scan = RecordingScan(f, (TOPIC_READS, TOPIC_EVENTS))
-                for topic, _t, d in scan.messages():
-                    if topic == TOPIC_READS:
-                        yield Read(d["conn"], Direction(d["dir"]), d["t_ns"], d["offset"],
-                                   base64.b64decode(d["data"]), bool(d.get("redacted")))
-                        continue
-                    event = from_json(d)
-                    if type(event) is Continued and event.conn in seen:
-                        continue
-                    seen.add(event.conn)
-                    yield event
-                if scan.truncated:
-                    raise ExportError(f"{path}: the file is truncated (no footer); "
-                                      f"first make a complete copy: whiztap recover {shlex.quote(str(path))}")
-                if METADATA_NAME not in scan.metadata and not scan.channels:
-                    raise ExportError(f"{path}: not a whiztap recording")
-        except OSError as e:
-            raise ExportError(f"{path}: cannot read ({e.strerror})") from None
-        except (RecordingError, TrafficError, ValueError) as e:
-            raise ExportError(f"{path}: {e}") from None
+def recorded_streams(recording: RecordingSet) -> Iterator[TrafficEvent]:
+    """The traffic of every part of a recording, through the one reader of
+    recording sets (``scan_set``), its reads with their stream offsets and
+    masked flags.  Raises ``ExportError``."""
+    try:
+        yield from scan_set(recording)
+    except PartError as e:
+        if e.truncated:
+            raise ExportError(f"{e}; first make a complete copy: whiztap recover {shlex.quote(str(e.path))}") from None
+        raise ExportError(str(e)) from None
+    except OSError as e:  # a URL's connection lost in the middle
+        raise ExportError(f"{recording}: cannot read ({e.strerror or e})") from None
 
 
 def _endpoint(text: str) -> Endpoint | None:
@@ -154,9 +132,12 @@ class TcpExport:
         self._conns: dict[int, _Conn] = {}
         self._ip_ids = itertools.count(1)
 
-    def receive(self, item: Read | ConnectionEvent) -> None:
+    def receive(self, item: TrafficEvent) -> None:
+        """One event of the recording as packets; what each side received
+        (``Delivered``) and the proxy's changes are not part of a TCP
+        conversation's one stream per direction, and are left out."""
         kind = type(item)
-        if kind is Read:
+        if kind is Data:
             self._read(item)  # type: ignore[arg-type]
         elif kind is Opened or kind is Continued:
             self._open(item)  # type: ignore[arg-type]
@@ -200,7 +181,7 @@ class TcpExport:
         self._send(conn, S2C, t_ns, SYN | ACK)
         self._send(conn, C2S, t_ns, ACK)
 
-    def _read(self, read: Read) -> None:
+    def _read(self, read: Data) -> None:
         conn = self._conn(read.conn)
         self._handshake(conn, read.t_ns)  # bytes the client sent before the server answered
         direction = read.direction
