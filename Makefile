@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-deps bench bench-peers samples clean
+.PHONY: demo test check test-deps bench bench-peers samples clean
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
@@ -21,8 +21,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/whiztap demo --force
 
+# Every test, on every core (pytest-xdist; --dist loadgroup keeps the tests of one
+# xdist_group in one process), each line of dots counting the tests run; the
+# slowest are listed at the end.
 test: $(STAMP) test-deps
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n auto --dist loadgroup --durations=15
+
+# The fast subset to run while you work: every test not marked slow (processes
+# under load, Dask, tshark, soaks, memory bounds), in under a minute.
+check: $(STAMP)
+	$(BIN)/pytest -q -n auto --dist loadgroup -m "not slow"
 
 # Debian and npm packages some tests use (tcpdump, socat, tshark, @mcap/core); idempotent.
 test-deps:

@@ -8,8 +8,8 @@ milliseconds where starting the interpreter and importing the command costs
 about a second, so it is the way wherever a process of its own is not the
 point.
 
-``run_process`` and ``start_process`` run the installed entry point in a
-process of its own, for the tests where that is the point: a signal (Ctrl-C,
+``run_process``, ``run_process_async`` and ``start_process`` run the
+installed entry point in a process of its own, for the tests where that is the point: a signal (Ctrl-C,
 SIGTERM, SIGKILL), the process's own memory or exit, what the entry point
 imports, a recorder running beside the test's own event loop.  Both return or
 wrap the same things as ``run_cli``, so a test reads the same either way.
@@ -96,7 +96,18 @@ def run_process(*args: object, stdin: str | None = None, env: Mapping[str, str] 
     return Ran(done.returncode, done.stdout, done.stderr)
 
 
-async def start_process(*args: object, **kwargs: Any) -> asyncio.subprocess.Process:  # noqa: ANN401 - create_subprocess_exec's options
+async def run_process_async(*args: object, stdin: bytes | None = None,
+                            env: Mapping[str, str] | None = None) -> Ran:
+    """``run_process`` for a test whose event loop serves what the command
+    talks to (a simulator, a proxy): awaited, so the loop goes on meanwhile."""
+    proc = await start_process(*args, env=env,
+                               stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL)
+    out, err = await asyncio.wait_for(proc.communicate(stdin), TIMEOUT)
+    assert proc.returncode is not None
+    return Ran(proc.returncode, out.decode(errors="replace"), err.decode(errors="replace"))
+
+
+async def start_process(*args: object, **kwargs: Any) -> asyncio.subprocess.Process:
     """The installed ``whiztap ARGS`` started in a process of its own, its
     stdout and stderr piped (stdin from /dev/null) unless ``kwargs`` say
     otherwise; the test waits for it, signals it or reads its lines."""

@@ -12,7 +12,6 @@ import os
 import re
 import signal
 import socket
-import sys
 from collections import defaultdict
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,6 +27,8 @@ from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, TrafficEvent
 from whiztap.sniffer.record.record_run import Recording, RecordSettings
 from whiztap.sniffer.sim.tcp_server import TcpServer
+
+from tests.cli_support import start_process
 
 LOCAL = "127.0.0.1"
 WAIT = 20.0  # generous bound for anything a test waits on; never a timing assertion
@@ -126,7 +127,6 @@ def op_event(op: str, conn: int, d: str, t: int, payload: bytes | int) -> Traffi
 
 # -- the command, as a user runs it --------------------------------------------------------------
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 _LISTENING = re.compile(rb"recording 127\.0\.0\.1:(\d+) -> ")
 
 
@@ -156,10 +156,8 @@ class RecordProcess:
     @classmethod
     async def start(cls, upstream: int, output: Path, *args: str, preexec_fn=None,
                     new_session: bool = False) -> RecordProcess:  # noqa: ANN001
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{upstream}",
-            "-o", str(output), *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
-            preexec_fn=preexec_fn, start_new_session=new_session)
+        proc = await start_process("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{upstream}",
+                                   "-o", output, *args, preexec_fn=preexec_fn, start_new_session=new_session)
         rec = cls(proc)
         first = await asyncio.wait_for(proc.stdout.readline(), WAIT)  # printed even with -q
         rec.first = first.decode(errors="replace")  # where it listens, and its Foxglove and control addresses

@@ -9,7 +9,6 @@ and one against another seed differs exactly in the sensor readings.
 from __future__ import annotations
 
 import asyncio
-import sys
 from pathlib import Path
 
 from whiztap.sniffer.sim.client import Client
@@ -19,7 +18,6 @@ from tests.record_support import LOCAL, WAIT, recording
 
 PASSWORD = "replay-pw"
 FROZEN_NS = 5_000_000_000
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 SENSORS = (12, 13, 14, 15, 16)
 
 
@@ -64,10 +62,3 @@ async def record(path: Path, seed: int = 1, session=client_session) -> list:  # 
     return got
 
 
-async def whiztap(*args: str, env: dict | None = None, stdin: bytes | None = None) -> tuple[int, str, str]:
-    """Run a whiztap command to completion: (exit status, stdout, stderr)."""
-    proc = await asyncio.create_subprocess_exec(
-        WHIZTAP, *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
-        stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL, env=env)
-    out, err = await asyncio.wait_for(proc.communicate(stdin), WAIT)
-    return proc.returncode, out.decode(), err.decode()

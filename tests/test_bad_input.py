@@ -4,12 +4,11 @@ never a traceback or 'unexpected error'."""
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import pytest
 
-from tests.record_support import WHIZTAP
+from tests.cli_support import run_cli
 from tests.test_trust import foreign_mcap
 
 SAMPLE = Path(__file__).parent.parent / "samples" / "clean-winsock.mcap"
@@ -71,7 +70,7 @@ def inputs(tmp_path_factory):
 @pytest.mark.parametrize("command", sorted(COMMANDS))
 def test_bad_input_is_one_line_and_exit_2(inputs, tmp_path, command, kind):
     args = COMMANDS[command](inputs[kind], tmp_path)
-    result = subprocess.run([WHIZTAP, *args], capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    result = run_cli(*args)
     assert "unexpected error" not in result.stderr and "Traceback" not in result.stderr, result.stderr
     if (command, kind) in NOT_AN_ERROR:
         assert result.returncode == NOT_AN_ERROR[command, kind], result.stderr

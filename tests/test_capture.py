@@ -18,7 +18,8 @@ from whiztap.sniffer.record.capture import CaptureError, CaptureSettings, import
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.record.scapy_layer import Progwhiz, bind
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, WAIT, WHIZTAP, frame_items, on_channels, read_all, recording, streams
+from tests.cli_support import WHIZTAP, run_cli, start_process
+from tests.record_support import LOCAL, WAIT, frame_items, on_channels, read_all, recording, streams
 
 CLIENT, SERVER = ("10.1.1.2", 40000), ("10.1.1.9", 5000)
 ISN_C, ISN_S = 1000, 9000
@@ -161,11 +162,11 @@ def test_the_command_keeps_an_existing_recording_unless_forced(tmp_path):
     pcap = _write(tmp_path / "s.pcap", _session([(0, C2S)], [(0, S2C)]))
     out = tmp_path / "s.mcap"
     out.write_bytes(b"an earlier recording")
-    command = [WHIZTAP, "capture", "--pcap", str(pcap), "--port", "5000", "-o", str(out), "-q"]
-    refused = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    command = ["capture", "--pcap", pcap, "--port", "5000", "-o", out, "-q"]
+    refused = run_cli(*command)
     assert refused.returncode == 2 and f"{out} exists; use --force" in refused.stderr
     assert out.read_bytes() == b"an earlier recording"
-    forced = subprocess.run([*command, "--force"], capture_output=True, text=True, timeout=60)
+    forced = run_cli(*command, "--force")
     assert forced.returncode == 0, forced.stderr
     assert streams(str(out)) == {(1, "c2s"): C2S, (1, "s2c"): S2C}
 
@@ -270,9 +271,7 @@ async def test_a_tcpdump_capture_imports_to_the_frames_the_proxy_recorded(tmp_pa
 async def test_live_capture_on_loopback_until_ctrl_c(tmp_path):
     out = tmp_path / "live.mcap"
     async with Simulator(port=0, mode="vpn", seed=2, camera=False) as sim:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "capture", "--iface", "lo", "--port", str(sim.port), "-o", str(out),
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("capture", "--iface", "lo", "--port", sim.port, "-o", out)
         assert b"capturing tcp port" in await asyncio.wait_for(proc.stdout.readline(), WAIT)
         async with await Client.connect(LOCAL, sim.port) as client:
             await client.fetch_configuration()

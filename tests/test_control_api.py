@@ -25,7 +25,8 @@ from whiztap.sniffer.mitm.control_guard import MAX_BODY
 from whiztap.sniffer.record.record_run import MiddleSettings, Recording
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, WAIT, WHIZTAP, closed_port, read_all, recording
+from tests.cli_support import start_process
+from tests.record_support import LOCAL, WAIT, closed_port, read_all, recording
 
 DROP_EVERY_SECOND = "drop dir:s2c kind:response ch:12 every:2"
 
@@ -450,15 +451,12 @@ async def test_ctl_holds_releases_drops_and_injects(tmp_path):
 
 async def test_the_installed_command_answers_and_says_in_one_line_when_nothing_listens(tmp_path):
     async with proxied(tmp_path / "r.mcap") as (rec, _client):
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "ctl", "--format", "json", "state", env={"WHIZTAP_CONTROL": rec.control_url},
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("ctl", "--format", "json", "state", env={"WHIZTAP_CONTROL": rec.control_url})
         out, err = await asyncio.wait_for(proc.communicate(), WAIT)
         assert proc.returncode == 0, err
         assert json.loads(out)["connections"][0]["conn"] == 1
     port = closed_port()
-    proc = await asyncio.create_subprocess_exec(WHIZTAP, "ctl", "--control", f"127.0.0.1:{port}", "fault", "list",
-                                                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    proc = await start_process("ctl", "--control", f"127.0.0.1:{port}", "fault", "list")
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert (proc.returncode, out) == (2, b"")
     assert err.decode() == (f"whiztap: cannot reach the control API at 127.0.0.1:{port}: connection refused; "

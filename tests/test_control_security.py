@@ -31,7 +31,8 @@ from whiztap.sniffer.mitm.http_api import HttpError
 from whiztap.sniffer.record.record_run import MiddleSettings, StartError
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, WAIT, WHIZTAP, read_all, recording
+from tests.cli_support import run_cli, start_process
+from tests.record_support import LOCAL, WAIT, read_all, recording
 from tests.test_control_api import held_frames, ok, parse, send_raw
 
 SERVO = "sr1-0--2000-ss1"  # what the page made the robot do
@@ -208,10 +209,8 @@ async def test_whiztap_record_prints_where_the_api_is_and_takes_its_socket_away(
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(short_dir))
     async with Simulator(port=0, mode="vpn") as sim:
         for control, token_line in ((["--control"], False), (["--control", "0.0.0.0:0"], True)):
-            proc = await asyncio.create_subprocess_exec(
-                WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{sim.port}", "-q",
-                "-o", str(tmp_path / f"r{len(control)}.mcap"), *control,
-                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            proc = await start_process("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{sim.port}", "-q",
+                                       "-o", tmp_path / f"r{len(control)}.mcap", *control)
             first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
             if token_line:
                 m = re.search(r", control: http://0\.0\.0\.0:(\d+) token (\S+) \(Ctrl-C", first)
@@ -236,10 +235,7 @@ async def test_whiztap_record_prints_where_the_api_is_and_takes_its_socket_away(
     (["--control", "host:port"], "--control needs a port number 0-65535, got 'host:port' (or a socket PATH)"),
 ])
 def test_record_says_in_one_line_what_is_wrong_with_its_control_options(tmp_path, args, words):
-    import subprocess
-
-    done = subprocess.run([WHIZTAP, "record", "--upstream", "127.0.0.1:1", "-o", str(tmp_path / "r.mcap"), *args],
-                          capture_output=True, text=True, timeout=WAIT)
+    done = run_cli("record", "--upstream", "127.0.0.1:1", "-o", tmp_path / "r.mcap", *args)
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and words in done.stderr, done.stderr
     assert not (tmp_path / "r.mcap").exists()
 

@@ -13,7 +13,6 @@ import dataclasses
 import itertools
 import logging
 import struct
-import subprocess
 import time
 from collections import Counter
 
@@ -45,7 +44,8 @@ from tests.middle_support import (
     sensor,
     sent,
 )
-from tests.record_support import LOCAL, WAIT, WHIZTAP
+from tests.cli_support import run_cli
+from tests.record_support import LOCAL, WAIT
 from tests.spec_vectors import ALL_FRAMES
 from tests.streams import chunked
 
@@ -406,9 +406,8 @@ def test_what_no_fault_chose_passes_untouched_and_in_order(tmp_path, monkeypatch
 
 
 def test_an_unknown_word_in_a_spec_is_one_line_naming_it(tmp_path):
-    done = subprocess.run([WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:9",
-                           "-o", str(tmp_path / "r.mcap"), "--fault", "delay:200ms dri:s2c"],
-                          check=False, capture_output=True, text=True, timeout=WAIT)
+    done = run_cli("record", "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:9", "-o", tmp_path / "r.mcap",
+                   "--fault", "delay:200ms dri:s2c")
     assert done.returncode == 2
     assert len(done.stderr.splitlines()) == 1 and "dri:s2c" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "r.mcap").exists()

@@ -12,7 +12,6 @@ import re
 import signal
 import socket
 import struct
-import subprocess
 from collections import defaultdict
 from pathlib import Path
 
@@ -30,8 +29,9 @@ from whiztap.sniffer.record.record_run import Recording, RecordSettings
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from whiztap.tui.sources import LiveSource, ProxyRig
-from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, both_ways, recording
+from whiztap.tui.data.sources import LiveSource, ProxyRig
+from tests.cli_support import run_cli, run_process, start_process
+from tests.record_support import LOCAL, WAIT, EchoServer, both_ways, recording
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 0x01
@@ -281,10 +281,9 @@ def _taken_port() -> socket.socket:
 async def test_record_says_where_foxglove_connects_and_serves_there(tmp_path):
     out = tmp_path / "cli.mcap"
     async with EchoServer() as server:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}", "-o", str(out),
-            "--foxglove", "127.0.0.1:0", "--foxglove-origin", "https://Studio.Example.com/",
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
+                                   "-o", out, "--foxglove", "127.0.0.1:0",
+                                   "--foxglove-origin", "https://Studio.Example.com/")
         try:
             first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
             m = re.fullmatch(rf"recording 127\.0\.0\.1:(\d+) -> {LOCAL}:{server.port} into {re.escape(str(out))}, "
@@ -310,9 +309,8 @@ def test_a_foxglove_port_in_use_is_one_line_and_exit_2(tmp_path):
     out = tmp_path / "x.mcap"
     with _taken_port() as taken:
         port = taken.getsockname()[1]  # also the upstream: the command stops before it connects
-        result = subprocess.run([WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{port}",
-                                 "-o", str(out), "--foxglove", str(port)],
-                                capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+        result = run_cli("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{port}", "-o", out,
+                         "--foxglove", port)
     assert result.returncode == 2, result
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert f"127.0.0.1:{port}" in result.stderr and "Address already in use" in result.stderr
@@ -337,9 +335,8 @@ async def test_the_recording_api_raises_a_writer_error_for_a_port_in_use(tmp_pat
 def test_the_headless_demo_serves_foxglove_too(tmp_path):
     out = tmp_path / "demo.mcap"
     out.write_bytes(b"old")
-    result = subprocess.run([WHIZTAP, "demo", "--headless", "--seconds", "1", "--foxglove", "127.0.0.1:0",
-                             "-o", str(out), "--force"],
-                            capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    # a process of its own: the Foxglove SDK's server and logging are the process's
+    result = run_process("demo", "--headless", "--seconds", "1", "--foxglove", "127.0.0.1:0", "-o", out, "--force")
     assert result.returncode == 0, result.stderr
     assert re.search(r"^whiztap demo: foxglove: ws://127\.0\.0\.1:[1-9]\d*$", result.stdout, re.M), result.stdout
     assert "whiztap conformance report" in result.stdout
@@ -364,15 +361,13 @@ async def test_the_live_tui_names_the_foxglove_url_in_its_title(tmp_path):
     (["--foxglove", "0", "--foxglove-origin", "https://studio.example.com/app"], "is not an origin"),
 ])
 def test_a_foxglove_origin_option_that_cannot_be_used_is_one_line_and_exit_2(tmp_path, args, says):
-    result = subprocess.run([WHIZTAP, "record", "--upstream", "127.0.0.1:1", "-o", str(tmp_path / "x.mcap"), *args],
-                            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    result = run_cli("record", "--upstream", "127.0.0.1:1", "-o", tmp_path / "x.mcap", *args)
     assert result.returncode == 2 and says in result.stderr, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.mcap").exists()
 
 
 def test_tui_foxglove_without_upstream_is_one_line_and_exit_2(tmp_path):
-    result = subprocess.run([WHIZTAP, "tui", str(tmp_path / "a.mcap"), "--foxglove"],
-                            capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    result = run_cli("tui", tmp_path / "a.mcap", "--foxglove")
     assert result.returncode == 2
     assert "--foxglove" in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
 
@@ -453,10 +448,8 @@ def test_the_sdks_own_lines_and_a_network_bind_are_said_by_whiztap(tmp_path):
 
     async def main() -> tuple[int, str]:
         async with EchoServer() as server:
-            proc = await asyncio.create_subprocess_exec(
-                WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
-                "-o", str(out), "--foxglove", "0.0.0.0:0", stdout=asyncio.subprocess.PIPE,
-                stderr=asyncio.subprocess.PIPE)
+            proc = await start_process("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
+                                       "-o", out, "--foxglove", "0.0.0.0:0")
             seen = b""
             try:
                 first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()

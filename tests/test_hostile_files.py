@@ -43,7 +43,7 @@ from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
-from tests.record_support import WHIZTAP
+from tests.cli_support import WHIZTAP, run_cli
 
 T0 = 1_700_000_000_000_000_000
 READS, EVENTS = 1, 2  # channel ids in a whiztap recording (the order of whiztap.analyzer.recording.format.TOPICS)
@@ -529,14 +529,11 @@ def test_bombs_are_refused_in_bounded_memory_and_time(bomb_files, busy_port, tmp
 def test_the_limit_is_settable_and_named_when_it_refuses(tmp_path):
     path = tmp_path / "big-chunk.mcap"
     path.write_bytes(with_reads(*[read_json(data="QUJD" * 4096)] * 300))  # a chunk of about 5 MB
-    env = dict(os.environ, WHIZTAP_MAX_CHUNK="1M")
-    code, _, err, _, _ = run_measured([WHIZTAP, "analyze", str(path)], env)
+    code, _, err = run_cli("analyze", path, env={"WHIZTAP_MAX_CHUNK": "1M"})
     assert code == 2 and err.count("\n") == 1 and f"{path}: the chunk at byte {offsets_of(0x06, path.read_bytes())[0]}" \
         " claims" in err and "WHIZTAP_MAX_CHUNK=5M lets whiztap read it" in err, err
-    env["WHIZTAP_MAX_CHUNK"] = "5M"
-    assert run_measured([WHIZTAP, "analyze", str(path)], env)[0] in (0, 1)
-    env["WHIZTAP_MAX_CHUNK"] = "lots"
-    code, _, err, _, _ = run_measured([WHIZTAP, "cat", str(path)], env)
+    assert run_cli("analyze", path, env={"WHIZTAP_MAX_CHUNK": "5M"}).returncode in (0, 1)
+    code, _, err = run_cli("cat", path, env={"WHIZTAP_MAX_CHUNK": "lots"})
     assert code == 2 and err.count("\n") == 1 and "WHIZTAP_MAX_CHUNK: 'lots' is not a size" in err, err
 
 

@@ -36,10 +36,10 @@ from whiztap.sniffer.record.tcpreasm import (
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.sim.tcp_server import TcpServer
 
+from tests.cli_support import WHIZTAP, run_cli
 from tests.record_support import (
     LOCAL,
     WAIT,
-    WHIZTAP,
     RecordProcess,
     both_ways,
     read_all,
@@ -495,8 +495,7 @@ async def test_a_recording_of_junk_is_about_the_size_of_the_junk(tmp_path):
     recorded = Counter()
     for v in by_topic["/violations"]:
         recorded[v["rule_id"]] += v.get("count", 1)
-    analyzed = subprocess.run([WHIZTAP, "analyze", str(out), "--format", "json"], capture_output=True, text=True,
-                              timeout=120)
+    analyzed = run_cli("analyze", out, "--format", "json")
     assert recorded == json.loads(analyzed.stdout)["rule_counts"]
 
 

@@ -48,7 +48,8 @@ from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.middle_drive import C2S, MS, S2C, T0, Drive
 from tests.middle_support import Raw
-from tests.record_support import CONTROL_TOKEN, LOCAL, WAIT, WHIZTAP, RecordProcess, StepServer, play_client, read_all
+from tests.cli_support import run_cli, start_process
+from tests.record_support import CONTROL_TOKEN, LOCAL, WAIT, RecordProcess, StepServer, play_client, read_all
 from tests.outputs import (
     API_OUTPUTS,
     FILE_COMMANDS,
@@ -434,12 +435,9 @@ def test_every_output_is_registered():
 
 async def _ctl(control: str, *args: str) -> str:
     """``whiztap ctl`` as a user runs it; what it printed (it must not fail)."""
-    proc = await asyncio.create_subprocess_exec(WHIZTAP, "ctl", "--control", control, "--control-token", CONTROL_TOKEN,
-                                                *args,
-                                                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-    out, err = await proc.communicate()
-    assert proc.returncode == 0, err
-    return out.decode() + err.decode()
+    done = await asyncio.to_thread(run_cli, "ctl", "--control", control, "--control-token", CONTROL_TOKEN, *args)
+    assert done.returncode == 0, done.stderr
+    return done.stdout + done.stderr
 
 
 async def _get(url: str) -> str:
@@ -458,12 +456,11 @@ async def test_whiztap_record_in_the_middle_shows_the_password_nowhere(tmp_path,
     server = StepServer([("recv", len(SECRET) + 2), ("send", ASKS), ("send", YES), ("recv", len(SENSOR)),
                          ("send", SENSOR_ANSWER)])
     async with server:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}", "-o", str(path),
+        proc = await start_process(
+            "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}", "-o", path,
             "--control", "127.0.0.1:0", "--control-token", CONTROL_TOKEN, "--foxglove", "127.0.0.1:0",
             "--script", str(logging_script),
-            "--fault", "dup dir:c2s nth:1", "--fault", "delay:5ms dir:c2s",
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            "--fault", "dup dir:c2s nth:1", "--fault", "delay:5ms dir:c2s")
         rec = RecordProcess(proc)
         first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
         m = re.search(r"recording 127\.0\.0\.1:(\d+) -> .*foxglove: (ws://\S+), control: http://(\S+) ", first)

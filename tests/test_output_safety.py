@@ -41,15 +41,13 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.detail import describe_frame
-from whiztap.tui.replay_screen import ReplayScreen
-from whiztap.tui.sources import FileSource
+from whiztap.tui.widgets.detail import describe_frame
+from whiztap.tui.screens.replay_screen import ReplayScreen
+from whiztap.tui.data.sources import FileSource
 
-from tests.cli_support import Ran, run_cli
+from tests.cli_support import Ran, run_cli, run_process_async
 from tests.record_support import (
     LOCAL,
-    WAIT,
-    WHIZTAP,
     EchoServer,
     RecordProcess,
     closed_port,
@@ -155,11 +153,11 @@ async def test_replay_keeps_an_existing_output_unless_forced(tmp_path):
     output.write_bytes(b"an earlier recording")
     async with Simulator(mode="vpn") as sim:
         args = ["replay", str(SAMPLE), "--target", f"{LOCAL}:{sim.port}", "--pace", "max", "-o", str(output)]
-        code, _, err = await _whiztap(*args)
+        code, _, err = await run_process_async(*args)
         assert code == 2 and err == (f"whiztap: {output} exists; use --force to overwrite it "
                                      "or -o to choose another name\n")
         assert output.read_bytes() == b"an earlier recording"
-        code, _, err = await _whiztap(*args, "--force")
+        code, _, err = await run_process_async(*args, "--force")
     assert code in (0, 1), err
     assert read_all(str(output))
 
@@ -178,7 +176,7 @@ def test_demo_and_the_live_tui_keep_an_existing_recording_unless_forced(tmp_path
 async def test_record_keeps_an_existing_recording_unless_forced(tmp_path):
     output = tmp_path / "r.mcap"
     output.write_bytes(b"an earlier recording")
-    code, _, err = await _whiztap("record", "--upstream", f"{LOCAL}:{closed_port()}", "-o", str(output))
+    code, _, err = await run_process_async("record", "--upstream", f"{LOCAL}:{closed_port()}", "-o", str(output))
     assert code == 2 and "exists; use --force" in err and err.count("\n") == 1
     assert output.read_bytes() == b"an earlier recording"
 
@@ -188,10 +186,10 @@ async def test_client_camera_keeps_an_existing_picture_unless_forced(tmp_path):
     picture.write_bytes(b"an earlier picture")
     async with Simulator(mode="vpn") as sim:
         address = f"{LOCAL}:{sim.port}"
-        code, out, err = await _whiztap("client", address, "camera", "-o", str(picture))
+        code, out, err = await run_process_async("client", address, "camera", "-o", str(picture))
         assert code == 2 and f"{picture} exists; use --force" in err, (out, err)
         assert picture.read_bytes() == b"an earlier picture"
-        code, out, err = await _whiztap("client", address, "camera", "-o", str(picture), "--force")
+        code, out, err = await run_process_async("client", address, "camera", "-o", str(picture), "--force")
     assert code == 0, (out, err)
     assert picture.read_bytes().startswith(b"\xff\xd8")  # the simulator's JPEG
 
@@ -226,13 +224,6 @@ async def test_the_tui_replay_never_saves_over_the_recording_or_an_existing_file
                         f"the refusal of {output.name}")
             assert screen.runner is None
     assert recording.read_bytes() == before and existing.read_bytes() == b"an earlier replay"
-
-
-async def _whiztap(*args: str) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(WHIZTAP, *args, stdout=asyncio.subprocess.PIPE,
-                                                stderr=asyncio.subprocess.PIPE, stdin=asyncio.subprocess.DEVNULL)
-    out, err = await asyncio.wait_for(proc.communicate(), WAIT)
-    return proc.returncode, out.decode(), err.decode()
 
 
 # -- hostile text ---------------------------------------------------------------------------------
@@ -350,7 +341,7 @@ def test_junit_parses_and_holds_the_values_escaped(hostile, tmp_path):
 def test_replay_output_quotes_recorded_and_replayed_bytes_escaped(hostile):
     async def replay() -> tuple[int, str, str]:
         async with EchoServer() as echo:  # answers with what the client sends: hostile bytes both ways
-            return await _whiztap("replay", str(hostile), "--target", f"{LOCAL}:{echo.port}", "--pace", "max",
+            return await run_process_async("replay", str(hostile), "--target", f"{LOCAL}:{echo.port}", "--pace", "max",
                                   "--timeout", "0.5", "-v")
     code, out, err = asyncio.run(replay())
     assert code in (0, 1), err

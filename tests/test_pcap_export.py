@@ -30,7 +30,8 @@ from whiztap.sniffer.wireshark.export import addresses, export_pcapng
 from whiztap.sniffer.wireshark.pcapng import MAX_PAYLOAD
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, WAIT, WHIZTAP
+from tests.cli_support import WHIZTAP, run_cli, start_process
+from tests.record_support import LOCAL, WAIT
 
 SAMPLES = Path(__file__).parent.parent / "samples"
 C, S = Direction.C2S, Direction.S2C
@@ -101,12 +102,10 @@ def test_every_sample_comes_back_the_same_through_pcapng(tmp_path, sample, port_
 
 def test_the_commands_round_trip_a_recording(tmp_path):
     pcap, back = tmp_path / "clean.pcapng", tmp_path / "back.mcap"
-    done = subprocess.run([WHIZTAP, "export", "--pcap", str(pcap), str(SAMPLES / "clean-winsock.mcap")],
-                          capture_output=True, text=True, timeout=60)
+    done = run_cli("export", "--pcap", pcap, SAMPLES / "clean-winsock.mcap")
     assert done.returncode == 0, done.stderr
     assert f"into {pcap}" in done.stdout and "exported 1 connection, " in done.stdout
-    captured = subprocess.run([WHIZTAP, "capture", "--pcap", str(pcap), "-o", str(back)],
-                              capture_output=True, text=True, timeout=60)
+    captured = run_cli("capture", "--pcap", pcap, "-o", back)
     assert captured.returncode == 0, captured.stderr
     assert _reads(back) == _reads(SAMPLES / "clean-winsock.mcap")
     assert read_metadata(str(back))["server_port"] == ""  # found by content
@@ -181,6 +180,7 @@ def test_a_masked_password_stays_masked_and_says_so(tmp_path):
 
 def test_the_export_command_writes_to_standard_output_and_refuses_what_it_should(tmp_path):
     sample = str(SAMPLES / "vpn.mcap")
+    # a process of its own: binary on a real pipe
     piped = subprocess.run([WHIZTAP, "export", "--pcap", "-", sample], capture_output=True, timeout=60)
     assert piped.returncode == 0 and piped.stdout.startswith(b"\x0a\x0d\x0d\x0a")  # a pcapng section
     assert piped.stdout == _export(SAMPLES / "vpn.mcap", tmp_path / "vpn.pcapng").read_bytes()
@@ -189,17 +189,16 @@ def test_the_export_command_writes_to_standard_output_and_refuses_what_it_should
     for args, says in (([str(taken), sample], "exists; use --force"),
                        ([str(tmp_path / "x.pcapng"), str(tmp_path / "missing.mcap")], "missing.mcap"),
                        ([sample, sample], "an input")):
-        refused = subprocess.run([WHIZTAP, "export", "--pcap", *args], capture_output=True, text=True, timeout=60)
+        refused = run_cli("export", "--pcap", *args)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and says in refused.stderr, refused.stderr
     assert taken.read_bytes() == b"keep me"
     damaged = tmp_path / "damaged.mcap"
     damaged.write_bytes((SAMPLES / "vpn.mcap").read_bytes()[:5000])
     out = tmp_path / "damaged.pcapng"
-    failed = subprocess.run([WHIZTAP, "export", "--pcap", str(out), str(damaged)], capture_output=True, text=True,
-                            timeout=60)
+    failed = run_cli("export", "--pcap", out, damaged)
     assert failed.returncode == 2 and failed.stderr.count("\n") == 1 and "recover" in failed.stderr
     assert not out.exists()  # no half-written file left behind
-    helped = subprocess.run([WHIZTAP, "export", "--help"], capture_output=True, text=True, timeout=60)
+    helped = run_cli("export", "--help")
     assert helped.returncode == 0 and "--pcap OUT.pcapng" in helped.stdout
 
 
@@ -248,9 +247,7 @@ async def test_a_live_capture_without_a_port_finds_the_robot(tmp_path):
     out = tmp_path / "live.mcap"
     async with Simulator(port=0, mode="vpn", seed=2, camera=False) as sim:
         port = sim.port
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "capture", "--iface", "lo", "-o", str(out),
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("capture", "--iface", "lo", "-o", out)
         assert b"capturing Progwhiz conversations on any TCP port" in await asyncio.wait_for(proc.stdout.readline(), WAIT)
         async with await Client.connect(LOCAL, port) as client:
             await client.fetch_configuration()

@@ -1,4 +1,5 @@
-"""``whiztap record`` as a user runs it: a real subprocess, real signals."""
+"""``whiztap record`` as a user runs it: a real subprocess, real signals (refusals at
+start run in this process)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from mcap.stream_reader import StreamReader
 
 from whiztap.analyzer.recording.format import TOPIC_READS
 from whiztap.analyzer.recording.scan import RecordingScan
+from tests.cli_support import run_cli
 from tests.record_support import (
     LOCAL,
     WAIT,
-    WHIZTAP,
     EchoServer,
     RecordProcess,
     both_ways,
@@ -85,27 +86,21 @@ async def test_analyze_prints_violations_as_they_happen(tmp_path):
                     r"'rr1-99--5--0-ss1': channel must be 0-23, got 99", line)
 
 
-async def test_user_errors_are_one_line_and_exit_2(tmp_path):
-    async def run(*args: str) -> tuple[int, bytes, bytes]:
-        proc = await asyncio.create_subprocess_exec(WHIZTAP, "record", *args, stdout=asyncio.subprocess.PIPE,
-                                                    stderr=asyncio.subprocess.PIPE)
-        out, err = await asyncio.wait_for(proc.communicate(), WAIT)
-        return proc.returncode, out, err
-
+def test_user_errors_are_one_line_and_exit_2(tmp_path):
     port = closed_port()
-    code, _, err = await run("--upstream", f"{LOCAL}:{port}", "-o", str(tmp_path / "no" / "such" / "x.mcap"),
-                             "--listen", "0")
-    assert code == 2 and err.count(b"\n") == 1 and err.startswith(b"whiztap: cannot write ")
-    assert b"No such file or directory" in err
+    code, _, err = run_cli("record", "--upstream", f"{LOCAL}:{port}", "-o", tmp_path / "no" / "such" / "x.mcap",
+                           "--listen", "0")
+    assert code == 2 and err.count("\n") == 1 and err.startswith("whiztap: cannot write ")
+    assert "No such file or directory" in err
     with socket.socket() as taken:
         taken.bind((LOCAL, 0))
         taken.listen()
-        code, _, err = await run("--upstream", f"{LOCAL}:{port}", "-o", str(tmp_path / "x.mcap"),
-                                 "--listen", str(taken.getsockname()[1]))
-    assert code == 2 and err.count(b"\n") == 1 and err.startswith(b"whiztap: cannot listen on 127.0.0.1:")
+        code, _, err = run_cli("record", "--upstream", f"{LOCAL}:{port}", "-o", tmp_path / "x.mcap",
+                               "--listen", taken.getsockname()[1])
+    assert code == 2 and err.count("\n") == 1 and err.startswith("whiztap: cannot listen on 127.0.0.1:")
     assert not (tmp_path / "x.mcap").exists() and not (tmp_path / "x.mcap.part").exists()
-    code, _, err = await run("--upstream", "nowhere", "-o", str(tmp_path / "x.mcap"))
-    assert code == 2 and err == b"whiztap: --upstream must be HOST:PORT, got 'nowhere'\n"
+    code, _, err = run_cli("record", "--upstream", "nowhere", "-o", tmp_path / "x.mcap")
+    assert code == 2 and err == "whiztap: --upstream must be HOST:PORT, got 'nowhere'\n"
 
 
 async def test_an_existing_recording_is_not_overwritten_without_force(tmp_path):
@@ -116,20 +111,18 @@ async def test_an_existing_recording_is_not_overwritten_without_force(tmp_path):
         await rec.finish()
         first = out.read_bytes()
 
-        async def record(*args: str) -> tuple[int, bytes]:
-            proc = await asyncio.create_subprocess_exec(
-                WHIZTAP, "record", "--upstream", f"{LOCAL}:{server.port}", "--listen", "0", *args,
-                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-            _, err = await asyncio.wait_for(proc.communicate(), WAIT)
-            return proc.returncode, err
+        async def record(*args: str) -> tuple[int, str]:
+            done = await asyncio.to_thread(run_cli, "record", "--upstream", f"{LOCAL}:{server.port}", "--listen", "0",
+                                           *args)
+            return done.returncode, done.stderr
 
         assert await record("-o", str(out)) == (
-            2, f"whiztap: {out} exists; use --force to overwrite it or -o to choose another name\n".encode())
+            2, f"whiztap: {out} exists; use --force to overwrite it or -o to choose another name\n")
         assert out.read_bytes() == first
         crashed = tmp_path / "crashed.mcap"
         Path(f"{crashed}.part").write_bytes(first[:len(first) // 2])
         code, err = await record("-o", str(crashed))
-        assert code == 2 and f"or save it first: whiztap recover {crashed}.part".encode() in err
+        assert code == 2 and f"or save it first: whiztap recover {crashed}.part" in err
         assert Path(f"{crashed}.part").read_bytes() == first[:len(first) // 2]
         rec = await RecordProcess.start(server.port, out, "--force")
         assert await _talk(rec.port, b"rr1-2--0--0-ss1") == b"rr1-2--0--0-ss1"

@@ -3,11 +3,11 @@ real command, the simulator, a client; and the one-line errors."""
 
 from __future__ import annotations
 
-import subprocess
 
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, read_all
+from tests.cli_support import Ran, run_cli
+from tests.record_support import LOCAL, RecordProcess, read_all
 
 FAULTS_TOML = '''
 [faults.flaky-answers]
@@ -42,10 +42,8 @@ async def test_a_faults_file_and_a_fault_act_together_each_named_in_the_recordin
     assert causes["delay"] == "fault fault-3: delay:20ms dir:s2c ch:14"
 
 
-def _record(tmp_path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:9",
-                           "-o", str(tmp_path / "r.mcap"), *args], check=False, capture_output=True, text=True,
-                          timeout=WAIT)
+def _record(tmp_path, *args: str) -> Ran:
+    return run_cli("record", "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:9", "-o", tmp_path / "r.mcap", *args)
 
 
 def test_a_bad_faults_file_is_one_line_naming_the_file(tmp_path):

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 import threading
 from pathlib import Path
 
@@ -38,7 +37,8 @@ from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
-from tests.record_support import WHIZTAP, read_all, tcp_reads
+from tests.cli_support import run_cli
+from tests.record_support import read_all, tcp_reads
 from tests.test_recording_format import FOXGLOVE_TOPIC, log_message
 
 T0 = 1_700_000_000_000_000_000
@@ -250,20 +250,16 @@ def test_recovering_a_part_keeps_channels_defined_mid_file(tmp_path):
 # -- version 1 files ----------------------------------------------------------------------------------------
 
 
-def run(*args: object, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120, cwd=cwd)
-
-
 def test_a_version_1_file_reads_in_every_reader_with_its_aggregated_plot_topics(tmp_path):
     """Readers rebuild sessions from /tcp/reads: a file written before /log and
     the plot topics per channel analyses, lists and recovers as it always did."""
     v1 = tmp_path / "v1.mcap"
     shutil.copy(V1_FILE, v1)
-    report = json.loads(run("analyze", v1, "--format", "json").stdout)
+    report = json.loads(run_cli("analyze", v1, "--format", "json").stdout)
     assert report["passed"] and report["rule_counts"] == {}
-    lines = [json.loads(line) for line in run("cat", v1, "--format", "jsonl").stdout.splitlines()]
+    lines = [json.loads(line) for line in run_cli("cat", v1, "--format", "jsonl").stdout.splitlines()]
     answers = [line for line in lines if line["kind"] == "response" and line["message"] == "Sensor/Servo Response"]
-    info = json.loads(run("info", v1, "--format", "json").stdout)
+    info = json.loads(run_cli("info", v1, "--format", "json").stdout)
     assert info["format_version"] == "1" and info["topics"][TOPIC_LOG] == 0
     assert info["topics"]["/sensors"] + info["topics"]["/servos"] == len(answers) > 0
     with open(v1, "rb") as f:  # every message of every topic whiztap ever wrote, checked against its schema
@@ -313,7 +309,7 @@ def test_the_sample_layout_shows_what_a_demo_recording_holds(tmp_path):
         else:
             wanted[config["topicPath"]] = TOPICS[config["topicPath"]]
     demo = tmp_path / "demo.mcap"
-    result = run("demo", "--headless", "--seconds", "2", "-o", demo, cwd=tmp_path)
+    result = run_cli("demo", "--headless", "--seconds", "2", "-o", demo, cwd=tmp_path)
     assert result.returncode in (0, 1) and demo.exists(), result.stdout + result.stderr
     by_topic = read_all(str(demo))
     for topic, schema in wanted.items():

@@ -19,7 +19,8 @@ from mcap.records import Message
 from whiztap.analyzer.recording.mcap import MAGIC
 from whiztap.analyzer.recording.recover import RecoverResult, recover
 from whiztap.analyzer.recording.scan import RecordingScan
-from tests.record_support import WAIT, WHIZTAP, EchoServer, RecordProcess, read_all, streams, tcp_reads
+from tests.cli_support import WHIZTAP, run_cli
+from tests.record_support import WAIT, EchoServer, RecordProcess, read_all, streams, tcp_reads
 from tests.test_hostile_files import MIB, corrupt_data, flip_crc, read_chunks, run_measured, write_recording
 
 
@@ -32,13 +33,6 @@ def _flushed_reads(part: str) -> bytes:
 def _complete(result: RecoverResult) -> bool:
     """Everything in the input was copied: nothing skipped, cut or dropped."""
     return result.cut_at is None and not result.skipped and not result.orphans
-
-
-async def _run(*args: str) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(WHIZTAP, *args, stdout=asyncio.subprocess.PIPE,
-                                                stderr=asyncio.subprocess.PIPE)
-    out, err = await asyncio.wait_for(proc.communicate(), WAIT)
-    return proc.returncode, out.decode(), err.decode()
 
 
 async def test_sigkill_mid_session_then_recover_gets_back_everything_flushed(tmp_path):
@@ -71,7 +65,7 @@ async def test_sigkill_mid_session_then_recover_gets_back_everything_flushed(tmp
                 on_disk += isinstance(record, Message)
         except Exception:  # noqa: BLE001 - the cut, wherever the kill fell
             pass
-    code, stdout, stderr = await _run("recover", part)
+    code, stdout, stderr = run_cli("recover", part)
     assert (code, stderr) == (0, ""), stderr
     assert stdout == f"recovered {on_disk:,} messages into {out}\n" or \
         stdout.startswith(f"recovered {on_disk:,} messages into {out}; the file ended mid-write at byte ")
@@ -84,12 +78,12 @@ async def test_sigkill_mid_session_then_recover_gets_back_everything_flushed(tmp
 async def test_recover_refuses_clearly(tmp_path):
     junk = tmp_path / "junk.mcap.part"
     junk.write_bytes(b"not an mcap file at all")
-    code, _, err = await _run("recover", str(junk))
+    code, _, err = run_cli("recover", str(junk))
     assert code == 2 and err.count("\n") == 1 and err.startswith("whiztap: ") and "not an MCAP file" in err
-    code, _, err = await _run("recover", str(tmp_path / "missing.part"))
+    code, _, err = run_cli("recover", str(tmp_path / "missing.part"))
     assert code == 2 and err == f"whiztap: {tmp_path / 'missing.part'}: no such file\n"
     (tmp_path / "junk.mcap").write_bytes(b"")
-    code, _, err = await _run("recover", str(junk))
+    code, _, err = run_cli("recover", str(junk))
     assert code == 2 and "exists; use --force" in err
 
 
@@ -110,7 +104,7 @@ async def test_recover_of_a_finished_file_copies_it_whole(tmp_path):
 
 async def test_a_missing_input_is_said_before_an_existing_output(tmp_path):
     (tmp_path / "gone.mcap").write_bytes(b"a recording already there")
-    code, _, err = await _run("recover", str(tmp_path / "gone.mcap.part"))
+    code, _, err = run_cli("recover", str(tmp_path / "gone.mcap.part"))
     assert code == 2 and err == f"whiztap: {tmp_path / 'gone.mcap.part'}: no such file\n"
 
 
@@ -181,7 +175,7 @@ def test_a_damaged_chunk_is_skipped_and_every_chunk_after_it_recovered(tmp_path,
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(bytes(DAMAGE[damage](bytearray(data), at)))
     out = tmp_path / "out.mcap"
-    code, stdout, stderr, _, _ = run_measured([WHIZTAP, "recover", str(broken), "-o", str(out)])
+    code, stdout, stderr = run_cli("recover", broken, "-o", out)
     assert (code, stderr) == (0, ""), stderr
     lost = _chunk_messages(data, at)
     expected = _without(_messages(original), lost)
@@ -210,7 +204,7 @@ def test_damage_and_a_cut_are_both_said(tmp_path):
     cut = chunks[-1] + 100
     broken = tmp_path / "broken.mcap.part"
     broken.write_bytes(bytes(data[:cut]))
-    code, stdout, stderr, _, _ = run_measured([WHIZTAP, "recover", str(broken)])
+    code, stdout, stderr = run_cli("recover", broken)
     assert (code, stderr) == (0, "")
     assert f"; skipped 1 damaged region (at byte {chunks[2]}: " in stdout
     assert stdout.endswith(f"; the file ended mid-write at byte {chunks[-1]} (the 100 B after it could not be "
@@ -244,7 +238,7 @@ def test_a_file_named_like_the_old_temporary_is_left_alone(tmp_path):
 def test_a_failed_recovery_leaves_no_temporary_file(tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(MAGIC + bytes(range(256)) * 16)
-    code, _, err, _, _ = run_measured([WHIZTAP, "recover", str(junk), "-o", str(tmp_path / "out.mcap")])
+    code, _, err = run_cli("recover", junk, "-o", tmp_path / "out.mcap")
     assert code == 2 and err == f"whiztap: {junk} holds nothing to recover: no schema, channel, message or " \
                                 "metadata could be read\n"
     assert list(tmp_path.iterdir()) == [junk]

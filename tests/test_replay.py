@@ -24,7 +24,8 @@ from whiztap.sniffer.replay.options import Pace, ReplayError, ReplayOptions
 from whiztap.sniffer.replay.plan import Selection, kinds_of, plan
 from whiztap.sniffer.sim.client import Client, HandshakeError
 from tests.record_support import LOCAL, WAIT, both_ways, closed_port, recording
-from tests.replay_support import PASSWORD, WHIZTAP, record, simulator, until_closed, whiztap
+from tests.cli_support import run_cli, run_process_async, start_process
+from tests.replay_support import PASSWORD, record, simulator, until_closed
 
 EXACT = CompareRules.parse("exact")
 STRUCTURE = CompareRules.parse("structure")
@@ -294,14 +295,14 @@ def test_plan_selects_by_window_kind_and_connection(exchanges):
 async def test_command_exit_status_0_then_1_with_a_readable_diff(recorded, tmp_path):
     out = tmp_path / "cli.mcap"
     async with simulator(seed=1) as same, simulator(seed=2) as other:
-        code, stdout, stderr = await whiztap("replay", str(recorded), "--target", f"{LOCAL}:{same.port}",
+        code, stdout, stderr = await run_process_async("replay", str(recorded), "--target", f"{LOCAL}:{same.port}",
                                              "--password", PASSWORD, "--compare", "exact", "-o", str(out))
         assert (code, stderr) == (0, ""), stdout
         assert "result: all answers matched" in stdout and f"wrote {out}" in stdout
         assert re.search(r"drift from schedule over \d+ writes: p50 [\d.]+ ms, p99 [\d.]+ ms, max [\d.]+ ms",
                          stdout)
         env = dict(os.environ, WHIZTAP_PASSWORD=PASSWORD)
-        code, stdout, stderr = await whiztap("replay", str(recorded), "--target", f"{LOCAL}:{other.port}",
+        code, stdout, stderr = await run_process_async("replay", str(recorded), "--target", f"{LOCAL}:{other.port}",
                                              "--compare", "exact", "--pace", "lockstep", env=env)
     assert code == 1 and stderr == ""
     assert re.search(r"^MISMATCH c1 at \d+\.\d{6} s after rr1-12--0--0-ss1 \(Sensor Request ch 12\)$",
@@ -316,8 +317,8 @@ async def test_command_json_is_one_object_with_the_counts_and_every_difference(r
     async with simulator(seed=1) as same, simulator(seed=2) as other:
         args = ["replay", str(recorded), "--password", PASSWORD, "--compare", "exact", "--pace", "lockstep",
                 "--format", "json"]
-        code_same, out_same, err_same = await whiztap(*args, "--target", f"{LOCAL}:{same.port}")
-        code, stdout, stderr = await whiztap(*args, "--target", f"{LOCAL}:{other.port}", "--tolerance",
+        code_same, out_same, err_same = await run_process_async(*args, "--target", f"{LOCAL}:{same.port}")
+        code, stdout, stderr = await run_process_async(*args, "--target", f"{LOCAL}:{other.port}", "--tolerance",
                                              "sensor_value=1")
     assert (code_same, err_same, code, stderr) == (0, "", 1, "")
     same_result, result = json.loads(out_same), json.loads(stdout)  # nothing but the object on stdout
@@ -346,13 +347,13 @@ async def test_command_json_is_one_object_with_the_counts_and_every_difference(r
     (["{recorded}", "--dry-run", "--tolerance", "speed=3"], "whiztap: --tolerance: unknown field 'speed'"),
     (["{recorded}", "--dry-run", "--kind", "dance"], "whiztap: --kind: unknown kind 'dance'"),
 ])
-async def test_command_errors_are_one_line_with_status_2(recorded, tmp_path, args, message):
+def test_command_errors_are_one_line_with_status_2(recorded, tmp_path, args, message):
     garbage = tmp_path / "garbage.mcap"
     garbage.write_bytes(b"not an mcap file at all")
     closed = str(closed_port())
     fill = {"recorded": str(recorded), "garbage": str(garbage), "closed": closed}
     args = [a.format(**fill) for a in args]
-    code, stdout, stderr = await whiztap("replay", *args)
+    code, stdout, stderr = run_cli("replay", *args)
     assert code == 2
     assert stderr.startswith(message.format(**fill)) and stderr.count("\n") == 1, stderr
     assert "Traceback" not in stderr
@@ -365,7 +366,7 @@ async def test_command_selection_options(recorded, exchanges):
     lo, hi = times[1], times[-1]
     wanted = len(plan(exchanges, Selection(start_s=lo, end_s=hi), True)[0].sends)
     async with simulator(seed=1) as sim:
-        code, stdout, stderr = await whiztap(
+        code, stdout, stderr = await run_process_async(
             "replay", str(recorded), "--target", f"{LOCAL}:{sim.port}", "--password", PASSWORD, "--pace", "max",
             "--loop", "2", "--conn", "1", "--start", str(lo), "--end", str(hi), "--segments", "exact", "-q")
     assert (code, stderr) == (0, ""), stdout
@@ -373,9 +374,8 @@ async def test_command_selection_options(recorded, exchanges):
     assert f"replayed 2 connections, {2 * (wanted + 1)} writes; answers: " in stdout
 
 
-async def test_command_dry_run_prints_the_plan_and_sends_nothing(recorded):
-    code, stdout, stderr = await whiztap("replay", str(recorded), "--dry-run", "--kind", "sensor",
-                                         "--segments", "frames")
+def test_command_dry_run_prints_the_plan_and_sends_nothing(recorded):
+    code, stdout, stderr = run_cli("replay", recorded, "--dry-run", "--kind", "sensor", "--segments", "frames")
     assert (code, stderr) == (0, "")
     sends = re.findall(r"^ +\d+\.\d{6} send (\S+)  (.*)$", stdout, re.M)
     assert len(sends) == 6 and all(text.startswith("Sensor Request ch ") for _, text in sends)
@@ -386,9 +386,8 @@ async def test_command_dry_run_prints_the_plan_and_sends_nothing(recorded):
 async def _interrupted(recorded, *args: str) -> tuple[int, bytes, bytes]:  # noqa: ANN001 - a Path
     """A replay stopped by Ctrl-C once its first write has left: status, stdout, stderr."""
     async with simulator(seed=1) as sim:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "replay", str(recorded), "--target", f"{LOCAL}:{sim.port}", "--password", PASSWORD,
-            "--rate", "0.001", *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("replay", recorded, "--target", f"{LOCAL}:{sim.port}", "--password", PASSWORD,
+                                   "--rate", "0.001", *args)
         if "--format" in args:  # prints nothing until the end: the server has answered a first request
             await asyncio.wait_for(_until_answered(sim), WAIT)
         else:

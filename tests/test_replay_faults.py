@@ -33,8 +33,9 @@ from whiztap.sniffer.replay.faults import recorded_faults
 from whiztap.sniffer.replay.options import Pace, ReplayOptions
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.simulator import Simulator
+from tests.cli_support import run_cli, run_process_async
 from tests.record_support import LOCAL, closed_port, recording
-from tests.replay_support import until_closed, whiztap
+from tests.replay_support import until_closed
 
 DROP = "drop dir:s2c kind:response ch:12 every:2"
 LATE = "drop dir:s2c kind:response ch:13 nth:1"
@@ -89,7 +90,7 @@ def plain(tmp_path_factory: pytest.TempPathFactory) -> Path:
 async def replay_command(path: Path, *args: str) -> tuple[int, dict | str, str]:
     """``whiztap replay`` against a fresh simulator: exit status, the JSON result (or the text), stderr."""
     async with simulator() as sim:
-        code, stdout, stderr = await whiztap("replay", str(path), "--target", f"{LOCAL}:{sim.port}", *args)
+        code, stdout, stderr = await run_process_async("replay", str(path), "--target", f"{LOCAL}:{sim.port}", *args)
     return code, json.loads(stdout) if "--format" in args else stdout, stderr
 
 
@@ -160,7 +161,7 @@ async def test_a_server_that_differs_only_where_the_faults_hide_it_is_reported_a
     fault drops: the client's experience is the recorded one (exit 0), and the
     target's own side says where it differs from the recorded server."""
     async with _OddTarget({2, 4}) as target:
-        code, stdout, stderr = await whiztap("replay", str(faulted), "--target", f"{LOCAL}:{target.port}",
+        code, stdout, stderr = await run_process_async("replay", str(faulted), "--target", f"{LOCAL}:{target.port}",
                                             "--faults-from-recording", *LOCKSTEP)
     result = json.loads(stdout)
     assert (code, stderr, result["ok"], result["answers"]["unanswered"]) == (0, "", True, ROUNDS // 2)
@@ -168,7 +169,7 @@ async def test_a_server_that_differs_only_where_the_faults_hide_it_is_reported_a
     assert not server["ok"] and server["answers"]["mismatch"] == ROUNDS // 2
     assert [d["replayed"] for d in server["differences"]] == ["cr1-12--9999--0-ss1"] * (ROUNDS // 2)
     async with _OddTarget({2, 4}) as target:
-        code, text, _ = await whiztap("replay", str(faulted), "--target", f"{LOCAL}:{target.port}",
+        code, text, _ = await run_process_async("replay", str(faulted), "--target", f"{LOCAL}:{target.port}",
                                       "--faults-from-recording", "--pace", "lockstep", "--timeout", WAIT_S)
     assert code == 0 and "result: all answers matched" in text
     assert ("the target's own answers, before the faults, against the recorded server's: "
@@ -215,18 +216,18 @@ async def test_a_recording_without_faults_is_replayed_with_a_note(plain):
     (("--fault", "smash dir:s2c"), "'smash'"),
     (("--fault", DROP, "--fault", "delay:soon"), "'delay:soon'"),
 ])
-async def test_a_bad_spec_is_one_line_naming_the_word(plain, args, word):
-    code, stdout, stderr = await whiztap("replay", str(plain), "--target", f"{LOCAL}:{closed_port()}", *args)
+def test_a_bad_spec_is_one_line_naming_the_word(plain, args, word):
+    code, stdout, stderr = run_cli("replay", plain, "--target", f"{LOCAL}:{closed_port()}", *args)
     assert code == 2 and stdout == ""
     assert stderr.startswith("whiztap: Invalid value for '--fault': ") and stderr.count("\n") == 1, stderr
     assert word in stderr and "Traceback" not in stderr
 
 
 async def test_seed_without_faults_and_an_unreachable_target_are_one_line(faulted):
-    code, _, stderr = await whiztap("replay", str(faulted), "--target", f"{LOCAL}:1", "--seed", "3")
+    code, _, stderr = await run_process_async("replay", str(faulted), "--target", f"{LOCAL}:1", "--seed", "3")
     assert (code, stderr) == (2, "whiztap: --seed seeds faults: give --fault or --faults-from-recording\n")
     port = closed_port()
-    code, _, stderr = await whiztap("replay", str(faulted), "--target", f"{LOCAL}:{port}",
+    code, _, stderr = await run_process_async("replay", str(faulted), "--target", f"{LOCAL}:{port}",
                                     "--faults-from-recording", "-q")
     assert code == 2 and stderr.startswith(f"whiztap: cannot connect to {LOCAL}:{port}: ") and stderr.count("\n") == 1
 

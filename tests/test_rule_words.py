@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 from pathlib import Path
 
 from hypothesis import given, settings
@@ -26,7 +25,8 @@ from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
-from tests.record_support import WHIZTAP, read_all
+from tests.cli_support import run_cli
+from tests.record_support import read_all
 from tests.spec_vectors import ALL_FRAMES, HANDSHAKE_SERVER
 
 C, S = Direction.C2S, Direction.S2C
@@ -147,9 +147,8 @@ def test_the_report_and_the_recording_cite_the_messages_section(tmp_path: Path):
     _servo_request_out_of_range(path)
     recorded = [m for m in read_all(str(path))["/violations"] if m["rule_id"] == "PW-RANGE-CHANNEL"]
     assert [m["section"] for m in recorded] == ["Servo Position Request"]
-    done = subprocess.run([WHIZTAP, "analyze", "--format", "json", str(path)], capture_output=True, text=True,
-                          timeout=120)
+    done = run_cli("analyze", "--format", "json", path)
     cited = [v["section"] for v in json.loads(done.stdout)["violations"] if v["rule_id"] == "PW-RANGE-CHANNEL"]
     assert cited == ["Servo Position Request"]
-    text = subprocess.run([WHIZTAP, "analyze", str(path)], capture_output=True, text=True, timeout=120).stdout
+    text = run_cli("analyze", path).stdout
     assert "(Servo Position Request)" in text and "Normal Send" not in text

@@ -10,7 +10,6 @@ import asyncio
 import base64
 import random
 import runpy
-import subprocess
 import textwrap
 from pathlib import Path
 
@@ -20,7 +19,8 @@ from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.codec import encode
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.sim.client import Client
-from tests.record_support import LOCAL, WAIT, WHIZTAP
+from tests.cli_support import run_cli
+from tests.record_support import LOCAL, WAIT
 from tests.middle_support import (
     Middle,
     Raw,
@@ -234,9 +234,8 @@ def test_a_script_that_does_not_load_stops_record_with_one_line(tmp_path, name, 
     path = tmp_path / name
     if text is not None:
         path.write_text(text)
-    done = subprocess.run([WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:9",
-                           "-o", str(tmp_path / "r.mcap"), "--script", str(path)],
-                          check=False, capture_output=True, text=True, timeout=WAIT)
+    done = run_cli("record", "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:9", "-o", tmp_path / "r.mcap",
+                   "--script", path)
     assert done.returncode == 2
     [line] = done.stderr.splitlines()
     assert name in line and says in line and "Traceback" not in done.stderr

@@ -43,11 +43,12 @@ from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.sim.tcp_server import TcpServer
-from whiztap.tui.model import TrafficModel
-from whiztap.tui.sources import LiveSource, ProxyRig
+from whiztap.tui.data.model import TrafficModel
+from whiztap.tui.data.sources import LiveSource, ProxyRig
 
 from tests.outputs import FILE_OUTPUTS, SECRET, assert_no_leak, run, store_text
-from tests.record_support import LOCAL, WAIT, WHIZTAP, RecordProcess, op_event, play_client, play_steps, read_all, streams
+from tests.cli_support import start_process
+from tests.record_support import LOCAL, WAIT, RecordProcess, op_event, play_client, play_steps, read_all, streams
 from tests.test_readers_property import TOKENS, stream
 
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -155,10 +156,8 @@ async def test_an_eager_or_odd_client_never_leaves_its_password_anywhere(tmp_pat
     # environment) is masked there too
     replayed = tmp_path / "replayed.mcap"
     async with Simulator(mode="winsock", password=SECRET) as sim:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "replay", str(path), "--target", f"{LOCAL}:{sim.port}", "--pace", "max", "--timeout", "0.5",
-            "-o", str(replayed), "-v", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
-            env={**os.environ, **env})
+        proc = await start_process("replay", path, "--target", f"{LOCAL}:{sim.port}", "--pace", "max", "--timeout",
+                                   "0.5", "-o", replayed, "-v", env={**os.environ, **env})
         out, err = await asyncio.wait_for(proc.communicate(), WAIT)
     assert proc.returncode in (0, 1), err
     assert_no_leak("replay -v", out + err)

@@ -1,5 +1,6 @@
-"""`whiztap sim` and `whiztap client`: the real commands as subprocesses, and the
-client's command language in-process."""
+"""`whiztap sim` and `whiztap client`: the simulator as a process of its own (signals
+end it), the client's commands run in this process, and the client's command
+language in-process."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import signal
 import socket
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -18,12 +18,9 @@ from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.console import CommandError, run, split_line
 from whiztap.sniffer.sim.simulator import Simulator
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+from tests.cli_support import WHIZTAP, Ran, run_cli
+
 LISTENING = re.compile(r"listening on 127\.0\.0\.1:(\d+)")
-
-
-def whiztap(*args: str, stdin: str | None = None, timeout: float = 30) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *args], input=stdin, capture_output=True, text=True, timeout=timeout)
 
 
 def start_sim(*args: str) -> tuple[subprocess.Popen, int]:
@@ -54,7 +51,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def one_line_error(result: subprocess.CompletedProcess, text: str) -> None:
+def one_line_error(result: Ran, text: str) -> None:
     assert result.returncode == 2, result
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("whiztap: "), result.stderr
     assert text in result.stderr and "Traceback" not in result.stderr
@@ -71,7 +68,7 @@ def sim_port():
 
 
 def test_sim_prints_its_port_and_serves_the_client(sim_port):
-    result = whiztap("client", f"127.0.0.1:{sim_port}", "--password", "hunter2", "config")
+    result = run_cli("client", f"127.0.0.1:{sim_port}", "--password", "hunter2", "config")
     assert result.returncode == 0, result.stderr
     assert result.stdout == ("Configuration Settings: 24 channels: "
                              "servo:0-5,switch:6-8,switch1:9-11,sensor:12-23\n")
@@ -79,9 +76,9 @@ def test_sim_prints_its_port_and_serves_the_client(sim_port):
 
 def test_client_takes_a_command_quoted_or_as_words(sim_port):
     address = f"127.0.0.1:{sim_port}"
-    quoted = whiztap("client", address, "-p", "hunter2", "servo 3 1500")
-    words = whiztap("client", address, "-p", "hunter2", "servo", "3", "1500")
-    frame = whiztap("client", address, "-p", "hunter2", "raw rr1-3--1500--0-ss1")
+    quoted = run_cli("client", address, "-p", "hunter2", "servo 3 1500")
+    words = run_cli("client", address, "-p", "hunter2", "servo", "3", "1500")
+    frame = run_cli("client", address, "-p", "hunter2", "raw rr1-3--1500--0-ss1")
     assert quoted.returncode == words.returncode == frame.returncode == 0, (quoted.stderr, words.stderr, frame.stderr)
     assert quoted.stdout == words.stdout == "Normal Send: channel 3 -> 1500\n"
     assert frame.stdout.startswith("sent 18 bytes\n"), frame.stdout
@@ -90,8 +87,8 @@ def test_client_takes_a_command_quoted_or_as_words(sim_port):
 def test_sim_options_shape_the_server():
     proc, port = start_sim("--mode", "vpn", "--channels", "sensor:0-1,servo:2", "--camera", "none", "-q")
     try:
-        config = whiztap("client", f"127.0.0.1:{port}", "config", "--timeout", "5")
-        camera = whiztap("client", f"127.0.0.1:{port}", "camera", "--timeout", "0.3")
+        config = run_cli("client", f"127.0.0.1:{port}", "config", "--timeout", "5")
+        camera = run_cli("client", f"127.0.0.1:{port}", "camera", "--timeout", "0.3")
     finally:
         stop(proc)
     assert config.stdout == "Configuration Settings: 3 channels: sensor:0-1,servo:2\n"
@@ -117,7 +114,7 @@ def test_sim_port_in_use_is_one_line():
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        one_line_error(whiztap("sim", "--port", str(port)), f"cannot listen on 127.0.0.1:{port}")
+        one_line_error(run_cli("sim", "--port", str(port)), f"cannot listen on 127.0.0.1:{port}")
 
 
 @pytest.mark.parametrize("args, text", [
@@ -125,7 +122,7 @@ def test_sim_port_in_use_is_one_line():
     (["--password", ""], "needs a non-empty --password"),
 ])
 def test_sim_bad_options_are_one_line(args, text):
-    one_line_error(whiztap("sim", "--port", "0", *args), text)
+    one_line_error(run_cli("sim", "--port", "0", *args), text)
 
 
 # -- whiztap client ---------------------------------------------------------------------------------
@@ -133,7 +130,7 @@ def test_sim_bad_options_are_one_line(args, text):
 
 def test_client_to_an_unreachable_port_is_one_line():
     port = free_port()
-    one_line_error(whiztap("client", f"127.0.0.1:{port}", "config"), f"cannot connect to 127.0.0.1:{port}")
+    one_line_error(run_cli("client", f"127.0.0.1:{port}", "config"), f"cannot connect to 127.0.0.1:{port}")
 
 
 @pytest.mark.parametrize("address, text", [
@@ -142,17 +139,17 @@ def test_client_to_an_unreachable_port_is_one_line():
     ("127.0.0.1:70000", "needs a port number 0-65535"), (":5000", "must be HOST:PORT"),
 ])
 def test_client_bad_address_is_one_line(address, text):
-    one_line_error(whiztap("client", address, "config"), text)
+    one_line_error(run_cli("client", address, "config"), text)
 
 
 def test_client_wrong_or_missing_password_is_one_line(sim_port):
-    one_line_error(whiztap("client", f"127.0.0.1:{sim_port}", "-p", "nope", "config"), "Failed Validation")
-    one_line_error(whiztap("client", f"127.0.0.1:{sim_port}", "config"), "asks for a password")
+    one_line_error(run_cli("client", f"127.0.0.1:{sim_port}", "-p", "nope", "config"), "Failed Validation")
+    one_line_error(run_cli("client", f"127.0.0.1:{sim_port}", "config"), "asks for a password")
 
 
 def test_client_camera_writes_a_jpeg(sim_port, tmp_path):
     target = tmp_path / "pic.jpg"
-    result = whiztap("client", f"127.0.0.1:{sim_port}", "camera", "-o", str(target), "-p", "hunter2")
+    result = run_cli("client", f"127.0.0.1:{sim_port}", "camera", "-o", str(target), "-p", "hunter2")
     assert result.returncode == 0, result.stderr
     image = target.read_bytes()
     assert re.fullmatch(rf"camera: {len(image)} bytes jpeg, saved to .*pic.jpg\n", result.stdout)
@@ -161,7 +158,7 @@ def test_client_camera_writes_a_jpeg(sim_port, tmp_path):
 
 def test_client_reads_commands_from_stdin(sim_port):
     script = "servo 4 1800\nservo 4\n# a comment\n\nswitch 7 on\nbogus\nrr1-0--0--2-ss1\nquit\nsensor 12\n"
-    result = whiztap("client", f"127.0.0.1:{sim_port}", "-p", "hunter2", stdin=script)
+    result = run_cli("client", f"127.0.0.1:{sim_port}", "-p", "hunter2", stdin=script)
     assert result.returncode == 1  # one command failed
     lines = result.stdout.splitlines()
     assert lines[0] == "Normal Send: channel 4 -> 1800"
@@ -175,7 +172,7 @@ def test_help_is_fast_to_load():
             "print(sorted(m for m in ('PIL', 'textual', 'scapy', 'whiztap.sniffer.sim.simulator') if m in sys.modules))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
     assert result.stdout == "[]\n", result.stderr
-    listing = whiztap("--help").stdout
+    listing = run_cli("--help").stdout
     assert re.search(r"^\s+client\s", listing, re.M) and re.search(r"^\s+sim\s", listing, re.M)
 
 
@@ -244,10 +241,10 @@ def test_client_refuses_a_command_that_breaks_the_spec_unless_raw():
     once (not a timeout); --raw sends it on purpose."""
     proc, port = start_sim("-q", "--mode", "vpn")
     try:
-        bad_value = whiztap("client", f"127.0.0.1:{port}", "servo 3 9999", "--timeout", "30")
-        too_wide = whiztap("client", f"127.0.0.1:{port}", "servo 3 99999", "--timeout", "30")
-        bad_channel = whiztap("client", f"127.0.0.1:{port}", "sensor 99", "--timeout", "30")
-        sent = whiztap("client", f"127.0.0.1:{port}", "servo 3 99999", "--raw", "--timeout", "30")
+        bad_value = run_cli("client", f"127.0.0.1:{port}", "servo 3 9999", "--timeout", "30")
+        too_wide = run_cli("client", f"127.0.0.1:{port}", "servo 3 99999", "--timeout", "30")
+        bad_channel = run_cli("client", f"127.0.0.1:{port}", "sensor 99", "--timeout", "30")
+        sent = run_cli("client", f"127.0.0.1:{port}", "servo 3 99999", "--raw", "--timeout", "30")
     finally:
         stop(proc)
     one_line_error(bad_value, "breaks PW-RANGE-SEND-VALUE")

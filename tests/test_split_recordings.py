@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import subprocess
 from pathlib import Path
 
 from whiztap.analyzer.protocol.observations import Direction
@@ -16,15 +15,12 @@ from whiztap.sniffer.record.writer import RecordingFile
 
 from whiztap.sniffer.record.record_run import Recording, RecordSettings
 
-from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, Segment, rebuild_streams
+from tests.cli_support import run_cli
+from tests.record_support import LOCAL, WAIT, EchoServer, Segment, rebuild_streams
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
 CONFIG = b"sr1-\x02200200-ss1"
-
-
-def run(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
 
 
 def split_vpn_session(path: Path, parts: int = 3, idle_ticks: int = 0) -> list[str]:
@@ -54,16 +50,16 @@ def test_a_session_crossing_split_points_is_judged_as_one(tmp_path):
     files = split_vpn_session(tmp_path / "s.mcap")
     assert len(files) == 3
     for name in (files[0], tmp_path, str(tmp_path / "s-*.mcap"), files[1]):
-        result = run("analyze", name, "--format", "json")
+        result = run_cli("analyze", name, "--format", "json")
         assert result.returncode == 0, result.stdout + result.stderr  # no false config-first, no unanswered
         report = json.loads(result.stdout)
         assert report["rule_counts"] == {}
         assert len(report["connections"]) == 1
         assert {r["request"]: r["count"] for r in report["latency"]}["Sensor Request"] == 2
-    lines = [json.loads(line) for line in run("cat", files[0], "--format", "jsonl").stdout.splitlines()]
+    lines = [json.loads(line) for line in run_cli("cat", files[0], "--format", "jsonl").stdout.splitlines()]
     answers = [line for line in lines if line["kind"] == "response"]
     assert len(answers) == 2 and not any(line["violations"] for line in lines)
-    info = json.loads(run("info", files[0], "--format", "json").stdout)
+    info = json.loads(run_cli("info", files[0], "--format", "json").stdout)
     assert info["connections"] == 1 and [p["path"] for p in info["parts"]] == files
 
 
@@ -88,7 +84,7 @@ def test_two_recordings_in_one_folder_stay_two(tmp_path):
 def test_a_missing_middle_part_is_said_and_the_rest_is_judged(tmp_path):
     files = split_vpn_session(tmp_path / "s.mcap", parts=4)
     Path(files[1]).unlink()
-    result = run("analyze", files[0], "--format", "json")
+    result = run_cli("analyze", files[0], "--format", "json")
     assert "part 2 of this split recording is missing" in result.stderr
     assert "unexpected error" not in result.stderr
     assert result.returncode in (0, 1)
@@ -96,7 +92,7 @@ def test_a_missing_middle_part_is_said_and_the_rest_is_judged(tmp_path):
 
 def test_replay_takes_the_set(tmp_path):
     files = split_vpn_session(tmp_path / "s.mcap")
-    result = run("replay", files[0], "--dry-run", "--target", "127.0.0.1:1")
+    result = run_cli("replay", files[0], "--dry-run", "--target", "127.0.0.1:1")
     assert result.returncode == 0, result.stderr
     assert result.stdout.count("rr1-1--0--0-ss1") == 2
 

@@ -13,16 +13,15 @@ from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.sim.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
 from whiztap.sniffer.sim.dialogue import Dialogue
 from whiztap.sniffer.replay.stub import Stub
+from tests.cli_support import run_process_async, start_process
 from tests.record_support import LOCAL, WAIT, both_ways, recording
 from tests.replay_support import (
     PASSWORD,
     SENSORS,
-    WHIZTAP,
     client_session,
     record,
     simulator,
     until_closed,
-    whiztap,
 )
 
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -90,18 +89,16 @@ async def test_whiztap_client_gets_what_the_simulator_gave_it(tmp_path):
     script = b"config\nsensor 12\nsensor 13\nservo 2 1500\nservo 2\nswitch 7 on\nsensor 12\n"
     path = tmp_path / "client.mcap"
     async with simulator(seed=1) as sim, recording(sim.port, path) as rec:
-        code, before, err = await whiztap("client", f"{LOCAL}:{rec.proxy.port}", "-p", PASSWORD, stdin=script)
+        code, before, err = await run_process_async("client", f"{LOCAL}:{rec.proxy.port}", "-p", PASSWORD, stdin=script)
         assert (code, err) == (0, "")
         await until_closed(sim)
         await rec.stop()
-    proc = await asyncio.create_subprocess_exec(
-        WHIZTAP, "stub", str(path), "--listen", "127.0.0.1:0", "--once", "--strict", "--password", PASSWORD,
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    proc = await start_process("stub", path, "--listen", "127.0.0.1:0", "--once", "--strict", "--password", PASSWORD)
     first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
     m = re.match(r"whiztap stub: serving .*client\.mcap on 127\.0\.0\.1:(\d+) \(1 recorded connection\)$",
                  first.rstrip("\n"))
     assert m, first
-    code, after, err = await whiztap("client", f"{LOCAL}:{m.group(1)}", "-p", PASSWORD, stdin=script)
+    code, after, err = await run_process_async("client", f"{LOCAL}:{m.group(1)}", "-p", PASSWORD, stdin=script)
     assert (code, err) == (0, "")
     assert after == before and "sensor 12 = " in after
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
@@ -111,9 +108,7 @@ async def test_whiztap_client_gets_what_the_simulator_gave_it(tmp_path):
 
 async def test_strict_fails_when_a_request_has_no_recorded_answer(recorded):
     path, _ = recorded
-    proc = await asyncio.create_subprocess_exec(
-        WHIZTAP, "stub", str(path), "--listen", "127.0.0.1:0", "--once", "--strict",
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    proc = await start_process("stub", path, "--listen", "127.0.0.1:0", "--once", "--strict")
     port = int(re.search(rb":(\d+) \(", await asyncio.wait_for(proc.stdout.readline(), WAIT)).group(1))
     async with await Client.connect(LOCAL, port, password="any password", timeout=WAIT) as client:
         assert await client.sensor(12) > 0
@@ -168,12 +163,12 @@ async def test_each_client_connection_is_answered_from_its_recorded_connection(t
 
 async def test_stub_command_errors(tmp_path, recorded):
     path, _ = recorded
-    code, out, err = await whiztap("stub", str(tmp_path / "nothing.mcap"))
+    code, out, err = await run_process_async("stub", str(tmp_path / "nothing.mcap"))
     assert code == 2 and err == f"whiztap: {tmp_path / 'nothing.mcap'}: no such file (see 'whiztap stub --help')\n"
     blocker = await asyncio.start_server(lambda r, w: None, LOCAL, 0)
     port = blocker.sockets[0].getsockname()[1]
     try:
-        code, out, err = await whiztap("stub", str(path), "--listen", f"{LOCAL}:{port}")
+        code, out, err = await run_process_async("stub", str(path), "--listen", f"{LOCAL}:{port}")
     finally:
         blocker.close()
     assert code == 2 and err.startswith(f"whiztap: cannot listen on {LOCAL}:{port}: ") and err.count("\n") == 1
@@ -181,9 +176,7 @@ async def test_stub_command_errors(tmp_path, recorded):
 
 async def test_sigterm_stops_the_stub_with_a_summary(recorded):
     path, _ = recorded
-    proc = await asyncio.create_subprocess_exec(
-        WHIZTAP, "stub", str(path), "--listen", "127.0.0.1:0", "-q",
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    proc = await start_process("stub", path, "--listen", "127.0.0.1:0", "-q")
     port = int(re.search(rb":(\d+) \(", await asyncio.wait_for(proc.stdout.readline(), WAIT)).group(1))
     async with await Client.connect(LOCAL, port, password="x") as client:
         await client.fetch_configuration()

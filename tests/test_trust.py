@@ -8,7 +8,8 @@ import subprocess
 
 import pytest
 
-from tests.record_support import WHIZTAP, record_dialogue
+from tests.cli_support import WHIZTAP, run_cli, start_process
+from tests.record_support import record_dialogue
 
 CONFIG = b"sr1-\x18" + b"200" * 24 + b"-ss1"  # 24 sensors
 FETCH_CONFIG = b"rr1-24--0--0-ss1"
@@ -22,15 +23,11 @@ async def config_then(path, config: bytes, command: bytes, answer: bytes):
         [("send", FETCH_CONFIG), ("recv", len(config)), ("send", command), ("recv", len(answer))])
 
 
-def run(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
-
-
 def judged(path) -> tuple[dict, list[dict]]:
     """The report and cat's items; neither may crash."""
-    report = run("analyze", path, "--format", "json")
+    report = run_cli("analyze", path, "--format", "json")
     assert report.returncode in (0, 1), report.stderr
-    items = run("cat", path, "--format", "jsonl")
+    items = run_cli("cat", path, "--format", "jsonl")
     assert items.returncode == 0, items.stderr
     assert "unexpected error" not in report.stderr + items.stderr
     return json.loads(report.stdout), [json.loads(line) for line in items.stdout.splitlines()]
@@ -42,7 +39,7 @@ async def test_an_answer_that_does_not_parse_is_judged_not_a_crash(tmp_path, ans
     report, items = judged(path)
     assert not report["passed"]
     assert any(line["kind"] == "response" and line["violations"] for line in items)
-    live = run("decode", "-f", answer.decode("latin-1").encode("unicode_escape").decode())
+    live = run_cli("decode", "-f", answer.decode("latin-1").encode("unicode_escape").decode())
     assert live.returncode == 1 and "unexpected error" not in live.stderr
 
 
@@ -92,15 +89,15 @@ async def test_a_report_on_nothing_does_not_pass(tmp_path):
         from tests.record_support import play_client
 
         await play_client(rec.proxy.port, [("send", b"rr1-24--0--0-ss1"), ("sleep", 0.5)])
-    foreign = run("analyze", foreign_mcap(tmp_path / "other.mcap"))  # says what it found, fails the gate
+    foreign = run_cli("analyze", foreign_mcap(tmp_path / "other.mcap"))  # says what it found, fails the gate
     assert foreign.returncode == 2 and "not a whiztap recording" in foreign.stderr and "/foo" in foreign.stderr
     for path, why in ((tmp_path / "empty.mcap", "no connection"), (unreached, "never reached")):
         for fmt in ("text", "json", "junit", "markdown"):
-            result = run("analyze", path, "--format", fmt)
+            result = run_cli("analyze", path, "--format", fmt)
             assert result.returncode == 3, (path, fmt, result.stdout, result.stderr)
             assert why in result.stdout and why in result.stderr and len(result.stderr.splitlines()) == 1
             assert "PASS" not in result.stdout
-        allowed = run("analyze", path, "--allow-empty", "--format", "json")
+        allowed = run_cli("analyze", path, "--allow-empty", "--format", "json")
         assert allowed.returncode == 0 and json.loads(allowed.stdout)["passed"]
 
 
@@ -108,8 +105,8 @@ async def test_markdown_never_cuts_a_frame_silently(tmp_path):
     long_garbage = b"\x01" * 300
     path = await record_dialogue(tmp_path / "r.mcap", [("recv", 16 + len(long_garbage))],
                                  [("send", b"rr1-24--0--0-ss1" + long_garbage)])
-    md = run("analyze", path, "--format", "markdown").stdout
-    data = json.loads(run("analyze", path, "--format", "json").stdout)
+    md = run_cli("analyze", path, "--format", "markdown").stdout
+    data = json.loads(run_cli("analyze", path, "--format", "json").stdout)
     [garbage] = [v for v in data["violations"] if v["rule_id"] == "PW-FRAME-GARBAGE"]
     assert garbage["frame"] == "\\x01" * 300  # whole in the JSON
     assert "\\x01" * 20 + "…`" in md and "\\x0…" not in md
@@ -119,8 +116,9 @@ def test_dash_is_standard_output_and_a_closed_pipe_is_quiet():
     from tests.test_analyze import CLEAN
 
     for args in (("analyze", CLEAN, "-o", "-", "--format", "json"), ("cat", CLEAN, "-o", "-")):
-        result = run(*args)
+        result = run_cli(*args)
         assert result.returncode == 0 and result.stdout, args
+    # processes of their own: a real pipe that closes early
     piped = subprocess.run(f"{WHIZTAP} cat {CLEAN} | head -1", shell=True, capture_output=True, text=True,
                            timeout=60, executable="/bin/bash")
     code = subprocess.run(f"set -o pipefail; {WHIZTAP} cat {CLEAN} | head -1 >/dev/null", shell=True,
@@ -132,7 +130,7 @@ def test_dash_is_standard_output_and_a_closed_pipe_is_quiet():
 @pytest.mark.parametrize("args", [("record", "--upstream", "127.0.0.1:1"), ("capture", "--pcap", "x", "--port", "1"),
                                   ("recover", "x.part"), ("replay", "missing.mcap", "--target", "127.0.0.1:1")])
 def test_a_recording_cannot_go_to_standard_output_and_no_file_named_dash_appears(tmp_path, args):
-    result = subprocess.run([WHIZTAP, *args, "-o", "-"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    result = run_cli(*args, "-o", "-", cwd=tmp_path)
     assert result.returncode == 2 and "-o -: a recording is written to a file" in result.stderr
     assert list(tmp_path.iterdir()) == []
 
@@ -141,9 +139,9 @@ def test_cat_takes_the_filter_bars_words():
     from tests.test_analyze import CLEAN
 
     lines = [json.loads(line) for line in
-             run("cat", CLEAN, "--format", "jsonl", "--filter", "kind:response ch:12").stdout.splitlines()]
+             run_cli("cat", CLEAN, "--format", "jsonl", "--filter", "kind:response ch:12").stdout.splitlines()]
     assert lines and all(line["kind"] == "response" and line["fields"]["channel"] == 12 for line in lines)
-    bad = run("cat", CLEAN, "--filter", "kind:nonsense")
+    bad = run_cli("cat", CLEAN, "--filter", "kind:nonsense")
     assert bad.returncode == 2 and bad.stderr.startswith("whiztap: --filter: kind:")
 
 
@@ -156,8 +154,7 @@ async def test_cat_follow_tails_a_recording_being_written(tmp_path):
     out = tmp_path / "live.mcap"
     async with Simulator(mode="vpn", seed=1) as sim:
         rec = await RecordProcess.start(sim.port, out)
-        follower = await asyncio.create_subprocess_exec(
-            WHIZTAP, "cat", "--follow", f"{out}.part", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        follower = await start_process("cat", "--follow", f"{out}.part")
         await play_client(rec.port, [("send", b"rr1-24--0--0-ss1"), ("recv", 4 + 1 + 3 * 24 + 4)])
         first = await asyncio.wait_for(follower.stdout.readline(), 20)
         assert b"rr1-24--0--0-ss1" in first  # shown while the recording goes on
@@ -176,8 +173,8 @@ async def test_info_and_cat_say_a_recording_is_being_written_not_a_crash_leftove
         rec = await RecordProcess.start(sim.port, out)
         await play_client(rec.port, [("send", b"rr1-24--0--0-ss1"), ("recv", 4 + 1 + 3 * 24 + 4)])
         try:
-            info = run("info", f"{out}.part")
-            cat = run("cat", f"{out}.part")
+            info = run_cli("info", f"{out}.part")
+            cat = run_cli("cat", f"{out}.part")
         finally:
             await rec.finish()
     assert "being written by a running recorder" in info.stdout and "crash" not in info.stdout
@@ -197,7 +194,7 @@ async def test_a_camera_image_of_several_megabytes_is_one_frame_end_to_end(tmp_p
     [image] = [i for i in items if i["kind"] == "image"]
     assert image["fields"]["data"] == len(picture)
     assert {r["request"] for r in report["latency"]} >= {"Fetch Camera Image"}
-    small = run("analyze", path, "--max-image", "1M", "--format", "json")  # the bound is the user's to set
+    small = run_cli("analyze", path, "--max-image", "1M", "--format", "json")  # the bound is the user's to set
     assert "PW-FRAME-OVERSIZE" in json.loads(small.stdout)["rule_counts"]
 
 
@@ -257,16 +254,16 @@ def test_columns_is_honoured_on_a_terminal():
 def test_the_answer_deadline_is_set_from_the_command_line():
     from tests.test_analyze import CLEAN
 
-    default = json.loads(run("analyze", CLEAN, "--format", "json").stdout)
-    impatient = json.loads(run("analyze", CLEAN, "--format", "json", "--answer-timeout", "0.000001").stdout)
+    default = json.loads(run_cli("analyze", CLEAN, "--format", "json").stdout)
+    impatient = json.loads(run_cli("analyze", CLEAN, "--format", "json", "--answer-timeout", "0.000001").stdout)
     assert "PW-PAIR-UNANSWERED" not in default["rule_counts"]
     assert impatient["rule_counts"].get("PW-PAIR-UNANSWERED", 0) > 0
     assert "PW-PAIR-UNSOLICITED" not in impatient["rule_counts"]  # late answers still pair
-    lines = run("cat", CLEAN, "--format", "jsonl", "--answer-timeout", "0.000001").stdout
+    lines = run_cli("cat", CLEAN, "--format", "jsonl", "--answer-timeout", "0.000001").stdout
     assert "PW-PAIR-UNANSWERED" in lines
 
 
 def test_capture_on_an_interface_that_does_not_exist_is_one_line(tmp_path):
-    result = run("capture", "--iface", "nosuch0", "--port", "5000", "-o", tmp_path / "x.mcap")
+    result = run_cli("capture", "--iface", "nosuch0", "--port", "5000", "-o", tmp_path / "x.mcap")
     assert result.returncode == 2 and result.stderr.count("\n") == 1
     assert "cannot capture on nosuch0: no such interface" in result.stderr

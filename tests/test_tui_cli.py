@@ -2,24 +2,16 @@
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from whiztap.analyzer.cli.analyze import analyse_file
+from tests.cli_support import run_cli
 from tests.tui_support import ROOT, SAMPLES
 from whiztap.tui.demo import DELIBERATE_RULES
 
-WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
-
-
-def run(*args, cwd=None):  # noqa: ANN001
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120,
-                          stdin=subprocess.DEVNULL, cwd=cwd)
-
-
 def test_the_headless_demo_prints_its_report_and_exits_0(tmp_path):
-    result = run("demo", "--headless", "--seconds", "2", "-o", tmp_path / "demo.mcap")
+    result = run_cli("demo", "--headless", "--seconds", "2", "-o", tmp_path / "demo.mcap")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert "whiztap conformance report" in out and "winsock" in out
@@ -33,7 +25,7 @@ def test_the_headless_demo_prints_its_report_and_exits_0(tmp_path):
 
 
 def test_the_demo_without_a_terminal_runs_headless_and_says_so(tmp_path):
-    result = run("demo", "--seconds", "1", cwd=tmp_path)  # stdin and stdout are not a terminal
+    result = run_cli("demo", "--seconds", "1", cwd=tmp_path)  # stdin and stdout are not a terminal
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("whiztap demo: no terminal, so no TUI: running headless for 1 s")
     assert (tmp_path / "demo.mcap").exists()
@@ -55,13 +47,13 @@ def test_make_demo_runs_the_demo():
     ((SAMPLES / "vpn.mcap", "--checksum-rule", "nope"), "nope"),
 ])
 def test_tui_mistakes_are_one_line_and_exit_2(args, says):
-    result = run("tui", *args)
+    result = run_cli("tui", *args)
     assert result.returncode == 2
     assert says in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
 def test_tui_without_a_terminal_says_what_to_use_instead():
-    result = run("tui", SAMPLES / "vpn.mcap")
+    result = run_cli("tui", SAMPLES / "vpn.mcap")
     assert result.returncode == 2 and "needs a terminal" in result.stderr and "whiztap cat" in result.stderr
 
 

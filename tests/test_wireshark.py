@@ -26,7 +26,7 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.wireshark.dissector import generate, tables
 from whiztap.sniffer.wireshark.export import export_pcapng
-from tests.record_support import WHIZTAP
+from tests.cli_support import run_cli
 
 TSHARK = shutil.which("tshark")
 pytestmark = pytest.mark.skipif(TSHARK is None, reason="tshark is not installed (make test installs it with apt-get "
@@ -42,7 +42,7 @@ SEVERITY = {"error": 0x00800000, "warning": 0x00600000, "info": 0x00400000}  # W
 def lua(tmp_path_factory) -> Path:
     """The dissector, written by the command as a user runs it."""
     path = tmp_path_factory.mktemp("lua") / "progwhiz.lua"
-    done = subprocess.run([WHIZTAP, "wireshark-dissector", "-o", str(path)], capture_output=True, text=True, timeout=60)
+    done = run_cli("wireshark-dissector", "-o", path)
     assert done.returncode == 0 and done.stderr == "", done.stderr
     return path
 
@@ -67,8 +67,7 @@ def _tshark(pcap: Path, lua: Path, *fields: str, args: tuple[str, ...] = ()) -> 
 
 
 def _analyzer_items(recording: Path, *args: str) -> list[dict]:
-    done = subprocess.run([WHIZTAP, "cat", str(recording), "--format", "jsonl", *args], capture_output=True,
-                          text=True, timeout=120)
+    done = run_cli("cat", recording, "--format", "jsonl", *args)
     assert done.returncode == 0, done.stderr
     return [json.loads(line) for line in done.stdout.splitlines()]
 
@@ -201,15 +200,15 @@ def test_the_dissector_is_generated_from_the_analyzers_tables():
 
 
 def test_the_command_refuses_what_it_should_and_helps(tmp_path):
-    printed = subprocess.run([WHIZTAP, "wireshark-dissector"], capture_output=True, text=True, timeout=60)
+    printed = run_cli("wireshark-dissector")
     assert printed.returncode == 0 and printed.stdout.startswith("-- Progwhiz Robotics Server API dissector")
     taken = tmp_path / "progwhiz.lua"
     taken.write_text("mine")
     for args, says in ((["-o", str(taken)], "exists; use --force"), (["--checksum-rule", "nope"], "nope")):
-        refused = subprocess.run([WHIZTAP, "wireshark-dissector", *args], capture_output=True, text=True, timeout=60)
+        refused = run_cli("wireshark-dissector", *args)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and says in refused.stderr
     assert taken.read_text() == "mine"
-    helped = subprocess.run([WHIZTAP, "wireshark-dissector", "--help"], capture_output=True, text=True, timeout=60)
+    helped = run_cli("wireshark-dissector", "--help")
     assert helped.returncode == 0 and "progwhiz.channel == 12" in helped.stdout
 
 

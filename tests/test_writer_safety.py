@@ -12,7 +12,6 @@ import os
 import pty
 import re
 import signal
-import subprocess
 import termios
 from pathlib import Path
 
@@ -20,13 +19,10 @@ import pytest
 from mcap.reader import make_reader
 
 from whiztap.analyzer.recording.format import TOPIC_READS
-from tests.record_support import LOCAL, WAIT, WHIZTAP, EchoServer, RecordProcess, rebuild_streams
+from tests.cli_support import WHIZTAP, run_cli, start_process
+from tests.record_support import LOCAL, WAIT, EchoServer, RecordProcess, rebuild_streams
 
 BAD_REQUEST = b"rr1-99--5--0-ss1"  # channel 99: a violation each time it is sent (and echoed)
-
-
-def run(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run([WHIZTAP, *map(str, args)], capture_output=True, text=True, timeout=120)
 
 
 def _children(pid: int) -> list[int]:
@@ -122,7 +118,7 @@ async def test_killing_the_proxy_alone_finishes_the_file(tmp_path, options):
     for f in files:
         assert _finished(f)["/violations"]
     assert json.loads(list(_messages(files[-1], "/tcp/events"))[-1])["event"] == "recording_stopped"
-    result = run("analyze", files[0], "--format", "json")
+    result = run_cli("analyze", files[0], "--format", "json")
     assert result.returncode == 1 and '"PW-RANGE-CHANNEL"' in result.stdout, result.stderr
 
 
@@ -231,9 +227,8 @@ async def test_split_size_holds_under_pipelined_load(tmp_path):
 async def _record_split(tmp_path: Path, out: Path, *args: str) -> tuple[int, str]:
     """Record enough through a 16k split to make several parts; exit status, stderr."""
     async with EchoServer() as server:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}", "-o", str(out),
-            "--split-size", "16k", *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
+                                   "-o", out, "--split-size", "16k", *args)
         rec = RecordProcess(proc)
         first = await asyncio.wait_for(proc.stdout.readline(), WAIT)
         if not first:
@@ -410,9 +405,8 @@ async def test_quiet_record_still_says_where_it_listens(tmp_path):
     prints that one line (the same as without -q) and nothing else."""
     out = tmp_path / "q.mcap"
     async with EchoServer() as server:
-        proc = await asyncio.create_subprocess_exec(
-            WHIZTAP, "record", "-q", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
-            "-o", str(out), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        proc = await start_process("record", "-q", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{server.port}",
+                                   "-o", out)
         rec = RecordProcess(proc)
         first = (await asyncio.wait_for(proc.stdout.readline(), WAIT)).decode()
         m = re.fullmatch(rf"recording 127\.0\.0\.1:(\d+) -> {LOCAL}:{server.port} into {re.escape(str(out))} "

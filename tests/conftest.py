@@ -1,0 +1,40 @@
+"""What every test process shares: a runtime folder of its own.
+
+``make test`` runs the tests in several processes at once (pytest-xdist).
+``whiztap record --control`` puts its control socket in $XDG_RUNTIME_DIR/whiztap,
+where ``whiztap ctl`` looks for it and where a new recorder clears the sockets
+of killed ones: each test process gets its own folder there, so recorders
+started by tests in other processes, or by the developer, are never found,
+cleared or listed by a test's.  Short (a Unix socket path holds at most 107
+bytes), under /tmp, and removed at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+import pytest
+
+_RUNTIME = "XDG_RUNTIME_DIR"
+_runtime_key = pytest.StashKey[tuple[str, "str | None"]]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    folder = tempfile.mkdtemp(prefix="wt-", dir="/tmp")
+    os.chmod(folder, 0o700)
+    config.stash[_runtime_key] = (folder, os.environ.get(_RUNTIME))
+    os.environ[_RUNTIME] = folder
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    folder, before = config.stash.get(_runtime_key, (None, None))
+    if folder is None:
+        return
+    if before is None:
+        os.environ.pop(_RUNTIME, None)
+    else:
+        os.environ[_RUNTIME] = before
+    shutil.rmtree(folder, ignore_errors=True)
+
