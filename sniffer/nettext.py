@@ -7,6 +7,8 @@ import ipaddress
 import os
 import socket
 
+from whiztap.analyzer.errors import WhiztapError
+
 
 def reason(e: OSError) -> str:
     """'Connection refused', 'Name or service not known', ...
@@ -40,7 +42,7 @@ def show_address(host: str, port: int) -> str:
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
-class AddressError(ValueError):
+class AddressError(WhiztapError, ValueError):
     """An address the user typed is not HOST:PORT; the message is one line for them."""
 
 

@@ -245,7 +245,7 @@ def _recorded(background: BackgroundLoop, path: Path, target: tuple[str, int]) -
     recording = Recording(RecordSettings(("127.0.0.1", 0), target, str(path), quiet=True))
     background.run(recording.start())
     try:
-        yield WhiztapServer("127.0.0.1", recording.proxy.port, path, True)  # type: ignore[union-attr]
+        yield WhiztapServer("127.0.0.1", recording.port, path, True)
     finally:
         background.run(recording.stop())
         if recording.error:

@@ -99,12 +99,14 @@ class WhiztapProxy:
         except BaseException:
             shutil.rmtree(self._folder, ignore_errors=True)
             raise
-        self.port = self._recording.proxy.port  # type: ignore[union-attr]
+        self.port = self._recording.port
         return self
 
     @property
     def controller(self) -> Controller:
-        return self._recording.controller  # type: ignore[return-value]
+        controller = self._recording.controller
+        assert controller is not None  # this proxy always stands in the middle
+        return controller
 
     @property
     def address(self) -> str:
@@ -115,7 +117,9 @@ class WhiztapProxy:
     def control(self) -> str:
         """The control API's Unix socket, for ``whiztap ctl --control PATH``
         or a tool under test that drives the proxy over HTTP."""
-        return self._recording.control_url  # type: ignore[return-value]
+        url = self._recording.control_url
+        assert url is not None  # this proxy always serves its control API
+        return url
 
     def call(self, function: Callable[..., Any], *args: Any) -> Any:
         """``function(*args)`` on the proxy's loop, and its result (or its exception)."""

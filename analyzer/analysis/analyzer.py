@@ -29,7 +29,7 @@ from whiztap.analyzer.analysis.facts import (
 from whiztap.analyzer.analysis.sides import CLIENT, SERVER, Settled, Sides, Verdict, side_of
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.messages import ServoPositionRequest, SetConfiguration
+from whiztap.analyzer.protocol.messages import ChannelResponse, ServoPositionRequest, SetConfiguration
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.session import Limits, Session
@@ -85,8 +85,8 @@ class Analyzer:
         """One traffic event; returns the session's events (for views like ``cat``).
         In the middle, the session takes a read once its delivery shows whether
         the proxy changed it (``Sides``): its events come with that event."""
-        if type(event) is not Data:
-            return self._connection_event(event)  # type: ignore[arg-type]
+        if not isinstance(event, Data):
+            return self._connection_event(event)
         conn = event.conn
         sides = self._sides
         if sides is not None:
@@ -114,35 +114,36 @@ class Analyzer:
         events = self.traffic.receive(event)
         if events:
             self._collect(conn, events)
-            self._sides.batch(conn, SERVER if event.direction is Direction.S2C else CLIENT)  # type: ignore[union-attr]
+            if self._sides is not None:  # always: only the middle's Sides calls this
+                self._sides.batch(conn, SERVER if event.direction is Direction.S2C else CLIENT)
         if event.t_ns < self._bin_second * NS:  # it waited (a recording's times never go back)
             self._bin(conn, self.sessions[conn], event.t_ns // NS)
         return events
 
-    def _connection_event(self, event: ConnectionEvent) -> list[Event]:
+    def _connection_event(self, event: Delivered | Intervention | ConnectionEvent) -> list[Event]:
         """Names, notes and closes; a gap ends the session (``Traffic``)."""
         kind = type(event)
-        if kind is RecordingStarted or kind is RecordingStopped:
+        if isinstance(event, (RecordingStarted, RecordingStopped)):
             return []
-        if kind is Delivered or kind is Intervention:
-            return self._middle_event(event)  # type: ignore[arg-type]
+        if isinstance(event, (Delivered, Intervention)):
+            return self._middle_event(event)
         summary = self.summaries.setdefault(event.conn, ConnectionSummary(self.file, event.conn))
-        if kind is Opened or kind is Continued:
-            summary.client = event.client or summary.client  # type: ignore[union-attr]
-            summary.upstream = event.upstream or summary.upstream  # type: ignore[union-attr]
+        if isinstance(event, (Opened, Continued)):
+            summary.client = event.client or summary.client
+            summary.upstream = event.upstream or summary.upstream
             if kind is Continued:
                 summary.notes.append("continues a connection from the previous file")
-        elif kind is UpstreamFailed:
-            summary.notes.append(f"upstream failed: {event.detail}")  # type: ignore[union-attr]
-        elif kind is Gap:
+        elif isinstance(event, UpstreamFailed):
+            summary.notes.append(f"upstream failed: {event.detail}")
+        elif isinstance(event, Gap):
             # a capture's hole, or bytes the proxy forwarded unrecorded (--when-behind gap): the detail says which
-            why = event.detail or "bytes missing from the recording"  # type: ignore[union-attr]
-            length = event.length  # type: ignore[union-attr]
-            direction = event.direction  # type: ignore[union-attr]
+            why = event.detail or "bytes missing from the recording"
+            length = event.length
+            direction = event.direction
             summary.notes.append(f"gap of {plural(length, 'byte')} in {direction}: {why}" if length is not None
                                  else f"gap in {direction}: {why}")
-        elif kind is Closed:
-            summary.closed_by = event.by or ""  # type: ignore[union-attr]
+        elif isinstance(event, Closed):
+            summary.closed_by = event.by or ""
         sides = self._sides
         held = None
         if sides is not None and kind in ENDS:  # the sessions take it: a read held was never delivered before it
@@ -245,7 +246,7 @@ class Analyzer:
         values = result.values
         response, set_config = ItemKind.RESPONSE, ItemKind.SET_CONFIG
         for e in events:
-            if e.__class__ is LateViolation:
+            if isinstance(e, LateViolation):
                 title = None
                 if e.violation.rule_id == "PW-PAIR-UNANSWERED":
                     title = e.about.message.title if e.about.message is not None else "request"
@@ -256,14 +257,14 @@ class Analyzer:
                     self._violation(conn, v, e, e.item.t_end_ns, late=False)
             kind = e.item.kind
             if kind is response:
-                request = e.answers
-                if request is not None and e.message is not None:  # an answer may not parse
+                request, answer = e.answers, e.message
+                if request is not None and isinstance(answer, ChannelResponse):  # an answer may not parse
                     servo = request.message.__class__ is ServoPositionRequest
-                    key = ("servo" if servo else "sensor", e.message.channel)
+                    key = ("servo" if servo else "sensor", answer.channel)
                     series = values.get(key)
                     if series is None:
                         series = values[key] = Series()
-                    series.add(e.item.t_end_ns, e.message.data / 4 if servo else e.message.data)
+                    series.add(e.item.t_end_ns, answer.data / 4 if servo else answer.data)
             elif kind is set_config and isinstance(e.message, SetConfiguration):
                 m = e.message
                 result.set_configs.append(SetConfigCheck(

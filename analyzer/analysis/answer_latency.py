@@ -66,20 +66,19 @@ class AnswerLatencies:
     def receive(self, event: TrafficEvent) -> None:
         """One traffic event, into the views it belongs to (before the one
         session takes it, so that what it completes is known here first)."""
-        kind = type(event)
-        if kind is Data:
-            if event.direction is Direction.S2C:  # type: ignore[union-attr]
+        if type(event) is Data:
+            if event.direction is Direction.S2C:
                 self._server_events(event.conn, self._server.receive(event))
             else:
                 self._client_events(event.conn, self._client.receive(event))
-        elif kind is Delivered:
-            conn, direction, t_ns, data, _secret = event  # type: ignore[misc]
+        elif type(event) is Delivered:
+            conn, direction, t_ns, data, _secret = event
             data_event = Data(conn, direction, t_ns, data)
             if direction is Direction.C2S:
                 self._server_events(conn, self._server.receive(data_event))
             else:
                 self._client_events(conn, self._client.receive(data_event))
-        elif kind in _ENDS:
+        elif type(event) in _ENDS:
             self._server_events(event.conn, self._server.receive(event))
             self._client_events(event.conn, self._client.receive(event))
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.codec import MAX_SENSOR_DATA, MAX_SEND_VALUE, MAX_SERVO_DATA
 from whiztap.analyzer.protocol.describe import meaning, response_meaning
 from whiztap.analyzer.protocol.framing import ItemKind
@@ -74,7 +75,7 @@ FIELDS = ("kind", "message", "channel", "sensor_value", "servo_position", "data"
 IGNORABLE_KINDS = ("response", "config", "image", "handshake", "unframed", "sensor", "servo")
 
 
-class CompareError(ValueError):
+class CompareError(WhiztapError, ValueError):
     """A comparison rule that cannot be used (the message says why, in one line)."""
 
 
@@ -191,6 +192,11 @@ def answer_fields(answer: Observation) -> dict[str, Any]:
     return out
 
 
+def _numbers(a: object, b: object) -> tuple[float, float] | None:
+    """Both values, when both are numbers (so a tolerance or a range applies)."""
+    return (a, b) if isinstance(a, (int, float)) and isinstance(b, (int, float)) else None
+
+
 def _field_diffs(recorded: Observation, replayed: Observation, rules: CompareRules,
                  strict: bool, at_rest: bool) -> list[FieldDiff]:
     mine, theirs = answer_fields(recorded), answer_fields(replayed)
@@ -200,11 +206,13 @@ def _field_diffs(recorded: Observation, replayed: Observation, rules: CompareRul
             continue
         a, b = mine.get(name), theirs.get(name)
         limit = rules.tolerances.get(name)
-        numbers = isinstance(a, (int, float)) and isinstance(b, (int, float))
-        if limit is not None and numbers:
+        numbers = _numbers(a, b)
+        if limit is not None and numbers is not None:
+            a, b = numbers
             if abs(a - b) > limit:
                 diffs.append(FieldDiff(name, a, b, f"differs by {abs(a - b):g}, tolerance {limit:g}"))
-        elif name in VARYING and not strict and not (name == "servo_position" and at_rest) and numbers:
+        elif name in VARYING and not strict and not (name == "servo_position" and at_rest) and numbers is not None:
+            a, b = numbers
             low, high = VARYING[name]
             if b < low or (high is not None and b > high):
                 diffs.append(FieldDiff(name, a, b, f"out of range {low}-{high if high is not None else ''}"))
@@ -218,9 +226,10 @@ def compare(recorded: Observation | None, replayed: Observation | None, rules: C
             at_rest: bool = False) -> Verdict:
     """Judge one answer.  ``at_rest``: the recorded answer is a servo position
     reached and held (see ``ServoMotion``), so it must be equal, not just in range."""
-    if recorded is None and replayed is None:
+    answer = recorded if recorded is not None else replayed
+    if answer is None:
         return Verdict(Status.UNANSWERED)
-    if rules.mode is CompareMode.NONE or rules.ignores(recorded or replayed):  # type: ignore[arg-type]
+    if rules.mode is CompareMode.NONE or rules.ignores(answer):
         return Verdict(Status.IGNORED)
     if recorded is None:
         return Verdict(Status.EXTRA)

@@ -138,9 +138,9 @@ def _take(book: dict[Key, list[Credit]], untimed: Counter, wanted: Key, t_ns: in
     """The earliest credit that fits ``wanted`` and came no later than ``t_ns``, taken; its cause."""
     best: tuple[Key, int] | None = None
     for key, credits in book.items():
-        if credits and _fits(key, wanted) and credits[0].t_ns <= t_ns:
-            if best is None or credits[0].t_ns < book[best[0]][0].t_ns:
-                best = (key, 0)
+        if (credits and _fits(key, wanted) and credits[0].t_ns <= t_ns
+                and (best is None or credits[0].t_ns < book[best[0]][0].t_ns)):
+            best = (key, 0)
     if best is not None:
         return book[best[0]].pop(0).cause
     for key, n in untimed.items():

@@ -33,7 +33,7 @@ from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.recording.format import METADATA_NAME
 from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.analyzer.recording.sets import RecordingSet, scan_set
-from whiztap.analyzer.traffic import Closed, Data, Delivered, Opened, Traffic
+from whiztap.analyzer.traffic import Closed, Data, Delivered, Opened, Traffic, TrafficEvent
 
 C2S, S2C = Direction.C2S, Direction.S2C
 DEFAULT_ANSWER_TIMEOUT_NS = 5_000_000_000
@@ -187,7 +187,8 @@ def _checksum_rule(metadata: dict[str, dict[str, str]]) -> str:
         return DEFAULT_CHECKSUM_RULE
 
 
-def load_exchanges(recording, answer_timeout_ns: int = DEFAULT_ANSWER_TIMEOUT_NS) -> RecordedSessions:  # noqa: ANN001
+def load_exchanges(recording: RecordingSet | Path | str,
+                   answer_timeout_ns: int = DEFAULT_ANSWER_TIMEOUT_NS) -> RecordedSessions:
     """Read a recording (a ``RecordingSet`` or a path; all parts of a split
     one, as one); raises OSError, or RecordingError for a file that is no
     complete recording (one line).  ``answer_timeout_ns``: how long the
@@ -219,16 +220,16 @@ class _Reader:
         self.clients: dict[int, str] = {}
         self.start_ns: int | None = None
 
-    def receive(self, event) -> None:  # noqa: ANN001 - a traffic event
+    def receive(self, event: TrafficEvent) -> None:
         conn, kind = event.conn, type(event)
-        if kind is Opened:
+        if type(event) is Opened:
             self.clients[conn] = event.client
-            builder = self.builders[conn] = _Builder(conn, event.t_ns)
-            builder.rec.client = self.clients[conn]
-            builder.middle = self.middle
+            opened = self.builders[conn] = _Builder(conn, event.t_ns)
+            opened.rec.client = self.clients[conn]
+            opened.middle = self.middle
             return
         builder = self.builders.get(conn)
-        if kind is Data:
+        if type(event) is Data:
             if self.start_ns is None:
                 self.start_ns = event.t_ns
             if builder is None:  # a connection continued from a part not given
@@ -241,20 +242,20 @@ class _Reader:
         if kind is not Delivered:
             builder.observe(self.traffic.receive(event))
         if self.received is not None:
-            self._receive_received(builder, event)
+            self._receive_received(self.received, builder, event)
         if kind is Closed:
             self.done.append(self.builders.pop(conn).finish(self.modes.pop(conn, Mode.UNKNOWN)))
 
-    def _receive_received(self, builder: _Builder, event) -> None:  # noqa: ANN001
+    @staticmethod
+    def _receive_received(received: Traffic, builder: _Builder, event: TrafficEvent) -> None:
         """What the client sent, and what it received instead of what the server sent."""
-        kind = type(event)
-        if kind is Delivered:
+        if type(event) is Delivered:
             if event.direction is not S2C:
                 return
             event = Data(event.conn, S2C, event.t_ns, event.data)
-        elif kind is Data and event.direction is S2C:
+        elif type(event) is Data and event.direction is S2C:
             return
-        builder.observe_received(self.received.receive(event))  # type: ignore[union-attr]
+        builder.observe_received(received.receive(event))
 
     def finish(self) -> list[RecordedConnection]:
         if self.received is not None:

@@ -151,10 +151,10 @@ class Analysis:
             for t, v in series.points:
                 mine.add(t, v)
         self.frames += other.frames
-        for t in (other.first_ns, other.last_ns):
-            if t is not None:
-                self.first_ns = t if self.first_ns is None else min(self.first_ns, t)
-                self.last_ns = t if self.last_ns is None else max(self.last_ns, t)
+        for when in (other.first_ns, other.last_ns):
+            if when is not None:
+                self.first_ns = when if self.first_ns is None else min(self.first_ns, when)
+                self.last_ns = when if self.last_ns is None else max(self.last_ns, when)
         self.interventions.update(other.interventions)
         room = self.max_violations - len(self.effects)
         self.effects += other.effects[:max(room, 0)]

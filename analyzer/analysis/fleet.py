@@ -29,13 +29,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from whiztap.analyzer.analysis.facts import NS, Analysis
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.rules import RULES, Severity
 
 DAY_SOURCE = "start_time"  # what a recording's day is taken from (the report says so)
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$")
 
 
-class GroupByError(ValueError):
+class GroupByError(WhiztapError, ValueError):
     """A --group-by that names no usable key; one line."""
 
 
@@ -78,12 +79,12 @@ def recording_day(metadata: dict[str, str], first_ns: int | None) -> str | None:
     except ValueError:
         return _date(first_ns) if first_ns is not None else None
     if start.tzinfo is None:
-        start = start.replace(tzinfo=datetime.timezone.utc)
-    return start.astimezone(datetime.timezone.utc).date().isoformat()
+        start = start.replace(tzinfo=datetime.UTC)
+    return start.astimezone(datetime.UTC).date().isoformat()
 
 
 def _date(ns: int) -> str:
-    return datetime.datetime.fromtimestamp(ns // NS, datetime.timezone.utc).date().isoformat()
+    return datetime.datetime.fromtimestamp(ns // NS, datetime.UTC).date().isoformat()
 
 
 def _files(analysis: Analysis, ignore: frozenset[str]) -> dict[str, tuple[str | None, _Tally]]:

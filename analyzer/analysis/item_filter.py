@@ -8,6 +8,7 @@ import shlex
 from dataclasses import dataclass
 from typing import Any
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Observation
 
@@ -64,7 +65,7 @@ FILTER_HELP = ("conn:N[,N]  dir:c2s|s2c  kind:K[,K]  ch:N[,N]  since:S  until:S 
                f"{' '.join(INTERVENTION_WORDS)}  and any other words: text in the bytes or the meaning")
 
 
-class FilterSyntaxError(ValueError):
+class FilterSyntaxError(WhiztapError, ValueError):
     """The filter bar's text does not parse; the message says which word."""
 
 

@@ -21,9 +21,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from whiztap.analyzer.analysis.facts import Analysis
+from whiztap.analyzer.errors import WhiztapError
 
 
-class RunnerError(Exception):
+class RunnerError(WhiztapError):
     """A runner cannot do the work (a cluster unreachable, no workers...); one line."""
 
 

@@ -82,7 +82,8 @@ CAUSES_SHOWN = 3  # causes named in the detail of a violation only the client sa
 Verdict = tuple[ViolationRecord, str | None]  # a violation, and the title of the request it says was never answered
 _Held = tuple[ViolationRecord, str | None, Key | None]  # a verdict, and what pairs the request or answer it is about
 MakeRecord = Callable[[int, Violation, Observation, int, bool], ViolationRecord]
-_Key = tuple[str, str, int, int]  # rule, direction, the frame's length and hash: the same violation in both views
+# rule, direction, the frame's length and hash: the same violation in both views
+_Key = tuple[str, str | None, int, int]
 
 
 def side_of(rule_id: str, direction: str | None) -> str:
@@ -178,21 +179,21 @@ class Sides:
         """One traffic event, into the views it belongs to; what the one
         session made of the reads it was handed meanwhile."""
         kind = type(event)
-        if kind is Data:
+        if type(event) is Data:
             c = self._conns.get(event.conn) or self._conn(event.conn)
             if c.views:
-                events = self._read(event)  # type: ignore[arg-type]
-                self._feed(SERVER if event.direction is Direction.S2C else CLIENT, event)  # type: ignore[union-attr]
+                events = self._read(event)
+                self._feed(SERVER if event.direction is Direction.S2C else CLIENT, event)
                 return events
-            if not c.step.hold(event):  # type: ignore[arg-type]
+            if not c.step.hold(event):
                 return self._diverge(event.conn, c) + self.receive(event)
             self.holder = event.conn
             return []
-        if kind is Delivered:
-            conn, direction, t_ns, data, _secret = event  # type: ignore[misc]
+        if type(event) is Delivered:
+            conn, direction, t_ns, data, _secret = event
             c = self._conns.get(conn) or self._conn(conn)
             c.middle = True
-            events: list[Event] = []
+            events = []
             if not c.views:
                 try:
                     read = c.step.deliver(direction, t_ns, data)
@@ -206,18 +207,18 @@ class Sides:
                     return self._read(read)
             self._feed(SERVER if direction is Direction.C2S else CLIENT, Data(conn, direction, t_ns, data))
             return events
-        if kind is Intervention:
+        if type(event) is Intervention:
             c = self._conn(event.conn)
             c.middle = True
             events = [] if c.views else self._diverge(event.conn, c)
-            c.causes[str(event.cause)] = None  # type: ignore[union-attr]
-            c.consequences.note(event)  # type: ignore[arg-type]
-            if event.action in ENDS and c.ended is None:  # type: ignore[union-attr]
-                c.ended = (event.t_ns, str(event.cause))  # type: ignore[union-attr]
+            c.causes[str(event.cause)] = None
+            c.consequences.note(event)
+            if event.action in ENDS and c.ended is None:
+                c.ended = (event.t_ns, str(event.cause))
             return events
         if kind is HalfClosed or kind is UpstreamFailed or kind is Closed or kind is Gap:
-            c = self._conns.get(event.conn)
-            if c is not None and c.views:
+            known = self._conns.get(event.conn)
+            if known is not None and known.views:
                 # a sender's FIN ends the stream in both views: the proxy passes it on once it has
                 # delivered what it holds, and the recording has no time of its own for that
                 self._feed(SERVER, event)
@@ -449,7 +450,9 @@ def _not_cut(kept: list[Verdict], ended: tuple[int, str] | None) -> list[Verdict
 
 
 def _cut(kept: list[Verdict], ended: tuple[int, str] | None) -> list[ViolationRecord]:
-    return [replace(record, cause=ended[1]) for record, _ in kept if _cut_short(record, ended)]  # type: ignore[index]
+    if ended is None:
+        return []
+    return [replace(record, cause=ended[1]) for record, _ in kept if _cut_short(record, ended)]
 
 
 def _experienced(record: ViolationRecord, c: _Connection) -> ViolationRecord:

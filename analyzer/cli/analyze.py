@@ -9,26 +9,32 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from whiztap.analyzer.analysis.report.formats import FORMATS
-from whiztap.analyzer.cli.errors import EXIT_USAGE, WhiztapError, fail, warn
+from whiztap.analyzer.cli.errors import EXIT_USAGE, CommandFailed, fail, warn
 from whiztap.analyzer.cli.output import check_output, output_stream
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
 from whiztap.analyzer.cli.progress import ByteProgress
 from whiztap.analyzer.cli.reading import recordings, scan_recording
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.analysis.facts import Analysis
+    from whiztap.analyzer.protocol.rules import Severity
+    from whiztap.analyzer.protocol.session import Limits
+    from whiztap.analyzer.recording.sets import RecordingSet
 
 _SEVERITIES = ["info", "warning", "error"]
 EXIT_NOTHING = 3  # analyze: the recordings hold no traffic to judge
 UNWRAPPED = 10_000  # the width text reports are laid out in when not on a terminal
 
 
-def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgress | None = None,  # noqa: ANN001
-                 label: str | None = None):  # noqa: ANN201 - an Analysis, imported lazily
+def analyse_file(recording: RecordingSet | Path | str, checksum_rule: str, limits: Limits | None = None,
+                 progress: ByteProgress | None = None, label: str | None = None) -> Analysis:
     """One recording (a ``RecordingSet``, a path or a URL's part) analysed in
     this process; ``limits``: an ``whiztap.analyzer.protocol.session.Limits``;
     ``label``: the name the report gives it (default: its first part's), for a
@@ -57,16 +63,16 @@ def analyse_file(recording, checksum_rule: str, limits=None, progress: ByteProgr
     return analysis
 
 
-def _analyse_or_say_why(recording, checksum_rule: str, limits, progress: ByteProgress | None = None,  # noqa: ANN001
-                        label: str | None = None):  # noqa: ANN201 - an Analysis or a line
+def _analyse_or_say_why(recording: RecordingSet, checksum_rule: str, limits: Limits,
+                        progress: ByteProgress | None = None, label: str | None = None) -> Analysis | str:
     """``analyse_file``, or the one-line reason it could not be read."""
     try:
         return analyse_file(recording, checksum_rule, limits, progress, label)
-    except WhiztapError as e:
+    except CommandFailed as e:
         return e.format_message()
 
 
-def _analyse_in_worker(args: tuple):  # noqa: ANN201 - an Analysis or a line
+def _analyse_in_worker(args: tuple[Any, ...]) -> Analysis | str:
     """Entry point of a worker process, or of a task on a Dask worker:
     errors travel back as text, not tracebacks."""
     from whiztap.analyzer.analysis.throughput import tune_gc
@@ -128,7 +134,7 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
 
     if list_rules:
         for r in RULES.values():
-            click.echo(f"{r.id:28} {str(r.severity):8} {r.section}")
+            click.echo(f"{r.id:28} {r.severity!s:8} {r.section}")
         return
     if not inputs:
         fail("no recording given: name one or more .mcap files, folders or URLs (see --help)")
@@ -159,7 +165,7 @@ def _group_keys(group_by: tuple[str, ...]) -> list[tuple[str, ...]]:
         fail(str(e))
 
 
-def _finish(analysis, unreadable: list[dict[str, str]], threshold, ignore: frozenset[str],  # noqa: ANN001
+def _finish(analysis: Analysis | None, unreadable: list[dict[str, str]], threshold: Severity, ignore: frozenset[str],
             keys: list[tuple[str, ...]], fmt: str, output: str | None, force: bool, allow_empty: bool,
             fail_on_interventions: bool = False) -> None:
     """The report written, and the exit status it calls for."""
@@ -185,8 +191,9 @@ def _finish(analysis, unreadable: list[dict[str, str]], threshold, ignore: froze
     sys.exit(EXIT_USAGE if unreadable else 0 if report["passed"] else 1)
 
 
-def _analyse_all(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress,  # noqa: ANN001
-                 dask: str | None = None, quiet: bool = True):  # noqa: ANN201 - (Analysis | None, list)
+def _analyse_all(paths: list[RecordingSet], rule_name: str, limits: Limits, jobs: int | None,
+                 progress: ByteProgress, dask: str | None = None,
+                 quiet: bool = True) -> tuple[Analysis | None, list[dict[str, str]]]:
     """(the merged analysis of the files that could be read, or None if none
     could; {"file", "error"} of those that could not): one bad file among many
     costs only itself.  However the files are shared out (this process, local
@@ -204,8 +211,8 @@ def _analyse_all(paths: list, rule_name: str, limits, jobs: int | None, progress
     return merger.finish()
 
 
-def _on_this_machine(paths: list, rule_name: str, limits, jobs: int | None,  # noqa: ANN001
-                     progress: ByteProgress) -> Iterator[tuple[int, Any]]:
+def _on_this_machine(paths: list[RecordingSet], rule_name: str, limits: Limits, jobs: int | None,
+                     progress: ByteProgress) -> Iterator[tuple[int, Analysis | str]]:
     """(index, result) of each file: here, or in local processes (one per
     core by default when there are four files or more)."""
     workers = jobs if jobs is not None else (min(len(paths), os.cpu_count() or 1) if len(paths) >= 4 else 1)
@@ -223,8 +230,8 @@ def _on_this_machine(paths: list, rule_name: str, limits, jobs: int | None,  # n
             yield index, result
 
 
-def _on_cluster(paths: list, rule_name: str, limits, jobs: int | None, progress: ByteProgress,  # noqa: ANN001
-                dask: str, quiet: bool) -> Iterator[tuple[int, Any]]:
+def _on_cluster(paths: list[RecordingSet], rule_name: str, limits: Limits, jobs: int | None,
+                progress: ByteProgress, dask: str, quiet: bool) -> Iterator[tuple[int, Analysis | str]]:
     """(index, result) of each file, as a task on a Dask cluster (the
     ``whiztap.runners`` entry point ``dask``: the sniffer's, which talks to the
     scheduler); local paths go as absolute ones (the workers share the files,
@@ -242,7 +249,7 @@ def _on_cluster(paths: list, rule_name: str, limits, jobs: int | None, progress:
         fail(str(e))
 
 
-def _runner(name: str):  # noqa: ANN202 - the runner function an entry point names
+def _runner(name: str) -> Callable[..., Iterator[tuple[int, Any]]]:
     """The ``whiztap.runners`` entry point ``name``, loaded as ``root`` loads
     commands, so that the analyzer imports nothing above it."""
     from importlib.metadata import entry_points
@@ -253,7 +260,7 @@ def _runner(name: str):  # noqa: ANN202 - the runner function an entry point nam
     return next(iter(found)).load()
 
 
-def _absolute(recording):  # noqa: ANN001, ANN202 - a RecordingSet, imported lazily
+def _absolute(recording: RecordingSet) -> RecordingSet:
     """A recording whose local parts are named from the root."""
     from dataclasses import replace
 
@@ -261,7 +268,7 @@ def _absolute(recording):  # noqa: ANN001, ANN202 - a RecordingSet, imported laz
                                           for p in recording.parts))
 
 
-def render(report: dict[str, Any], analysis, fmt: str, to_terminal: bool) -> str:
+def render(report: dict[str, Any], analysis: Analysis, fmt: str, to_terminal: bool) -> str:
     """The report in a format, as text ('' when printed straight to the terminal)."""
     if fmt == "json":
         import json

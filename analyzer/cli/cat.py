@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from collections.abc import Iterator
-from typing import IO, Any
+from collections.abc import Callable, Iterable, Iterator
+from typing import IO, TYPE_CHECKING, Any
 
 import click
 
@@ -13,6 +13,19 @@ from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output, output_stream
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
 from whiztap.analyzer.cli.reading import one_recording, scan_recording
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from whiztap.analyzer.analysis.answer_latency import AnswerLatencies
+    from whiztap.analyzer.analysis.item_filter import ItemFilter
+    from whiztap.analyzer.protocol.observations import Event, LateViolation, Observation
+    from whiztap.analyzer.protocol.session import Limits
+    from whiztap.analyzer.recording.remote import RemotePart
+    from whiztap.analyzer.traffic import Intervention, TrafficEvent
+
+    # an answer's line, made once its latencies are known: (server ns, client ns) -> line
+    LineMaker = Callable[[int | None, int | None], str]
 
 TEXT_SHOWN = 200  # characters of an item's escaped bytes on a line of 'cat'; longer ones end in …
 
@@ -55,6 +68,7 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
     """
     item_filter = _cat_filter(filter_text, conns, direction, kinds, channels, since, until, violations_only)
     limits = limits_from(answer_timeout, max_frame, max_image)
+    first: str | Path | RemotePart
     if follow:
         if len(inputs) != 1 or not os.path.isfile(inputs[0]):
             fail(f"--follow takes one file being written (NAME.mcap.part), got {' '.join(inputs) or 'none'}")
@@ -73,7 +87,7 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
         _print(records, printer, name, checksum_rule, limits, changes)
 
 
-def _answer_latencies(first, checksum_rule: str, limits):  # noqa: ANN001, ANN202 - AnswerLatencies | None
+def _answer_latencies(first: str | Path | RemotePart, checksum_rule: str, limits: Limits) -> AnswerLatencies | None:
     """For a recording made in the middle, each answer's latency for the server and for the client."""
     from functools import partial
 
@@ -85,7 +99,8 @@ def _answer_latencies(first, checksum_rule: str, limits):  # noqa: ANN001, ANN20
     return AnswerLatencies(partial(limits.session, checksum_rule))
 
 
-def _print(records, printer: _CatPrinter, name: str, checksum_rule: str, limits, changes: str) -> None:  # noqa: ANN001
+def _print(records: Iterable[TrafficEvent], printer: _CatPrinter, name: str, checksum_rule: str, limits: Limits,
+           changes: str) -> None:
     """Every event through the one session (and the two views, in the middle), as lines."""
     from whiztap.analyzer.analysis.analyzer import Analyzer
     from whiztap.analyzer.traffic import Data, Intervention
@@ -110,7 +125,9 @@ def _print(records, printer: _CatPrinter, name: str, checksum_rule: str, limits,
     printer.release(None)
 
 
-def _cat_filter(text: str, conns, direction, kinds, channels, since, until, violations_only):  # noqa: ANN001, ANN202
+def _cat_filter(text: str, conns: tuple[int, ...], direction: str | None, kinds: tuple[str, ...],
+                channels: tuple[int, ...], since: float | None, until: float | None,
+                violations_only: bool) -> ItemFilter:
     """The --filter words, narrowed by the separate options."""
     from dataclasses import replace
 
@@ -125,13 +142,13 @@ def _cat_filter(text: str, conns, direction, kinds, channels, since, until, viol
         wanted_kinds = frozenset(ItemKind(k) for k in kinds)
     except ValueError as e:
         fail(f"{e}; kinds are {', '.join(k.value for k in ItemKind)}")
-    given = {"conns": frozenset(conns), "direction": direction, "kinds": wanted_kinds,
+    given: dict[str, Any] = {"conns": frozenset(conns), "direction": direction, "kinds": wanted_kinds,
              "channels": frozenset(channels), "since_s": since, "until_s": until,
              "violations_only": violations_only or None}
     return replace(item_filter, **{k: v for k, v in given.items() if v})
 
 
-def _followed(path: str) -> Iterator[Any]:
+def _followed(path: str) -> Iterator[TrafficEvent]:
     """The traffic of a recording being written, until it is finished or Ctrl-C."""
     import threading
 
@@ -154,7 +171,7 @@ class _CatPrinter:
 
     HELD = 10_000
 
-    def __init__(self, fmt: str, item_filter, out: IO[str], latencies=None,  # noqa: ANN001
+    def __init__(self, fmt: str, item_filter: ItemFilter, out: IO[str], latencies: AnswerLatencies | None = None,
                  wait_ns: int = 11_000_000_000) -> None:
         from whiztap.analyzer.protocol.describe import fields, meaning
         from whiztap.analyzer.protocol.text import escape, printable, shorten
@@ -169,13 +186,14 @@ class _CatPrinter:
         self._out = out
         self._colour = out.isatty()
         self._changes = 0  # interventions seen: each line's number
-        self._held: deque[list] = deque()  # [line or its maker, conn, request, server ns, t_ns]
+        # [line or its maker, conn, request, server ns, t_ns]
+        self._held: deque[tuple[str | LineMaker, int, Observation | None, int | None, int]] = deque()
 
-    def show(self, conn: int, events: list) -> None:  # noqa: ANN001
+    def show(self, conn: int, events: list[Event]) -> None:
         from whiztap.analyzer.protocol.observations import LateViolation
 
         for e in events:
-            if type(e) is LateViolation:
+            if isinstance(e, LateViolation):
                 if self.filter.accepts(conn, e.about, self._start(e.t_ns), late=True):
                     self._late(conn, e)
                 continue
@@ -191,13 +209,13 @@ class _CatPrinter:
         """Traffic at ``t_ns`` that no line shows: times count from the first."""
         self._start(t_ns)
 
-    def _write(self, line: str, conn: int = 0, request=None, server: int | None = None,  # noqa: ANN001
-               t_ns: int = 0, make=None) -> None:  # noqa: ANN001
+    def _write(self, line: str, conn: int = 0, request: Observation | None = None, server: int | None = None,
+               t_ns: int = 0, make: LineMaker | None = None) -> None:
         """A line, or (``make``) the maker of an answer's line once the client's latency is known."""
         if make is None and not self._held:
             self._out.write(line + "\n")
         else:
-            self._held.append([make or line, conn, request, server, t_ns])
+            self._held.append((make or line, conn, request, server, t_ns))
 
     def release(self, now_ns: int | None) -> None:
         """Write the lines no longer waiting (``now_ns`` None: the end, all of them)."""
@@ -205,29 +223,31 @@ class _CatPrinter:
         while held:
             line, conn, request, server, t_ns = held[0]
             if not isinstance(line, str):
-                known = self.latencies.client_ns(conn, request) if self.latencies is not None else None
+                known = (self.latencies.client_ns(conn, request)
+                         if self.latencies is not None and request is not None else None)
                 if known is None and now_ns is not None and len(held) <= self.HELD and now_ns - t_ns <= limit:
                     return
                 line = line(server, known.ns if known is not None else None)
             self._out.write(line + "\n")
             held.popleft()
 
-    def _item(self, conn: int, e) -> None:  # noqa: ANN001
+    def _item(self, conn: int, e: Observation) -> None:
         item = e.item
         rules = [v.rule_id for v in e.violations]
-        both = self.latencies is not None and e.answers is not None
-        server = self.latencies.server_ns(conn, e) if both else None
+        latencies = self.latencies if e.answers is not None else None
+        both = latencies is not None
+        server = latencies.server_ns(conn, e) if latencies is not None else None
         if self.fmt == "jsonl":
             import json
 
             from whiztap.analyzer.recording.encode import cat_line
 
-            line = cat_line(conn, e)
+            fields = cat_line(conn, e)
             if not both:
-                self._write(json.dumps(line))
+                self._write(json.dumps(fields))
                 return
             self._write("", conn, e.answers, server, item.t_end_ns, lambda s, c: json.dumps(
-                {**line, "server_latency_ns": s, "client_latency_ns": c}))
+                {**fields, "server_latency_ns": s, "client_latency_ns": c}))
             return
         rel = (item.t_end_ns - (self.start or 0)) / 1e9
         mark = f"  ! {' '.join(rules)}" if rules else ""
@@ -244,7 +264,7 @@ class _CatPrinter:
         self._write("", conn, e.answers, server, item.t_end_ns,
                     lambda s, c: coloured(f"{line}  [latency: {_latency_words(s, c)}]"))
 
-    def _late(self, conn: int, e) -> None:  # noqa: ANN001
+    def _late(self, conn: int, e: LateViolation) -> None:
         v = e.violation
         if self.fmt == "jsonl":
             import json
@@ -257,7 +277,7 @@ class _CatPrinter:
         rel = (e.t_ns - (self.start or 0)) / 1e9
         self._write(self._printable(f"{rel:12.6f} c{conn} {v.rule_id}: {v.detail}"))
 
-    def change(self, e) -> None:  # noqa: ANN001 - an Intervention
+    def change(self, e: Intervention) -> None:
         """A change the proxy made, numbered in order: ``~ #N``, the direction,
         the action, the frame (before -> after when it was changed) and why."""
         self._changes += 1
@@ -291,14 +311,14 @@ def _latency_words(server: int | None, client: int | None) -> str:
     return f"server {ms(server)}, client {ms(client)}"
 
 
-def _change_text(e, escape) -> str:  # noqa: ANN001
+def _change_text(e: Intervention, escape: Callable[[bytes], str]) -> str:
     """The frame an intervention is about: before -> after when it changed, else the one there is."""
     if e.before and e.after and e.before != e.after:
         return f"{escape(e.before)} -> {escape(e.after)}"
     return escape(e.before or e.after)
 
 
-def _shows_change(item_filter, e, start_ns: int) -> bool:  # noqa: ANN001
+def _shows_change(item_filter: ItemFilter, e: Intervention, start_ns: int) -> bool:
     """Whether an intervention's line passes the filter: the words that fit a
     change (connection, direction, the frame's kind, time, text in its cause or
     frame) apply; those only items have (channel, violations) leave it out."""
@@ -314,4 +334,5 @@ def _shows_change(item_filter, e, start_ns: int) -> bool:  # noqa: ANN001
     if (f.since_s is not None and rel < f.since_s) or (f.until_s is not None and rel >= f.until_s):
         return False
     needle = f.text.lower()
-    return not needle or any(needle in text.lower() for text in (str(e.cause), e.action, escape(e.before), escape(e.after)))
+    texts = (str(e.cause), e.action, escape(e.before), escape(e.after))
+    return not needle or any(needle in text.lower() for text in texts)

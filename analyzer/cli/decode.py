@@ -5,11 +5,18 @@ from __future__ import annotations
 import os
 import re
 import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.params import checksum_rule_option, limits_from, limits_options
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.protocol.observations import Direction, Event
+    from whiztap.analyzer.protocol.rules import Violation
+    from whiztap.analyzer.protocol.session import Limits
 
 
 @click.command("rules")
@@ -25,7 +32,7 @@ def rules_command(fmt: str) -> None:
                                 "summary": r.summary} for r in RULES.values()], indent=2))
         return
     for r in RULES.values():
-        click.echo(f"{r.id:28} {str(r.severity):8} {r.section:30} {r.summary}")
+        click.echo(f"{r.id:28} {r.severity!s:8} {r.section:30} {r.summary}")
 
 
 _PATH_LIKE = re.compile(r"^(?!(c2s |s2c )?[rcs]r1-).*(/|\.[A-Za-z][A-Za-z0-9]{0,4}$)", re.DOTALL)
@@ -59,7 +66,7 @@ def decode_command(inputs: tuple[str, ...], frames: tuple[str, ...], direction: 
     a rule of error severity was broken.
     """
     limits = limits_from(answer_timeout, max_frame, max_image)
-    if not inputs and not frames and not click.get_text_stream("stdin").isatty():
+    if not inputs and not frames and sys.stdin is not None and not sys.stdin.isatty():
         inputs = ("-",)  # piped in: read it, as filters do
     if not inputs and not frames:
         fail("nothing to decode: give a frame (whiztap decode 'rr1-24--0--0-ss1'), a file of frames "
@@ -95,7 +102,7 @@ def _read_lines(source: str) -> list[str]:
              f"(\\x0c for a raw byte); for a recording use 'whiztap cat'")
 
 
-def _sender(text: str, direction: str):  # noqa: ANN202 - (Direction, str), imported lazily
+def _sender(text: str, direction: str) -> tuple[Direction, str]:
     """Who sent a frame written as ``text`` (its 'c2s '/'s2c ' prefix, else
     --dir, else a guess from its first bytes), and the frame without the prefix."""
     from whiztap.analyzer.protocol.observations import Direction, sender_of
@@ -120,7 +127,7 @@ def _bytes(text: str) -> bytes:
         fail(f"{printable(text)} holds a character that is no byte (a lone surrogate): write bytes as \\xNN")
 
 
-def _session(source: str, lines: list[str], direction: str, checksum_rule: str, limits) -> int:  # noqa: ANN001
+def _session(source: str, lines: list[str], direction: str, checksum_rule: str, limits: Limits) -> int:
     """The lines of one file through one session; the worst severity broken (0: none)."""
     from whiztap.analyzer.protocol.text import plural
 
@@ -146,7 +153,7 @@ def _session(source: str, lines: list[str], direction: str, checksum_rule: str, 
     return worst
 
 
-def _lone_frames(texts: list[str], direction: str, checksum_rule: str, limits) -> int:  # noqa: ANN001
+def _lone_frames(texts: list[str], direction: str, checksum_rule: str, limits: Limits) -> int:
     """Each frame judged on its own (``frame_alone``, as the proxy's stages
     and the TUI's editor judge one); the worst severity broken (0: none)."""
     from whiztap.analyzer.protocol.frame_text import frame_alone
@@ -168,12 +175,13 @@ def _lone_frames(texts: list[str], direction: str, checksum_rule: str, limits) -
     return worst
 
 
-def _print_event(event) -> int:  # noqa: ANN001 - an Event, imported lazily
+def _print_event(event: Event) -> int:
     """Print one event; return the highest severity among its violations (0 if none)."""
     from whiztap.analyzer.protocol.describe import meaning
     from whiztap.analyzer.protocol.observations import LateViolation
     from whiztap.analyzer.protocol.text import escape, printable
 
+    violations: tuple[Violation, ...]
     if isinstance(event, LateViolation):
         violations = (event.violation,)
     else:
@@ -182,7 +190,7 @@ def _print_event(event) -> int:  # noqa: ANN001 - an Event, imported lazily
     return _print_violations(violations)
 
 
-def _print_violations(violations) -> int:  # noqa: ANN001 - Violations, imported lazily
+def _print_violations(violations: Sequence[Violation]) -> int:
     from whiztap.analyzer.protocol.text import printable
 
     for v in violations:

@@ -1,23 +1,28 @@
 """The one kind of error a command shows: one line on stderr, exit status 2.
 
-Libraries raise their own exception types; commands turn them into this.
+Libraries raise their own exception types (all ``WhiztapError``); commands turn
+them into this, adding what the library does not know (which option, which
+file), and the root turns any the commands did not catch into the same line.
 """
 
 from __future__ import annotations
 
-from typing import NoReturn
+from typing import IO, Any, NoReturn
 
 import click
+
+from whiztap.analyzer.errors import WhiztapError
 
 EXIT_USAGE = 2  # bad input, unreadable file, unreachable peer, interrupted
 
 
-class WhiztapError(click.ClickException):
-    """A problem the user can fix: printed as one line, exit status 2."""
+class CommandFailed(click.ClickException, WhiztapError):
+    """A problem the user can fix, as a command says it: printed as one line,
+    exit status 2."""
 
     exit_code = EXIT_USAGE
 
-    def show(self, file=None) -> None:  # noqa: ANN001 - click's signature
+    def show(self, file: IO[Any] | None = None) -> None:
         warn(self.format_message())
 
 
@@ -30,4 +35,4 @@ def warn(message: str) -> None:
 
 
 def fail(message: str) -> NoReturn:
-    raise WhiztapError(message)
+    raise CommandFailed(message)

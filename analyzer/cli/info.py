@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shlex
+from pathlib import Path
 
 import click
 
@@ -25,7 +26,7 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
     recording = one_recording(inputs)
     path_ = recording.parts[-1]
     try:
-        info = set_info(list(recording.parts))
+        info = set_info([p for p in recording.parts if isinstance(p, Path)])  # files: one_recording takes no URL
     except OSError as e:
         fail(f"{path_}: cannot read ({e.strerror})")
     except ValueError as e:

@@ -7,11 +7,14 @@ import contextlib
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO, NoReturn
+from typing import IO, TYPE_CHECKING, NoReturn
 
 import click
 
 from whiztap.analyzer.cli.errors import fail
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.recording.remote import RemotePart
 
 
 @contextlib.contextmanager
@@ -30,7 +33,7 @@ def output_stream(output: str | None, force: bool = False) -> Iterator[IO[str]]:
     from whiztap.analyzer.recording.output_rule import create_mode
 
     try:
-        f = open(output, create_mode(output, force), encoding="utf-8")  # noqa: SIM115 - closed below
+        f = open(output, create_mode(output, force), encoding="utf-8")  # closed below
     except FileExistsError:
         check_output(output, force=False)  # it appeared since the check: refused in the rule's words
         raise  # and went again at once: the unexpected-error line says so
@@ -40,7 +43,7 @@ def output_stream(output: str | None, force: bool = False) -> Iterator[IO[str]]:
         yield f
 
 
-def check_output(output: str | None, inputs: Iterable[str | Path] = (), *, force: bool,
+def check_output(output: str | None, inputs: Iterable[str | Path | RemotePart] = (), *, force: bool,
                  recording: bool = False, split: bool = False) -> None:
     """The rule for every file a command writes (whiztap.analyzer.recording.output_rule): never
     one of its inputs, never an existing file unless --force; one line and exit

@@ -8,11 +8,15 @@ fit is the usual one line and exit status 2.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.protocol.session import Limits
 
 
 class ByteSize(click.ParamType):
@@ -20,7 +24,7 @@ class ByteSize(click.ParamType):
 
     name = "BYTES"
 
-    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> int:
         if isinstance(value, int):
             return value
         from whiztap.analyzer.protocol.text import parse_size
@@ -37,7 +41,7 @@ class ChecksumRule(click.ParamType):
 
     name = "name"
 
-    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> str:
         from whiztap.analyzer.protocol.checksum import get_rule
 
         try:
@@ -46,7 +50,7 @@ class ChecksumRule(click.ParamType):
             fail(str(e))
 
 
-def checksum_rule_option(help: str, show_default: bool = False) -> Callable[[Callable], Callable]:  # noqa: A002
+def checksum_rule_option(help: str, show_default: bool = False) -> Callable[[Callable], Callable]:
     """``--checksum-rule NAME`` (default dev-sum), checked before the command runs."""
     return click.option("--checksum-rule", type=ChecksumRule(), default=DEFAULT_CHECKSUM_RULE,
                         show_default=show_default, help=help)
@@ -69,7 +73,7 @@ def limits_options(f: Callable) -> Callable:
                         help="How long a request may wait for its answer before it is unanswered.")(f)
 
 
-def limits_from(answer_timeout: float, max_frame: int, max_image: int):  # noqa: ANN201 - Limits, imported lazily
+def limits_from(answer_timeout: float, max_frame: int, max_image: int) -> Limits:
     from whiztap.analyzer.protocol.framing import MIN_MAX_ITEM
     from whiztap.analyzer.protocol.session import Limits
 

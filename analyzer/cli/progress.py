@@ -8,7 +8,10 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterable
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 
 class ByteProgress:
@@ -86,10 +89,10 @@ class ByteProgress:
             def __exit__(self, *exc: object) -> None:
                 self.close()
 
-        return Counting()  # type: ignore[return-value]
+        return Counting()  # type: ignore[return-value]  # read, close and with: all a reader of parts calls
 
 
-def _stderr_console():
+def _stderr_console() -> Console:
     from rich.console import Console
 
     return Console(stderr=True)

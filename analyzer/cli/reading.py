@@ -6,15 +6,19 @@ from __future__ import annotations
 import shlex
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import click
 
 from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.progress import ByteProgress
 
+if TYPE_CHECKING:
+    from whiztap.analyzer.recording.sets import RecordingSet
+    from whiztap.analyzer.traffic import TrafficEvent
 
-def recordings(inputs: tuple[str, ...], urls: bool = False):  # noqa: ANN201 - list[RecordingSet], imported lazily
+
+def recordings(inputs: tuple[str, ...], urls: bool = False) -> list[RecordingSet]:
     """What the user named, as recordings (a split one's parts together);
     a line on stderr for each whose parts are not all there.  ``urls``: names
     like ``s3://...`` are URLs read through fsspec (``analyze``)."""
@@ -25,12 +29,14 @@ def recordings(inputs: tuple[str, ...], urls: bool = False):  # noqa: ANN201 - l
     except RecordingInputError as e:
         fail(str(e))
     for recording in found:
-        if recording.warning():
-            warn(recording.warning())
+        warning = recording.warning()
+        if warning:
+            warn(warning)
     return found
 
 
-def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[Any]:  # noqa: ANN001
+def scan_recording(recording: RecordingSet | Path | str,
+                   progress: ByteProgress | None = None) -> Iterator[TrafficEvent]:
     """The traffic events of a recording (a ``RecordingSet``, or one path) in
     recorded order, across its parts.
 
@@ -61,7 +67,7 @@ def scan_recording(recording, progress: ByteProgress | None = None) -> Iterator[
         fail(str(e))
 
 
-def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, imported lazily
+def one_recording(inputs: tuple[str, ...]) -> RecordingSet:
     """The one recording a command reads: a file, a split one's first part, its
     folder or a glob (expanded by the shell or not)."""
     from whiztap.analyzer.recording.sets import RecordingInputError, find_one
@@ -70,6 +76,7 @@ def one_recording(inputs: tuple[str, ...]):  # noqa: ANN201 - a RecordingSet, im
         found = find_one(inputs)
     except RecordingInputError as e:
         fail(f"{e} (see '{click.get_current_context().command_path} --help')")
-    if found.warning():
-        warn(found.warning())
+    warning = found.warning()
+    if warning:
+        warn(warning)
     return found

@@ -17,6 +17,7 @@ import click
 
 from whiztap.analyzer import __version__
 from whiztap.analyzer.cli.errors import EXIT_USAGE, warn
+from whiztap.analyzer.errors import WhiztapError
 
 
 class _LazyGroup(click.Group):
@@ -62,7 +63,10 @@ def main() -> None:
         sys.exit(e.exit_code)
     except click.exceptions.Exit as e:
         sys.exit(e.exit_code)
-    except Exception as e:  # noqa: BLE001 - the last line of defence: one line, not a traceback
+    except WhiztapError as e:  # the library's own, which no command put in its words: its line as it is
+        warn(str(e))
+        sys.exit(EXIT_USAGE)
+    except Exception as e:  # the last line of defence: one line, not a traceback
         if os.environ.get("WHIZTAP_DEBUG"):
             raise
         warn(f"unexpected error: {type(e).__name__}: {e} (set WHIZTAP_DEBUG=1 to see where; please report it)")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action, Data, Delivered, Intervention
 
@@ -55,7 +56,7 @@ class WakeAt:
 Command = Deliver | PassEof | EndConnection | Tell | WakeAt
 
 
-class MiddleRefused(Exception):
+class MiddleRefused(WhiztapError):
     """A control command the core cannot carry out; one line saying why."""
 
 

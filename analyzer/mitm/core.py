@@ -377,7 +377,8 @@ class MiddleCore:
             return
         fault.hits += 1
         action = fault.action
-        self._tell(Intervention(self.conn, t_ns, C2S, action, fault.cause, detail=f"the proxy {action}s the connection"))
+        self._tell(Intervention(self.conn, t_ns, C2S, action, fault.cause,
+                                detail=f"the proxy {action}s the connection"))
         if action is Action.CLOSE:  # a close on a timer delivers what waits first (held frames as they are)
             self._release_holds(t_ns, (C2S, S2C))
             for lane in self.lanes.values():

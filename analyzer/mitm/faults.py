@@ -161,7 +161,8 @@ class Fault:
         frame.duplicate(self.cause)
 
     def _corrupt(self, frame: Frame) -> None:
-        frame.replace(corrupted(frame.data), self.cause, Action.CORRUPT)  # type: ignore[arg-type]
+        if frame.data is not None:  # not dropped already
+            frame.replace(corrupted(frame.data), self.cause, Action.CORRUPT)
 
     def _replace(self, frame: Frame) -> None:
         frame.replace(self.spec.replacement or b"", self.cause)

@@ -97,8 +97,8 @@ class HeldFrames:
         self._ids = itertools.count(1)
 
     def add(self, frame: Frame, since_ns: int) -> Held:
-        held = Held(next(self._ids), frame.conn, frame.direction, frame.index, frame.offset, frame.observation, since_ns,
-                    f"intercept {frame.hold}", frame.data or b"", frame.secret, frame.redact)
+        held = Held(next(self._ids), frame.conn, frame.direction, frame.index, frame.offset, frame.observation,
+                    since_ns, f"intercept {frame.hold}", frame.data or b"", frame.secret, frame.redact)
         self.frames[held.id] = held
         return held
 

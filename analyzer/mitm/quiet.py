@@ -76,7 +76,7 @@ class QuietFaults:
 
     def _plan(self) -> None:
         """When (at which count of each direction) the next watched fault falls due."""
-        due = {direction: math.inf for direction in self._due}
+        due = dict.fromkeys(self._due, math.inf)
         for w in self._watched.values():
             if not w.told and w.fault.quiet:
                 direction = w.fault.direction

@@ -51,9 +51,11 @@ import shlex
 from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
+from itertools import pairwise
 from typing import Any
 
 from whiztap.analyzer.analysis.item_filter import FilterSyntaxError, ItemFilter, parse_word
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.mitm.hints import did_you_mean
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Observation
@@ -106,7 +108,7 @@ _RATE = re.compile(_NUMBER + r"(B|kB|KB|KiB|MB|MiB)/s", re.ASCII)
 _RATE_UNITS = {"B": 1, "kB": 1000, "KB": 1000, "KiB": 1024, "MB": 1_000_000, "MiB": 1 << 20}
 
 
-class FaultSpecError(ValueError):
+class FaultSpecError(WhiztapError, ValueError):
     """A fault spec (or a file of them) is wrong; one line naming the offending word."""
 
 
@@ -211,10 +213,11 @@ class FaultSpec:
         return self.action
 
     def _option_words(self) -> list[str]:
-        options = (("nth", self.nth, str), ("every", self.every, str), ("prob", self.prob, repr),
-                   ("after", self.after_frames, str), ("after", self.after_ns, _format_duration),
-                   ("for", self.for_ns, _format_duration), ("jitter", self.jitter_ns or None, _format_duration),
-                   ("pause", None if self.pause_ns == DEFAULT_PAUSE_NS else self.pause_ns, _format_duration))
+        options: tuple[tuple[str, Any, Callable[[Any], str]], ...] = (
+            ("nth", self.nth, str), ("every", self.every, str), ("prob", self.prob, repr),
+            ("after", self.after_frames, str), ("after", self.after_ns, _format_duration),
+            ("for", self.for_ns, _format_duration), ("jitter", self.jitter_ns or None, _format_duration),
+            ("pause", None if self.pause_ns == DEFAULT_PAUSE_NS else self.pause_ns, _format_duration))
         return [f"{key}:{show(value)}" for key, value, show in options if value is not None]
 
 
@@ -428,7 +431,7 @@ def parse_fault(text: str, name: str = "") -> FaultSpec:
         raise FaultSpecError(f"empty fault {text!r}: it starts with one of: {_ACTION_LIST}")
     select: dict[str, Any] = {}
     options: dict[str, str] = {}
-    for previous, word in zip(words, words[1:]):  # before the action: "bandwidth:2 kB/s" is about kB/s
+    for previous, word in pairwise(words):  # before the action: "bandwidth:2 kB/s" is about kB/s
         _word(word, text, select, options, previous)
     fields = _action(words[0], text)
     if "nth" in options and "every" in options:

@@ -84,7 +84,7 @@ class Stages:
             noted = len(frame.interventions)
             try:
                 hook(frame)
-            except Exception:  # noqa: BLE001 - a failing stage never touches the frame or the proxy
+            except Exception:  # a failing stage never touches the frame or the proxy
                 frame.restore(saved)
                 del frame.interventions[noted:]
                 self._failed(stage, "frame")
@@ -97,7 +97,7 @@ class Stages:
                 continue
             try:
                 hook(*args)
-            except Exception:  # noqa: BLE001
+            except Exception:
                 self._failed(stage, hook_name)
 
     def _failed(self, stage: Any, hook: str) -> None:

@@ -187,11 +187,12 @@ class FrameEncoder:
         else:
             key = (raw, kind, reason, message.__class__, None if answers is None else answers[3].__class__,
                    violations)
-            static = self._cache.get(key)  # type: ignore[assignment]
-            if static is None:
+            cached = self._cache.get(key)
+            if cached is None:
                 if len(self._cache) >= _CACHE_LIMIT:
                     self._cache.clear()
-                static = self._cache[key] = _dumps(frame_static(obs, redact))[1:]
+                cached = self._cache[key] = _dumps(frame_static(obs, redact))[1:]
+            static = cached
         if answers is None and latency is None:
             return _COMMAND_HEAD % (conn, _DIR_BYTES[direction], index, t_start, t_end, offset) + static
         if answers is not None and latency is not None:
@@ -263,8 +264,8 @@ def encode_violation(conn: int, violation: Violation, about: Observation | None,
     key = (violation, raw, direction, late, count)
     templates = _VIOLATION_CACHE.get(key) if keep else None
     if templates is None:
-        text = None if raw is None else REDACTED if redact and not keep else escape(raw)
-        templates = _violation_templates(violation, text, direction, late, count)
+        frame = None if about is None else (about.direction, REDACTED if redact and not keep else escape(raw or b""))
+        templates = _violation_templates(violation, frame, late, count)
         if keep:
             if len(_VIOLATION_CACHE) >= _CACHE_LIMIT:
                 _VIOLATION_CACHE.clear()
@@ -276,23 +277,24 @@ def encode_violation(conn: int, violation: Violation, about: Observation | None,
     return templates[0] % (conn, t_ns, line), templates[1] % (sec, nsec, conn, line, conn, line)
 
 
-def _violation_templates(violation: Violation, text: str | None, direction: Direction | None, late: bool,
+def _violation_templates(violation: Violation, frame: tuple[Direction, str] | None, late: bool,
                          count: int) -> tuple[bytes, bytes]:
     """The two messages of ``encode_violation`` with ``%d`` where the
     connection, the time (seconds and nanoseconds in the log) and the frame's
-    index go; every other ``%`` doubled."""
+    index go; every other ``%`` doubled.  ``frame``: the direction and text of
+    the frame it is about (None: about the connection)."""
     def lit(value: str) -> str:
         return value.replace("%", "%%")
 
     rule_id = violation.rule_id
     fixed = _rule_json(violation)
     detail = lit(_quote(violation.detail)[1:-1])
-    if direction is None:
+    if frame is None:
         about_json = where = ""
         file = "conn-%d"
     else:
-        d = DIR_TEXT[direction]
-        quoted = lit(_quote(text)[1:-1])  # type: ignore[arg-type]
+        d = DIR_TEXT[frame[0]]
+        quoted = lit(_quote(frame[1])[1:-1])
         about_json = f',"dir":"{d}","frame_index":%d,"frame_text":"{quoted}"'
         where = f" {d}, frame %d: {quoted}"
         file = f"conn-%d {d}"
@@ -305,7 +307,7 @@ def _violation_templates(violation: Violation, text: str | None, direction: Dire
             .encode(),
             f'{{"timestamp":{{"sec":%d,"nsec":%d}},"level":{fixed[1]},'
             f'"message":"{rule}: {detail} (conn %d{where})","name":"{rule}","file":"{file}",'
-            f'"line":{"%d" if direction is not None else 0}}}'.encode())
+            f'"line":{"%d" if frame is not None else 0}}}'.encode())
 
 
 def plot_messages(conn: int, obs: Observation) -> list[tuple[str, dict]]:
@@ -349,31 +351,31 @@ def encode_plots(conn: int, obs: Observation) -> list[tuple[str, bytes]]:
     directly, their topic found by indexing a tuple (``format.PER_CHANNEL``:
     channels 0-23, then BASE/other at 24, where any channel past the spec's goes)."""
     message = obs.message
-    kind = type(message)
-    if kind is ChannelResponse:
-        answers = obs.answers
-        if answers is None:
+    match message:
+        case ChannelResponse():
+            answers = obs.answers
+            if answers is None:
+                return []
+            channel = message.channel
+            latency = b"null" if obs.latency_ns is None else b"%d" % obs.latency_ns
+            if type(answers.message) is ServoPositionRequest:
+                topics = SERVO_TOPICS
+                data = _SERVO % (conn, channel, message.data, repr(message.data / 4).encode(), latency)
+            else:
+                topics = SENSOR_TOPICS
+                data = _SENSOR % (conn, channel, message.data, latency)
+        case NormalSend():
+            channel = message.channel
+            topics = SEND_TOPICS
+            data = _SEND % (conn, channel, message.value)
+        case ActivateSwitch() | DeactivateSwitch():
+            channel = message.channel
+            topics = SWITCH_TOPICS
+            data = _SWITCH % (conn, channel, 1 if type(message) is ActivateSwitch else 0)
+        case CameraImage():
+            return [(topic, encode(m)) for topic, m in plot_messages(conn, obs)]
+        case _:
             return []
-        channel = message.channel
-        latency = b"null" if obs.latency_ns is None else b"%d" % obs.latency_ns
-        if type(answers.message) is ServoPositionRequest:
-            topics = SERVO_TOPICS
-            data = _SERVO % (conn, channel, message.data, repr(message.data / 4).encode(), latency)
-        else:
-            topics = SENSOR_TOPICS
-            data = _SENSOR % (conn, channel, message.data, latency)
-    elif kind is NormalSend:
-        channel = message.channel
-        topics = SEND_TOPICS
-        data = _SEND % (conn, channel, message.value)
-    elif kind is ActivateSwitch or kind is DeactivateSwitch:
-        channel = message.channel
-        topics = SWITCH_TOPICS
-        data = _SWITCH % (conn, channel, 1 if kind is ActivateSwitch else 0)
-    elif kind is CameraImage:
-        return [(topic, encode(m)) for topic, m in plot_messages(conn, obs)]
-    else:
-        return []
     try:
         return [(topics[channel], data)]
     except IndexError:  # a channel past 24 (no cost on the way that does not raise)

@@ -18,7 +18,7 @@ _OPENED = b'"event":"%s"' % NAMES[Opened].encode()  # how a connection's opening
 def _iso(t_ns: int | None) -> str:
     if t_ns is None:
         return "-"
-    return dt.datetime.fromtimestamp(t_ns / 1e9, dt.timezone.utc).isoformat(timespec="milliseconds")
+    return dt.datetime.fromtimestamp(t_ns / 1e9, dt.UTC).isoformat(timespec="milliseconds")
 
 
 def _topic_counts(counts: Counter[str]) -> dict[str, int]:

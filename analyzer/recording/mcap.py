@@ -38,6 +38,8 @@ import zlib
 from collections.abc import Callable, Iterable
 from typing import Protocol
 
+from whiztap.analyzer.errors import WhiztapError
+
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_ATTACHMENT, OP_STATISTICS = 0x07, 0x08, 0x09, 0x0B
@@ -56,7 +58,7 @@ U16, U32, U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 MIB = 1 << 20
 
 
-class DamagedRecord(ValueError):
+class DamagedRecord(WhiztapError, ValueError):
     """A record whose lengths or contents do not add up.  The message says
     what, not where: its reader adds the offset."""
 
@@ -100,7 +102,7 @@ def minimal_end() -> bytes:
     return _record(OP_DATA_END, struct.pack("<I", 0)) + _record(OP_FOOTER, struct.pack("<QQI", 0, 0, 0)) + MAGIC
 
 
-def _compressor(compression: str):  # noqa: ANN202 - bytes -> bytes
+def _compressor(compression: str) -> Callable[[bytes], bytes]:
     if compression == "zstd":
         import zstandard
 
@@ -144,7 +146,8 @@ class McapWriter:
         self._chunk_indexes: list[bytes] = []
         self._metadata_indexes: list[bytes] = []
         self.index_size = 0  # bytes of chunk indexes so far: finish() writes them in the summary
-        self._start = self._end = None  # message times over the file
+        self._start: int | None = None  # message times over the file
+        self._end: int | None = None
         self.message_count = 0
         # called with a channel id that a message names and that is not
         # registered yet: it must register it (or raise)
@@ -357,7 +360,7 @@ def _decompress(compression: str, data: memoryview, size: int) -> bytes:
         raise DamagedRecord(f"its compression {compression!r} is none whiztap reads (zstd, lz4 or none)")
     try:
         out = _DECOMPRESSORS[compression](data, size + 1)
-    except Exception as e:  # noqa: BLE001 - each library has its own error types for damaged data
+    except Exception as e:  # each library has its own error types for damaged data
         raise DamagedRecord(f"its {compression} data does not decompress: {e}") from None
     if len(out) > size:
         raise DamagedRecord(f"it holds more than the {size} bytes it claims")

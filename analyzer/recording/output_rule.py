@@ -20,11 +20,17 @@ import shlex
 import stat
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+from whiztap.analyzer.errors import WhiztapError
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.recording.remote import RemotePart
 
 _NEVER = "an input is never written over, even with --force"
 
 
-class OutputRefused(Exception):
+class OutputRefused(WhiztapError):
     """The output may not be written; the message is one line for the user.
     ``existing``: the file in the way when that is the only reason (--force
     would write over it); None when the output is an input."""
@@ -34,7 +40,7 @@ class OutputRefused(Exception):
         self.existing = existing
 
 
-def check_output(output: str, inputs: Iterable[str | Path] = (), *, force: bool = False,
+def check_output(output: str, inputs: Iterable[str | Path | RemotePart] = (), *, force: bool = False,
                  recording: bool = False, split: bool = False) -> None:
     """Raise ``OutputRefused`` when writing ``output`` would write over one of
     ``inputs`` (always refused) or over an existing file (refused unless
@@ -43,10 +49,10 @@ def check_output(output: str, inputs: Iterable[str | Path] = (), *, force: bool 
     checked here (later parts are checked by the writer as it creates them)."""
     first = _first_file(output, split) if recording else output
     targets = [first, first + ".part"] if recording else [first]
-    inputs = [str(p) for p in inputs]
-    identities = {_identity(p): p for p in inputs}
+    named = [str(p) for p in inputs]
+    identities = {_identity(p): p for p in named}
     identities.pop(None, None)
-    names = {os.path.abspath(p): p for p in inputs}  # an input not there yet: read once it is
+    names = {os.path.abspath(p): p for p in named}  # an input not there yet: read once it is
     for target in targets:
         found = identities.get(_identity(target)) or names.get(os.path.abspath(target))
         if found is None:

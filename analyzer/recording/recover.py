@@ -28,7 +28,7 @@ import io
 import os
 import struct
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import IO, NamedTuple
 
@@ -37,6 +37,7 @@ from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Metadata, Schema
 from mcap.writer import Writer
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.text import human_bytes, plural
 from whiztap.analyzer.recording.format import PROFILE
 from whiztap.analyzer.recording.mcap import (
@@ -72,7 +73,7 @@ _WINDOW = 1 << 20  # bytes looked through at a time when looking for the next ch
 _PROBE = 9 + _CHUNK_FIXED + 4 + 8  # enough of a record to tell whether it is a chunk
 
 
-class RecoverError(Exception):
+class RecoverError(WhiztapError):
     """Recovery could not run; one line for the user."""
 
 
@@ -135,7 +136,7 @@ def recover(path: str, output: str | None = None, *, force: bool = False,
         raise RecoverError(str(e)) from None
     try:
         limit = max_chunk_setting() if max_chunk is None else max_chunk
-        source = open(path, "rb")  # noqa: SIM115 - closed below
+        source = open(path, "rb")  # closed below
     except RecordingError as e:
         raise RecoverError(str(e)) from None
     except OSError as e:
@@ -146,7 +147,8 @@ def recover(path: str, output: str | None = None, *, force: bool = False,
         return _write(output, lambda sink: _copy(_Salvage(source, limit), sink, path))
 
 
-def _write(output: str, copy) -> RecoverResult:  # noqa: ANN001 - (binary file) -> RecoverResult
+def _write(output: str,
+           copy: Callable[[IO[bytes]], tuple[int, tuple[Skipped, ...], int | None, int, int]]) -> RecoverResult:
     """Run ``copy`` into a private temporary file beside ``output``, then rename
     it into place; never leaves the temporary file behind."""
     folder = os.path.dirname(os.path.abspath(output))
@@ -284,14 +286,22 @@ class _Message(NamedTuple):
 Item = _Message | Schema | Channel | Metadata | Attachment
 
 
+def _message(buffer: bytes, at: int, length: int) -> _Message:
+    """The message record whose body is ``buffer[at:at + length]``."""
+    channel, sequence, log_time, publish_time = MESSAGE_FIELDS.unpack_from(buffer, at)
+    return _Message(channel, sequence, log_time, publish_time, buffer[at + MESSAGE_FIELDS.size:at + length])
+
+
 def _item(op: int, body: bytes) -> Item:
     """A record to copy, parsed (by mcap's own code but for messages, the bulk);
     DamagedRecord or McapError when its fields do not parse."""
     if op == OP_MESSAGE:
         if len(body) < MESSAGE_FIELDS.size:
             raise DamagedRecord("a message too short for its fields")
-        return _Message(*MESSAGE_FIELDS.unpack_from(body), body[MESSAGE_FIELDS.size:])
-    kind = {OP_SCHEMA: Schema, OP_CHANNEL: Channel, OP_METADATA: Metadata, OP_ATTACHMENT: Attachment}[op]
+        return _message(body, 0, len(body))
+    kinds: dict[int, type[Schema | Channel | Metadata | Attachment]] = {
+        OP_SCHEMA: Schema, OP_CHANNEL: Channel, OP_METADATA: Metadata, OP_ATTACHMENT: Attachment}
+    kind = kinds[op]
     try:
         return kind.read(ReadDataStream(io.BytesIO(body)))
     except (McapError, ValueError, struct.error) as e:  # text that is not UTF-8, a field cut short
@@ -322,7 +332,7 @@ def _chunk_walk(records: bytes, first: int, end: int, checked: dict[int, Item]) 
     while pos < end:
         op, length = RECORD_HEAD.unpack_from(records, pos)
         if op == OP_MESSAGE:
-            yield _Message(*MESSAGE_FIELDS.unpack_from(records, pos + 9), records[pos + 9 + MESSAGE_FIELDS.size:pos + 9 + length])
+            yield _message(records, pos + 9, length)
         elif pos in checked:
             yield checked[pos]
         pos += 9 + length

@@ -37,13 +37,16 @@ import re
 from collections import deque
 from collections.abc import Iterator
 from enum import Enum
-from typing import Generic, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Generic, NamedTuple, TypeVar
 
 from whiztap.analyzer.protocol.framing import MAX_PASSWORD, Framer, ItemKind
 from whiztap.analyzer.protocol.handshake import SENDCHKPASS, VERDICTS
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import MASK_BYTE
-from whiztap.analyzer.traffic import Closed, ConnectionEvent, Gap, HalfClosed, Opened, UpstreamFailed
+from whiztap.analyzer.traffic import Closed, Gap, HalfClosed, Opened, TrafficEvent, UpstreamFailed
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.recording.notice import Notice
 
 HOLD_LIMIT_S = 2.0  # undecided bytes are masked rather than held longer than this
 UNDECIDED_CAP = 16 * 1024  # ... or once a connection has this many
@@ -133,7 +136,7 @@ class LoginMask:
         if self._server is None:
             data = self._greeting(data)
         if self._server and self._line is not None and data:
-            self._verdict(data)
+            self._verdict(self._line, data)
         self._settle()
 
     def server_gap(self) -> None:
@@ -194,7 +197,7 @@ class LoginMask:
         self._server = True
         return data[n:]
 
-    def _verdict(self, data: bytes) -> None:
+    def _verdict(self, line: Framer, data: bytes) -> None:
         """A verdict while the first line is still coming: what came of it is
         the password the server judged, and it is masked now."""
         seen = self._carry + data
@@ -202,7 +205,7 @@ class LoginMask:
             self._carry = seen[-_VERDICT_CARRY:]
             return
         self._carry = b""
-        self._scan_line(self._line.close_password(0), judged=True)  # type: ignore[union-attr]
+        self._scan_line(line.close_password(0), judged=True)
 
     def _scan_line(self, items: list, judged: bool = False) -> None:
         """The line's framer said something: line breaks before it, the
@@ -243,13 +246,13 @@ class LoginMask:
 R = TypeVar("R")
 
 
-class _Entry(NamedTuple):
+class _Entry(NamedTuple, Generic[R]):
     conn: int
     direction: Direction | None  # None: not a read (a connection event)
     mask: LoginMask | None  # for a client read that may need masking
     offset: int
     data: bytes
-    record: object
+    record: R
 
 
 class Released(NamedTuple, Generic[R]):
@@ -271,7 +274,7 @@ class Redactor(Generic[R]):
         self.hold_s = hold_s
         self.queue_cap = queue_cap
         self._masks: dict[int, LoginMask] = {}  # connections that may still mask something
-        self._queue: deque[_Entry] = deque()
+        self._queue: deque[_Entry[R]] = deque()
         self._queued = 0  # bytes in the queue
         self._since: dict[int, float] = {}  # connection -> when its oldest undecided byte came
 
@@ -284,20 +287,19 @@ class Redactor(Generic[R]):
         """Nothing waits: a connection event may be taken at once."""
         return not self._queue
 
-    def tell(self, event: ConnectionEvent) -> None:
+    def tell(self, event: TrafficEvent | Notice) -> None:
         """What a connection event means for the decisions (call before queuing
         it with ``event``): a new connection may log in; a server that ended or
         was never reached will give no verdict; a gap; the end."""
-        kind = type(event)
-        if kind is Opened:
+        if type(event) is Opened:
             self.opened(event.conn)
-        elif kind is HalfClosed:
-            self.ended(event.conn, event.direction)  # type: ignore[union-attr]
-        elif kind is UpstreamFailed:
+        elif type(event) is HalfClosed:
+            self.ended(event.conn, event.direction)
+        elif type(event) is UpstreamFailed:
             self.ended(event.conn, S2C)
-        elif kind is Gap:
-            self.gap(event.conn, event.direction, event.length or 0)  # type: ignore[union-attr]
-        elif kind is Closed:
+        elif type(event) is Gap:
+            self.gap(event.conn, event.direction, event.length or 0)
+        elif type(event) is Closed:
             self.closed(event.conn)
 
     def opened(self, conn: int) -> None:
@@ -374,14 +376,14 @@ class Redactor(Generic[R]):
             self._queued -= len(e.data)
             if e.mask is not None:
                 data, spans = e.mask.apply(e.offset, e.data)
-                yield Released(e.conn, e.direction, data, spans, e.record)  # type: ignore[arg-type]
+                yield Released(e.conn, e.direction, data, spans, e.record)
             else:
-                yield Released(e.conn, e.direction, e.data, [], e.record)  # type: ignore[arg-type]
+                yield Released(e.conn, e.direction, e.data, [], e.record)
 
     # -- internals ---------------------------------------------------------------------------
 
     @staticmethod
-    def _held(e: _Entry) -> bool:
+    def _held(e: _Entry[R]) -> bool:
         return e.mask is not None and e.offset + len(e.data) > e.mask.decided
 
     def _settle(self, conn: int, mask: LoginMask, now: float | None = None) -> None:

@@ -25,7 +25,12 @@ import posixpath
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
+
+from whiztap.analyzer.errors import WhiztapError
+
+if TYPE_CHECKING:
+    from fsspec.spec import AbstractFileSystem
 
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 _GLOB_CHARS = frozenset("*?[")
@@ -34,7 +39,7 @@ HEAD_BLOCK = 64 * 1024  # what reading the metadata record fetches: it comes bef
 SCAN_BLOCK = 8 * 1024 * 1024  # what a whole scan fetches per request: few round trips, bounded memory
 
 
-class RemoteInputError(ValueError):
+class RemoteInputError(WhiztapError, ValueError):
     """A URL that names no readable recording, or a scheme nothing can read; one line."""
 
 
@@ -72,14 +77,14 @@ def open_part(part: str | Path | RemotePart, head: bool = False) -> IO[bytes]:
     wanted (the metadata).  A URL's failures come as ``OSError`` with the
     library's words, as a local file's do."""
     if not isinstance(part, RemotePart):
-        return open(part, "rb")  # noqa: SIM115 - closed by the caller
+        return open(part, "rb")  # closed by the caller
     try:
         import fsspec
 
         f = fsspec.open(part.url, "rb", block_size=HEAD_BLOCK if head else SCAN_BLOCK).open()
     except OSError as e:
         raise OSError(e.errno or errno.EIO, _reason(e)) from None
-    except Exception as e:  # noqa: BLE001 - each backend has its own exceptions (auth, throttling, ...)
+    except Exception as e:  # each backend has its own exceptions (auth, throttling, ...)
         raise OSError(errno.EIO, _reason(e)) from None
     return _RemoteFile(f)  # type: ignore[return-value]
 
@@ -94,7 +99,7 @@ class _RemoteFile:
     def read(self, n: int = -1) -> bytes:
         try:
             return self._f.read(n)
-        except Exception as e:  # noqa: BLE001 - as in open_part
+        except Exception as e:  # as in open_part
             raise OSError(getattr(e, "errno", None) or errno.EIO, _reason(e)) from None
 
     def close(self) -> None:
@@ -133,13 +138,13 @@ def remote_parts(url: str) -> list[RemotePart]:
             raise RemoteInputError(f"{url}: no such file")
     except RemoteInputError:
         raise
-    except Exception as e:  # noqa: BLE001 - as in open_part: the backend's words, in one line
+    except Exception as e:  # as in open_part: the backend's words, in one line
         raise RemoteInputError(f"{url}: cannot list ({_reason(e)})") from None
     return [RemotePart(fs.unstrip_protocol(p), int(info.get("size") or 0)) for p, info in sorted(found.items())
             if p.endswith(".mcap") and info.get("type", "file") == "file"]
 
 
-def _with_siblings(fs, path: str) -> dict[str, dict]:  # noqa: ANN001 - an fsspec filesystem
+def _with_siblings(fs: AbstractFileSystem, path: str) -> dict[str, dict]:
     """A file, and the numbered parts beside it when its name is one (the split
     recording it belongs to is grouped by metadata afterwards, as for files)."""
     m = _PART_NAME.match(posixpath.basename(path))
@@ -154,7 +159,7 @@ def _glob_escape(text: str) -> str:
     return re.sub(r"([*?\[])", r"[\1]", text)
 
 
-def _filesystem(url: str):  # noqa: ANN202 - (fsspec filesystem, path)
+def _filesystem(url: str) -> tuple[AbstractFileSystem, str]:
     """The fsspec filesystem for a URL, or why there is none."""
     try:
         import fsspec
@@ -164,5 +169,5 @@ def _filesystem(url: str):  # noqa: ANN202 - (fsspec filesystem, path)
         return fsspec.core.url_to_fs(url)
     except ImportError as e:  # a known scheme whose library is missing (s3fs, gcsfs)
         raise RemoteInputError(f"{url}: {_reason(e)} (docs/fleet.md says which extra installs it)") from None
-    except Exception as e:  # noqa: BLE001 - an unknown scheme, a bad URL
+    except Exception as e:  # an unknown scheme, a bad URL
         raise RemoteInputError(f"{url}: {_reason(e)}") from None

@@ -92,7 +92,7 @@ def _running_socket() -> str:
 def _setter(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
     """An option's value onto the Api, whichever command it was given to."""
     if value is not None:
-        setattr(ctx.ensure_object(Api), param.name, value)  # type: ignore[arg-type]
+        setattr(ctx.ensure_object(Api), param.name, value)
     return value
 
 

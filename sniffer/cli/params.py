@@ -4,7 +4,7 @@ every command that writes a recording (record, capture) with its output check.""
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from click.core import ParameterSource
@@ -13,6 +13,11 @@ from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
 from whiztap.analyzer.cli.params import ByteSize, checksum_rule_option, force_option
 from whiztap.sniffer.mitm.control_endpoint import DEFAULT as CONTROL_DEFAULT  # --control alone
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.mitm.control_endpoint import Endpoint
+    from whiztap.sniffer.record.live_gate import LiveAddress
+    from whiztap.sniffer.record.record_run import MiddleSettings
 
 
 class Address(click.ParamType):
@@ -25,7 +30,7 @@ class Address(click.ParamType):
         self.default_host = default_host
         self.what = what
 
-    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - click's signature
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> tuple[str, int]:
         if isinstance(value, tuple):
             return value
         from whiztap.sniffer.nettext import AddressError, parse_address
@@ -54,7 +59,7 @@ def _foxglove_origins(ctx: click.Context, param: click.Parameter, values: tuple[
         raise click.BadParameter(str(e), ctx, param) from None
 
 
-def _foxglove_value(ctx: click.Context, param: click.Parameter, value: tuple[str, int] | None):  # noqa: ANN202
+def _foxglove_value(ctx: click.Context, param: click.Parameter, value: tuple[str, int] | None) -> LiveAddress | None:
     """--foxglove as a LiveAddress: where, and the web origins also allowed."""
     origins = ctx.meta.get(_ORIGINS, ())
     if value is None:
@@ -86,7 +91,7 @@ def foxglove_option(f: Callable) -> Callable:
 def recording_options(f: Callable) -> Callable:
     """Splitting, secrets, the checksum rule and --force: the options of every
     command that writes a recording."""
-    for option in reversed([
+    options: list[Callable[[Callable], Callable]] = [
         click.option("--split-size", type=ByteSize(), default=None,
                      help="Start a new numbered file when this one reaches BYTES (e.g. 100M)."),
         click.option("--split-duration", type=click.FloatRange(min=0.001), default=None, metavar="SECONDS",
@@ -95,7 +100,8 @@ def recording_options(f: Callable) -> Callable:
                      help="Record the password as sent (default: '*' bytes and <redacted>)."),
         checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules')."),
         force_option,
-    ]):
+    ]
+    for option in reversed(options):
         f = option(f)
     return f
 
@@ -175,9 +181,9 @@ def middle_options(f: Callable) -> Callable:
     return f
 
 
-def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: Any, control_token: str | None,
+def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: Endpoint | None, control_token: str | None,
                     scripts: tuple[str, ...], seed: int | None, hold_timeout: float,
-                    always: bool = False):  # noqa: ANN201 - a MiddleSettings, imported lazily
+                    always: bool = False) -> MiddleSettings:
     """The ``middle_options`` as the recording's MiddleSettings; ``always``
     puts the proxy in the middle even with none of them given (the TUI's live
     mode and the demo, whose keys drive it)."""
@@ -187,7 +193,7 @@ def middle_settings(faults: tuple, fault_files: tuple[str, ...], control: Any, c
                           tuple(scripts), seed, hold_timeout, always)
 
 
-def control_with_token(control: Any, token: str | None) -> Any:  # an Endpoint or None, imported lazily
+def control_with_token(control: Endpoint | None, token: str | None) -> Endpoint | None:
     """``--control``'s endpoint with ``--control-token`` in it: a TCP one's.  A
     Unix socket takes none (its folder is its lock): given on the command line
     with one, it is an error; from WHIZTAP_CONTROL_TOKEN (set for ctl, say), ignored."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -26,6 +26,9 @@ from whiztap.sniffer.cli.params import (
 )
 from whiztap.sniffer.cli.run import run, stop_signals
 from whiztap.sniffer.record.summary import fault_lines, summary_lines
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.record.record_run import RecordSettings, Recording
 
 
 @click.command("record")
@@ -50,9 +53,10 @@ from whiztap.sniffer.record.summary import fault_lines, summary_lines
 @middle_options
 @limits_options
 def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: str, split_size: int | None,
-                   split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool, analyze: bool,
-                   connect_timeout: float, when_behind: str, meta: tuple[str, ...], foxglove: tuple[str, int] | None,
-                   answer_timeout: float, max_frame: int, max_image: int, **middle: Any) -> None:
+                   split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool,
+                   analyze: bool, connect_timeout: float, when_behind: str, meta: tuple[str, ...],
+                   foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
+                   **middle: Any) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -84,7 +88,7 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
         fail(error)
 
 
-async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, imported lazily
+async def _record(settings: RecordSettings) -> str | None:
     """Record until Ctrl-C, SIGTERM, SIGHUP or a write error; the error, if any."""
     import asyncio
 
@@ -104,6 +108,7 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     except OSError as e:
         return f"cannot listen on {show_address(*settings.listen)}: {e.strerror or e}"
     proxy = recording.proxy
+    assert proxy is not None  # started
     if not settings.quiet and recording.controller is not None:  # each fault in words, before any traffic
         for line in fault_lines(recording.controller.faults):
             click.echo(printable(line), err=True)
@@ -122,15 +127,16 @@ async def _record(settings) -> str | None:  # noqa: ANN001 - a RecordSettings, i
     return recording.error
 
 
-async def _try_upstream(recording) -> None:  # noqa: ANN001 - a Recording, imported lazily
+async def _try_upstream(recording: Recording) -> None:
     """Connect to the upstream once at start (and close at once): one that
     refuses is said now, rather than by each client's reset."""
+    from whiztap.sniffer.nettext import show_address
     from whiztap.sniffer.record.proxy import try_upstream
 
     settings = recording.settings
     why = await try_upstream(*settings.upstream, settings.connect_timeout)
     if why is not None:
-        recording.warn(f"warning: the upstream {recording.proxy.upstream_text} does not accept connections ({why}); "
+        recording.warn(f"warning: the upstream {show_address(*settings.upstream)} does not accept connections ({why}); "
                        "recording anyway: each client is reset until it does")
 
 
@@ -202,7 +208,8 @@ def capture_command(pcap: str | None, iface: str | None, port: int | None, outpu
             with ByteProgress([Path(pcap)] if os.path.isfile(pcap) else [], not quiet, "importing") as bar:
                 summary = import_pcap(pcap, settings, progress=bar.update)
         else:
-            summary = capture_live(iface, settings, count=count, timeout=timeout,  # type: ignore[arg-type]
+            assert iface is not None  # one of the two, as checked above
+            summary = capture_live(iface, settings, count=count, timeout=timeout,
                                    announce=None if quiet else say)
     except CaptureError as e:
         fail(str(e))

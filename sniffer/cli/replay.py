@@ -7,6 +7,8 @@ engines load when a command runs.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -18,15 +20,22 @@ from whiztap.analyzer.protocol.text import plural
 from whiztap.sniffer.cli.params import Address, FaultSpecParam
 from whiztap.sniffer.cli.run import run, stop_signals
 
+if TYPE_CHECKING:
+    from whiztap.analyzer.analysis.exchanges import RecordedSessions
+    from whiztap.analyzer.recording.sets import RecordingSet
+    from whiztap.sniffer.replay.events import Event, ReplayResult
+    from whiztap.sniffer.replay.options import ReplayOptions
+    from whiztap.sniffer.replay.stub import Stub
+
 PACES = ["recorded", "lockstep", "max"]
 
 
-def _find(path: str):  # noqa: ANN202 - a RecordingSet, imported lazily
+def _find(path: str) -> RecordingSet:
     """The recording a path names (a split one's parts together), or a one-line error."""
     return one_recording((path,))
 
 
-def _load(path: str, recording=None, timeout: float = 5.0):  # noqa: ANN001, ANN202 - RecordedSessions, imported lazily
+def _load(path: str, recording: RecordingSet | None = None, timeout: float = 5.0) -> RecordedSessions:
     """The recording's exchanges (``recording``: what ``_find`` found for
     ``path``; ``timeout``: how long its client waited for an answer), or a
     one-line error (exit status 2)."""
@@ -57,7 +66,8 @@ def _password(text: str | None) -> bytes | None:
 
 @click.command("replay")
 @click.argument("path", metavar="RECORDING")
-@click.option("--target", type=Address("127.0.0.1"), metavar="HOST:PORT", help="The server to replay against (not needed with --dry-run).")
+@click.option("--target", type=Address("127.0.0.1"), metavar="HOST:PORT",
+              help="The server to replay against (not needed with --dry-run).")
 @click.option("--password", envvar="WHIZTAP_PASSWORD", default=None,
               help="Winsock password (default: $WHIZTAP_PASSWORD, or each connection's recorded one if "
                    "it was kept); connections refused in the recording send a wrong one.")
@@ -169,7 +179,7 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     sys.exit(result.exit_status)
 
 
-def _faults(found, metadata: dict[str, str], typed: tuple, from_recording: bool,  # noqa: ANN001 - a RecordingSet
+def _faults(found: RecordingSet, metadata: dict[str, str], typed: tuple, from_recording: bool,
             seed: int | None) -> tuple[tuple, int | None]:
     """The faults to replay under, and their seed: none by default; with
     --faults-from-recording the recording's (a note when it has none), then
@@ -180,7 +190,7 @@ def _faults(found, metadata: dict[str, str], typed: tuple, from_recording: bool,
     from whiztap.sniffer.replay.options import ReplayError
 
     try:
-        recorded = recorded_faults(found.parts, metadata)
+        recorded = recorded_faults([p for p in found.parts if isinstance(p, Path)], metadata)  # files, not URLs
     except ReplayError as e:
         fail(str(e))
     if not recorded.faults:
@@ -198,14 +208,16 @@ def _fault_lines(faults: tuple, seed: int | None) -> list[str]:
         [f"  {fault_text(f)}" for f in faults]
 
 
-async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool):  # noqa: ANN001, ANN202
+async def _replay(recording: RecordedSessions, options: ReplayOptions, verbose: bool, quiet: bool,
+                  as_json: bool) -> ReplayResult:
     from whiztap.sniffer.replay.engine import Replay
 
     printer = _Printer(verbose, quiet or as_json)
     replay = Replay(recording, options, on_event=printer)
     replay.check()
     if not (quiet or as_json):
-        target = f"{options.target[0]}:{options.target[1]}"
+        host, port = options.address
+        target = f"{host}:{port}"
         _echo(f"replaying {recording.path} against {target}: {plural(len(replay.plans), 'connection')}, "
                    f"pace {options.pace}" + (f" x{options.rate:g}" if options.pace == "recorded" else "")
                    + f", {options.rules.describe()}")
@@ -218,7 +230,8 @@ async def _replay(recording, options, verbose: bool, quiet: bool, as_json: bool)
     if as_json:
         import json
 
-        target = f"{options.target[0]}:{options.target[1]}"
+        host, port = options.address
+        target = f"{host}:{port}"
         click.echo(json.dumps({"recording": recording.path, "target": target, "pace": str(options.pace),
                                "rate": options.rate, "compare": {
                                    "mode": str(options.rules.mode), "tolerances": dict(options.rules.tolerances),
@@ -250,7 +263,7 @@ class _Printer:
     def __init__(self, verbose: bool, quiet: bool) -> None:
         self.verbose, self.quiet = verbose, quiet
 
-    def __call__(self, event) -> None:  # noqa: ANN001 - a replay event
+    def __call__(self, event: Event) -> None:
         from whiztap.analyzer.protocol.text import escape, shorten
         from whiztap.sniffer.replay.events import ConnectionClosed, ConnectionOpened, RequestSent, ResponseCompared
 
@@ -337,7 +350,7 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     sys.exit(1 if strict and missing else 0)
 
 
-async def _serve(stub, once: bool) -> str | None:  # noqa: ANN001 - Stub, imported lazily
+async def _serve(stub: Stub, once: bool) -> str | None:
     try:
         await stub.start()
     except OSError as e:

@@ -10,6 +10,7 @@ import logging
 import os
 import sys
 import threading
+from typing import TYPE_CHECKING
 
 import click
 
@@ -20,6 +21,10 @@ from whiztap.sniffer.cli.params import Address
 from whiztap.sniffer.cli.run import run, stop_signals
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.sim.robot import DEFAULT_PASSWORD, DEFAULT_SERVO_SPEED
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.sim.client import Client
+    from whiztap.sniffer.sim.simulator import Simulator
 
 DEFAULT_PORT = 5000
 _LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
@@ -73,7 +78,7 @@ def sim_command(host: str, port: int, mode: str, password: str, channels: str, s
     run(_run_sim(sim))
 
 
-async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
+async def _run_sim(sim: Simulator) -> None:
     try:
         await sim.start()
     except OSError as e:
@@ -101,7 +106,8 @@ async def _run_sim(sim) -> None:  # noqa: ANN001 - Simulator is imported lazily
               help="Seconds to wait for a connection, the handshake and each answer.")
 @click.option("--raw", is_flag=True,
               help="Send commands even when their frame breaks the spec (a channel or value out of range).")
-def client_command(address: tuple[str, int], words: tuple[str, ...], password: str | None, timeout: float, raw: bool) -> None:
+def client_command(address: tuple[str, int], words: tuple[str, ...], password: str | None, timeout: float,
+                   raw: bool) -> None:
     """Send commands to a Progwhiz server (or a proxy in front of one).
 
     One COMMAND on the command line (e.g. 'sensor 12', 'servo 3 1500',
@@ -144,7 +150,7 @@ async def _run_client(host: str, port: int, password: str | None, timeout: float
         return await _repl(client)
 
 
-async def _repl(client) -> int:  # noqa: ANN001 - Client is imported lazily
+async def _repl(client: Client) -> int:
     import asyncio
 
     from whiztap.sniffer.sim.client import ClientError, ConnectionClosed, HandshakeError

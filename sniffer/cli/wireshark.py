@@ -35,7 +35,7 @@ def _binary_output(path: str, force: bool) -> Iterator[IO[bytes]]:
     from whiztap.analyzer.recording.output_rule import create_mode
 
     try:
-        f = open(path, create_mode(path, force) + "b")  # noqa: SIM115 - closed below
+        f = open(path, create_mode(path, force) + "b")  # closed below
     except OSError as e:
         fail(f"cannot write {path}: {e.strerror}")
     try:

@@ -106,7 +106,7 @@ def _check_workers(client: Any, scheduler: str) -> None:
         raise ClusterError(f"no worker joined the Dask scheduler at {scheduler} within {WORKERS_S} s") from None
     try:
         versions = client.run(whiztap_version)
-    except Exception as e:  # noqa: BLE001 - whatever the workers raised unpickling or running it
+    except Exception as e:  # whatever the workers raised unpickling or running it
         raise ClusterError(f"the Dask workers cannot run whiztap ({_line(e)}); install whiztap {__version__} "
                            "with its fleet extra on every worker") from None
     other = sorted({v for v in versions.values() if v != __version__})

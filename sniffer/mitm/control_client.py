@@ -29,6 +29,7 @@ from typing import Any
 import h11
 
 from whiztap.analyzer import __version__
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.mitm.control_endpoint import Endpoint
 from whiztap.sniffer.nettext import reason, show_address
@@ -42,7 +43,7 @@ PROBE = ("GET", "/intercept")  # small, and it changes nothing
 SHOWN = 40  # bytes of a stranger's words quoted in a message
 
 
-class ControlClientError(Exception):
+class ControlClientError(WhiztapError):
     """The request could not be made, or was answered by something other than
     the control API; the message is one line for the user."""
 

@@ -29,6 +29,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.sniffer.nettext import AddressError, is_loopback, parse_address, show_address
 
 DEFAULT = "default"  # what ``--control`` without a value stands for: a socket in the runtime folder
@@ -37,7 +38,7 @@ TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~+/=-]{1,512}")  # RFC 6750's token68: sa
 _serial = itertools.count(1)
 
 
-class EndpointError(ValueError):
+class EndpointError(WhiztapError, ValueError):
     """An endpoint that cannot be used; the message is one line for the user."""
 
 

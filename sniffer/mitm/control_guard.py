@@ -35,7 +35,7 @@ from whiztap.sniffer.mitm.control_endpoint import Endpoint
 from whiztap.sniffer.mitm.http_api import HttpError
 
 MAX_BODY = 64 << 10
-WILDCARDS = frozenset({"0.0.0.0", "::", ""})  # noqa: S104 - the addresses that mean "every interface"
+WILDCARDS = frozenset({"0.0.0.0", "::", ""})  # the addresses that mean "every interface"
 LOCAL_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 
 

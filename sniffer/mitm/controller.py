@@ -16,9 +16,11 @@ from __future__ import annotations
 import json
 import random
 from collections.abc import Callable, Iterable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, Protocol
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.mitm.commands import Closing, Command, Full
 from whiztap.analyzer.mitm.core import MiddleContext, MiddleCore
 from whiztap.analyzer.mitm.faults import MAX_DUP_FAULTS, MAX_FAULTS, Fault
@@ -29,7 +31,7 @@ from whiztap.analyzer.protocol.frame_text import check_frame, frame_from_text
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.text import escape, plural, printable
-from whiztap.analyzer.traffic import Cause, Source
+from whiztap.analyzer.traffic import Cause, Source, TrafficEvent
 
 def middle_metadata(faults: Iterable[FaultSpec], seed: int | None) -> dict[str, str]:
     """The metadata of a recording made with the proxy in the middle (docs/faults.md):
@@ -38,7 +40,7 @@ def middle_metadata(faults: Iterable[FaultSpec], seed: int | None) -> dict[str, 
     return {"middle": "yes", "faults": json.dumps(listed), "seed": "" if seed is None else str(seed)}
 
 
-class ControlError(ValueError):
+class ControlError(WhiztapError, ValueError):
     """A control request cannot be carried out; the message says why, in one
     line.  ``status`` is the HTTP status the control API answers with: 400 a
     refused request, 404 nothing by that id, 409 the connection is closing,
@@ -52,7 +54,8 @@ class ControlError(ValueError):
 class Shell(Protocol):
     """What carries out a connection's commands (``shell.MiddleShell`` on the proxy's loop)."""
 
-    client_addr: str
+    @property
+    def client_addr(self) -> str: ...
 
     def run(self, commands: list[Command]) -> None: ...
 
@@ -69,7 +72,7 @@ class Controller:
                                      checksum_rule=checksum_rule, redact=redact,
                                      hold_timeout_ns=int(hold_timeout * 1e9))
         self.clock: Callable[[], int] = lambda: 0  # the proxy's, from attach()
-        self.emit: Callable[[object], None] = lambda event: None
+        self.emit: Callable[[TrafficEvent], None] = lambda event: None
         # analyze's verdict on the traffic so far, as the recording's writer judges it (None: not known)
         self.verdict: Callable[[], dict | None] = lambda: None
         # a line about a fault for the recording's /log: (the fault's name, the line, when); the Recording's
@@ -87,7 +90,7 @@ class Controller:
     def held(self) -> HeldFrames:
         return self.context.held
 
-    def attach(self, clock: Callable[[], int], emit: Callable[[object], None]) -> None:
+    def attach(self, clock: Callable[[], int], emit: Callable[[TrafficEvent], None]) -> None:
         """The proxy's clock and its consumers (interventions and deliveries are traffic events)."""
         self.clock, self.emit = clock, emit
 
@@ -243,7 +246,7 @@ class Controller:
         released = 0
         for held in list(self.held.frames.values()):
             try:
-                self._run(held.conn, lambda core, now, h=held: core.release(h, None, False, Cause(Source.HAND), now))
+                self._run(held.conn, partial(_release_as_it_is, held))
             except ControlError:
                 continue  # its connection is closing: it goes (or expires) with it
             released += 1
@@ -283,6 +286,11 @@ class Controller:
         return {"faults": [f.as_dict() for f in self.faults], "intercept": self.intercept.text,
                 "held": self.held_frames(), "connections": self.connections(), "seed": self.seed,
                 "scripts": [stage_name(s) for s in self.scripts], "verdict": self.verdict()}
+
+
+def _release_as_it_is(held: Held, core: MiddleCore, now: int) -> list[Command]:
+    """A held frame let go unchanged, by hand (``release_all``)."""
+    return core.release(held, None, False, Cause(Source.HAND), now)
 
 
 def add_start_faults(controller: Controller, files: Iterable[str | Path], specs: Sequence[FaultSpec]) -> None:

@@ -43,6 +43,7 @@ from urllib.parse import unquote
 
 import orjson
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.mitm.controller import ControlError, Controller
 
@@ -50,7 +51,7 @@ MAX_DEPTH = 8  # levels of arrays and objects in a body
 MAX_ID_DIGITS = 18  # a held frame's id in a path: more is no id, and int() of thousands of digits raises
 
 
-class HttpError(Exception):
+class HttpError(WhiztapError):
     """A request answered with an error ``status`` and ``{"error": message}``
     (``allow``: the methods the path takes, for a 405's Allow header)."""
 
@@ -230,6 +231,6 @@ def answer(controller: Controller, request: Request) -> tuple[int, Any, tuple[st
         return e.status, {"error": str(e)}, ()
     except ValueError as e:  # FaultSpecError and the like: a request that does not parse
         return 400, {"error": str(e)}, ()
-    except Exception as e:  # noqa: BLE001 - a bug here must not reach the proxy's loop
+    except Exception as e:  # a bug here must not reach the proxy's loop
         controller.report(f"control API: {request.method} {request.path}: {type(e).__name__}: {e}")
         return 500, {"error": f"internal error: {type(e).__name__}: {e}"}, ()

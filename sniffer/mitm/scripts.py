@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from whiztap.analyzer.analysis.item_filter import channel_of
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.protocol.frame_text import frame_from_text
 from whiztap.analyzer.protocol.observations import Direction
@@ -31,7 +32,7 @@ HOOKS = ("frame", "opened", "closed")
 _modules = itertools.count(1)
 
 
-class ScriptError(Exception):
+class ScriptError(WhiztapError):
     """A script cannot be loaded; one line naming the file and what to do."""
 
 
@@ -135,7 +136,7 @@ def load_script(path: str | Path) -> Script:
     module = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(module)
-    except Exception as e:  # noqa: BLE001 - whatever a script does wrong at load time is the user's to fix
+    except Exception as e:  # whatever a script does wrong at load time is the user's to fix
         raise ScriptError(f"script {path} failed to load: {type(e).__name__}: {e}") from None
     if not any(callable(getattr(module, hook, None)) for hook in HOOKS):
         raise ScriptError(f"script {path} defines none of the hooks {', '.join(HOOKS)}")

@@ -33,7 +33,7 @@ _LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP 
 class Leg(Protocol):
     """One socket of a proxied connection (the proxy's ``_Leg``)."""
 
-    transport: Any  # asyncio.Transport | None
+    transport: asyncio.Transport | None
     lost: bool
 
     def sync(self) -> None: ...
@@ -45,12 +45,15 @@ class ProxiedConnection(Protocol):
 
     id: int
     client_addr: str
-    client: Leg
-    upstream: Leg
     closed_by: str | None
     detail: str
 
-    def pass_eof(self, leg: Any) -> None: ...
+    @property
+    def client(self) -> Leg: ...
+    @property
+    def upstream(self) -> Leg: ...
+
+    def pass_eof(self, leg: Any) -> None: ...  # one of its own legs
     def close_both(self, by: str | None = None, detail: str = "") -> None: ...
     def abort(self) -> None: ...
 
@@ -101,7 +104,7 @@ class MiddleShell:
         self._draining.discard(direction)
         try:
             self.drained(direction)
-        except Exception as e:  # noqa: BLE001 - a callback never raises into the loop, nor takes another connection
+        except Exception as e:  # a callback never raises into the loop, nor takes another connection
             self._report_once(e)
 
     def eof_passed(self, direction: Direction) -> bool:
@@ -115,21 +118,21 @@ class MiddleShell:
     def run(self, commands: list[Command]) -> None:
         connection = self.connection
         for command in commands:
-            kind = type(command)
-            if kind is Tell:
-                self.emit(command.event)  # type: ignore[union-attr]
-            elif kind is Deliver:
-                leg = connection.upstream if command.direction is C2S else connection.client  # type: ignore[union-attr]
-                transport = leg.transport
-                if transport is not None and not transport.is_closing():
-                    transport.write(command.data)  # type: ignore[union-attr]
-            elif kind is WakeAt:
-                self._schedule(command.t_ns)  # type: ignore[union-attr]
-            elif kind is PassEof:
-                self._eof_passed.add(command.direction)  # type: ignore[union-attr]
-                connection.pass_eof(connection.client if command.direction is C2S else connection.upstream)  # type: ignore[union-attr]
-            elif kind is EndConnection:
-                self._end(command.how)  # type: ignore[union-attr]
+            match command:
+                case Tell():
+                    self.emit(command.event)
+                case Deliver():
+                    leg = connection.upstream if command.direction is C2S else connection.client
+                    transport = leg.transport
+                    if transport is not None and not transport.is_closing():
+                        transport.write(command.data)
+                case WakeAt():
+                    self._schedule(command.t_ns)
+                case PassEof():
+                    self._eof_passed.add(command.direction)
+                    connection.pass_eof(connection.client if command.direction is C2S else connection.upstream)
+                case EndConnection():
+                    self._end(command.how)
         core = self.core
         for direction, leg in ((C2S, connection.client), (S2C, connection.upstream)):
             may = core.may_read(direction)
@@ -156,7 +159,7 @@ class MiddleShell:
         self._timer = None
         try:
             self.run(self.core.wake(self.clock()))
-        except Exception as e:  # noqa: BLE001 - a timer never raises into the loop, nor takes another connection
+        except Exception as e:  # a timer never raises into the loop, nor takes another connection
             self._report_once(e)
 
     def _report_once(self, e: Exception) -> None:

@@ -16,19 +16,24 @@ import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.sniffer.record.detect import ContentDetector
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.tcpreasm import DLT_EN10MB, DLT_RAW, Reassembler, parse_frame
 from whiztap.sniffer.record.writer import STOP_SIGNALS, RecordingFile, RecordingWriteError
 
+if TYPE_CHECKING:
+    from scapy.supersocket import SuperSocket
+
 TICK_EVERY = 2048  # packets between flush/rotation checks when importing
 SNAP = 1 << 18  # larger than any frame on a 64 KiB-MTU loopback
 DRAIN_MAX = 100_000  # packets read after a stop, at most
 
 
-class CaptureError(Exception):
+class CaptureError(WhiztapError):
     """A capture could not run; one line for the user."""
 
 
@@ -47,7 +52,7 @@ class CaptureSettings:
 def _recorder(settings: CaptureSettings, source: str, start_ns: int, **extra: object) -> Recorder:
     from whiztap.sniffer.record.metadata import base_metadata
 
-    metadata = base_metadata(source, settings.keep_secrets, settings.checksum_rule, start_ns,
+    metadata = base_metadata(source, settings.keep_secrets, settings.checksum_rule, start_ns, None,
                              server_port=settings.port, split_size=settings.split_size,
                              split_duration=settings.split_duration, **extra)
     split_ns = int(settings.split_duration * 1e9) if settings.split_duration else None
@@ -78,7 +83,9 @@ def _summary(recorder: Recorder, t_ns: int, detail: str) -> dict:
     return summary
 
 
-def _timestamp(meta, nano: bool) -> int:  # noqa: ANN001 - scapy's PacketMetadata or PacketMetadataNg
+def _timestamp(meta: Any, nano: bool) -> int:
+    """A packet's time in ns; ``meta``: scapy's PacketMetadata, or PacketMetadataNg
+    (a pcapng file's), told apart by their fields."""
     if hasattr(meta, "tshigh"):
         return ((meta.tshigh << 32) | meta.tslow) * 1_000_000_000 // meta.tsresol
     return meta.sec * 1_000_000_000 + meta.usec * (1 if nano else 1000)
@@ -107,7 +114,7 @@ def import_pcap(path: str, settings: CaptureSettings, progress: Callable[[int], 
             count = 0
             while True:
                 try:
-                    frame, meta = reader._read_packet(SNAP)  # noqa: SLF001 - the public iterator cuts at 64 KiB
+                    frame, meta = reader._read_packet(SNAP)  # the public iterator cuts at 64 KiB
                 except EOFError:
                     break
                 t = _timestamp(meta, nano)
@@ -145,10 +152,11 @@ def _live_linktype(frame: bytes) -> int:
     return DLT_RAW
 
 
-def _open_live(iface: str, port: int | None):  # noqa: ANN202 - a scapy SuperSocket
+def _open_live(iface: str, port: int | None) -> SuperSocket:
+    import importlib
     import logging
 
-    import scapy.arch  # noqa: F401 - sets conf.L2listen for this platform
+    importlib.import_module("scapy.arch")  # sets conf.L2listen for this platform
     from scapy.config import conf
     from scapy.error import Scapy_Exception
 
@@ -166,7 +174,7 @@ def _open_live(iface: str, port: int | None):  # noqa: ANN202 - a scapy SuperSoc
     except Scapy_Exception as e:
         raise CaptureError(f"cannot capture on {iface}: {e}") from None
     except ValueError:  # scapy's "Interface 'x' not found !"
-        names = ", ".join(sorted(socket.if_nameindex() and (n for _, n in socket.if_nameindex())))
+        names = ", ".join(sorted(n for _, n in socket.if_nameindex()))
         raise CaptureError(f"cannot capture on {iface}: no such interface (this machine has: {names})") from None
 
 
@@ -216,7 +224,8 @@ def capture_live(iface: str, settings: CaptureSettings, *, count: int | None = N
         sock.close()
 
 
-def _live_packet(sock, reassembler: Reassembler | ContentDetector, t: int, seen: int) -> tuple[int, int]:  # noqa: ANN001
+def _live_packet(sock: SuperSocket, reassembler: Reassembler | ContentDetector, t: int,
+                 seen: int) -> tuple[int, int]:
     """Read one packet; the time of the latest, and how many TCP segments so far."""
     _cls, frame, ts = sock.recv_raw(SNAP)
     if frame is None:

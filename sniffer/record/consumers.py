@@ -46,7 +46,7 @@ class Consumers:
         for consumer, receive in self._receivers:
             try:
                 receive(event)
-            except Exception as error:  # noqa: BLE001 - whatever a consumer does wrong, traffic goes on
+            except Exception as error:  # whatever a consumer does wrong, traffic goes on
                 self._drop(consumer, error)
 
     def _drop(self, consumer: Consumer, error: Exception) -> None:

@@ -8,7 +8,8 @@ down whenever traffic is being written.  In a child process they run on the
 other core and the event loop does nothing per read but copy it into a batch.
 
 Parent side (``WriterProcess``, a consumer of the proxy's traffic events:
-``receive(event)``): each event becomes one binary record appended to a batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
+``receive(event)``): each event becomes one binary record appended to a
+batch; the batch goes down a pipe every ``BATCH_S`` (or sooner when large)
 through an asyncio write-pipe transport.
 
 When the writer falls behind, only the connections that cause it wait.  The
@@ -34,8 +35,9 @@ t_ns, payload length; then the payload: for a read (``REC_DATA``) the bytes
 read; for bytes the proxy in the middle delivered (``REC_DELIVERED``) those
 bytes (direction plus ``SECRET`` for a password's); for an intervention
 (``REC_INTERVENTION``) its fields as JSON, bytes in base64; for a line of
-the proxy's own for /log (``REC_NOTICE``, connection 0) its fields as JSON; for any other
-event (``REC_EVENT``) its ``/tcp/events`` message (``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
+the proxy's own for /log (``REC_NOTICE``, connection 0) its fields as JSON;
+for any other event (``REC_EVENT``) its ``/tcp/events`` message
+(``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.notice import Notice
 from whiztap.analyzer.traffic import (
@@ -91,7 +94,7 @@ EXIT_WRITE_ERROR = 3
 WRITER_NICE = 5
 
 
-class WriterError(Exception):
+class WriterError(WhiztapError):
     """The writer could not start or stopped recording; one line for the user."""
 
 
@@ -203,14 +206,14 @@ class WriterProcess:
             return
         kind = type(event)
         conn = event.conn
-        if kind is Delivered or kind is Intervention:
-            self._middle(event)  # type: ignore[arg-type]
+        if isinstance(event, (Delivered, Intervention)):
+            self._middle(event)
             return
         if kind is HalfClosed or kind is Closed:
             self._end_gaps(conn)  # what was left out came before
             if kind is Closed:
                 self._open.discard(conn)
-        self._event(event)  # type: ignore[arg-type]
+        self._event(event)
         if kind is Opened:
             self._open.add(conn)
             if self._behind:
@@ -248,12 +251,12 @@ class WriterProcess:
     def _middle(self, event: Delivered | Intervention) -> None:
         """What the proxy in the middle delivered or changed (rare: no hot path)."""
         direction = 0 if event.direction is C2S else 1
-        if type(event) is Delivered:
+        if isinstance(event, Delivered):
             body = event.data
             self._batch += _HEAD.pack(REC_DELIVERED, event.conn, direction + (SECRET if event.secret else 0),
                                       event.t_ns, len(body)) + body
         else:
-            body = json.dumps(intervention_to_json(event)).encode()  # type: ignore[arg-type]
+            body = json.dumps(intervention_to_json(event)).encode()
             self._batch += _HEAD.pack(REC_INTERVENTION, event.conn, direction, event.t_ns, len(body)) + body
         self._queued()
 
@@ -303,7 +306,8 @@ class WriterProcess:
         over = self._over_share(backlog) if self._behind else frozenset()
         if over != self._over:
             self._set_over(over)
-        if self._behind and self._timer is None and pipe is not None and not pipe.is_closing():
+        if (self._behind and self._timer is None and pipe is not None and not pipe.is_closing()
+                and self._loop is not None):
             self._timer = self._loop.call_later(BATCH_S, self._send)
 
     def _over_share(self, backlog: int) -> frozenset[int]:

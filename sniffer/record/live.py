@@ -36,12 +36,18 @@ import logging
 import secrets
 import socket
 from collections.abc import Callable
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.text import printable, shorten
 from whiztap.analyzer.recording.format import KNOWN_TOPICS, MESSAGE_ENCODING, SCHEMA_ENCODING, schema_bytes
 from whiztap.sniffer.nettext import is_loopback, reason, show_address
 from whiztap.sniffer.record.live_gate import MAX_CLIENTS, LiveGate
 from whiztap.sniffer.record.writer import RecordingFile
+
+if TYPE_CHECKING:
+    from foxglove import Channel, Context
 
 SERVER_NAME = "whiztap"
 SDK_LINES = 20  # the SDK's log lines passed on; after them, one line says more were left out
@@ -50,7 +56,7 @@ Log = Callable[..., None]
 Warn = Callable[[str], None]
 
 
-class LiveServerError(Exception):
+class LiveServerError(WhiztapError):
     """The live server could not start; the message is one line for the user."""
 
 
@@ -103,7 +109,7 @@ class _SdkLog(logging.Handler):
             self.warn("warning: foxglove server: more lines left out")
 
 
-def _route_sdk_logs(foxglove, warn: Warn) -> None:  # noqa: ANN001 - the foxglove module
+def _route_sdk_logs(foxglove: ModuleType, warn: Warn) -> None:
     """Before the server starts (the SDK takes its level once): warnings and
     errors go to ``warn``, nothing to stderr."""
     logger = logging.getLogger("foxglove")
@@ -112,7 +118,7 @@ def _route_sdk_logs(foxglove, warn: Warn) -> None:  # noqa: ANN001 - the foxglov
     foxglove.set_log_level(logging.WARNING)
 
 
-def _hidden_server(foxglove, context) -> tuple[object, tuple[str, int]]:  # noqa: ANN001 - the SDK's
+def _hidden_server(foxglove: ModuleType, context: Context) -> tuple[object, tuple[str, int]]:
     """The SDK's server on a loopback address no web page can guess
     (127.R.R.R; 127.0.0.1 where the system has no other), port chosen by the
     system; the server and where it listens."""
@@ -151,7 +157,7 @@ class LiveServer:
         self.gate.start()
         self.host = host
         self.port = sock.getsockname()[1]  # the bound one when 0 was asked
-        self.channels: dict[str, object] = {}
+        self.channels: dict[str, Channel] = {}
         if not is_loopback(host):
             warn(f"warning: foxglove: {self.url} can be reached from other machines: whoever reaches it reads "
                  "all the traffic (no password, no encryption); the origin check stops only web pages")
@@ -174,7 +180,7 @@ class LiveServer:
             schema = fg.Schema(name=name, encoding=SCHEMA_ENCODING, data=schema_bytes(name)) if name else None
             channel = fg.Channel(topic, message_encoding=MESSAGE_ENCODING, schema=schema, context=self.context)
             self.channels[topic] = channel
-        return channel.base.log  # type: ignore[attr-defined]
+        return channel.base.log
 
 
 def _nowhere(data: bytes, log_time: int) -> None:
@@ -193,7 +199,7 @@ class LiveRecordingFile(RecordingFile):
     for one registered as it goes (``/sensors/12``), after its first message,
     which no client can have subscribed to yet and which is not served."""
 
-    def __init__(self, live: LiveServer, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 - RecordingFile's
+    def __init__(self, live: LiveServer, *args: Any, **kwargs: Any) -> None:  # RecordingFile's
         super().__init__(*args, **kwargs)
         self.live = live
         self._logs: dict[int, Log] = {}  # channel id -> its live channel's log
@@ -215,7 +221,7 @@ class LiveRecordingFile(RecordingFile):
             logs = self._logs
             for channel_id, t_ns, data in messages:
                 logs.get(channel_id, _nowhere)(data, t_ns)
-        except Exception as e:  # noqa: BLE001 - whatever the live server does wrong, the file goes on
+        except Exception as e:  # whatever the live server does wrong, the file goes on
             self.serving = False
             self.warn(f"warning: the live Foxglove server stopped ({type(e).__name__}: {e}); "
                       "the recording goes on")

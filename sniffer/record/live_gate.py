@@ -34,8 +34,9 @@ import re
 import socket
 import threading
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.text import printable, shorten
 from whiztap.sniffer.nettext import show_address
 
@@ -80,7 +81,7 @@ def origin_allowed(origin: str | None, extra: frozenset[str]) -> bool:
     return origin == FOXGLOVE_APP or origin in extra or _LOCAL_ORIGIN.fullmatch(origin) is not None
 
 
-class BadRequest(ValueError):
+class BadRequest(WhiztapError, ValueError):
     """A request head that is not one HTTP/1.1 request line and header fields."""
 
 
@@ -162,23 +163,33 @@ class _Side(asyncio.Protocol):
         self.other: _Side | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
-        transport.set_write_buffer_limits(high=HIGH_WATER)  # type: ignore[attr-defined]
+        self.transport = cast(asyncio.Transport, transport)  # a TCP connection's
+        self.transport.set_write_buffer_limits(high=HIGH_WATER)
+
+    def _spliced(self) -> asyncio.Transport | None:
+        """The other side's transport, once the two are spliced."""
+        return self.other.transport if self.other is not None else None
 
     def data_received(self, data: bytes) -> None:
-        self.other.transport.write(data)  # type: ignore[union-attr]
+        other = self._spliced()
+        if other is not None:
+            other.write(data)
 
     def eof_received(self) -> bool:
-        other = self.other.transport  # type: ignore[union-attr]
-        if other.can_write_eof():
+        other = self._spliced()
+        if other is not None and other.can_write_eof():
             other.write_eof()
         return True
 
     def pause_writing(self) -> None:
-        self.other.transport.pause_reading()  # type: ignore[union-attr]
+        other = self._spliced()
+        if other is not None:
+            other.pause_reading()
 
     def resume_writing(self) -> None:
-        self.other.transport.resume_reading()  # type: ignore[union-attr]
+        other = self._spliced()
+        if other is not None:
+            other.resume_reading()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.conn.lost()
@@ -189,12 +200,13 @@ class _Client(_Side):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
+        tcp = cast(asyncio.Transport, transport)
         self.head = bytearray()
-        peer = transport.get_extra_info("peername")
+        peer = tcp.get_extra_info("peername")
         self.conn.peer = show_address(*peer[:2]) if peer else "?"
-        self.timer = asyncio.get_running_loop().call_later(HEAD_TIMEOUT_S, transport.abort)
+        self.timer = asyncio.get_running_loop().call_later(HEAD_TIMEOUT_S, tcp.abort)
         if len(self.conn.gate.conns) > MAX_CLIENTS:
-            transport.abort()
+            tcp.abort()
 
     def data_received(self, data: bytes) -> None:
         if self.other is not None:
@@ -216,8 +228,8 @@ class _Client(_Side):
         elif status:
             self._refuse(status, "this port serves the recording to the Foxglove app "
                                          "(a Foxglove WebSocket connection) and nothing else")
-        else:
-            self.transport.pause_reading()  # type: ignore[union-attr]  # until the SDK's side is there
+        elif self.transport is not None:  # it has one: it read the head
+            self.transport.pause_reading()  # until the SDK's side is there
             self.conn.open_upstream(head)
 
     def eof_received(self) -> bool:
@@ -227,8 +239,9 @@ class _Client(_Side):
 
     def _refuse(self, status: int, text: str) -> None:
         self.timer.cancel()
-        self.transport.write(refusal(status, shorten(printable(text), 400)))  # type: ignore[union-attr]
-        self.transport.close()  # type: ignore[union-attr]
+        if self.transport is not None:  # it has one: it read the head
+            self.transport.write(refusal(status, shorten(printable(text), 400)))
+            self.transport.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.timer.cancel()
@@ -252,18 +265,20 @@ class _Conn:
     async def _connect(self, head: bytes) -> None:
         loop = asyncio.get_running_loop()
         upstream = _Side(self)
+        client = self.client.transport  # the head was read from it
         try:
-            await loop.create_connection(lambda: upstream, *self.gate.inner)
+            transport, _ = await loop.create_connection(lambda: upstream, *self.gate.inner)
         except OSError:
-            self.client.transport.abort()  # type: ignore[union-attr]
+            if client is not None:
+                client.abort()
             return
-        if self.closed:
-            upstream.transport.close()  # type: ignore[union-attr]
+        if self.closed or client is None:
+            transport.close()
             return
         self.upstream = upstream
         upstream.other, self.client.other = self.client, upstream
-        upstream.transport.write(head)  # type: ignore[union-attr]  # the request as read, and what came after it
-        self.client.transport.resume_reading()  # type: ignore[union-attr]
+        transport.write(head)  # the request as read, and what came after it
+        client.resume_reading()
 
     def lost(self) -> None:
         """Either side ended: the other closes once it has sent what it holds."""

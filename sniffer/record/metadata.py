@@ -12,6 +12,7 @@ import socket
 import uuid
 from collections.abc import Iterable, Mapping
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.recording.format import metadata_record
 
 # Keys whiztap itself writes (docs/recording-format.md): a user's key may not
@@ -26,7 +27,7 @@ _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$")
 MAX_VALUE = 1024  # characters of one value: a name or a version, not a document
 
 
-class MetadataError(ValueError):
+class MetadataError(WhiztapError, ValueError):
     """A --meta that cannot go into a recording; one line."""
 
 
@@ -57,7 +58,7 @@ def base_metadata(source: str, keep_secrets: bool, checksum_rule: str, start_ns:
     """The metadata record of a recording from ``source`` started at ``start_ns``;
     ``extra``: what that source adds (listen address, server port, replay target...);
     ``user``: the user's own keys (``user_metadata``), after whiztap's."""
-    start = datetime.datetime.fromtimestamp(start_ns / 1e9, datetime.timezone.utc)
+    start = datetime.datetime.fromtimestamp(start_ns / 1e9, datetime.UTC)
     record = metadata_record(source=source, start_time=start.isoformat(), start_time_ns=start_ns,
                              checksum_rule=checksum_rule, host=socket.gethostname(),
                              secrets="kept" if keep_secrets else "redacted",

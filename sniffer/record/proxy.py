@@ -40,7 +40,7 @@ import socket
 import struct
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened, UpstreamConnected, UpstreamFailed
@@ -76,11 +76,12 @@ def address(sockname: tuple | None) -> str:
 class _Leg(asyncio.Protocol):
     """One socket of a connection; ``direction`` is that of the bytes it reads."""
 
+    peer: _Leg  # the other side, paired by the ``Connection`` that makes both
+
     def __init__(self, conn: Connection, direction: Direction) -> None:
         self.conn = conn
         self.direction = direction
         self.transport: asyncio.Transport | None = None
-        self.peer: _Leg | None = None
         self.target: asyncio.Transport | None = None  # where its bytes go, once they may
         self.eof = False  # this side sent FIN
         self.received = 0  # bytes read from this side
@@ -102,21 +103,21 @@ class _Leg(asyncio.Protocol):
             else:
                 self.transport.pause_reading()
 
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+    def connection_made(self, base: asyncio.BaseTransport) -> None:
+        self.transport = transport = cast(asyncio.Transport, base)  # a TCP connection's
         sock = transport.get_extra_info("socket")
         if sock is not None:
             try:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             except OSError:
                 pass
-        transport.set_write_buffer_limits(high=TRANSPORT_HIGH_WATER)  # type: ignore[attr-defined]
+        transport.set_write_buffer_limits(high=TRANSPORT_HIGH_WATER)
         if self.direction is S2C:  # the client is connected before its upstream
-            self.target = self.peer.transport  # type: ignore[union-attr]
+            self.target = self.peer.transport
             if self.conn.middle is not None:
                 self.conn.middle.ready(S2C)
         else:
-            self.conn.client_made(transport)  # type: ignore[arg-type]
+            self.conn.client_made(transport)
         asyncio.get_running_loop().call_soon(self.sync)  # once reading has started
 
     def data_received(self, data: bytes) -> None:
@@ -127,7 +128,7 @@ class _Leg(asyncio.Protocol):
             self.received += len(data)
             conn.middle.received(self.direction, data, t)
             if not self.lost and not self.may_read():
-                self.transport.pause_reading()  # type: ignore[union-attr]
+                self._pause()
             return
         target = self.target
         if target is not None:
@@ -137,7 +138,11 @@ class _Leg(asyncio.Protocol):
         self.received += len(data)
         proxy.receive(Data(conn.id, self.direction, t, data))
         if not self.may_read():  # whatever pause was missed, this read is the last
-            self.transport.pause_reading()  # type: ignore[union-attr]
+            self._pause()
+
+    def _pause(self) -> None:
+        if self.transport is not None:  # always, once a read has come
+            self.transport.pause_reading()
 
     def eof_received(self) -> bool:
         self.eof = True
@@ -145,10 +150,10 @@ class _Leg(asyncio.Protocol):
         return True  # keep the other direction open
 
     def pause_writing(self) -> None:
-        self.peer.sync()  # type: ignore[union-attr]
+        self.peer.sync()
 
     def resume_writing(self) -> None:
-        self.peer.sync()  # type: ignore[union-attr]
+        self.peer.sync()
         middle = self.conn.middle
         if middle is not None:  # what the middle queued toward this side may go on
             middle.drained(S2C if self.direction is C2S else C2S)
@@ -196,12 +201,12 @@ class Connection:
         proxy = self.proxy
         loop = asyncio.get_running_loop()
         try:
-            await asyncio.wait_for(
+            upstream, _ = await asyncio.wait_for(
                 loop.create_connection(lambda: self.upstream, proxy.upstream_host, proxy.upstream_port),
                 proxy.connect_timeout)
         except asyncio.CancelledError:
             return
-        except (OSError, asyncio.TimeoutError) as e:
+        except (TimeoutError, OSError) as e:
             why = "timed out" if isinstance(e, asyncio.TimeoutError) else reason(e)
             detail = f"cannot connect to {proxy.upstream_text}: {why}"
             proxy.receive(UpstreamFailed(self.id, proxy.clock(), detail))
@@ -211,33 +216,35 @@ class Connection:
             self._reset_client()
             return
         if self.client.lost:
-            self.upstream.transport.close()  # type: ignore[union-attr]
+            upstream.close()
             return
-        local = address(self.upstream.transport.get_extra_info("sockname"))  # type: ignore[union-attr]
+        local = address(upstream.get_extra_info("sockname"))
         proxy.receive(UpstreamConnected(self.id, proxy.clock(), f"from {local}"))
         if self.middle is not None:
-            self.client.target = self.upstream.transport
+            self.client.target = upstream
             self.middle.ready(C2S)  # what the client sent meanwhile, and its FIN
             self.client.sync()
             return
         for data in self.client.early:
-            self.upstream.transport.write(data)  # type: ignore[union-attr]
+            upstream.write(data)
         self.client.early.clear()
         if self.client.eof:  # the client's FIN came while connecting: pass it on now
-            self.upstream.transport.write_eof()  # type: ignore[union-attr]
-        self.client.target = self.upstream.transport
+            upstream.write_eof()
+        self.client.target = upstream
         self.client.sync()
 
     def _reset_client(self) -> None:
         """End the client's connection with an RST, whatever it sent or not."""
         transport = self.client.transport
-        sock = transport.get_extra_info("socket")  # type: ignore[union-attr]
+        if transport is None:  # never: a connection starts with its client's
+            return
+        sock = transport.get_extra_info("socket")
         if sock is not None:
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _RESET)
             except OSError:
                 pass
-        transport.abort()  # type: ignore[union-attr]
+        transport.abort()
 
     # -- teardown -------------------------------------------------------------------------
 
@@ -254,13 +261,13 @@ class Connection:
     def pass_eof(self, leg: _Leg) -> None:
         """Pass ``leg``'s FIN on to the other side (both done sending: close)."""
         peer = leg.peer
-        if peer.lost or peer.transport is None:  # type: ignore[union-attr]
+        if peer.lost or peer.transport is None:
             return  # gone, or still connecting (which passes the FIN on)
         middle = self.middle
         if peer.eof and (middle is None or middle.eof_passed(peer.direction)):
             self.close_both()  # both sides are done sending
-        elif peer.transport.can_write_eof():  # type: ignore[union-attr]
-            peer.transport.write_eof()  # type: ignore[union-attr]
+        elif peer.transport.can_write_eof():
+            peer.transport.write_eof()
 
     def leg_lost(self, leg: _Leg, exc: Exception | None) -> None:
         if self.closed_by is None:
@@ -271,8 +278,8 @@ class Connection:
         if self.middle is not None:
             self.middle.lost(leg.direction)
         peer = leg.peer
-        if peer.transport is not None and not peer.lost:  # type: ignore[union-attr]
-            peer.transport.close()  # type: ignore[union-attr]  # after sending what it holds
+        if peer.transport is not None and not peer.lost:
+            peer.transport.close()  # after sending what it holds
         elif not self._done.done():
             self.proxy.receive(Closed(self.id, self.proxy.clock(), self.closed_by, self.detail))
             self._done.set_result(None)
@@ -303,7 +310,7 @@ async def try_upstream(host: str, port: int, timeout: float) -> str | None:
     finds out."""
     try:
         _, writer = await asyncio.wait_for(asyncio.open_connection(host, port), timeout)
-    except asyncio.TimeoutError:
+    except TimeoutError:
         return f"no answer within {timeout:g} s"
     except OSError as e:
         return reason(e)
@@ -340,15 +347,16 @@ class RecordingProxy:
             controller.attach(self.clock, self.receive)
         self.connections: dict[int, Connection] = {}
         self._ids = itertools.count(1)
-        self._server: asyncio.AbstractServer | None = None
+        self._server: asyncio.Server | None = None
 
     @property
     def port(self) -> int:
-        return self._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        """The port it listens on, once started (0 before)."""
+        return self._server.sockets[0].getsockname()[1] if self._server is not None else 0
 
     @property
     def listen_text(self) -> str:
-        return address(self._server.sockets[0].getsockname()) if self._server else "?"  # type: ignore[union-attr]
+        return address(self._server.sockets[0].getsockname()) if self._server is not None else "?"
 
     async def start(self, serving: bool = True) -> None:
         """Bind (OSError if the address is taken); accept now or at ``serve()``."""
@@ -357,7 +365,8 @@ class RecordingProxy:
                                                 reuse_address=True, backlog=512, start_serving=serving)
 
     async def serve(self) -> None:
-        await self._server.start_serving()  # type: ignore[union-attr]
+        if self._server is not None:  # started
+            await self._server.start_serving()
 
     def _accept(self) -> _Leg:
         conn = Connection(self, next(self._ids))

@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.notice import Notice
 from whiztap.sniffer.record.consumers import Consumer, Consumers
@@ -22,10 +23,11 @@ from whiztap.sniffer.record.summary import clock_text
 
 if TYPE_CHECKING:
     from whiztap.sniffer.mitm.control_endpoint import Endpoint
+    from whiztap.sniffer.mitm.control_server import ControlServer
     from whiztap.sniffer.mitm.controller import Controller
 
 
-class StartError(Exception):
+class StartError(WhiztapError):
     """The recording could not start (beyond the writer and the listening
     address, which raise their own); one line for the user."""
 
@@ -91,13 +93,18 @@ class Recording:
         self.controller: Controller | None = None
         self.control_url: str | None = None  # the control API's socket path, or http://HOST:PORT
         self.control_token: str | None = None  # the bearer token a TCP control API takes
-        self._control = None
+        self._control: ControlServer | None = None
         self.consumers = Consumers(self._consumer_failed)
         self._extra = tuple(consumers)
         self.stopped = asyncio.Event()
         self.writer: WriterProcess | None = None
         self.proxy: RecordingProxy | None = None
         self.summary: dict | None = None
+
+    @property
+    def port(self) -> int:
+        """The port clients connect to, once started (0 before)."""
+        return self.proxy.port if self.proxy is not None else 0
 
     @property
     def error(self) -> str | None:
@@ -133,9 +140,10 @@ class Recording:
             raise
         start_ns = proxy.clock()
         listen = proxy.listen_text
+        middle = self.controller.metadata() if self.controller is not None else {}
         metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
                                  upstream=proxy.upstream_text, split_size=s.split_size,
-                                 split_duration=s.split_duration, user=dict(s.meta), **(self.controller.metadata() if self.controller is not None else {}))
+                                 split_duration=s.split_duration, user=dict(s.meta), **middle)
         config = {"path": s.output, "metadata": metadata, "keep_secrets": s.keep_secrets,
                   "checksum_rule": s.checksum_rule, "analyze": s.analyze, "start_ns": start_ns,
                   "limits": s.limits.as_dict(),
@@ -167,9 +175,12 @@ class Recording:
         """Close every connection, finish the file; the writer's summary."""
         if self._control is not None:
             await self._control.stop()
-        await self.proxy.close(detail)  # type: ignore[union-attr]
+        proxy, writer = self.proxy, self.writer
+        if proxy is None or writer is None:  # it never started: no file
+            return None
+        await proxy.close(detail)
         quiet = self.controller.end() if self.controller is not None else []  # faults that chose no frame: said
-        self.summary = await self.writer.stop(self.proxy.clock(), detail)  # type: ignore[union-attr]
+        self.summary = await writer.stop(proxy.clock(), detail)
         if self.summary is not None and quiet:
             self.summary["quiet_faults"] = [f"{fault.name} ({fault.spec.text})" for fault in quiet]
         return self.summary
@@ -204,23 +215,23 @@ class Recording:
         from whiztap.sniffer.mitm.control_endpoint import EndpointError
         from whiztap.sniffer.mitm.control_server import ControlServer
 
-        self._control = ControlServer(self.controller, endpoint)
+        self._control = control = ControlServer(self.controller, endpoint)
         try:
-            await self._control.start()
+            await control.start()
         except EndpointError as e:
             raise StartError(f"cannot serve the control API: {e}") from None
         except OSError as e:
             raise StartError(f"cannot serve the control API on {endpoint}: {e.strerror or e}") from None
-        self.control_url, self.control_token = self._control.url, self._control.token
+        self.control_url, self.control_token = control.url, control.token
         if not endpoint.loopback:
-            self.warn(f"warning: the control API listens on {self._control.endpoint}, which other "
+            self.warn(f"warning: the control API listens on {control.endpoint}, which other "
                       f"machines may reach: whoever has its token can drop, edit and inject the traffic")
 
     def _opened(self, conn: Connection) -> None:
         self.echo(f"#{conn.id} opened from {conn.client_addr}")
 
     def _closed(self, conn: Connection) -> None:
-        seconds = (self.proxy.clock() - conn.opened_ns) / 1e9  # type: ignore[union-attr]
+        seconds = (conn.proxy.clock() - conn.opened_ns) / 1e9
         if conn.upstream_failed:
             self.echo(f"#{conn.id} reset after {seconds:.2f} s: {conn.detail}; the client's connection was reset "
                       f"(c2s {conn.client.received} B, not forwarded)")
@@ -232,8 +243,9 @@ class Recording:
         """A consumer raised: it gets no more events; the file and the traffic go on.
         The writer never raises (``WriterProcess.receive``); if it did, the
         recording could not go on, and stops with the reason."""
-        if consumer is self.writer:
-            self.writer.fail(f"recording failed: {type(error).__name__}: {error}")  # type: ignore[union-attr]
+        writer = self.writer
+        if writer is not None and consumer is writer:
+            writer.fail(f"recording failed: {type(error).__name__}: {error}")
             return
         self.echo(f"{type(consumer).__name__} stopped receiving traffic: {type(error).__name__}: {error}")
 

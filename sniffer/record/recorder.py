@@ -174,7 +174,7 @@ class Recorder:
         self._write_event(RecordingStarted(t_ns, detail))
         self.file.flush()  # schemas, channels and metadata on disk at once
 
-    def receive(self, event: TrafficEvent) -> None:
+    def receive(self, event: TrafficEvent | Notice) -> None:
         """One traffic event of a connection (the recording's own start and
         stop are ``start()`` and ``stop()``).  Hot loop for reads: each one
         costs a little bookkeeping here before it is written."""
@@ -190,24 +190,24 @@ class Recorder:
             c.received[direction] = offset + len(data)
             redactor = self._redactor
             if redactor is None or redactor.passing(conn):
-                self._write_read(c, event, offset, ())
+                self._write_read(c, event, offset, None)
                 return
             redactor.read(conn, direction, data, _ReadNote(c, event, offset), time.monotonic())
-            self._release()
+            self._release(redactor)
             return
         t = self._clock(event.t_ns)
         if t != event.t_ns:
-            event = event._replace(t_ns=t) if type(event) is Delivered else replace(event, t_ns=t)  # type: ignore[union-attr,type-var]
+            event = event._replace(t_ns=t) if isinstance(event, Delivered) else replace(event, t_ns=t)
         work = self._inputs[type(event)](event)
         if self._redactor is not None:
-            self._redactor.tell(event)  # type: ignore[arg-type]
+            self._redactor.tell(event)
         self._then(event.conn, work)
 
     def tick(self, t_ns: int) -> None:
         """Called often (at least every few hundred ms): bounded holds, flush, rotation."""
         if self._redactor is not None:
             self._redactor.tick(time.monotonic())
-            self._release()
+            self._release(self._redactor)
         self.file.tick(max(t_ns, self._t))
 
     def stop(self, t_ns: int, detail: str = "") -> Summary:
@@ -258,7 +258,7 @@ class Recorder:
         c.received[e.direction] = offset + length
         self._bytes[e.direction] -= length  # counted as received at close; never seen
         gap = replace(e, offset=offset, length=length)
-        return lambda: self._gap(c, gap)
+        return lambda: self._gap(c, gap, offset + length)
 
     def _input_delivered(self, e: Delivered) -> Work:
         """What the proxy wrote toward one side when it stands in the middle:
@@ -320,18 +320,18 @@ class Recorder:
             work()
         else:
             redactor.event(conn, work)
-            self._release()
+            self._release(redactor)
 
-    def _release(self) -> None:
+    def _release(self, redactor: Redactor[_ReadNote | Work]) -> None:
         """Write the reads (and do the events) whose turn has come."""
-        for r in self._redactor.released():  # type: ignore[union-attr]
-            if r.direction is None:
-                r.record()  # type: ignore[operator]
-            else:
-                note: _ReadNote = r.record  # type: ignore[assignment]
+        for r in redactor.released():
+            note = r.record
+            if isinstance(note, _ReadNote):
                 self._write_read(note.c, note.read._replace(data=r.data), note.offset, r.spans)
+            else:
+                note()
 
-    def _write_read(self, c: _Conn, read: Data, offset: int, spans: list[tuple[int, int]] | tuple) -> None:
+    def _write_read(self, c: _Conn, read: Data, offset: int, spans: list[tuple[int, int]] | None) -> None:
         """One read into /tcp/reads (as it may be shown), and what the session makes of it."""
         conn, direction, t, data, _offset, _masked = read
         self._at(t)
@@ -376,9 +376,10 @@ class Recorder:
         # after what the session made of the side's last bytes: the file keeps each stream's order
         self._write_event(e)
 
-    def _gap(self, c: _Conn, e: Gap) -> None:
+    def _gap(self, c: _Conn, e: Gap, end: int) -> None:
+        """``end``: the stream offset after the missing bytes."""
         self._write_event(e)
-        c.written[e.direction] = e.offset + e.length  # type: ignore[operator]
+        c.written[e.direction] = end
         # The framer cannot know what the missing bytes were: it finishes what it
         # has and starts a fresh session model after the hole.
         self._observe_all(e.conn, c, self._traffic.receive(e))
@@ -413,7 +414,7 @@ class Recorder:
         frames = self._frame_counts
         run: list[Observation] = []
         for obs in events:
-            if type(obs) is LateViolation:
+            if isinstance(obs, LateViolation):
                 if run:
                     self._write_run(conn, c, run, out)
                     run = []

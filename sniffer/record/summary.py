@@ -46,8 +46,10 @@ def summary_lines(summary: dict, what: str) -> list[str]:
     frames, nbytes, violations = summary["frames"], summary["bytes"], summary["violations"]
     files = summary["files"]
     where = files[0] if len(files) == 1 else f"{len(files)} files ({files[0]} ... {files[-1]})" if files else "no file"
-    per_dir = "; ".join(f"{d} {plural(frames.get(d, 0), 'frame')} {human_bytes(nbytes.get(d, 0))}" for d in ("c2s", "s2c"))
-    counts = ", ".join(plural(violations.get(s, 0), s, "info" if s == "info" else None) for s in ("error", "warning", "info"))
+    per_dir = "; ".join(f"{d} {plural(frames.get(d, 0), 'frame')} {human_bytes(nbytes.get(d, 0))}"
+                        for d in ("c2s", "s2c"))
+    counts = ", ".join(plural(violations.get(s, 0), s, "info" if s == "info" else None)
+                       for s in ("error", "warning", "info"))
     lines = [f"{what} {plural(summary['connections'], 'connection')} into {where} ({human_bytes(summary['size'])}, "
              f"{plural(summary['messages'], 'message')})",
              f"  {per_dir}",

@@ -134,7 +134,8 @@ def _diff(a: int, b: int) -> int:
 class _Half:
     """One direction of a connection."""
 
-    next: int | None = None  # sequence number of the next byte expected
+    started: bool = False  # a segment of it was seen, so ``next`` is known
+    next: int = 0  # sequence number of the next byte expected
     pending: dict[int, bytes] = field(default_factory=dict)
     pending_bytes: int = 0
     fin: int | None = None  # sequence number of the FIN
@@ -190,8 +191,8 @@ class Reassembler:
         direction = C2S if s.src == conn.client else S2C
         half = conn.halves[direction]
         if s.flags & SYN:
-            if half.next is None:
-                half.next = (s.seq + 1) & 0xFFFFFFFF
+            if not half.started:
+                half.started, half.next = True, (s.seq + 1) & 0xFFFFFFFF
             if direction is S2C and s.flags & ACK and not conn.established:
                 conn.established = True
                 self.receive(UpstreamConnected(conn.id, s.t_ns, "SYN-ACK"))
@@ -199,8 +200,8 @@ class Reassembler:
         if s.flags & RST:
             self._reset(key, conn, direction, s.t_ns)
             return
-        if half.next is None:  # joined mid-stream
-            half.next = s.seq
+        if not half.started:  # joined mid-stream
+            half.started, half.next = True, s.seq
         if s.payload:
             self._data(conn, direction, half, s.seq, s.payload, s.t_ns)
         if s.flags & FIN and half.fin is None:
@@ -264,7 +265,7 @@ class Reassembler:
         return conn
 
     def _data(self, conn: _Conn, direction: Direction, half: _Half, seq: int, payload: bytes, t: int) -> None:
-        ahead = _diff(seq, half.next)  # type: ignore[arg-type]
+        ahead = _diff(seq, half.next)
         if ahead <= 0:
             payload = payload[-ahead:]  # a retransmission: keep only what is new
             if not payload:
@@ -280,7 +281,7 @@ class Reassembler:
 
     def _deliver(self, conn: _Conn, direction: Direction, half: _Half, data: bytes, t: int) -> None:
         self.receive(Data(conn.id, direction, t, data))
-        half.next = (half.next + len(data)) & 0xFFFFFFFF  # type: ignore[operator]
+        half.next = (half.next + len(data)) & 0xFFFFFFFF
 
     def _drain(self, conn: _Conn, direction: Direction, half: _Half, t: int) -> None:
         """Deliver waiting segments that now follow on."""
@@ -288,7 +289,7 @@ class Reassembler:
         while half.pending and progress:
             progress = False
             for seq in list(half.pending):
-                ahead = _diff(seq, half.next)  # type: ignore[arg-type]
+                ahead = _diff(seq, half.next)
                 if ahead > 0:
                     continue
                 payload = half.pending.pop(seq)
@@ -298,7 +299,7 @@ class Reassembler:
                 progress = True
 
     def _gap_to(self, conn: _Conn, direction: Direction, half: _Half, seq: int, t: int) -> None:
-        length = _diff(seq, half.next)  # type: ignore[arg-type]
+        length = _diff(seq, half.next)
         if length > 0:
             self.gaps += 1
             self.receive(Gap(conn.id, t, direction, length))
@@ -308,17 +309,17 @@ class Reassembler:
     def _flush_pending(self, conn: _Conn, direction: Direction, half: _Half, t: int) -> None:
         """Give up on every hole: each becomes a gap, the data after it is delivered."""
         while half.pending:
-            first = min(half.pending, key=lambda q: _diff(q, half.next))  # type: ignore[arg-type]
+            first = min(half.pending, key=lambda q: _diff(q, half.next))
             self._gap_to(conn, direction, half, first, t)
 
     def _acked(self, conn: _Conn, direction: Direction, ack: int, t: int) -> None:
         """The other side acknowledged ``direction`` up to ``ack``: bytes before it
         that the capture has not shown are owed (``_settle`` decides their fate)."""
         half = conn.halves[direction]
-        if half.next is None:
+        if not half.started:
             return
         limit = ack if half.fin is None else min(ack, half.fin, key=lambda q: _diff(q, half.next))
-        if _diff(limit, half.next) > 0:  # type: ignore[arg-type]
+        if _diff(limit, half.next) > 0:
             self._owe(half, limit, t)
 
     @staticmethod
@@ -337,14 +338,14 @@ class Reassembler:
         if half.done:  # every byte up to its FIN came: an ACK beyond it owes nothing
             half.owed = None
             return
-        if _diff(half.owed, half.next) <= 0:  # type: ignore[arg-type]
+        if _diff(half.owed, half.next) <= 0:
             half.owed = None  # they came after all
             return
         if not force and t - half.owed_since < ACK_GRACE_NS:
             return
         limit, half.owed = half.owed, None
         while half.pending:
-            first = min(half.pending, key=lambda q: _diff(q, half.next))  # type: ignore[arg-type]
+            first = min(half.pending, key=lambda q: _diff(q, half.next))
             if _diff(first, limit) >= 0:
                 break
             self._gap_to(conn, direction, half, first, t)

@@ -40,7 +40,9 @@ import signal
 import sys
 import time
 from collections.abc import Callable
+from typing import NoReturn
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.recording.format import (
     LATE_TOPICS,
     MESSAGE_ENCODING,
@@ -69,7 +71,7 @@ MAX_SKIPPED = 1000  # taken part names skipped in a row before the recording giv
 _MESSAGE_COST = 31 + 16
 
 
-class RecordingWriteError(Exception):
+class RecordingWriteError(WhiztapError):
     """Writing the recording failed; the message says what was kept, in one line."""
 
 
@@ -236,10 +238,10 @@ class RecordingFile:
                     raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), final)
                 fd = _create(target, self.overwrite)
             except FileExistsError as e:
-                if (self.part or 1) == 1 or len(skipped) >= MAX_SKIPPED:
+                if not self.part or self.part == 1 or len(skipped) >= MAX_SKIPPED:
                     self._cannot_create(e, target)
                 skipped.append(e.filename or target)
-                self.part += 1  # type: ignore[operator]
+                self.part += 1
                 continue
             except OSError as e:
                 self._cannot_create(e, target)
@@ -247,7 +249,7 @@ class RecordingFile:
                 self.warn(_skipped_text(skipped, final))
             return fd
 
-    def _cannot_create(self, error: OSError, target: str) -> None:
+    def _cannot_create(self, error: OSError, target: str) -> NoReturn:
         kept = f"; recording stopped, what was written before is in {self.finished[-1]}" if self.finished else ""
         raise RecordingWriteError(f"cannot write {error.filename or target}: {error.strerror}{kept}") from None
 
@@ -281,22 +283,23 @@ class RecordingFile:
     def _define(self, topic: str) -> None:
         """Define ``topic``'s schema (once per part) and channel in the current part."""
         writer = self._writer
+        assert writer is not None  # a part is open
         schema = TOPICS.get(topic) or LATE_TOPICS[topic]
         schema_id = self._schema_ids.get(schema)
         if schema_id is None:
-            schema_id = self._schema_ids[schema] = writer.register_schema(  # type: ignore[union-attr]
+            schema_id = self._schema_ids[schema] = writer.register_schema(
                 schema, SCHEMA_ENCODING, schema_bytes(schema))
         # the stream topics' chunks first at every flush: a crash then loses
         # decoded frames before the reads they were decoded from
-        writer.register_channel(topic, MESSAGE_ENCODING, schema_id,  # type: ignore[union-attr]
+        writer.register_channel(topic, MESSAGE_ENCODING, schema_id,
                                 group=0 if topic in STREAM_TOPICS else 1, channel_id=self._channels[topic])
 
     def _define_late(self, channel_id: int) -> None:
         """A message on a channel this part has not defined yet (a plot topic's
         first in this part): define it before the chunk that will hold it."""
-        before = self._stream.tell()  # type: ignore[union-attr]
+        before = self.size
         self._define(self._topics[channel_id])
-        self._summary_base += self._stream.tell() - before  # type: ignore[union-attr]  # finish() repeats it
+        self._summary_base += self.size - before  # finish() repeats it
 
     @property
     def channel_ids(self) -> dict[str, int]:
@@ -331,17 +334,19 @@ class RecordingFile:
         if self.split_size is None or self.closing:
             self._add(messages)
         else:
-            self._add_splitting(messages)
+            self._add_splitting(messages, self.split_size)
 
     def _add(self, messages: list[tuple[int, int, bytes]]) -> None:
+        writer = self._writer
+        assert writer is not None  # a part is open
         try:
-            self._writer.add_messages(messages)  # type: ignore[union-attr]
+            writer.add_messages(messages)
         except OSError as e:
             self._fail(e)
         self.messages += len(messages)
         self._dirty = True
 
-    def _add_splitting(self, messages: list[tuple[int, int, bytes]]) -> None:
+    def _add_splitting(self, messages: list[tuple[int, int, bytes]], split_size: int) -> None:
         """Add messages to a part that ends at a split size.  The recorder ends
         a full part before each read and connection event (``rotate_if_due``);
         here, after each chunk's worth of messages, a full part ends even in the
@@ -354,7 +359,7 @@ class RecordingFile:
                     self._add(messages[start:i])
                     start = i
                 self._unchecked = 0
-                if self._finished_size() >= self.split_size and self._holds_traffic():  # type: ignore[operator]
+                if self._finished_size() >= split_size and self._holds_traffic():
                     self._rotate(t_ns)
             self._unchecked += len(data) + _MESSAGE_COST
         if start < len(messages):
@@ -365,13 +370,15 @@ class RecordingFile:
         recorded so far survives a crash of the process or of the machine."""
         if not self._dirty:
             return
+        writer, stream = self._writer, self._stream
+        assert writer is not None and stream is not None  # a part is open
         try:
-            self._writer.flush()  # type: ignore[union-attr]
-            self._stream.flush()  # type: ignore[union-attr]
-            os.fdatasync(self._stream.fd)  # type: ignore[union-attr]
+            writer.flush()
+            stream.flush()
+            os.fdatasync(stream.fd)
         except OSError as e:
             self._fail(e)
-        self._good = self._stream.written  # type: ignore[union-attr]
+        self._good = stream.written
         self._dirty = False
         self._last_flush = time.monotonic()
 
@@ -400,11 +407,12 @@ class RecordingFile:
     def _rotate(self, t_ns: int) -> None:
         self._rotate_due = False
         self._finish_part(rotating=True)
-        self.part += 1  # type: ignore[operator]
+        assert self.part is not None  # only a split recording rotates
+        self.part += 1
         self._open_part(t_ns)
         self._part_opening = None  # what a reader of this part alone needs first is not traffic
         if self.on_new_part is not None:
-            self.on_new_part(self.part)  # type: ignore[arg-type]
+            self.on_new_part(self.part)
         self._part_opening = self.messages
 
     def _holds_traffic(self) -> bool:
@@ -419,10 +427,12 @@ class RecordingFile:
         return self.finished
 
     def _finish_part(self, rotating: bool = False) -> None:
+        writer, stream = self._writer, self._stream
+        assert writer is not None and stream is not None  # a part is open
         try:
-            self._writer.finish()  # type: ignore[union-attr]
-            self._stream.flush()  # type: ignore[union-attr]
-            os.fdatasync(self._stream.fd)  # type: ignore[union-attr]  # all of it on disk before the final name
+            writer.finish()
+            stream.flush()
+            os.fdatasync(stream.fd)  # all of it on disk before the final name
         except OSError as e:
             self._fail(e)
         self._close_and_rename(rotating)
@@ -431,7 +441,8 @@ class RecordingFile:
         """Close the part and give it its final name.  A name taken while the
         part was written stops nothing when more parts follow (``rotating``):
         the part keeps its ``.part`` name, complete, and the recording goes on."""
-        os.close(self._stream.fd)  # type: ignore[union-attr]
+        assert self._stream is not None  # a part is open
+        os.close(self._stream.fd)
         final = self.current_path
         self._writer = None
         self._stream = None
@@ -451,20 +462,21 @@ class RecordingFile:
         _sync_folder(final)
         self.finished.append(final)
 
-    def _fail(self, error: OSError) -> None:
+    def _fail(self, error: OSError) -> NoReturn:
         """Keep what reached the disk readable, then report the failure."""
         what = error.strerror or str(error)
         part = self.current_path + ".part"
         stream = self._stream
+        assert stream is not None  # what failed was writing the open part
         self._writer = None
         try:
-            os.ftruncate(stream.fd, self._good)  # type: ignore[union-attr]
-            os.pwrite(stream.fd, minimal_end(), self._good)  # type: ignore[union-attr]
-            os.fdatasync(stream.fd)  # type: ignore[union-attr]
+            os.ftruncate(stream.fd, self._good)
+            os.pwrite(stream.fd, minimal_end(), self._good)
+            os.fdatasync(stream.fd)
             self._close_and_rename()
         except OSError:
             try:
-                os.close(stream.fd)  # type: ignore[union-attr]
+                os.close(stream.fd)
             except OSError:
                 pass
             raise RecordingWriteError(

@@ -20,7 +20,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.notice import Notice
@@ -46,6 +46,12 @@ from whiztap.sniffer.record.feed import (
     WriterError,
 )
 
+if TYPE_CHECKING:
+    from whiztap.analyzer.protocol.observations import Observation
+    from whiztap.analyzer.protocol.rules import Violation
+    from whiztap.sniffer.record.recorder import Recorder
+    from whiztap.sniffer.record.writer import RecordingFile
+
 VERDICT_S = 0.25  # the verdict is reported at most this often
 _SAYING = threading.Lock()  # the live server's threads (its gate, the SDK's log) say things too
 
@@ -70,14 +76,14 @@ def _warning(text: str) -> None:
     _say({"type": "warning", "message": text})
 
 
-def _violation_report(conn: int, t_ns: int, violation, about, late: bool) -> None:  # noqa: ANN001 - Recorder hook
+def _violation_report(conn: int, t_ns: int, violation: Violation, about: Observation | None, late: bool) -> None:
     from whiztap.analyzer.recording.encode import violation_message
 
     message = violation_message(conn, violation, about, t_ns, late=late, redact=True)
     _say({"type": "violation", **message})
 
 
-def _apply(recorder, buf: bytearray) -> RecordingStopped | None:  # noqa: ANN001 - a Recorder
+def _apply(recorder: Recorder, buf: bytearray) -> RecordingStopped | None:
     """Hot loop (once per read recorded): turn each whole record at the start of
     ``buf`` back into its traffic event for the recorder, and remove it; the
     stop event, if one came (nothing after it is read)."""
@@ -118,7 +124,7 @@ class _VerdictReports:
     """In the middle, the verdict so far (``Recorder.verdict``) goes to the
     proxy when it changes, at most every ``VERDICT_S``: what ``GET /state`` serves."""
 
-    def __init__(self, recorder) -> None:  # noqa: ANN001 - a Recorder
+    def __init__(self, recorder: Recorder) -> None:
         self.recorder = recorder
         self.last: dict | None = None
         self.at = 0.0
@@ -128,7 +134,7 @@ class _VerdictReports:
             return
         self.at = now
         current = self.recorder.verdict()
-        if current != self.last:
+        if current is not None and current != self.last:
             self.last = current
             _say({"type": "verdict", **current})
 
@@ -143,7 +149,7 @@ def _ignore_signals(on_term: Callable[[int, object], None]) -> None:
     signal.signal(signal.SIGTERM, on_term)
 
 
-def _recording_file(config: dict[str, Any]):  # noqa: ANN202 - a RecordingFile, and what "ready" adds
+def _recording_file(config: dict[str, Any]) -> tuple[RecordingFile, dict[str, str]]:
     """The file, and with ``foxglove`` (host, port) one that also serves every
     message live (``live.py``; imported only then, so recording without it
     pays nothing); the server starts before the file is made, so a port in

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from whiztap.analyzer.analysis.compare import answer_key
 from whiztap.analyzer.analysis.exchanges import ClientItem
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.session import Direction, Event, Observation
+from whiztap.analyzer.protocol.observations import Direction, Event, Observation
 from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Traffic, TrafficEvent
 from whiztap.sniffer.replay.options import Pace, ReplayOptions
 from whiztap.sniffer.replay.output import OutputRecording

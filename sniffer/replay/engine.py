@@ -173,7 +173,7 @@ class Replay:
         try:
             await self._start_middle()
             if self.options.output is not None:
-                self._output.open()
+                self._output.open(self.options.output)
                 ticker = asyncio.create_task(self._output.tick())
             for loop in range(1, self.options.loop + 1):
                 if self._pacer.stopped:
@@ -234,8 +234,9 @@ class Replay:
                 task.cancel()
             await asyncio.gather(*pending, return_exceptions=True)
             for task in done:
-                if not task.cancelled() and task.exception() is not None:
-                    raise task.exception()  # type: ignore[misc]
+                error = None if task.cancelled() else task.exception()
+                if error is not None:
+                    raise error
         finally:
             for task in tasks:  # when run() itself is cancelled
                 task.cancel()
@@ -273,7 +274,7 @@ class Replay:
         self._tally.connections += 1
         local = show_address(*writer.get_extra_info("sockname")[:2])
         t = self._output.clock()
-        self._output.receive(Opened(conn, t, local, show_address(*self.options.target)))  # type: ignore[misc]
+        self._output.receive(Opened(conn, t, local, show_address(*self.options.address)))
         self._output.receive(UpstreamConnected(conn, t))
         self._tally.emit(ConnectionOpened(conn, p.recorded.conn, loop, self._tally.at(), local))
         c = ReplayedConnection(p, conn, reader, writer, options=self.options, pacer=self._pacer,
@@ -296,7 +297,7 @@ class Replay:
     async def _connect(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
         """A connection to the target (with faults, through the proxy, once it
         has reached the target: one that cannot be reached fails here alike)."""
-        host, port = self._connect_to  # type: ignore[misc]
+        host, port = self._connect_to or self.options.address
         try:
             reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port),
                                                     self.options.connect_timeout)

@@ -148,7 +148,8 @@ class ReplayResult:
         return out
 
     def summary(self) -> str:
-        return f"replayed {plural(self.connections, 'connection')}, {plural(self.writes, 'write')}; answers: {_judged(self.counts)}"
+        return (f"replayed {plural(self.connections, 'connection')}, {plural(self.writes, 'write')}; "
+                f"answers: {_judged(self.counts)}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -70,14 +70,14 @@ def recorded_faults(parts: Iterable[str | Path], metadata: dict[str, str]) -> Re
     whose metadata is ``metadata``: those it started with, then those its
     interventions name that it did not; ReplayError (one line) for a fault or a
     seed that does not read."""
-    parts = [Path(p) for p in parts]
-    where = str(parts[0]) if parts else "the recording"
+    paths = [Path(p) for p in parts]
+    where = str(paths[0]) if paths else "the recording"
     if metadata.get("middle") != "yes":
         return RecordedFaults((), None)  # no proxy in the middle: no fault, and no /interventions
     faults = _started(where, metadata.get("faults", "[]"))
     names = {f.name for f in faults if f.name}
     unnamed = [f.text for f in faults if not f.name]  # at run time these were named fault-N
-    for name, text in _caused(parts):
+    for name, text in _caused(paths):
         if name in names:
             continue
         names.add(name)
@@ -159,7 +159,7 @@ class FaultProxy:
                 self.controller.add_fault(spec)
         except ControlError as e:
             raise ReplayError(str(e)) from None
-        host, port = options.target  # type: ignore[misc]
+        host, port = options.address
         self.target = show_address(host, port)
         self.timeout = options.connect_timeout
         self.proxy = RecordingProxy(LOOPBACK, 0, host, port, self, connect_timeout=options.connect_timeout,
@@ -185,16 +185,15 @@ class FaultProxy:
     def receive(self, event: TrafficEvent) -> None:
         """The proxy's traffic events: whether each connection reached the
         target, and, with an output recording, everything, to it."""
-        kind = type(event)
-        if kind is Opened:
-            self._clients[event.conn] = event.client  # type: ignore[union-attr]
-        elif kind is UpstreamConnected or kind is UpstreamFailed:
+        if isinstance(event, Opened):
+            self._clients[event.conn] = event.client
+        elif isinstance(event, (UpstreamConnected, UpstreamFailed)):
             client = self._clients.get(event.conn)
             if client is not None:
                 outcome = self._outcome(client)
                 if not outcome.done():
-                    outcome.set_result(event.detail if kind is UpstreamFailed else None)  # type: ignore[union-attr]
-        elif kind is Closed:
+                    outcome.set_result(event.detail if isinstance(event, UpstreamFailed) else None)
+        elif isinstance(event, Closed):
             self._clients.pop(event.conn, None)
         if self._watch is not None:
             self._watch(event)

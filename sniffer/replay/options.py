@@ -11,6 +11,7 @@ from enum import StrEnum
 from typing import TYPE_CHECKING
 
 from whiztap.analyzer.analysis.compare import CompareRules
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.sniffer.replay.plan import Selection
 
@@ -24,7 +25,7 @@ class Pace(StrEnum):
     MAX = "max"
 
 
-class ReplayError(Exception):
+class ReplayError(WhiztapError):
     """The replay cannot start or go on (one line for the user).
 
     ``missing`` names a setting the replay needs and was not given ("target",
@@ -65,3 +66,10 @@ class ReplayOptions:
     # its /tcp/delivered), not what the recorded server sent: a replay under the recording's own
     # faults (--faults-from-recording) then passes when it reproduces what the recorded client went through
     reproduce: bool = False
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """``target``, which every replay but a dry run needs (``Replay.check`` says so first)."""
+        if self.target is None:
+            raise ReplayError("no target", missing="target")
+        return self.target

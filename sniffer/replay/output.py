@@ -44,14 +44,15 @@ class OutputRecording:
         self._recorder: Recorder | None = None
         self._error: str | None = None
 
-    def open(self) -> None:
+    def open(self, path: str) -> None:
+        """Begin the recording into ``path`` (``options.output``)."""
         options = self.options
         start = self.clock()
-        target = show_address(*options.target)  # type: ignore[misc]
+        target = show_address(*options.address)
         middle = middle_metadata(options) if self.proxied else {}
-        metadata = base_metadata("replay", False, options.checksum_rule, start, replay_of=self.replay_of,
+        metadata = base_metadata("replay", False, options.checksum_rule, start, None, replay_of=self.replay_of,
                                  target=target, pace=str(options.pace), rate=options.rate, **middle)
-        recorder = Recorder(RecordingFile(options.output, metadata),  # type: ignore[arg-type]
+        recorder = Recorder(RecordingFile(path, metadata),
                             checksum_rule=options.checksum_rule)
         try:
             recorder.start(start, detail=f"replay of {self.replay_of} against {target}")

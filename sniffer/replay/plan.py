@@ -203,8 +203,10 @@ def dry_run_lines(plans: list[ConnectionPlan], origin_ns: int) -> list[str]:
             lines.append(f"  {(p.password_t_ns - origin_ns) / NS:12.6f} handshake: {words} "
                          f"(the password is sent after sendchkpass)")
         for send in p.sends:
-            lines.append(f"  {(send.t_ns - origin_ns) / NS:12.6f} send {shorten(escape(send.data), 72)}  {send.describe()}")
+            at = (send.t_ns - origin_ns) / NS
+            lines.append(f"  {at:12.6f} send {shorten(escape(send.data), 72)}  {send.describe()}")
             for item in send.items:
                 if item.answer is not None:
-                    lines.append(f"  {'':12} expect {shorten(escape(item.answer.item.raw), 64)}  {meaning(item.answer)}")
+                    answer = item.answer
+                    lines.append(f"  {'':12} expect {shorten(escape(answer.item.raw), 64)}  {meaning(answer)}")
     return lines

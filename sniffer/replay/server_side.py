@@ -59,8 +59,8 @@ class ServerSide:
     def receive(self, event: TrafficEvent) -> None:
         """One of the proxy's traffic events (what crossed it before the faults)."""
         kind = type(event)
-        if kind is Opened:
-            self._conns[event.conn] = _Proxied(event.client)  # type: ignore[union-attr]
+        if isinstance(event, Opened):
+            self._conns[event.conn] = _Proxied(event.client)
             return
         proxied = self._conns.get(event.conn)
         if proxied is None or kind not in (Data, *_ENDS):

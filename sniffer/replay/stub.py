@@ -173,7 +173,7 @@ class _Served:
         self._sender = asyncio.create_task(self._send_loop())
 
     async def run(self, reader: asyncio.StreamReader) -> None:
-        pending = b""
+        pending: bytes | None = b""
         if self.script.winsock:
             self.send(self.script.greeting, self.script.greeting_delay)
             pending = await self._password(reader)
@@ -217,9 +217,9 @@ class _Served:
     def _receive(self, data: bytes) -> bool:
         """Answer the requests in ``data``; False once the connection is to close."""
         for obs in self._feed(data):
-            if isinstance(obs, Observation) and obs.direction is Direction.C2S and obs.item.kind is ItemKind.COMMAND:
-                if not self._answer(obs):
-                    return False
+            if (isinstance(obs, Observation) and obs.direction is Direction.C2S
+                    and obs.item.kind is ItemKind.COMMAND and not self._answer(obs)):
+                return False
         return True
 
     def _answer(self, request: Observation) -> bool:

@@ -15,6 +15,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from whiztap.analyzer.protocol.codec import decode, encode
@@ -25,7 +26,7 @@ DEFAULT_TIMEOUT = 5.0
 READ_SIZE = 65536
 
 
-class ClientError(Exception):
+class ClientError(WhiztapError):
     """Base of everything the client raises about the server or the connection."""
 
 

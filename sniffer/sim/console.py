@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.codec import decode
 from whiztap.analyzer.protocol.frame_text import CONSOLE_WORDS, HEADERS, FrameTextError, message_from_words
@@ -38,7 +39,7 @@ HELP = """commands:
   help                       this list"""
 
 
-class CommandError(Exception):
+class CommandError(WhiztapError):
     """The words are not a command; the message says why."""
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+from typing import Self
 
 READ_SIZE = 65536
 BACKLOG = 1024  # many clients connect at once in tests; asyncio's default is 100
@@ -50,7 +51,7 @@ class TcpServer:
         await self._server.wait_closed()
         self._server = None
 
-    async def __aenter__(self):  # noqa: ANN204 - the subclass's own type
+    async def __aenter__(self) -> Self:
         await self.start()
         return self
 

@@ -20,6 +20,7 @@ from importlib import resources
 from typing import Any
 
 from whiztap.analyzer import __version__
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol import codec, framing, handshake
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.checksum import CHECKSUM_RULES, DEFAULT_CHECKSUM_RULE
@@ -34,7 +35,8 @@ LUA_CHECKSUMS = {
     "dev-sum": "function(entries) local s = 0 for _, e in ipairs(entries) do s = s + e.device end return s % 256 end",
     "dev-unit-sum": "function(entries) local s = 0 for _, e in ipairs(entries) do s = s + e.device + e.unit_type end "
                     "return s % 256 end",
-    "dev-sum-7bit": "function(entries) local s = 0 for _, e in ipairs(entries) do s = s + e.device end return s % 128 end",
+    "dev-sum-7bit": "function(entries) local s = 0 for _, e in ipairs(entries) do s = s + e.device end "
+                    "return s % 128 end",
 }
 # The fixed Lua logic, in the order it is put together: framing and decoding
 # (a function of its own, for Lua's limit of 200 locals in one), the session, the tree.
@@ -43,7 +45,7 @@ _SENTINEL = 1000001  # a value no field has, to find where describe() puts each 
 _SEVERITY = {Severity.ERROR: "error", Severity.WARNING: "warn", Severity.INFO: "note"}
 
 
-class DissectorError(ValueError):
+class DissectorError(WhiztapError, ValueError):
     """The dissector cannot be generated as asked; one line for the user."""
 
 
@@ -60,7 +62,7 @@ def _blank(cls: type[m.Message]) -> m.Message:
 def _describe_template(cls: type[m.Message]) -> str | None:
     """``describe()`` with each int field as ``{name}`` (None for a message
     with fields of other types, which the Lua describes itself)."""
-    fields = dataclasses.fields(cls) if dataclasses.is_dataclass(cls) else ()
+    fields: tuple[dataclasses.Field, ...] = dataclasses.fields(cls) if dataclasses.is_dataclass(cls) else ()
     if any(f.type not in ("int", int) for f in fields):
         return None
     values = {f.name: _SENTINEL + i for i, f in enumerate(fields)}
@@ -80,7 +82,8 @@ def _fields() -> list[dict[str, str]]:
     (``progwhiz.channel_config.unit_type``), other fields under the message's."""
     out: dict[str, dict[str, str]] = {}
     for cls in _message_classes():
-        for f in dataclasses.fields(cls) if dataclasses.is_dataclass(cls) else ():
+        fields: tuple[dataclasses.Field, ...] = dataclasses.fields(cls) if dataclasses.is_dataclass(cls) else ()
+        for f in fields:
             if f.type in ("int", int):
                 out.setdefault(f.name, {"key": f.name, "type": "uint32", "name": f.name.replace("_", " ").title()})
             elif str(f.type).startswith("tuple["):

@@ -7,8 +7,11 @@ Without it the report is written all the same, without plots, and says so.
 from __future__ import annotations
 
 import html
+import importlib
 import io
-from typing import Any
+from collections.abc import Callable
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from whiztap.analyzer.analysis.facts import NS, Analysis
 from whiztap.analyzer.analysis.report.text import duration, headline, verdict
@@ -27,6 +30,9 @@ from whiztap.analyzer.analysis.report.words import (
 )
 from whiztap.analyzer.protocol.text import plural, printable
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:2em;max-width:70em;color:#222}
 table{border-collapse:collapse;margin:.5em 0 1.5em}td,th{border:1px solid #ccc;padding:.2em .5em;text-align:left;
@@ -43,13 +49,13 @@ NO_PLOTS = ("the HTML report has no plots: they are drawn with matplotlib, which
 def plots_missing() -> str | None:
     """Why the HTML report will have no plots (``NO_PLOTS``), or None when it will have them."""
     try:
-        import matplotlib  # noqa: F401 - whether it can be imported is the question
+        importlib.import_module("matplotlib")  # whether it can be imported is the question
     except ImportError:
         return NO_PLOTS
     return None
 
 
-def _pyplot():
+def _pyplot() -> ModuleType:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -60,7 +66,7 @@ def _pyplot():
     return plt
 
 
-def _svg(fig) -> str:
+def _svg(fig: Figure) -> str:
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None})
     text = buf.getvalue()
@@ -84,7 +90,8 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
         plots.append(("Items over time, by kind", _svg(fig)))
         plt.close(fig)
     both = bool(analysis.client_latencies)  # the proxy stood in the middle: the server's and the client's
-    for latencies, title in ((analysis.latencies, f"Response latency, {SERVER_LATENCY}" if both else "Response latency"),
+    server_title = f"Response latency, {SERVER_LATENCY}" if both else "Response latency"
+    for latencies, title in ((analysis.latencies, server_title),
                              (analysis.client_latencies, f"Response latency, {CLIENT_LATENCY}")):
         if latencies:
             plots.append((title, _latency_plot(plt, latencies)))
@@ -103,7 +110,7 @@ def _plots(analysis: Analysis) -> list[tuple[str, str]]:
     return plots
 
 
-def _latency_plot(plt, latencies: dict) -> str:  # noqa: ANN001 - pyplot
+def _latency_plot(plt: ModuleType, latencies: dict) -> str:
     fig, ax = plt.subplots(figsize=(9, 3))
     for title, stats in sorted(latencies.items()):
         buckets = stats.histogram()
@@ -171,7 +178,8 @@ def _fleet_plots(table: dict[str, Any]) -> list[tuple[str, str]]:
     return plots
 
 
-def _labels(set_ticks, set_labels, labels: list[str], **style: Any) -> None:  # noqa: ANN001 - axis methods
+def _labels(set_ticks: Callable[..., object], set_labels: Callable[..., object], labels: list[str],
+            **style: Any) -> None:
     """Tick labels on an axis, at most ``_MAX_LABELS`` of them, evenly spaced."""
     step = max(1, -(-len(labels) // _MAX_LABELS))
     ticks = list(range(0, len(labels), step))

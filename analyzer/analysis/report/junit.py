@@ -35,7 +35,8 @@ from whiztap.analyzer.analysis.report.words import (
 )
 from whiztap.analyzer.protocol.rules import RULES, Severity
 from whiztap.analyzer.protocol.text import plural
-from whiztap.analyzer.protocol.text import printable as _x  # XML 1.0 forbids most control characters; terminals obey them
+# XML 1.0 forbids most control characters; terminals obey them
+from whiztap.analyzer.protocol.text import printable as _x
 
 
 def render_junit(report: dict[str, Any]) -> str:
@@ -155,10 +156,10 @@ def _interventions_text(report: dict[str, Any]) -> str:
                                               for v in section["effects"]]
     if section["effects_not_listed"]:
         lines.append(f"... and {plural(section['effects_not_listed'], 'more effect')} not listed")
-    for label, rows in latency_tables(report):
+    for label, latencies in latency_tables(report):
         lines += ["", _x(f"Latency by request, {label}" if label else "Latency by request")]
         lines += [_x(f"  {r['request']}: {plural(r['count'], 'answer')}, p50 {r['p50_ns'] / 1e6:.3f} ms, "
-                     f"p99 {r['p99_ns'] / 1e6:.3f} ms, max {r['max_ns'] / 1e6:.3f} ms") for r in rows]
+                     f"p99 {r['p99_ns'] / 1e6:.3f} ms, max {r['max_ns'] / 1e6:.3f} ms") for r in latencies]
     return "\n".join(lines)
 
 
@@ -205,6 +206,6 @@ def _input_cases(suite: ET.Element, report: dict[str, Any], tally: Counter[str])
 def _timestamp(report: dict[str, Any]) -> str:
     """When the recorded traffic began (ISO 8601, UTC), else now."""
     first = report["summary"]["first_ns"]
-    t = (datetime.datetime.fromtimestamp(first / 1e9, datetime.timezone.utc) if first is not None
-         else datetime.datetime.now(datetime.timezone.utc))
+    t = (datetime.datetime.fromtimestamp(first / 1e9, datetime.UTC) if first is not None
+         else datetime.datetime.now(datetime.UTC))
     return t.replace(tzinfo=None).isoformat(timespec="seconds")

@@ -6,7 +6,7 @@ import re
 from collections.abc import Callable
 from typing import Any
 
-from rich.console import Console
+from rich.console import Console, JustifyMethod
 from rich.table import Table
 from rich.text import Text
 
@@ -75,14 +75,15 @@ def _plain(console: Console, value: object, style: str = "") -> Text:
     return text
 
 
-def _table(title: str, columns: list[tuple[str, str]], rows: list[list[object]], narrow: bool = False) -> Table:
+def _table(title: str, columns: list[tuple[str, JustifyMethod]], rows: list[list[object]],
+           narrow: bool = False) -> Table:
     """A borderless table of plain cells (as ``_plain``, unhighlighted as
     Rich leaves table cells; a ``Text`` cell is taken as it is); columns:
     (name, justify).  ``narrow``: one space between columns, not two."""
     table = Table(title=title, title_justify="left", box=None, header_style="bold", collapse_padding=narrow,
                   pad_edge=not narrow)
     for name, justify in columns:
-        table.add_column(name, justify=justify, overflow="fold")  # type: ignore[arg-type]
+        table.add_column(name, justify=justify, overflow="fold")
     for row in rows:
         table.add_row(*(cell if isinstance(cell, Text) else Text(printable(str(cell))) for cell in row))
     return table
@@ -121,7 +122,7 @@ def _text_traffic(report: dict[str, Any], console: Console) -> None:
                              [[r["file"], r["connections"], f"{r['frames']:,}", r["violations"]]
                               for r in report["per_file"]]))
 
-    files = [("file", "left")] if several_files(report) else []
+    files: list[tuple[str, JustifyMethod]] = [("file", "left")] if several_files(report) else []
     console.print(_table("Connections", files + [("conn", "right"), ("client", "left"), ("mode", "left"),
                                                  ("handshake", "left"), ("items", "right"), ("violations", "right")],
                          [([c["file"]] if files else []) + [
@@ -185,7 +186,8 @@ def _text_fleet(table: dict[str, Any], console: Console) -> None:
     groups, days = fleet_rows(table, _one_a_line)
     key = fleet_key(table)
     for heading, columns, rows in ((title, FLEET_COLUMNS, groups), (by_day, FLEET_DAY_COLUMNS, days)):
-        layout = [(key, "left")] + [(c, "right" if c in _NUMERIC else "left") for c in columns]
+        layout: list[tuple[str, JustifyMethod]] = [(key, "left")]
+        layout += [(c, "right" if c in _NUMERIC else "left") for c in columns]
         whole = _table(heading, layout, rows, narrow=True)
         if console.measure(whole, options=console.options.update_width(UNBOUNDED)).maximum <= console.width:
             console.print(whole)
@@ -237,8 +239,9 @@ def _text_violations(report: dict[str, Any], console: Console) -> None:
 def _text_latency_and_checksums(report: dict[str, Any], console: Console) -> None:
     for label, rows in latency_tables(report):
         title = f"Latency by request, {label}" if label else "Latency by request"
-        console.print(_table(title, [("request", "left")] + [(c, "right") for c in (
-            "count", "p50", "p95", "p99", "max")],
+        columns: list[tuple[str, JustifyMethod]] = [("request", "left"), ("count", "right"), ("p50", "right"),
+                                                    ("p95", "right"), ("p99", "right"), ("max", "right")]
+        console.print(_table(title, columns,
                              [[r["request"], f"{r['count']:,}", duration(r["p50_ns"]), duration(r["p95_ns"]),
                                duration(r["p99_ns"]), duration(r["max_ns"])] for r in rows]))
     for title, n in report["unanswered"].items():
@@ -337,7 +340,8 @@ def _md_fleet(table: dict[str, Any]) -> list[str]:
     groups, days = fleet_rows(table)
     out = []
     for heading, columns, rows in ((title, FLEET_COLUMNS, groups), (by_day, FLEET_DAY_COLUMNS, days)):
-        out += [f"## {md_text(heading)}", "", "| " + " | ".join(md_text(c) for c in [fleet_key(table), *columns]) + " |",
+        head = " | ".join(md_text(c) for c in [fleet_key(table), *columns])
+        out += [f"## {md_text(heading)}", "", f"| {head} |",
                 "|---|" + "".join("---:|" if c in _NUMERIC else "---|" for c in columns)]
         out += ["| " + " | ".join(md_text(cell) for cell in row) + " |" for row in rows]
         out.append("")
