@@ -45,7 +45,7 @@ _CURSOR: dict[int, float] = {}  # frame id -> when it was first painted under th
 def _instrument() -> None:
     """Note when rows are painted (benchmark only: wraps the list's render_line,
     which runs for every line drawn, cached strip or not)."""
-    from whiztap.tui.frame_list import FrameList
+    from whiztap.tui.widgets.frame_list import FrameList
 
     render_line = FrameList.render_line
 
@@ -95,7 +95,7 @@ async def _browse(path: str, started: float) -> dict:
     """In the fresh process: open the recording headless and time what a user sees."""
     _instrument()
     from whiztap.tui.app import WhiztapApp
-    from whiztap.tui.sources import FileSource
+    from whiztap.tui.data.sources import FileSource
 
     app = WhiztapApp(FileSource(path))
     out: dict = {}
@@ -183,7 +183,7 @@ async def _hold(app, port: int, held: int) -> asyncio.StreamWriter:  # noqa: ANN
 async def _live(tmp: str, held: int = 0) -> dict:
     from whiztap.sniffer.record.record_run import RecordSettings
     from whiztap.tui.app import WhiztapApp
-    from whiztap.tui.sources import LiveSource, ProxyRig
+    from whiztap.tui.data.sources import LiveSource, ProxyRig
 
     whiztap = str(Path(sys.executable).with_name("whiztap"))
     sim = subprocess.Popen([whiztap, "sim", "--mode", "vpn", "--port", "0", "-q"], stdout=subprocess.PIPE, text=True)

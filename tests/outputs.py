@@ -103,15 +103,15 @@ def topics_text(path: Path) -> str:
 
 def tui_store_text(path: Path) -> bytes:
     """What the TUI holds for a recording: every frame's bytes, meaning and fields."""
-    from whiztap.tui.model import TrafficModel
-    from whiztap.tui.sources import FileSource
+    from whiztap.tui.data.model import TrafficModel
+    from whiztap.tui.data.sources import FileSource
 
     model = TrafficModel(str(path))
     FileSource(find_one([str(path)])).feed(model, threading.Event())
     return store_text(model)
 
 
-def store_text(model) -> bytes:  # noqa: ANN001 - a whiztap.tui.model.TrafficModel
+def store_text(model) -> bytes:  # noqa: ANN001 - a whiztap.tui.data.model.TrafficModel
     """The TUI's frame store as text: the bytes of every row, what it means, and the proxy's marks."""
     store = model.store
     described = [repr(store.observation(i)) for i in range(store.count)] if hasattr(store, "observation") else []

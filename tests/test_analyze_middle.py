@@ -44,8 +44,8 @@ from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.faults import FaultConfig
 from whiztap.sniffer.sim.simulator import Simulator
-from whiztap.tui.model import TrafficModel
-from whiztap.tui.sources import FileSource
+from whiztap.tui.data.model import TrafficModel
+from whiztap.tui.data.sources import FileSource
 
 DATA = Path(__file__).parent / "data"
 REPO = Path(__file__).parent.parent

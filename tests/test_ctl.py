@@ -268,7 +268,7 @@ async def test_ctl_takes_its_options_before_or_after_the_subcommand(tmp_path, ru
 async def test_the_live_tui_and_the_demo_say_where_their_control_api_is(tmp_path, runtime):
     from whiztap.sniffer.record.record_run import RecordSettings
     from whiztap.tui.demo import run_headless
-    from whiztap.tui.sources import LiveSource, ProxyRig
+    from whiztap.tui.data.sources import LiveSource, ProxyRig
 
     async with Simulator(port=0, mode="vpn") as sim:
         middle = MiddleSettings(control=Endpoint(host=LOCAL, port=0), always=True)

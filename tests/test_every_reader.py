@@ -29,8 +29,8 @@ from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from whiztap.tui.model import TrafficModel
-from whiztap.tui.sources import FileSource
+from whiztap.tui.data.model import TrafficModel
+from whiztap.tui.data.sources import FileSource
 
 CHECK = Path(__file__).parent / "mcap_check"
 PASSWORD = "reader-pw"

@@ -417,8 +417,8 @@ def test_the_tui_loads_every_file_and_says_what_went_wrong(files, kind):
     """The TUI's loading code (a worker thread, no terminal needed): never an
     exception, and one line for the frame list's footer when the file is bad."""
     from whiztap.analyzer.recording.sets import find_one
-    from whiztap.tui.model import TrafficModel
-    from whiztap.tui.sources import FileSource
+    from whiztap.tui.data.model import TrafficModel
+    from whiztap.tui.data.sources import FileSource
 
     source = FileSource(find_one([files[kind]]))
     source.feed(TrafficModel(), threading.Event())

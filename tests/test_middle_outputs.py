@@ -232,8 +232,8 @@ def record(path: Path, drive: Drive, keep_secrets: bool = False) -> Path:
 
 def live_tui(drive: Drive, redact: bool = True) -> bytes:
     """What the live TUI holds once the events went through its source (masked as the file is)."""
-    from whiztap.tui.model import TrafficModel
-    from whiztap.tui.sources import LiveSource
+    from whiztap.tui.data.model import TrafficModel
+    from whiztap.tui.data.sources import LiveSource
 
     source = LiveSource(None, "live", redact_passwords=redact)  # type: ignore[arg-type]
     source.recording = types.SimpleNamespace(controller=drive.controller)  # type: ignore[assignment]
@@ -509,8 +509,8 @@ async def test_the_live_tui_shows_a_held_password_masked_in_its_row_and_its_edit
     from tests.tui_support import SIZE, until
     from whiztap.sniffer.record.record_run import RecordSettings
     from whiztap.tui.app import WhiztapApp
-    from whiztap.tui.editor import EditorScreen
-    from whiztap.tui.sources import LiveSource, ProxyRig
+    from whiztap.tui.middle.editor import EditorScreen
+    from whiztap.tui.data.sources import LiveSource, ProxyRig
 
     server = StepServer([("recv", len(SECRET) + 2), ("send", ASKS), ("send", YES)])
     async with server:

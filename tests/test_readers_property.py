@@ -38,8 +38,8 @@ from whiztap.analyzer.traffic import Closed, Gap, HalfClosed, Opened, to_json
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
-from whiztap.tui.model import TrafficModel
-from whiztap.tui.sources import FileSource
+from whiztap.tui.data.model import TrafficModel
+from whiztap.tui.data.sources import FileSource
 
 from tests.record_support import op_event
 

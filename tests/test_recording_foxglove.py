@@ -268,8 +268,8 @@ def test_a_version_1_file_reads_in_every_reader_with_its_aggregated_plot_topics(
     result = recover(str(v1), str(tmp_path / "again.mcap"))
     assert len(read_all(result.output)["/sensors"]) == info["topics"]["/sensors"]
     from whiztap.analyzer.analysis.exchanges import load_exchanges  # what replay and the stub read
-    from whiztap.tui.model import TrafficModel
-    from whiztap.tui.sources import FileSource
+    from whiztap.tui.data.model import TrafficModel
+    from whiztap.tui.data.sources import FileSource
 
     assert load_exchanges(v1)
     model = TrafficModel(str(v1))

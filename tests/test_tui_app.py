@@ -10,8 +10,8 @@ from whiztap.analyzer.recording.info import recording_info
 from whiztap.analyzer.traffic import Data, Opened
 from tests.tui_support import SAMPLES, SIZE, frames_shown, loaded, settled, until
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.help import HelpScreen
-from whiztap.tui.sources import FileSource
+from whiztap.tui.screens.help import HelpScreen
+from whiztap.tui.data.sources import FileSource
 from tests.test_tui_live import GrowingRecording
 
 
@@ -236,7 +236,7 @@ def test_the_detail_cites_the_section_of_the_message_a_violation_is_in():
 
     from whiztap.analyzer.protocol.frame_text import frame_alone
     from whiztap.analyzer.protocol.observations import Direction
-    from whiztap.tui.detail import violations_text
+    from whiztap.tui.widgets.detail import violations_text
 
     [observation], _ = frame_alone(b"cr1-99--5--0-ss1", Direction.S2C)
     [violation] = [v for v in observation.violations if v.rule_id == "PW-RANGE-CHANNEL"]

@@ -17,7 +17,7 @@ from tests.record_support import LOCAL, StepServer, closed_port, play_client, re
 from tests.test_replay_faults import DROP, ROUNDS, record, simulator
 from tests.tui_support import SAMPLES, SIZE, loaded, until
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.bisect import (
+from whiztap.tui.screens.bisect import (
     BisectError,
     BisectPrompt,
     ConnectionPair,
@@ -25,8 +25,8 @@ from whiztap.tui.bisect import (
     RuleQuery,
     parse_query,
 )
-from whiztap.tui.replay_screen import ReplayScreen, split_specs
-from whiztap.tui.sources import FileSource
+from whiztap.tui.screens.replay_screen import ReplayScreen, split_specs
+from whiztap.tui.data.sources import FileSource
 
 
 @contextlib.asynccontextmanager

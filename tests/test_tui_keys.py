@@ -26,10 +26,10 @@ from textual.screen import Screen
 import whiztap.tui
 from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.sniffer.sim.simulator import Simulator
-from whiztap.tui import replay_screen
+from whiztap.tui.screens import replay_screen
 from whiztap.tui.app import WhiztapApp
 from whiztap.tui.demo import DemoRig
-from whiztap.tui.sources import FileSource, LiveSource
+from whiztap.tui.data.sources import FileSource, LiveSource
 
 from tests.tui_support import SAMPLES, SIZE, loaded, until
 
@@ -38,8 +38,8 @@ def bound_classes() -> set[type]:
     """Every class of the TUI that declares keys, and Textual's app and screen
     (Tab, Ctrl+Q, Ctrl+C, the command palette's Ctrl+P)."""
     found: set[type] = {App, Screen}
-    for info in pkgutil.iter_modules(whiztap.tui.__path__):
-        module = importlib.import_module(f"whiztap.tui.{info.name}")
+    for info in pkgutil.walk_packages(whiztap.tui.__path__, "whiztap.tui."):
+        module = importlib.import_module(info.name)
         found |= {cls for cls in vars(module).values()
                   if isinstance(cls, type) and cls.__module__ == module.__name__ and "BINDINGS" in vars(cls)}
     return found

@@ -21,11 +21,11 @@ from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.sniffer.mitm.controller import Controller
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.controls import HeldKey
+from whiztap.tui.data.controls import HeldKey
 from whiztap.tui.demo import PASSWORD, DemoRig
-from whiztap.tui.detail import describe_frame
-from whiztap.tui.inject import InjectScreen
-from whiztap.tui.sources import FollowSource, LiveSource, ProxyRig
+from whiztap.tui.widgets.detail import describe_frame
+from whiztap.tui.middle.inject import InjectScreen
+from whiztap.tui.data.sources import FollowSource, LiveSource, ProxyRig
 
 from tests.tui_support import SIZE, BesideAController, IdleShell, until
 

@@ -16,12 +16,12 @@ from whiztap.analyzer.recording.scan import read_metadata
 from whiztap.sniffer.record.record_run import RecordSettings
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.detail import describe_frame
-from whiztap.tui.editor import EditorScreen
-from whiztap.tui.help import HelpScreen
-from whiztap.tui.inject import InjectScreen
-from whiztap.tui.marks import mark_kind
-from whiztap.tui.sources import LiveSource, ProxyRig
+from whiztap.tui.widgets.detail import describe_frame
+from whiztap.tui.middle.editor import EditorScreen
+from whiztap.tui.screens.help import HelpScreen
+from whiztap.tui.middle.inject import InjectScreen
+from whiztap.tui.data.marks import mark_kind
+from whiztap.tui.data.sources import LiveSource, ProxyRig
 
 from tests.middle_support import Raw, answer_channel, sensor
 from tests.record_support import read_all

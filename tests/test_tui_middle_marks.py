@@ -11,8 +11,8 @@ from whiztap.analyzer.protocol.messages import FetchConfiguration
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action, Closed, Opened
 from whiztap.sniffer.mitm.controller import Controller
-from whiztap.tui.detail import describe_frame
-from whiztap.tui.model import TrafficModel
+from whiztap.tui.widgets.detail import describe_frame
+from whiztap.tui.data.model import TrafficModel
 
 from tests.middle_support import sensor
 from tests.test_tui_middle import plain

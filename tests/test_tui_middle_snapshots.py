@@ -16,7 +16,7 @@ import pytest
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.mitm.controller import Controller
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.controls import HeldKey
+from whiztap.tui.data.controls import HeldKey
 
 from tests.test_tui_live import GrowingRecording
 from tests.tui_support import BesideAController, IdleShell, loaded, paste, settled, until

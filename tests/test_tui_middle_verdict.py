@@ -16,8 +16,8 @@ from whiztap.sniffer.record.record_run import MiddleSettings, RecordSettings
 from whiztap.sniffer.record.summary import summary_lines
 from whiztap.sniffer.sim.simulator import Simulator
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.model import verdict_text
-from whiztap.tui.sources import LiveSource, ProxyRig
+from whiztap.tui.data.model import verdict_text
+from whiztap.tui.data.sources import LiveSource, ProxyRig
 
 from tests.middle_support import Raw, answer_channel, sensor
 from tests.test_control_api import ok

@@ -7,8 +7,8 @@ from whiztap.analyzer.cli.analyze import analyse_file
 from whiztap.sniffer.sim.simulator import Simulator
 from tests.tui_support import SAMPLES, SIZE, WAIT, loaded, until
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.replay_screen import ReplayScreen
-from whiztap.tui.sources import FileSource, FollowSource
+from whiztap.tui.screens.replay_screen import ReplayScreen
+from whiztap.tui.data.sources import FileSource, FollowSource
 
 # samples/clean-winsock.mcap was recorded from this simulator (samples/generate.py)
 PASSWORD, SEED = "progwhiz", 1

@@ -11,7 +11,7 @@ import pytest
 from tests.test_tui_live import GrowingRecording
 from tests.tui_support import ROOT, loaded, settled, until
 from whiztap.tui.app import WhiztapApp
-from whiztap.tui.sources import FileSource, FollowSource
+from whiztap.tui.data.sources import FileSource, FollowSource
 
 SIZE = (120, 36)
 

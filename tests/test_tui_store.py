@@ -12,11 +12,11 @@ from whiztap.analyzer.analysis.item_filter import ItemFilter
 from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
 from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.protocol.observations import Direction, LateViolation, Observation
-from whiztap.tui.model import TrafficModel
-from whiztap.tui.sources import FileSource
-from whiztap.tui.store import FrameStore
+from whiztap.tui.data.model import TrafficModel
+from whiztap.tui.data.sources import FileSource
+from whiztap.tui.data.store import FrameStore
 from whiztap.analyzer.analysis.item_filter import FilterSyntaxError, parse_filter
-from whiztap.tui.view import FrameView, with_connection
+from whiztap.tui.data.view import FrameView, with_connection
 
 SAMPLES = Path(__file__).parent.parent / "samples"
 ALL_SAMPLES = sorted(SAMPLES.glob("*.mcap"))
@@ -186,7 +186,7 @@ def test_the_detail_of_a_camera_image_shows_its_size_not_sensor_ranges():
 
     from whiztap.analyzer.protocol.session import Session
     from tests.streams import TINY_JPEG
-    from whiztap.tui.detail import describe_frame
+    from whiztap.tui.widgets.detail import describe_frame
 
     session = Session()
     store = FrameStore()

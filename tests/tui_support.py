@@ -7,7 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from whiztap.sniffer.mitm.controller import Controller
-from whiztap.tui.sources import FileSource
+from whiztap.tui.data.sources import FileSource
 
 ROOT = Path(__file__).parent.parent
 SAMPLES = ROOT / "samples"

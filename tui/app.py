@@ -25,25 +25,26 @@ from textual.content import Content
 from textual.message import Message
 from textual.widgets import Footer, Header, Input, Static, TabbedContent, TabPane
 from textual.worker import get_current_worker
-
+from whiztap.analyzer.analysis.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.text import printable
-from whiztap.analyzer.analysis.item_filter import FILTER_HELP, FilterSyntaxError, ItemFilter, parse_filter
-from whiztap.tui.connections import ConnectionsPane
-from whiztap.tui.controls import Controls
-from whiztap.tui.detail import DetailPane
-from whiztap.tui.faults_pane import FaultsPane
-from whiztap.tui.filter_bar import FilterBar
-from whiztap.tui.frame_list import FrameList
-from whiztap.tui.help import HelpScreen
-from whiztap.tui.inject import InjectScreen, closed_to_injection, target_connection
-from whiztap.tui.intercept_bar import InterceptBar
-from whiztap.tui.model import TrafficModel, verdict_text
-from whiztap.tui.sources import LiveSource, Source, SourceError
-from whiztap.tui.stats import StatsPane
-from whiztap.tui.virtual_list import VirtualList
-from whiztap.tui.view import FrameView, with_connection
+from whiztap.tui.data.controls import Controls
+from whiztap.tui.data.model import TrafficModel, verdict_text
+from whiztap.tui.data.sources import LiveSource, Source, SourceError
+from whiztap.tui.data.view import FrameView, with_connection
+from whiztap.tui.middle.editor import EditorScreen
+from whiztap.tui.middle.faults_pane import FaultsPane
+from whiztap.tui.middle.inject import InjectScreen, closed_to_injection, target_connection
+from whiztap.tui.middle.intercept_bar import InterceptBar
+from whiztap.tui.screens.help import HelpScreen
+from whiztap.tui.widgets.connections import ConnectionsPane
+from whiztap.tui.widgets.detail import DetailPane
+from whiztap.tui.widgets.filter_bar import FilterBar
+from whiztap.tui.widgets.frame_list import FrameList
+from whiztap.tui.widgets.held import EditHeld
+from whiztap.tui.widgets.stats import StatsPane
+from whiztap.tui.widgets.virtual_list import VirtualList
 
 TICK_S = 0.1  # new frames show within this (plus the time to decode them)
 LOADING_TICK_S = 0.5  # while a recording loads: each look repaints the screen, which slows the loading
@@ -368,13 +369,13 @@ class WhiztapApp(App):
             self.stats.update_stats()
 
     def action_replay(self) -> None:
-        from whiztap.tui.replay_screen import open_replay
+        from whiztap.tui.screens.replay_screen import open_replay
 
         open_replay(self)
 
     def action_bisect(self) -> None:
-        """The first frame with a violation of a rule, or where two connections part (tui/bisect.py)."""
-        from whiztap.tui.bisect import open_bisect
+        """The first frame with a violation of a rule, or where two connections part (screens/bisect.py)."""
+        from whiztap.tui.screens.bisect import open_bisect
 
         open_bisect(self)
 
@@ -395,6 +396,10 @@ class WhiztapApp(App):
             self.notify(closed, severity="warning", timeout=4, markup=False)
             return
         self.push_screen(InjectScreen(self.controls, conn))
+
+    def on_edit_held(self, message: EditHeld) -> None:
+        """``e`` on a held frame in the list: edit it, then let it go (middle/editor.py)."""
+        self.push_screen(EditorScreen(self.controls, message.held))
 
     def action_faults(self) -> None:
         self.action_pane("faults")

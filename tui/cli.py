@@ -11,11 +11,10 @@ import sys
 from typing import Any
 
 import click
-
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
-from whiztap.analyzer.cli.reading import one_recording
 from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
+from whiztap.analyzer.cli.reading import one_recording
 from whiztap.sniffer.cli.params import (
     Address,
     check_recording_output,
@@ -173,7 +172,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
              "they go with --upstream HOST:PORT")
     rule = checksum_rule
     limits = limits_from(answer_timeout, max_frame, max_image)
-    from whiztap.tui.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
+    from whiztap.tui.data.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
     if path is not None:
         source = FileSource(_one_recording(path))
@@ -240,8 +239,8 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
         _headless(output, seconds or HEADLESS_SECONDS, foxglove, settings)
         return
     from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.data.sources import LiveSource
     from whiztap.tui.demo import PASSWORD, SEED, DemoRig
-    from whiztap.tui.sources import LiveSource
 
     app = WhiztapApp(LiveSource(DemoRig(output, foxglove, settings), "demo", redact_passwords=True),
                      quit_after=seconds)
@@ -258,8 +257,8 @@ def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, mid
     import asyncio
     from pathlib import Path
 
-    from whiztap.analyzer.cli.analyze import analyse_file, render
     from whiztap.analyzer.analysis.report.content import build
+    from whiztap.analyzer.cli.analyze import analyse_file, render
     from whiztap.analyzer.mitm.spec import FaultSpecError
     from whiztap.sniffer.mitm.scripts import ScriptError
     from whiztap.sniffer.record.feed import WriterError

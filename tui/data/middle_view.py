@@ -59,8 +59,8 @@ from whiztap.analyzer.traffic import (
     Intervention,
     TrafficEvent,
 )
-from whiztap.tui.marks import TIMING
-from whiztap.tui.store import FrameStore
+from whiztap.tui.data.marks import TIMING
+from whiztap.tui.data.store import FrameStore
 
 C2S, S2C = Direction.C2S, Direction.S2C
 RECENT = 1024  # rows of one direction of a connection whose offsets are kept: marks find their row among them

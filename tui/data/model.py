@@ -26,8 +26,8 @@ from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.stats import LatencyStats
 from whiztap.analyzer.traffic import Delivered, Intervention, TrafficEvent
-from whiztap.tui.middle import MiddleView
-from whiztap.tui.store import FrameStore
+from whiztap.tui.data.middle_view import MiddleView
+from whiztap.tui.data.store import FrameStore
 
 _MIDDLE_ONLY = (Delivered, Intervention)
 

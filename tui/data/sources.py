@@ -21,11 +21,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Protocol
 
+from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.recording.scan import made_in_the_middle
 from whiztap.analyzer.recording.sets import Follower, PartError, RecordingSet, Stopped, scan_set
-from whiztap.analyzer.recording.redaction import Redactor
 from whiztap.analyzer.traffic import Closed, Data, TrafficEvent
-from whiztap.tui.model import TrafficModel
+from whiztap.tui.data.model import TrafficModel
 
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
 LOADING_GC_THRESHOLD = 100_000

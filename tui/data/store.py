@@ -24,8 +24,8 @@ from typing import Any
 from whiztap.analyzer.protocol.codec import decode
 from whiztap.analyzer.protocol.describe import fields, meaning
 from whiztap.analyzer.protocol.items import Item, ItemKind, Unframed
-from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
+from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.traffic import Intervention
 
 NS = 1_000_000_000

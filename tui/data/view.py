@@ -14,8 +14,8 @@ from bisect import bisect_left, insort
 from dataclasses import replace
 
 from whiztap.analyzer.analysis.item_filter import ItemFilter
-from whiztap.tui.marks import mark_kind
-from whiztap.tui.store import FrameStore
+from whiztap.tui.data.marks import mark_kind
+from whiztap.tui.data.store import FrameStore
 
 SLICE = 4096  # frames judged between looks at whether the filter was replaced
 

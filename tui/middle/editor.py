@@ -11,8 +11,8 @@ from __future__ import annotations
 from typing import Any
 
 from whiztap.analyzer.protocol.text import escape
-from whiztap.tui.controls import Controls
-from whiztap.tui.frame_dialog import WAY, FrameDialog
+from whiztap.tui.data.controls import Controls
+from whiztap.tui.middle.frame_dialog import WAY, FrameDialog
 
 
 class EditorScreen(FrameDialog):

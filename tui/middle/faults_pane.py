@@ -18,12 +18,11 @@ from textual.binding import Binding
 from textual.containers import Vertical
 from textual.suggester import Suggester
 from textual.widgets import DataTable, Input, Static
-
 from whiztap.analyzer.mitm.spec import ACTIONS, ACTIONS_WITH_ARGUMENT, OPTIONS, FaultSpecError, parse_fault
 from whiztap.analyzer.protocol.items import ItemKind
 from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.mitm.controller import ControlError
-from whiztap.tui.controls import Controls
+from whiztap.tui.data.controls import Controls
 
 REFRESH_S = 1.0  # hits change with the traffic: the table looks again this often
 FIRST_WORDS = tuple(f"{a}:" if a in ACTIONS_WITH_ARGUMENT else a for a in ACTIONS)

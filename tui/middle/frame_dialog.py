@@ -19,13 +19,12 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.screen import ModalScreen
 from textual.widgets import Input, Static
-
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.mitm.controller import ControlError
-from whiztap.tui.controls import Controls
-from whiztap.tui.detail import describe_typed
-from whiztap.tui.typed import TypedFrame, read_typed
+from whiztap.tui.data.controls import Controls
+from whiztap.tui.data.typed import TypedFrame, read_typed
+from whiztap.tui.widgets.detail import describe_typed
 
 WAY = {Direction.C2S: "→ toward the server (c2s)", Direction.S2C: "← toward the client (s2c)"}
 

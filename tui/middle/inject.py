@@ -10,12 +10,11 @@ around, and the up and down arrows walk through what was injected before
 from __future__ import annotations
 
 from textual.binding import Binding
-
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
-from whiztap.tui.controls import Controls
-from whiztap.tui.frame_dialog import WAY, FrameDialog
-from whiztap.tui.frame_list import FrameList
+from whiztap.tui.data.controls import Controls
+from whiztap.tui.middle.frame_dialog import WAY, FrameDialog
+from whiztap.tui.widgets.frame_list import FrameList
 
 
 def target_connection(frames: FrameList, chosen: int | None, controls: Controls) -> int | None:

@@ -12,11 +12,10 @@ from rich.text import Text
 from textual import on
 from textual.binding import Binding
 from textual.widgets import Input
-
 from whiztap.analyzer.analysis.item_filter import FILTER_HELP
 from whiztap.sniffer.mitm.controller import ControlError
-from whiztap.tui.controls import Controls
-from whiztap.tui.filter_bar import FilterBar
+from whiztap.tui.data.controls import Controls
+from whiztap.tui.widgets.filter_bar import FilterBar
 
 
 class InterceptBar(FilterBar):

@@ -38,12 +38,11 @@ from textual.containers import Vertical, VerticalScroll
 from textual.screen import ModalScreen
 from textual.widgets import Input, Static
 from textual.worker import Worker, WorkerState, get_current_worker
-
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.rules import RULES, Severity, Violation
 from whiztap.analyzer.protocol.text import escape, printable
-from whiztap.tui.store import FrameStore
-from whiztap.tui.view import FrameView
+from whiztap.tui.data.store import FrameStore
+from whiztap.tui.data.view import FrameView
 
 CONTEXT = 4  # frames shown before and after the first difference
 SIDE_WIDTH = 56  # characters for each connection's side of a row

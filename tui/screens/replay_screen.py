@@ -28,9 +28,8 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.screen import Screen
 from textual.widgets import Button, Footer, Header, Input, Label, Select, Static
-
 from whiztap.analyzer.protocol.text import escape, printable
-from whiztap.tui.virtual_list import VirtualList
+from whiztap.tui.widgets.virtual_list import VirtualList
 
 if TYPE_CHECKING:
     from whiztap.analyzer.mitm.spec import FaultSpec
@@ -200,7 +199,7 @@ class ReplayScreen(Screen):
         """The output rule (whiztap.analyzer.recording.output_rule): never the recording being
         replayed, and never an existing file (there is no --force here)."""
         from whiztap.analyzer.recording.output_rule import OutputRefused, check_output
-        from whiztap.tui.replay_runner import recording_parts
+        from whiztap.tui.data.replay_runner import recording_parts
 
         try:
             check_output(output, recording_parts(self.path), recording=True)
@@ -214,7 +213,7 @@ class ReplayScreen(Screen):
 
     def _start(self, paused: bool) -> bool:
         from whiztap.analyzer.mitm.spec import FaultSpecError
-        from whiztap.tui.replay_runner import ReplayRunner
+        from whiztap.tui.data.replay_runner import ReplayRunner
 
         output = self.output.value.strip() or None
         try:
@@ -378,7 +377,7 @@ def split_specs(text: str) -> list[str]:
 
 def open_replay(app: App) -> None:
     """The replay screen for the open recording; live traffic has no finished file yet."""
-    from whiztap.tui.sources import FileSource
+    from whiztap.tui.data.sources import FileSource
 
     source = getattr(app, "source", None)
     if not isinstance(source, FileSource):

@@ -13,9 +13,8 @@ from rich.text import Text
 from textual.binding import Binding
 from textual.message import Message
 from textual.widgets import DataTable
-
 from whiztap.analyzer.protocol.text import printable
-from whiztap.tui.model import ConnectionRow
+from whiztap.tui.data.model import ConnectionRow
 
 ALL = "all"
 COLUMNS = (("conn", "#"), ("client", "client"), ("upstream", "upstream"), ("mode", "mode"),

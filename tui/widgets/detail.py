@@ -17,7 +17,6 @@ from rich.table import Table
 from rich.text import Text
 from textual.containers import VerticalScroll
 from textual.widgets import Static
-
 from whiztap.analyzer.protocol.codec import (
     EXTERNAL_SCRIPTS,
     INTERNAL_SCRIPTS,
@@ -35,10 +34,10 @@ from whiztap.analyzer.protocol.observations import Observation
 from whiztap.analyzer.protocol.rules import RULES, Violation
 from whiztap.analyzer.protocol.text import escape, printable
 from whiztap.analyzer.traffic import Action, Intervention
-from whiztap.tui.controls import Controls, HeldKey
-from whiztap.tui.marks import GLYPHS, mark_kind
-from whiztap.tui.store import NS, FrameStore
-from whiztap.tui.typed import TypedFrame, judge_bytes
+from whiztap.tui.data.controls import Controls, HeldKey
+from whiztap.tui.data.marks import GLYPHS, mark_kind
+from whiztap.tui.data.store import NS, FrameStore
+from whiztap.tui.data.typed import TypedFrame, judge_bytes
 
 HEX_WIDTH = 8  # bytes per hex line: fits the side pane
 HEX_LINES = 128  # 1 KiB of hex; an image shows its head

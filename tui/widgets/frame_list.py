@@ -24,15 +24,14 @@ from typing import Any
 from rich.style import Style
 from rich.text import Text
 from textual.binding import Binding
-
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape, printable
-from whiztap.tui.controls import Controls, HeldKey
-from whiztap.tui.held import HeldActions
-from whiztap.tui.marks import GLYPHS, MARK_KINDS, worst
-from whiztap.tui.store import FrameStore
-from whiztap.tui.view import FrameView
-from whiztap.tui.virtual_list import VirtualList
+from whiztap.tui.data.controls import Controls, HeldKey
+from whiztap.tui.data.marks import GLYPHS, MARK_KINDS, worst
+from whiztap.tui.data.store import FrameStore
+from whiztap.tui.data.view import FrameView
+from whiztap.tui.widgets.held import HeldActions
+from whiztap.tui.widgets.virtual_list import VirtualList
 
 BYTES_WIDTH = 22
 MARKS = {0: " ", 1: "·", 2: "▲", 3: "●"}

@@ -1,10 +1,12 @@
 """What the frame list's keys do to a frame the proxy holds.
 
-``a`` lets the frame under the cursor go as it is, ``x`` drops it, ``e`` opens
-it in the editor, ``A`` lets every held frame go: through the Controller, as
-``whiztap ctl release``, ``drop`` and ``release-all`` do, so the recording
-says the same whichever was used.  The keys show in the footer only where they
-act (on a held frame; ``A`` while any is held).
+``a`` lets the frame under the cursor go as it is, ``x`` drops it, ``e`` asks
+for the editor on it (``EditHeld``: the app opens it, as it opens every
+dialog, so the frame list needs none of the middle's screens), ``A`` lets
+every held frame go: through the Controller, as ``whiztap ctl release``,
+``drop`` and ``release-all`` do, so the recording says the same whichever was
+used.  The keys show in the footer only where they act (on a held frame;
+``A`` while any is held).
 """
 
 from __future__ import annotations
@@ -12,11 +14,19 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from textual.message import Message
 from whiztap.sniffer.mitm.controller import ControlError
-from whiztap.tui.controls import Controls
-from whiztap.tui.editor import EditorScreen
+from whiztap.tui.data.controls import Controls
 
 _ON_HELD = frozenset({"accept", "drop", "edit"})
+
+
+class EditHeld(Message):
+    """``e`` on a held frame: open the editor on ``held`` (a Controller's ``Held``)."""
+
+    def __init__(self, held: Any) -> None:
+        super().__init__()
+        self.held = held
 
 
 class HeldActions:
@@ -66,4 +76,4 @@ class HeldActions:
     def action_edit(self) -> None:
         held = self.held_frame
         if held is not None and self.controls is not None:
-            self.app.push_screen(EditorScreen(self.controls, held))  # type: ignore[attr-defined]
+            self.post_message(EditHeld(held))  # type: ignore[attr-defined]

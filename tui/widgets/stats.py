@@ -13,10 +13,9 @@ from rich.text import Text
 from textual.app import ComposeResult
 from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.widgets import Label, Sparkline, Static
-
 from whiztap.analyzer.protocol.stats import LatencyStats
-from whiztap.tui.detail import latency_text
-from whiztap.tui.model import TrafficModel
+from whiztap.tui.data.model import TrafficModel
+from whiztap.tui.widgets.detail import latency_text
 
 LIVE_WINDOW_S = 60  # live: the last minute of frames per second
 PERCENTILES = (50, 95, 99)

@@ -28,7 +28,6 @@ from textual.reactive import reactive
 from textual.scroll_view import ScrollView
 from textual.strip import Strip
 
-
 STRIP_CACHE = 512  # lines kept drawn: a few screens, to scroll back and forth without rebuilding
 
 
