@@ -3,7 +3,7 @@
 A frame's marks are the ``Intervention`` events themselves (a fault, a
 script, a hand edit, an injection, a hold: the facts the proxy told, with the
 frame's offsets and held id), kept with the row they are about
-(``middle.py`` finds it).  They fall into a few kinds a person tells apart at
+(``middle_view.py`` finds it).  They fall into a few kinds a person tells apart at
 a glance in the list (a glyph and a colour each) and can filter on (the
 filter bar's words ``held``, ``injected``, ``edited``, ``dropped``,
 ``delayed``, ``faulted``); the kind is read off the ``Action``.

@@ -11,7 +11,7 @@ The counts (violations, by connection and in all) are ``analyze``'s verdict
 (``whiztap.analyzer.analysis.verdict``) on the same events, the one
 ``record``'s summary and the control API's ``/state`` give.  Without the
 middle it is the store's own analyzer's.  In the middle the store shows the
-conversation as the server had it (``middle.py``) while a ``Judge`` judges
+conversation as the server had it (``middle_view.py``) while a ``Judge`` judges
 each side by what it sent and received, as ``analyze`` does, fed the events
 as the file has them.
 """
@@ -58,7 +58,7 @@ class TrafficModel:
         self.store = FrameStore(redact_passwords)
         self.lock = self.store.lock
         self.finished = False  # no more traffic will come (the file ended, the proxy stopped)
-        self.middle: MiddleView | None = None  # the proxy stands in the middle: see middle.py
+        self.middle: MiddleView | None = None  # the proxy stands in the middle: see middle_view.py
         self.judge: Judge | None = None  # in the middle: analyze's judging (without it, the analyzer's)
         self._redact_delivered = False
         self._settings = (checksum_rule, limits, name)

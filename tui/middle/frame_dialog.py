@@ -1,6 +1,6 @@
 """The dialog a person types a frame in: the edit of a held frame, or an injection.
 
-The text is read and judged at every keystroke (``typed.py``), and what it
+The text is read and judged at every keystroke (``data/typed.py``), and what it
 means, its fields and the rules it breaks show beside it, so a mistake is seen
 before it is sent.  Enter sends through the Controller.  A frame that breaks a
 rule is not sent at the first Enter: the dialog says which rules, and a second

@@ -1,7 +1,7 @@
 """The frame list: every frame of a FrameView, one line each, rendered on demand.
 
 A line: a mark coloured by the worst violation's severity, a glyph for what
-the proxy in the middle did to the frame (marks.py), the time from the first
+the proxy in the middle did to the frame (data/marks.py), the time from the first
 frame, the connection, the direction, the item kind, the exact bytes
 (escaped, cut to fit) and the decoded meaning.
 
