@@ -56,7 +56,8 @@ def command_meaning(message: Message | None, candidates: tuple[Message, ...],
         return None, Violation("PW-AMBIGUOUS", f"may be {', '.join(c.title for c in candidates)}")
     needed = UNIT_OF_COMMAND.get(type(message))
     if needed is not None and unit is not None and unit != needed:
-        return message, Violation("PW-UNIT-MISMATCH", f"{message.title} needs a {needed}; channel {channel} is a {unit}")
+        return message, Violation("PW-UNIT-MISMATCH",
+                                  f"{message.title} needs a {needed}; channel {channel} is a {unit}")
     if needed is not None and unit is None and channel_map:
         return message, _unconfigured(channel)
     return message, None

@@ -204,8 +204,8 @@ def _decode_command(raw: bytes) -> Decoded:
 
 _new = tuple.__new__
 _new_object = object.__new__
-_set_response_channel = ChannelResponse.channel.__set__  # type: ignore[attr-defined]
-_set_response_data = ChannelResponse.data.__set__  # type: ignore[attr-defined]
+_set_response_channel = vars(ChannelResponse)["channel"].__set__  # the slots' own setters
+_set_response_data = vars(ChannelResponse)["data"].__set__
 
 
 def _decode_response(raw: bytes) -> Decoded:
@@ -224,10 +224,10 @@ def _decode_response(raw: bytes) -> Decoded:
                 _set_response_data(message, int(b))
                 return _new(Decoded, (message, (message,), ()))
     out: list[Violation] = []
-    fields = _parse_fields(raw, out)
-    if fields is None:
+    parsed = _parse_fields(raw, out)
+    if parsed is None:
         return Decoded(None, (), tuple(out))
-    d1, d2, d3 = fields
+    d1, d2, d3 = parsed
     message = ChannelResponse(d1, d2)
     _channel(d1, (message,), out)
     _fixed("Data3", d3, 0, message.title, out)

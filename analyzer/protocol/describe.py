@@ -68,10 +68,10 @@ def fields(observation: Observation) -> dict[str, Any]:
         value = getattr(message, f.name)
         out[f.name] = len(value) if isinstance(value, bytes) else _plain(value)
     as_ = response_meaning(observation)
-    if as_ == "servo":
-        out["servo_position"] = message.data / 4  # type: ignore[union-attr]
-    elif as_ == "sensor":
-        out["sensor_value"] = message.data  # type: ignore[union-attr]
+    if isinstance(message, ChannelResponse) and as_ == "servo":
+        out["servo_position"] = message.data / 4
+    elif isinstance(message, ChannelResponse) and as_ == "sensor":
+        out["sensor_value"] = message.data
     if observation.latency_ns is not None:
         out["latency_ns"] = observation.latency_ns
     return out

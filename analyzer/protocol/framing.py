@@ -9,11 +9,12 @@ which is what lets a recording be re-framed later with identical results.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 
 from whiztap.analyzer.protocol.handshake import HANDSHAKE_WORDS
 from whiztap.analyzer.protocol.images import JPEG_SOI, PNG_SIGNATURE, ImageScanning
 from whiztap.analyzer.protocol.items import NEED_MORE as _NEED_MORE
-from whiztap.analyzer.protocol.items import Item, ItemKind, Unframed
+from whiztap.analyzer.protocol.items import Item, ItemKind, Scan, Scanned, Unframed
 
 __all__ = [  # the item vocabulary is items.py's; imported from here as ever
     "COMMAND_HEADER", "CONFIG_HEADER", "DEFAULT_MAX_IMAGE", "DEFAULT_MAX_ITEM", "FRAME_HEADERS", "JPEG_SOI",
@@ -216,7 +217,7 @@ class Framer(ImageScanning):
     def _drop(self, n: int) -> None:
         """Forget the first n bytes, keeping the arrival time of the byte now first."""
         self._resume = None
-        if type(self._buf) is bytes:
+        if isinstance(self._buf, bytes):
             self._buf = bytearray(memoryview(self._buf)[n:])
         else:
             del self._buf[:n]
@@ -228,7 +229,7 @@ class Framer(ImageScanning):
                 kept.append((offset - n, t))
         self._marks = kept if self._buf else []
 
-    def _scan_slow(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
+    def _scan_slow(self, pos: int, final: bool) -> Scanned | None:
         """Identify the item at pos: (length, kind, reason), or None to wait for data.
 
         Scanners look only at the window of ``max_item`` bytes from pos.  That keeps
@@ -247,12 +248,11 @@ class Framer(ImageScanning):
                     break
             else:
                 result = self._scan_garbage(pos, Unframed.GARBAGE)
-        if result == _NEED_MORE:
+        if isinstance(result, int):  # _NEED_MORE
             return self._wait_or_cut(pos, final)
         return result
 
-
-    def _wait_or_cut(self, pos: int, final: bool) -> tuple[int, ItemKind, Unframed | None] | None:
+    def _wait_or_cut(self, pos: int, final: bool) -> Scanned | None:
         """An item has begun but is incomplete: wait, unless the stream ended or it is too big."""
         pending = len(self._buf) - pos
         limit = self.max_image if self._is_image(pos) else self.max_item
@@ -262,7 +262,7 @@ class Framer(ImageScanning):
             return pending, ItemKind.UNFRAMED, Unframed.TRUNCATED
         return None
 
-    def _scan_garbage(self, pos: int, reason: Unframed):
+    def _scan_garbage(self, pos: int, reason: Unframed) -> Scan:
         """Bytes from pos up to the next sync point become one ``unframed`` item.
 
         pos itself is never a usable sync point here (nothing matched there, or the
@@ -281,8 +281,7 @@ class Framer(ImageScanning):
             return window - pos, ItemKind.UNFRAMED, reason
         return None
 
-
-    def _scan_password(self, pos: int, final: bool):
+    def _scan_password(self, pos: int, final: bool) -> Scan:
         """The password: the line at pos, up to its line break or the header of a
         frame that completes.  Line breaks before it are items of their own; a
         line that begins with a frame header, or is longer than the password may
@@ -308,7 +307,7 @@ class Framer(ImageScanning):
         """The line has not begun, and what came of it may still be a frame header."""
         return not self._password_begun and len(buf) < 4 and any(h.startswith(bytes(buf)) for h in FRAME_HEADERS)
 
-    def _no_password(self, pos: int, final: bool):
+    def _no_password(self, pos: int, final: bool) -> Scanned | None:
         self._in_password = self._password_mode = False
         return self._scan_slow(pos, final)
 
@@ -343,14 +342,14 @@ class Framer(ImageScanning):
         self._window = min(len(self._buf), at + self.max_item)
         result = (Framer._scan_sr1 if self._buf[at] == 0x73 else Framer._scan_text)(self, at)
         self._window = window
-        if result == _NEED_MORE:
+        if isinstance(result, int):  # _NEED_MORE
             return False if final or len(self._buf) - at >= self.max_item else None
         return result is not None and result[1] in _FRAMES
 
     # Each scanner returns None (not its kind of item), _NEED_MORE, or
     # (length, kind, reason).  They read only self._buf[pos:self._window].
 
-    def _scan_text(self, pos: int):
+    def _scan_text(self, pos: int) -> Scan:
         buf, window = self._buf, self._window
         head = bytes(buf[pos:pos + 4])
         if head not in (COMMAND_HEADER, RESPONSE_HEADER):
@@ -368,7 +367,7 @@ class Framer(ImageScanning):
             return _NEED_MORE
         return self._scan_garbage(pos, Unframed.TRUNCATED)
 
-    def _scan_sr1(self, pos: int):
+    def _scan_sr1(self, pos: int) -> Scan:
         buf, window = self._buf, self._window
         head = bytes(buf[pos:min(window, pos + 8)])
         if not head.startswith(CONFIG_HEADER):
@@ -392,7 +391,7 @@ class Framer(ImageScanning):
             return self._scan_set_config(pos, pos + 5, 2, TRAILER)
         return self._scan_garbage(pos, Unframed.TRUNCATED)
 
-    def _scan_set_config(self, pos: int, body: int, pad: int, trailer: bytes):
+    def _scan_set_config(self, pos: int, body: int, pad: int, trailer: bytes) -> Scan:
         """Find the trailer at a triple boundary: raw payload bytes never fool it.
 
         Valid Port# and unit type bytes are below 24, so neither a trailer nor a
@@ -411,7 +410,7 @@ class Framer(ImageScanning):
             return header.start() - pos, ItemKind.UNFRAMED, Unframed.TRUNCATED
         return _NEED_MORE
 
-    def _scan_handshake(self, pos: int):
+    def _scan_handshake(self, pos: int) -> Scan:
         buf, window = self._buf, self._window
         for word in HANDSHAKE_WORDS:
             if buf.startswith(word, pos, window):
@@ -421,7 +420,7 @@ class Framer(ImageScanning):
             return _NEED_MORE
         return None
 
-    def _scan_eol(self, pos: int):
+    def _scan_eol(self, pos: int) -> Scan:
         """A line break: CR LF, LF, or CR alone.  A CR at the end of the data waits
         for the next byte, which may be its LF (``end()`` settles it)."""
         buf = self._buf
@@ -444,7 +443,7 @@ def unasked(item: Item, max_item: int = DEFAULT_MAX_ITEM, max_image: int = DEFAU
     return [piece._replace(t_start_ns=t0, t_end_ns=t1) for piece in framer.feed(item.raw, t0) + framer.end(t1)]
 
 
-_SCANNERS = (
+_SCANNERS: tuple[Callable[[Framer, int], Scan], ...] = (
     Framer._scan_text, Framer._scan_sr1, Framer._scan_handshake,
     Framer._scan_eol, Framer._scan_jpeg, Framer._scan_png,
 )

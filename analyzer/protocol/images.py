@@ -8,9 +8,7 @@ buffer goes on, so a large picture in many reads is walked once.
 
 from __future__ import annotations
 
-from typing import Any
-
-from whiztap.analyzer.protocol.items import NEED_MORE, ItemKind, Unframed
+from whiztap.analyzer.protocol.items import NEED_MORE, ItemKind, Scan, Unframed
 
 JPEG_SOI = b"\xff\xd8\xff"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -19,14 +17,14 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 class ImageScanning:
     """The image part of ``Framer``; every attribute it reads is the framer's."""
 
-    _buf: Any
+    _buf: bytearray | bytes
     _window: int
     _final: bool
     _resume: tuple[int, int] | None
     max_item: int
     max_image: int
 
-    def _scan_garbage(self, pos: int, reason: Unframed) -> Any:  # the framer's
+    def _scan_garbage(self, pos: int, reason: Unframed) -> Scan:  # the framer's
         raise NotImplementedError
 
     def _image_pending(self) -> bool:
@@ -50,7 +48,7 @@ class ImageScanning:
         start = buf.rfind(b"\x89", max(pos + 1, at - len(PNG_SIGNATURE) + 1), at)
         return start != -1 and PNG_SIGNATURE.startswith(bytes(buf[start:window]))
 
-    def _image_start(self, pos: int, signature: bytes):
+    def _image_start(self, pos: int, signature: bytes) -> int | None:
         """None (no image opening with ``signature`` at pos), NEED_MORE, or the end of its max_image window."""
         n = min(len(self._buf), pos + self.max_image)
         head = bytes(self._buf[pos:min(n, pos + len(signature))])
@@ -58,7 +56,7 @@ class ImageScanning:
             return None
         return NEED_MORE if len(head) < len(signature) else n
 
-    def _scan_jpeg(self, pos: int):
+    def _scan_jpeg(self, pos: int) -> Scan:
         n = self._image_start(pos, JPEG_SOI)
         if n is None or n == NEED_MORE:
             return n
@@ -68,7 +66,7 @@ class ImageScanning:
             self._resume = None
         return result
 
-    def _walk_jpeg(self, pos: int, n: int, phase: int, i: int):
+    def _walk_jpeg(self, pos: int, n: int, phase: int, i: int) -> Scan:
         buf = self._buf
         # Marker segments up to Start Of Scan carry their own lengths.
         while True:
@@ -95,7 +93,7 @@ class ImageScanning:
                 if marker == 0xDA:
                     return self._walk_entropy(pos, n, i)
 
-    def _walk_entropy(self, pos: int, n: int, i: int):
+    def _walk_entropy(self, pos: int, n: int, i: int) -> Scan:
         """Entropy-coded data: FF is stuffed as FF 00; FF D0-D7 are restarts; any
         other marker (a further scan's tables) carries a length again."""
         buf = self._buf
@@ -117,7 +115,7 @@ class ImageScanning:
                     return NEED_MORE
                 i = j + 2 + ((buf[j + 2] << 8) | buf[j + 3])
 
-    def _scan_png(self, pos: int):
+    def _scan_png(self, pos: int) -> Scan:
         n = self._image_start(pos, PNG_SIGNATURE)
         if n is None or n == NEED_MORE:
             return n

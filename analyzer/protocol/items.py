@@ -65,3 +65,12 @@ class Item(NamedTuple):
     t_start_ns: int  # arrival time of the chunk holding the first byte
     t_end_ns: int  # arrival time of the chunk holding the last byte
     reason: Unframed | None = None
+
+
+Scanned = tuple[int, ItemKind, Unframed | None]
+"""What an item scanner found at a position: the item's length, its kind, and
+why it is unframed (None: it is not)."""
+Scan = Scanned | int | None
+"""An item scanner's answer: what it found; NEED_MORE, the item may still
+complete; or None, the bytes there are not its kind of item."""
+

@@ -15,8 +15,10 @@ class UnitType(LowerNamed):
     SENSOR = 2
 
 
+@dataclass(frozen=True, slots=True)
 class Message:
-    """Base of all messages.  ``title`` is the spec's name for the message."""
+    """Base of all messages.  ``title`` is the spec's name for the message.
+    A dataclass like every message, so that what reads one reads its fields."""
 
     title: ClassVar[str] = ""
     sender: ClassVar[str] = ""  # "client" or "server"

@@ -89,7 +89,8 @@ def line_break_violation(raw: bytes, last: ItemKind | None) -> Violation | None:
 class Observation(NamedTuple):
     """One item of the session with everything known about it when it arrived."""
 
-    index: int  # position in the session, both directions together
+    # position in the session, both directions together
+    index: int  # type: ignore[assignment]  # a field named index shadows tuple.index, which nothing calls
     direction: Direction
     item: Item
     message: Message | None  # the meaning, when there is exactly one

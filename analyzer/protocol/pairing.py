@@ -55,9 +55,10 @@ def answer_spec(message: Message | None,
     """What answer a command waits for: (item kind, channel, certain)."""
     if message is not None:
         return _ANSWER_KIND.get(type(message)), getattr(message, "channel", None), True
-    if any(isinstance(c, SensorRequest) for c in candidates):
-        # may be a Sensor Request: pair an answer if one comes, forgive it if none does
-        return ItemKind.RESPONSE, candidates[0].channel, False
+    for candidate in candidates:
+        if isinstance(candidate, SensorRequest):
+            # may be a Sensor Request: pair an answer if one comes, forgive it if none does
+            return ItemKind.RESPONSE, candidate.channel, False
     return None, None, False
 
 
@@ -128,7 +129,7 @@ class Book:
             self._take(sure)
         return sure
 
-    def __deepcopy__(self, memo: dict) -> Book:
+    def __deepcopy__(self, memo: dict[int, object]) -> Book:
         """A copy with containers of its own; the entries, immutable tuples, are
         shared (a copied session awaits the same requests without copying them)."""
         book = Book()

@@ -55,7 +55,7 @@ class Violation:
         return RULES[self.rule_id].severity
 
 
-E, W, I = Severity.ERROR, Severity.WARNING, Severity.INFO
+E, W, N = Severity.ERROR, Severity.WARNING, Severity.INFO  # N: a note
 _MSG = "API Message Descriptions"
 _FLOW = "Functional Flow"
 
@@ -66,7 +66,7 @@ RULES: dict[str, Rule] = {
         Rule("PW-FRAME-GARBAGE", E, _MSG, "Every byte on the wire belongs to a frame or handshake message"),
         Rule("PW-FRAME-TRUNCATED", E, _MSG, "A frame that was started is completed with its trailer"),
         Rule("PW-FRAME-OVERSIZE", E, _MSG, "No frame is longer than the analyzer's size limit"),
-        Rule("PW-FRAME-EOL", I, _MSG, "Frames are not followed by line breaks (only handshake text may be)"),
+        Rule("PW-FRAME-EOL", N, _MSG, "Frames are not followed by line breaks (only handshake text may be)"),
         Rule("PW-SYNTAX-SPACE", E, _MSG, "No spaces are allowed in a message"),
         Rule("PW-SYNTAX-FIELDS", E, _MSG, "A frame body is three decimal fields separated by '--'"),
         Rule("PW-SYNTAX-LEADING-ZERO", W, _MSG, "Numbers are written without leading zeros"),
@@ -107,7 +107,7 @@ RULES: dict[str, Rule] = {
              "A command fits the unit type configured on its channel"),
         Rule("PW-CHANNEL-UNCONFIGURED", W, "Configuration Settings",
              "Commands address channels the server's configuration lists"),
-        Rule("PW-AMBIGUOUS", I, _MSG,
+        Rule("PW-AMBIGUOUS", N, _MSG,
              "The frame has several meanings and no channel configuration was seen to choose one"),
         Rule("PW-PAIR-UNSOLICITED", E, "API Definition", "Every response answers an outstanding request"),
         Rule("PW-PAIR-UNANSWERED", E, "API Definition", "Every request that has a response gets one"),

@@ -8,7 +8,8 @@ reports, replayer and TUI all read traffic through it.
 
 from __future__ import annotations
 
-from collections import Counter, defaultdict
+from collections import Counter, defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -28,7 +29,7 @@ from whiztap.analyzer.protocol.messages import (
 )
 from whiztap.analyzer.protocol.observations import (
     Direction, Event, Observation, direction_violation, line_break_violation)
-from whiztap.analyzer.protocol.pairing import Awaited, Pending, answer_spec
+from whiztap.analyzer.protocol.pairing import Awaited, Book, Pending, answer_spec
 from whiztap.analyzer.protocol.rules import Violation
 from whiztap.analyzer.protocol.stats import LatencyStats
 
@@ -71,6 +72,7 @@ class _Plan(NamedTuple):
 
 
 _new = tuple.__new__  # NamedTuples without their Python-level __new__, on the hot path
+_FastLocals = tuple[list[Event], Callable[[Event], None], Awaited, Book, deque[Pending], int, bool, int]
 
 
 class Session:
@@ -116,7 +118,7 @@ class Session:
         self._plans: dict[bytes, _Plan] = {}  # valid for the current channel map only
         self._index = 0
         self._commands = 0
-        self._last_kind = {Direction.C2S: None, Direction.S2C: None}
+        self._last_kind: dict[Direction, ItemKind | None] = {Direction.C2S: None, Direction.S2C: None}
         self._ended: set[Direction] = set()
         self._closed = False
 
@@ -170,7 +172,7 @@ class Session:
             return self._observe_commands(items)
         return self._observe_responses(items)
 
-    def _fast_start(self) -> tuple:
+    def _fast_start(self) -> _FastLocals:
         """The locals both fast paths start from: a new events list and its append,
         the requests awaited, their book and its order, the answer timeout, readiness, the index."""
         events: list[Event] = []
@@ -222,16 +224,19 @@ class Session:
         known = decode_cache(response)
         fast = 0
         t = None
+        message: ChannelResponse  # read below only once it broke no rule, which makes it a ChannelResponse
         for item in items:
             kind, raw, _, t, _ = item
             if ready and kind is response and pending:
-                message, candidates, violations = known.get(raw) or decode(response, raw)
+                decoded = known.get(raw) or decode(response, raw)
+                message, candidates, violations = decoded  # type: ignore[assignment]  # if read, a ChannelResponse
                 head = pending[0]
                 request, answer_kind, channel, certain, t_request = head
                 if (answer_kind is response and certain and not violations
                         and channel == message.channel and t - t_request <= timeout):
-                    asked = request.message
-                    if message.data <= (MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
+                    asked = request.message  # a request certainly asked: it has its message
+                    if asked is not None and message.data <= (
+                            MAX_SERVO_DATA if type(asked) is ServoPositionRequest else MAX_SENSOR_DATA):
                         book.pop_oldest()
                         title = asked.title
                         batch = waited.get(title)
@@ -426,11 +431,9 @@ class Session:
                 violations: list[Violation]) -> tuple[Observation | None, int | None]:
         channel = message.channel if isinstance(message, ChannelResponse) else None
         found = self.awaited.take(kind, channel)
+        request = None if found is None else found.request
         if found is None:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by {kind.words}"))
-            request = None
-        else:
-            request = found.request
         if isinstance(message, ConfigurationSettings):
             self.channel_map = dict(enumerate(message.channels))
             self._plans.clear()
@@ -438,7 +441,7 @@ class Session:
             broken = data_violation(message, request, self.channel_map)
             if broken is not None:
                 violations.append(broken)
-        if request is None:
+        if found is None or request is None:
             return None, None
         latency = t - found.t_ns
         title = request.message.title if request.message is not None else "Sensor Request"
