@@ -285,7 +285,7 @@ ConnectionEvent = (RecordingStarted | Opened | Continued | UpstreamConnected | U
                    | Gap | Closed | RecordingStopped)
 TrafficEvent = Data | Delivered | Intervention | ConnectionEvent
 
-NAMES: dict[type, str] = {
+NAMES: dict[type[ConnectionEvent], str] = {
     RecordingStarted: "recording_started",
     Opened: "opened",
     UpstreamConnected: "upstream_connected",
@@ -315,8 +315,8 @@ def to_json(event: ConnectionEvent) -> dict[str, Any]:
     upstream that failed also say who closed (``by``), for people reading the file."""
     kind = type(event)
     message: dict[str, Any] = {"conn": event.conn, "event": NAMES[kind], "t_ns": event.t_ns}
-    if kind is HalfClosed:
-        message["by"] = event.direction.sender  # type: ignore[union-attr]
+    if isinstance(event, HalfClosed):
+        message["by"] = event.direction.sender
     elif kind is UpstreamFailed:
         message["by"] = "server"
     for key in _FIELDS[kind]:
@@ -333,10 +333,11 @@ def to_json(event: ConnectionEvent) -> dict[str, Any]:
 def from_json(message: dict[str, Any]) -> ConnectionEvent:
     """The event of a ``/tcp/events`` message; fields it does not know are left
     out (a newer writer may add some).  Raises ``TrafficError``."""
-    cls = _BY_NAME.get(message.get("event"))  # type: ignore[arg-type]
+    name = message.get("event")
+    cls = _BY_NAME.get(name) if isinstance(name, str) else None
     if cls is None:
         raise TrafficError(f"unknown connection event {message.get('event')!r}")
-    values = {}
+    values: dict[str, Any] = {}
     for key in _FIELDS[cls]:
         if key == "direction":
             try:
@@ -358,8 +359,8 @@ def intervention_to_json(event: Intervention) -> dict[str, Any]:
     cause = event.cause
     return {"action": event.action.value, "source": cause.source.value, "name": cause.name, "text": cause.text,
             "kind": event.kind, "detail": event.detail, "index": event.index, "held": event.held,
-            "secret": event.secret, "offset": event.offset, "delivered": event.delivered, "before": base64.b64encode(event.before).decode(),
-            "after": base64.b64encode(event.after).decode()}
+            "secret": event.secret, "offset": event.offset, "delivered": event.delivered,
+            "before": base64.b64encode(event.before).decode(), "after": base64.b64encode(event.after).decode()}
 
 
 def intervention_from_json(conn: int, direction: Direction, t_ns: int, f: dict[str, Any]) -> Intervention:
@@ -398,13 +399,13 @@ class Traffic:
             session = self.sessions.get(event.conn) or self.session(event.conn)
             return session.receive(event.direction, event.data, event.t_ns)
         kind = type(event)
-        session = self.sessions.get(event.conn)
-        if session is None:
+        known = self.sessions.get(event.conn)
+        if known is None:
             return []
-        if kind is HalfClosed:
-            return session.end(event.direction, event.t_ns)  # type: ignore[union-attr]
-        if kind is UpstreamFailed:
-            session.server_unreachable(event.detail)  # type: ignore[union-attr]
+        if type(event) is HalfClosed:
+            return known.end(event.direction, event.t_ns)
+        if type(event) is UpstreamFailed:
+            known.server_unreachable(event.detail)
             return []
         if kind is Closed or kind is Gap:
             return self.end(event.conn, event.t_ns)

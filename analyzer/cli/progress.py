@@ -8,10 +8,12 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterable
 from pathlib import Path
-from typing import IO, TYPE_CHECKING
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from rich.console import Console
+
+    from whiztap.analyzer.recording.remote import PartFile, RemotePart
 
 
 class ByteProgress:
@@ -59,7 +61,7 @@ class ByteProgress:
         if self.bar is not None:
             self.bar.update(self.task, completed=position)
 
-    def open(self, path: Path) -> IO[bytes]:
+    def open(self, path: Path | RemotePart) -> PartFile:
         """``path`` opened through the bar: what is read moves it, and the rest
         of the file when it is closed (readers stop before the index at its end)."""
         from whiztap.analyzer.recording.remote import open_part, part_size
@@ -89,7 +91,7 @@ class ByteProgress:
             def __exit__(self, *exc: object) -> None:
                 self.close()
 
-        return Counting()  # type: ignore[return-value]  # read, close and with: all a reader of parts calls
+        return Counting()
 
 
 def _stderr_console() -> Console:

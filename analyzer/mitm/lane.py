@@ -30,6 +30,7 @@ The lane never looks at a clock: every call brings the time, and
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple, Protocol
 
@@ -47,7 +48,7 @@ WRITE_BURST = 256 << 10  # bytes a lane writes before its receiver must say it t
 INJECT_ROOM = 1 << 20
 STALL_NS = 200_000_000
 Notes = tuple[Intervention, ...]
-Segments = list[tuple[int, int, int, bool]]  # in a write: (at, length, the sender's offset or -1, secret)
+Segments = Sequence[tuple[int, int, int, bool]]  # in a write: (at, length, the sender's offset or -1, secret)
 
 
 class LaneOwner(Protocol):
@@ -99,7 +100,7 @@ class _Entry(NamedTuple):
 
     item: Item | None
     raw: bytes
-    index: int
+    number: int  # the frame's index in its direction (-1: bytes no frame holds)
     offset: int
     t_ns: int
 
@@ -286,12 +287,12 @@ class Lane:
                                  secret=self.owner.secret(self.direction, entry.offset, len(entry.raw)),
                                  source=entry.offset))
             else:
-                self._decide(entry)
+                self._decide(entry, entry.item)
 
-    def _decide(self, entry: _Entry) -> None:
+    def _decide(self, entry: _Entry, item: Item) -> None:
         owner = self.owner
         t_ns = entry.t_ns
-        frame = owner.decide(self, entry.item, entry.index, entry.offset, t_ns)  # type: ignore[arg-type]
+        frame = owner.decide(self, item, entry.number, entry.offset, t_ns)
         at = max(self._last_at, t_ns + frame.delay_ns)
         kind = frame.kind.value
         notes = tuple(frame.interventions)
@@ -336,7 +337,7 @@ class Lane:
         queue, owner = self._queue, self.owner
         wrote = False
         notes: list[tuple[int, Notes]] = []
-        segments: Segments = []
+        segments: list[tuple[int, int, int, bool]] = []
         while queue and self.ready and not owner.gone and self.credit > 0:
             out = queue[0]
             if out.held is not None or out.at_ns > now:
@@ -405,7 +406,7 @@ class Lane:
         than a lane may hold)."""
         while self._entries:
             entry = self._entries.popleft()
-            self._append(Out(entry.raw, 0, index=entry.index, kind=entry.item.kind.value if entry.item is not None
+            self._append(Out(entry.raw, 0, index=entry.number, kind=entry.item.kind.value if entry.item is not None
                              else "", source=entry.offset))
         self._entry_bytes = 0
         if self._pending:

@@ -25,7 +25,8 @@ import posixpath
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING
+from types import TracebackType
+from typing import IO, TYPE_CHECKING, Protocol
 
 from whiztap.analyzer.errors import WhiztapError
 
@@ -37,6 +38,24 @@ _GLOB_CHARS = frozenset("*?[")
 _PART_NAME = re.compile(r"^(?P<stem>.+)-\d{4,}\.mcap$")
 HEAD_BLOCK = 64 * 1024  # what reading the metadata record fetches: it comes before the first chunk
 SCAN_BLOCK = 8 * 1024 * 1024  # what a whole scan fetches per request: few round trips, bounded memory
+
+
+class Readable(Protocol):
+    """What a reader of a recording needs of its file: bytes in order, short
+    only at its end (a local file, a URL's, one still being written)."""
+
+    def read(self, n: int = -1, /) -> bytes: ...
+
+
+class PartFile(Readable, Protocol):
+    """A part of a recording opened for reading (``open_part``), closed with ``with``."""
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> PartFile: ...
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None, /) -> None: ...
 
 
 class RemoteInputError(WhiztapError, ValueError):
@@ -72,7 +91,7 @@ def part_size(part: Path | RemotePart) -> int:
     return part.size if isinstance(part, RemotePart) else part.stat().st_size
 
 
-def open_part(part: str | Path | RemotePart, head: bool = False) -> IO[bytes]:
+def open_part(part: str | Path | RemotePart, head: bool = False) -> PartFile:
     """A part opened for reading in order; ``head``: only its first records are
     wanted (the metadata).  A URL's failures come as ``OSError`` with the
     library's words, as a local file's do."""
@@ -86,7 +105,7 @@ def open_part(part: str | Path | RemotePart, head: bool = False) -> IO[bytes]:
         raise OSError(e.errno or errno.EIO, _reason(e)) from None
     except Exception as e:  # each backend has its own exceptions (auth, throttling, ...)
         raise OSError(errno.EIO, _reason(e)) from None
-    return _RemoteFile(f)  # type: ignore[return-value]
+    return _RemoteFile(f)
 
 
 class _RemoteFile:

@@ -23,8 +23,8 @@ import re
 import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import parse_size, unescape
 from whiztap.analyzer.recording.format import (
@@ -62,7 +62,7 @@ from whiztap.analyzer.recording.mcap import (
     read_metadata_record,
     read_string,
 )
-from whiztap.analyzer.recording.remote import RemotePart, open_part
+from whiztap.analyzer.recording.remote import Readable, RemotePart, open_part
 from whiztap.analyzer.traffic import (
     Action,
     Cause,
@@ -90,7 +90,7 @@ _READ_JSON = re.compile(
 Record = tuple[int, str, bytes, int, int]  # log time, topic, buffer, start, end: the message is buffer[start:end]
 
 
-class RecordingError(Exception):
+class RecordingError(WhiztapError):
     """The file is not a recording whiztap can read (message says why, in one line)."""
 
 
@@ -118,7 +118,7 @@ def _too_big(where: str, e: TooBig) -> RecordingError:
     return RecordingError(f"{where} {e}{advice}")
 
 
-def _skip(f: IO[bytes], n: int) -> bool:
+def _skip(f: Readable, n: int) -> bool:
     """Go past ``n`` bytes of ``f``: a file seeks, any other stream (a growing
     file, one that counts what is read) reads a MiB at a time.  False when it
     ends first (for a file that seeks, the next read finds out)."""
@@ -155,7 +155,7 @@ class RecordingScan:
     naming the record's offset.
     """
 
-    def __init__(self, stream: IO[bytes], topics: Iterable[str] = (TOPIC_READS,),
+    def __init__(self, stream: Readable, topics: Iterable[str] = (TOPIC_READS,),
                  validate_crcs: bool = True, growing: bool = False, *, max_chunk: int | None = None) -> None:
         self._stream = stream
         self._wanted = set(topics)
@@ -332,7 +332,7 @@ class RecordingScan:
             if stop - pos < MESSAGE_DATA_AT:
                 raise DamagedRecord("it is too short for a message")
             channel = U16.unpack_from(buf, pos + 9)[0]
-            topic = self.channels.get(channel)
+            topic = self.channels.get(channel, "")  # no topic is "": a channel not defined is not wanted
             if topic in self._wanted:
                 yield U64.unpack_from(buf, pos + LOG_TIME_AT)[0], topic, buf, pos + MESSAGE_DATA_AT, stop
         elif op == OP_METADATA:

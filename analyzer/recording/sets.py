@@ -22,9 +22,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.format import METADATA_NAME, STREAM_TOPICS
-from whiztap.analyzer.recording.remote import RemoteInputError, RemotePart, is_url, open_part, remote_parts
+from whiztap.analyzer.recording.remote import (
+    PartFile,
+    RemoteInputError,
+    RemotePart,
+    is_url,
+    open_part,
+    remote_parts,
+)
 from whiztap.analyzer.recording.scan import RecordingError, RecordingScan, read_metadata
 from whiztap.analyzer.traffic import Continued, Gap, RecordingStopped, TrafficEvent
 
@@ -34,14 +42,14 @@ _GLOB_CHARS = frozenset("*?[")
 POLL_S = 0.1  # a growing file is looked at this often; the recorder flushes every 0.5 s
 
 
-class RecordingInputError(ValueError):
+class RecordingInputError(WhiztapError, ValueError):
     """A named input is not a recording: missing, or a folder with none."""
 
 
 class PartError(RecordingError):
     """A file of a recording cannot be read; the message starts with its name."""
 
-    def __init__(self, path: Path, why: str) -> None:
+    def __init__(self, path: Path | RemotePart, why: str) -> None:
         super().__init__(f"{path}: {why}")
         self.path = path
         self.truncated = "truncated" in why
@@ -126,7 +134,7 @@ def _part_key(path: Path | RemotePart) -> tuple[str, int] | None:
 
 def group(paths: Iterable[Path | RemotePart]) -> list[RecordingSet]:
     """Files as recordings: parts of one split recording together, in order."""
-    sets: dict[object, dict[int, Path]] = {}
+    sets: dict[object, dict[int, Path | RemotePart]] = {}
     for path in paths:
         key = _part_key(path)
         if key is None:
@@ -141,7 +149,7 @@ def group(paths: Iterable[Path | RemotePart]) -> list[RecordingSet]:
     return sorted(out, key=lambda s: str(s.name))
 
 
-def _taken(found: dict[int, Path], n: int) -> bool:
+def _taken(found: dict[int, Path | RemotePart], n: int) -> bool:
     """Whether part ``n``'s name holds a file of something else: a number the
     recorder found taken and skipped, not a part that went missing."""
     first = found[min(found)]
@@ -168,9 +176,10 @@ def _siblings(path: Path) -> list[Path]:
     the same recording: a file at such a name that is not one of its parts
     (a name the recorder found taken and skipped) is left out."""
     m = _PART_NAME.match(path.name)
-    if m is None:
+    key = _part_key(path) if m is not None else None
+    if m is None or key is None:
         return [path]
-    session = _part_key(path)[0]  # type: ignore[index]  # the caller checked it is a part
+    session = key[0]
     names = [Path(p) for p in numbered_parts(str(path.parent / m["stem"]) + m["ext"]) if not p.endswith(".part")]
     return [p for p in names if p == path or (_part_key(p) or ("",))[0] == session]
 
@@ -220,11 +229,8 @@ def find_one(inputs: Iterable[str]) -> RecordingSet:
     return found[0]
 
 
-def _open_binary(path: Path | RemotePart) -> IO[bytes]:
-    return open_part(path)
-
-
-def scan_set(recording: RecordingSet, open_file=_open_binary) -> Iterator[TrafficEvent]:  # noqa: ANN001
+def scan_set(recording: RecordingSet,
+             open_file: Callable[[Path | RemotePart], PartFile] = open_part) -> Iterator[TrafficEvent]:
     """The traffic of every part, as one stream of typed events, each read with
     its stream offset and masked flag: a connection continued from the
     previous part is the same connection (its ``Continued`` event is dropped);

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import IO
 
 from whiztap.analyzer import __version__
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.sets import PartError, RecordingSet, scan_set
 from whiztap.analyzer.traffic import (
@@ -62,7 +63,7 @@ def _other(direction: Direction) -> Direction:
     return S2C if direction is C2S else C2S
 
 
-class ExportError(Exception):
+class ExportError(WhiztapError):
     """A recording could not be exported; one line for the user."""
 
 
@@ -136,21 +137,21 @@ class TcpExport:
         """One event of the recording as packets; what each side received
         (``Delivered``) and the proxy's changes are not part of a TCP
         conversation's one stream per direction, and are left out."""
-        kind = type(item)
-        if kind is Data:
-            self._read(item)  # type: ignore[arg-type]
-        elif kind is Opened or kind is Continued:
-            self._open(item)  # type: ignore[arg-type]
-        elif kind is UpstreamConnected:
-            self._handshake(self._conn(item.conn), item.t_ns)
-        elif kind is UpstreamFailed:
-            self._refused(item)  # type: ignore[arg-type]
-        elif kind is Gap:
-            self._gap(item)  # type: ignore[arg-type]
-        elif kind is HalfClosed:
-            self._fin(self._conn(item.conn), item.direction, item.t_ns)  # type: ignore[union-attr]
-        elif kind is Closed:
-            self._closed(item)  # type: ignore[arg-type]
+        match item:
+            case Data():
+                self._read(item)
+            case Opened() | Continued():
+                self._open(item)
+            case UpstreamConnected():
+                self._handshake(self._conn(item.conn), item.t_ns)
+            case UpstreamFailed():
+                self._refused(item)
+            case Gap():
+                self._gap(item)
+            case HalfClosed():
+                self._fin(self._conn(item.conn), item.direction, item.t_ns)
+            case Closed():
+                self._closed(item)
 
     # -- events ------------------------------------------------------------------------
 
