@@ -29,6 +29,7 @@ from dataclasses import dataclass, fields
 from enum import StrEnum
 from typing import Any, NamedTuple
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction, Event
 from whiztap.analyzer.protocol.session import Session
 
@@ -304,7 +305,7 @@ _FIELDS = {cls: tuple(f.name for f in fields(cls)) for cls in NAMES}
 _FIELDS[Gap] = ("conn", "t_ns", "direction", "offset", "length", "detail")  # a gap's offset comes first in a recording
 
 
-class TrafficError(ValueError):
+class TrafficError(WhiztapError, ValueError):
     """A ``/tcp/events`` message that is not a traffic event whiztap knows."""
 
 

@@ -14,6 +14,7 @@ lists channels 0 to N-1 by position, so such a map is a gap-free tuple.
 
 from __future__ import annotations
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.codec import (
     MAX_CONFIG_CHANNELS,
     MAX_SENSOR_DATA,
@@ -96,7 +97,7 @@ _UNITS = {
 }
 
 
-class ChannelSpecError(ValueError):
+class ChannelSpecError(WhiztapError, ValueError):
     """The notation is wrong; the message says where, in one line."""
 
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.channels import ChannelSpecError, parse_channels
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
 from whiztap.analyzer.protocol.codec import EXTERNAL_SCRIPTS, decode, encode
@@ -70,7 +71,7 @@ CONSOLE_WORDS: dict[str, str] = {
 }
 
 
-class FrameTextError(ValueError):
+class FrameTextError(WhiztapError, ValueError):
     """The text is no frame; the message says why, in one line."""
 
 
