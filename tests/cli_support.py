@@ -61,10 +61,12 @@ def run_cli(*args: object, stdin: str | bytes | None = None, env: Mapping[str, s
 
     ``env`` is laid over this process's environment for the run (None removes
     a variable); ``stdin`` is what the command reads (empty when None, as a
-    process with stdin from /dev/null).  An "unexpected error" fails the test
-    whatever it expects: reaching a user, it is a bug."""
+    process with stdin from /dev/null).  An unexpected error fails the test
+    whatever it expects, with its traceback (WHIZTAP_DEBUG): reaching a user,
+    it is a bug."""
     argv = ["whiztap", *map(str, args)]
     runner = CliRunner()
+    env = {"WHIZTAP_DEBUG": "1", **(env or {})}  # root.main raises what it did not expect, traceback and all
     with _in(cwd), runner.isolation(input=stdin, env=env) as (out, err, _):
         saved, sys.argv = sys.argv, argv
         code: Any = 0

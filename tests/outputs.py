@@ -32,8 +32,6 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from click.testing import CliRunner
-
 from whiztap.analyzer.analysis.report.formats import FORMATS
 from whiztap.analyzer.recording.format import MITM_TOPICS, TOPICS
 from whiztap.analyzer.protocol.text import plural
@@ -41,6 +39,7 @@ from whiztap.analyzer.recording.sets import find_one
 from whiztap.sniffer.mitm import http_api
 from whiztap.sniffer.mitm.scripts import Flow
 
+from tests.cli_support import run_cli
 from tests.record_support import read_all
 
 SECRET = b"Kx9hunter2Tq4"
@@ -79,14 +78,11 @@ def assert_no_leak(where: str, text: str | bytes, forms: set[str] = FORMS) -> No
 
 
 def run(*args: str, env: dict[str, str] | None = None) -> str:
-    """A whiztap command in this process: it may fail a gate (1), never crash."""
-    from whiztap.analyzer.cli.root import cli
-
-    result = CliRunner().invoke(cli, list(args), env=env)
-    if result.exception is not None and not isinstance(result.exception, SystemExit):
-        raise result.exception
-    assert result.exit_code in (0, 1), result.output
-    return result.output
+    """A whiztap command in this process: it may fail a gate (1), never crash;
+    all it printed, on stdout and stderr."""
+    done = run_cli(*args, env=env)
+    assert done.returncode in (0, 1), done.stderr
+    return done.stdout + done.stderr
 
 
 def topics_text(path: Path) -> str:

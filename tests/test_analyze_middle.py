@@ -15,10 +15,10 @@ from pathlib import Path
 
 import jsonschema
 import pytest
-from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.cli_support import run_cli
 from tests.record_support import LOCAL, op_event
 from tests.streams import stream_pieces
 from whiztap.analyzer.analysis.analyzer import MIDDLE_NOTE, Analyzer
@@ -28,7 +28,6 @@ from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
 from whiztap.analyzer.analysis.sides import side_of
 from whiztap.analyzer.cli.analyze import analyse_file
 from whiztap.analyzer.cli.reading import scan_recording
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.mitm.spec import parse_fault
 from whiztap.analyzer.protocol.messages import SetConfigEntry
 from whiztap.analyzer.protocol.observations import Direction
@@ -154,8 +153,8 @@ def test_answers_the_proxy_dropped_are_the_clients_experience_never_the_servers(
 def test_a_delay_past_the_deadline_does_not_blame_the_server(tmp_path):
     path = _record(tmp_path / "delayed.mcap", ("delay:400ms dir:s2c kind:response ch:12 nth:2",),
                    lambda client, rec: _sensors(client), wait=2.0)
-    result = CliRunner().invoke(cli, ["analyze", "--format", "json", "--answer-timeout", str(ANSWER_S), str(path)])
-    report = json.loads(result.output)
+    result = run_cli("analyze", "--format", "json", "--answer-timeout", ANSWER_S, path)
+    report = json.loads(result.stdout)
     jsonschema.validate(report, REPORT_SCHEMA)
     assert _by_side(report, "PW-PAIR-UNANSWERED") == {"client": 1}
     assert not [v for v in report["violations"] if v["side"] == "server"]
@@ -185,11 +184,10 @@ def test_a_checksum_the_proxy_broke_is_an_effect_not_a_violation_of_either_side(
 
 def _analyze(path: Path, *args: str) -> tuple[int, dict]:
     """``whiztap analyze --format json`` (the real command): its exit status and report."""
-    result = CliRunner().invoke(cli, ["analyze", "--format", "json", "--answer-timeout", str(ANSWER_S), *args,
-                                      str(path)])
-    report = json.loads(result.output)
+    result = run_cli("analyze", "--format", "json", "--answer-timeout", ANSWER_S, *args, path)
+    report = json.loads(result.stdout)
     jsonschema.validate(report, REPORT_SCHEMA)
-    return result.exit_code, report
+    return result.returncode, report
 
 
 def _effects(report: dict) -> list[tuple[str, str, str]]:
@@ -311,32 +309,31 @@ def test_what_a_side_really_did_is_still_its_own_and_counted_once(tmp_path):
 
 
 def test_every_format_lists_the_interventions_and_the_sides(dropped):
-    runner = CliRunner()
     cause = "fault fault-1: drop dir:s2c kind:response ch:12 every:2"
     for fmt in ("text", "markdown", "junit", "html"):
-        result = runner.invoke(cli, ["analyze", "--format", fmt, "--answer-timeout", str(ANSWER_S), str(dropped)])
-        assert result.exit_code == 1, result.output
-        assert "nterventions" in result.output and cause in result.output, fmt
-        assert "client" in result.output and "the proxy intervened" in result.output, fmt
+        result = run_cli("analyze", "--format", fmt, "--answer-timeout", ANSWER_S, dropped)
+        assert result.returncode == 1, result.stderr
+        assert "nterventions" in result.stdout and cause in result.stdout, fmt
+        assert "client" in result.stdout and "the proxy intervened" in result.stdout, fmt
 
 
 # -- cat and info ------------------------------------------------------------------------------------
 
 
 def test_info_says_the_recording_was_made_in_the_middle(dropped):
-    result = CliRunner().invoke(cli, ["info", str(dropped)])
-    assert re.search(r"^in the middle\s+yes: the proxy changed the traffic 2 times", result.output, re.MULTILINE)
-    info = json.loads(CliRunner().invoke(cli, ["info", "--format", "json", str(dropped)]).output)
+    result = run_cli("info", dropped)
+    assert re.search(r"^in the middle\s+yes: the proxy changed the traffic 2 times", result.stdout, re.MULTILINE)
+    info = json.loads(run_cli("info", "--format", "json", dropped).stdout)
     assert info["middle"] is True and info["interventions"] == 2 and info["topics"]["/interventions"] == 2
-    plain = json.loads(CliRunner().invoke(cli, ["info", "--format", "json", str(REPO / "samples/vpn.mcap")]).output)
+    plain = json.loads(run_cli("info", "--format", "json", REPO / "samples/vpn.mcap").stdout)
     assert "middle" not in plain and "interventions" not in plain
 
 
 def test_cat_shows_interventions_in_time_order_and_filters_them(dropped):
     def cat(*args: str) -> list[str]:
-        result = CliRunner().invoke(cli, ["cat", *args, str(dropped)])
-        assert result.exit_code == 0, result.output
-        return result.output.splitlines()
+        result = run_cli("cat", *args, dropped)
+        assert result.returncode == 0, result.stderr
+        return result.stdout.splitlines()
 
     lines = cat()
     changes = [line for line in lines if " ~ #" in line]
@@ -359,8 +356,7 @@ def test_cat_shows_interventions_in_time_order_and_filters_them(dropped):
 def test_the_other_readers_take_a_recording_made_in_the_middle_as_what_each_side_sent(dropped):
     """The TUI, replay's plan and cat leave what each side received aside."""
     report = _report(dropped)
-    lines = [json.loads(line) for line in CliRunner().invoke(cli, ["cat", "--format", "jsonl", str(dropped)])
-             .output.splitlines()]
+    lines = [json.loads(line) for line in run_cli("cat", "--format", "jsonl", dropped).stdout.splitlines()]
     items = [line for line in lines if line["kind"] not in ("late_violation", "intervention")]
     model = TrafficModel(str(dropped))
     FileSource(find_one([str(dropped)])).feed(model, threading.Event())
@@ -439,10 +435,9 @@ def test_reports_on_recordings_without_interventions_are_as_before():
     the file) rule details in the spec's words, a fixed field cited in its
     message's section, counts that agree with their nouns."""
     before = json.loads((DATA / "reports-before-middle.json").read_text())
-    runner = CliRunner()
     for command, expected in before.items():
-        result = runner.invoke(cli, command.split(), catch_exceptions=False)
-        output = result.output
+        result = run_cli(*command.split())
+        output = result.stdout + result.stderr
         if "--format json" in command:
             report = json.loads(output)
             for v in report["violations"]:
@@ -453,8 +448,7 @@ def test_reports_on_recordings_without_interventions_are_as_before():
 
 def test_every_rule_is_about_the_side_the_docs_say():
     assert ANSWERING | SERVER_FRAMES | CLIENT_FRAMES | EITHER == set(RULES)
-    report = json.loads(CliRunner().invoke(cli, ["analyze", "--format", "json",
-                                                 str(REPO / "samples/violations.mcap")]).output)
+    report = json.loads(run_cli("analyze", "--format", "json", REPO / "samples/violations.mcap").stdout)
     for v in report["violations"]:
         rule = v["rule_id"]
         expected = ("server" if rule in ANSWERING | SERVER_FRAMES else "client" if rule in CLIENT_FRAMES

@@ -15,9 +15,7 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from click.testing import CliRunner, Result
 
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.frame_text import frame_from_text
 from whiztap.sniffer.mitm import control_server
 from whiztap.sniffer.mitm.control_endpoint import Endpoint
@@ -25,7 +23,7 @@ from whiztap.sniffer.mitm.control_guard import MAX_BODY
 from whiztap.sniffer.record.record_run import MiddleSettings, Recording
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
-from tests.cli_support import start_process
+from tests.cli_support import Ran, run_cli, start_process
 from tests.record_support import LOCAL, WAIT, closed_port, read_all, recording
 
 DROP_EVERY_SECOND = "drop dir:s2c kind:response ch:12 every:2"
@@ -389,14 +387,14 @@ async def test_stopping_ends_the_control_connections_still_open(tmp_path):
 # -- whiztap ctl -------------------------------------------------------------------------------------------
 
 
-async def ctl(rec: Recording, *args: str) -> Result:
+async def ctl(rec: Recording, *args: str) -> Ran:
     """``whiztap ctl --control ... ARGS`` in a thread: the API answers in this test's loop."""
-    return await asyncio.to_thread(CliRunner().invoke, cli, ["ctl", "--control", rec.control_url, *args])
+    return await asyncio.to_thread(run_cli, "ctl", "--control", rec.control_url, *args)
 
 
-def line(result: Result, code: int = 0) -> str:
+def line(result: Ran, code: int = 0) -> str:
     """The one line a command printed (stdout, or stderr when it failed)."""
-    assert result.exit_code == code, (result.stdout, result.stderr)
+    assert result.returncode == code, (result.stdout, result.stderr)
     text = result.stdout if code == 0 else result.stderr
     assert text.count("\n") == 1, text
     return text.strip()
@@ -446,7 +444,7 @@ async def test_ctl_holds_releases_drops_and_injects(tmp_path):
         assert state[0] == "intercept: (off)" and "faults: 0" in state and "connections: 1" in state
         as_json = json.loads((await ctl(rec, "--format", "json", "state")).stdout)
         assert set(as_json) == {"faults", "intercept", "held", "connections", "seed", "scripts", "verdict"}
-        assert (await ctl(rec, "inject", "1", "sideways", "sensor 12")).exit_code == 2
+        assert (await ctl(rec, "inject", "1", "sideways", "sensor 12")).returncode == 2
 
 
 async def test_the_installed_command_answers_and_says_in_one_line_when_nothing_listens(tmp_path):

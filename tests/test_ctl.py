@@ -5,7 +5,7 @@ one that answers too much, too little or not JSON, it says so in one line
 the control API itself, takes its token, and its options in any position.
 
 All real: the simulator, a recording proxy, servers on 127.0.0.1 that speak
-as a stranger would, and ctl run in-process (CliRunner) in a thread."""
+as a stranger would, and ctl run in-process (run_cli) in a thread."""
 
 from __future__ import annotations
 
@@ -21,28 +21,27 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner, Result
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from whiztap.analyzer.cli.root import cli
 from whiztap.sniffer.mitm import control_client
 from whiztap.sniffer.mitm.control_endpoint import Endpoint
 from whiztap.sniffer.record.record_run import MiddleSettings
 from whiztap.sniffer.sim.simulator import Simulator
+from tests.cli_support import Ran, run_cli
 from tests.record_support import LOCAL, WAIT, read_all, recording
 
 SIGNED = "HTTP/1.1 200 OK\r\nServer: whiztap/0.1.0\r\nContent-Type: application/json\r\n"
 
 
-async def ctl(*args: str, env: dict[str, str] | None = None) -> Result:
+async def ctl(*args: str, env: dict[str, str] | None = None) -> Ran:
     """``whiztap ctl ARGS`` in a thread (the servers answer in this test's loop)."""
-    return await asyncio.to_thread(CliRunner().invoke, cli, ["ctl", *args], env=env)
+    return await asyncio.to_thread(run_cli, "ctl", *args, env=env)
 
 
-def one_line(result: Result) -> str:
+def one_line(result: Ran) -> str:
     """The one line a failed ctl said on stderr, without its 'whiztap: '."""
-    assert result.exit_code == 2 and result.stdout == "", (result.exit_code, result.stdout, result.stderr)
+    assert result.returncode == 2 and result.stdout == "", (result.returncode, result.stdout, result.stderr)
     assert result.stderr.count("\n") == 1, result.stderr
     return result.stderr.removeprefix("whiztap: ").rstrip("\n")
 
@@ -213,13 +212,13 @@ async def test_ctl_finds_the_one_control_api_running_for_the_user(tmp_path, runt
         for sock, pid in zip(stale, (1, dead.pid)):
             sock.bind(str(runtime / f"control-{pid}.sock"))
         result = await ctl("held")
-        assert (result.exit_code, result.stdout) == (0, "no held frames\n")  # neither counts
+        assert (result.returncode, result.stdout) == (0, "no held frames\n")  # neither counts
         async with proxies(tmp_path, Endpoint(path="")) as [other]:
             assert not (runtime / f"control-{dead.pid}.sock").exists()  # a new server swept the dead one's away
             names = ", ".join(sorted(Path(r.control_url).name for r in (rec, other)))
             assert one_line(await ctl("held")) == (f"2 control APIs are running ({names} in {runtime}): "
                                                    f"choose one with --control PATH")
-            assert (await ctl("held", "--control", other.control_url)).exit_code == 0
+            assert (await ctl("held", "--control", other.control_url)).returncode == 0
         for sock in stale:
             sock.close()
     assert list(runtime.iterdir()) == [runtime / "control-1.sock"]  # each server took its own socket away
@@ -246,16 +245,16 @@ async def test_ctl_over_tcp_takes_the_token_printed_at_start(tmp_path, runtime):
         assert one_line(await ctl("--control", where, "--control-token", "guess", "held")) == (
             f"the control API at {where} refused the token given; give the one 'whiztap record' printed at start")
         by_env = await ctl("held", env={"WHIZTAP_CONTROL": rec.control_url, "WHIZTAP_CONTROL_TOKEN": rec.control_token})
-        assert (by_env.exit_code, by_env.stdout) == (0, "no held frames\n")
+        assert (by_env.returncode, by_env.stdout) == (0, "no held frames\n")
         after = await ctl("held", "--control", where, "--control-token", rec.control_token)
-        assert (after.exit_code, after.stdout) == (0, "no held frames\n")
+        assert (after.returncode, after.stdout) == (0, "no held frames\n")
 
 
 async def test_ctl_takes_its_options_before_or_after_the_subcommand(tmp_path, runtime):
     async with proxies(tmp_path, Endpoint(path="")) as [rec]:
         before = await ctl("--format", "json", "--control", rec.control_url, "held")
         after = await ctl("held", "--format", "json", "--control", rec.control_url)
-        assert before.exit_code == after.exit_code == 0 and json.loads(before.stdout) == json.loads(after.stdout) \
+        assert before.returncode == after.returncode == 0 and json.loads(before.stdout) == json.loads(after.stdout) \
             == {"held": []}
         nested = await ctl("fault", "--format", "json", "list", "--control", rec.control_url)
         assert json.loads(nested.stdout) == {"faults": []}
@@ -279,7 +278,7 @@ async def test_the_live_tui_and_the_demo_say_where_their_control_api_is(tmp_path
             rec = source.recording
             assert source.title.endswith(f", control {rec.control_url} token {rec.control_token}")
             result = await ctl("--control", rec.control_url, "--control-token", rec.control_token, "held")
-            assert (result.exit_code, result.stdout) == (0, "no held frames\n")
+            assert (result.returncode, result.stdout) == (0, "no held frames\n")
         finally:
             await source.stop()
     said: list[str] = []

@@ -18,12 +18,11 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 from mcap.reader import make_reader
 
+from tests.cli_support import run_cli
 from tests.record_support import LOCAL, recording
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.recording.format import KNOWN_TOPICS
 from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.recording.sets import find_one
@@ -105,10 +104,8 @@ def test_the_same_recording_means_the_same_in_analyze_cat_the_tui_and_replay(tmp
     path = tmp_path / "every.mcap"
     asyncio.run(_record(path))
 
-    runner = CliRunner()
-    report = json.loads(runner.invoke(cli, ["analyze", str(path), "--format", "json"]).stdout)
-    lines = [json.loads(line) for line in runner.invoke(cli, ["cat", str(path), "--format", "jsonl"])
-             .stdout.splitlines()]
+    report = json.loads(run_cli("analyze", path, "--format", "json").stdout)
+    lines = [json.loads(line) for line in run_cli("cat", path, "--format", "jsonl").stdout.splitlines()]
     items = [line for line in lines if line["kind"] != "late_violation"]
     model = TrafficModel(str(path))
     source = FileSource(find_one([str(path)]))

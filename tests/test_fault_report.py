@@ -14,9 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.mitm.faults import MAX_FAULTS, Fault
 from whiztap.analyzer.mitm.quiet import QUIET_AFTER
 from whiztap.analyzer.protocol import messages as m
@@ -24,6 +22,7 @@ from whiztap.analyzer.protocol.codec import encode
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.sniffer.mitm.controller import ControlError, Controller
 from whiztap.sniffer.record.summary import summary_lines
+from tests.cli_support import Ran, run_cli
 from tests.core_support import S, FakeClockMiddle
 from tests.middle_support import Raw, middle, sensor
 from tests.record_support import LOCAL, RecordProcess, closed_port
@@ -169,13 +168,12 @@ def test_the_api_refuses_one_fault_too_many_in_one_line():
     assert caught.value.status == 400 and str(caught.value).startswith(f"{MAX_FAULTS} faults are in force")
 
 
-def _record(*args: str):  # noqa: ANN202 - a click Result
-    return CliRunner().invoke(cli, ["record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{closed_port()}",
-                                    *args])
+def _record(*args: str) -> Ran:
+    return run_cli("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{closed_port()}", *args)
 
 
-def _one_line(result, *words: str) -> None:  # noqa: ANN001 - a click Result
-    assert result.exit_code == 2, result.output
+def _one_line(result: Ran, *words: str) -> None:
+    assert result.returncode == 2, result.stderr
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("whiztap: "), result.stderr
     assert "unexpected error" not in result.stderr
     for word in words:
@@ -197,10 +195,8 @@ def test_a_fault_file_nested_thousands_deep_is_one_line_for_each_command(tmp_pat
     deep.write_text("[faults.x]\nspec = " + "[" * 5000 + "]" * 5000 + "\n")
     words = (str(deep), "nested too deeply")
     _one_line(_record("-o", str(tmp_path / "r.mcap"), "--faults", str(deep)), *words)
-    _one_line(CliRunner().invoke(cli, ["tui", "--upstream", f"{LOCAL}:9", "-o", str(tmp_path / "t.mcap"),
-                                       "--faults", str(deep)]), *words)
-    _one_line(CliRunner().invoke(cli, ["demo", "--headless", "-o", str(tmp_path / "d.mcap"), "--faults", str(deep)]),
-              *words)
+    _one_line(run_cli("tui", "--upstream", f"{LOCAL}:9", "-o", tmp_path / "t.mcap", "--faults", deep), *words)
+    _one_line(run_cli("demo", "--headless", "-o", tmp_path / "d.mcap", "--faults", deep), *words)
     assert not list(tmp_path.glob("*.mcap*"))
 
 
@@ -228,14 +224,13 @@ async def test_record_prints_each_fault_in_words_at_start_unless_quiet(tmp_path,
 
 
 def test_tui_prints_each_fault_in_words_before_the_app_starts(tmp_path):
-    result = CliRunner().invoke(cli, ["tui", "--upstream", f"{LOCAL}:9", "-o", str(tmp_path / "t.mcap"), *FAULT_ARGS])
+    result = run_cli("tui", "--upstream", f"{LOCAL}:9", "-o", tmp_path / "t.mcap", *FAULT_ARGS)
     # without a terminal the app itself does not start; the faults were said first
     assert result.stderr.splitlines()[:2] == FAULT_LINES and "needs a terminal" in result.stderr
 
 
 def test_demo_prints_each_fault_in_words_at_start(tmp_path):
-    result = CliRunner().invoke(cli, ["demo", "--headless", "--seconds", "0.2", "-o", str(tmp_path / "d.mcap"),
-                                      *FAULT_ARGS])
-    assert result.exit_code == 0, result.output
+    result = run_cli("demo", "--headless", "--seconds", "0.2", "-o", tmp_path / "d.mcap", *FAULT_ARGS)
+    assert result.returncode == 0, result.stderr
     assert result.stderr.splitlines()[:2] == FAULT_LINES
     assert Path(tmp_path / "d.mcap").exists()

@@ -17,7 +17,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
 from tests.cli_support import run_cli
 from tests.fleet_support import SLOW_S, DaskCluster, slow_analysis, write_fleet
@@ -25,7 +24,6 @@ from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.formats import FORMATS
 from whiztap.analyzer.cli import analyze as analyze_cli
 from whiztap.analyzer.cli.progress import ByteProgress
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.sets import find_recordings
 from whiztap.sniffer.fleet import cluster as cluster_module
@@ -144,9 +142,9 @@ def test_an_unreachable_scheduler_is_one_line(fleet: list[Path], monkeypatch: py
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     monkeypatch.setattr(cluster_module, "CONNECT_S", 1)
-    result = CliRunner().invoke(cli, ["analyze", str(fleet[0]), "--dask", f"tcp://127.0.0.1:{port}"])
-    assert result.exit_code == 2
-    assert f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in result.output
+    result = run_cli("analyze", fleet[0], "--dask", f"tcp://127.0.0.1:{port}")
+    assert result.returncode == 2
+    assert f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in result.stderr
 
 
 def test_the_progress_bar_is_fed_by_the_cluster(dask_cluster: DaskCluster, fleet: list[Path],

@@ -16,13 +16,12 @@ from pathlib import Path
 
 import jsonschema
 import pytest
-from click.testing import CliRunner
 
+from tests.cli_support import run_cli
 from tests.test_analyze_middle import ANSWER_S, NEVER, _record, _sensors
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
 from whiztap.analyzer.analysis.verdict import Judge
 from whiztap.analyzer.cli.reading import scan_recording
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.rules import Severity
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.sniffer.sim.client import Client
@@ -36,8 +35,8 @@ def _judge(**options: object) -> Judge:
 
 
 def _analyze(path: Path, *args: str, fmt: str = "json") -> tuple[int, str]:
-    result = CliRunner().invoke(cli, ["analyze", "--format", fmt, *args, str(path)])
-    return result.exit_code, result.output
+    result = run_cli("analyze", "--format", fmt, *args, path)
+    return result.returncode, result.stdout
 
 
 # -- one verdict ----------------------------------------------------------------------------------------
@@ -175,9 +174,9 @@ def test_without_the_middle_there_is_one_latency_unlabelled():
 
 
 def _cat(path: Path, *args: str) -> list[str]:
-    result = CliRunner().invoke(cli, ["cat", *args, str(path)])
-    assert result.exit_code == 0, result.output
-    return result.output.splitlines()
+    result = run_cli("cat", *args, path)
+    assert result.returncode == 0, result.stderr
+    return result.stdout.splitlines()
 
 
 @pytest.mark.parametrize("direction", ["s2c", "c2s"])

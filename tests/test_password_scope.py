@@ -21,12 +21,11 @@ import re
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.examples import CONFIG
 from whiztap.analyzer.protocol.framing import Framer, ItemKind
 from whiztap.sniffer.sim.simulator import Simulator
 
+from tests.cli_support import run_cli
 from tests.record_support import (
     LOCAL,
     WAIT,
@@ -48,9 +47,9 @@ ONE_WAY = 500_000  # as many as `make bench` sends (7 s here)
 
 def analyse(path: Path) -> tuple[int, dict]:
     """``whiztap analyze --format json``: its exit status and report."""
-    result = CliRunner().invoke(cli, ["analyze", str(path), "--format", "json"])
-    assert result.exit_code in (0, 1), result.output
-    return result.exit_code, json.loads(result.output)
+    result = run_cli("analyze", path, "--format", "json")
+    assert result.returncode in (0, 1), result.stderr
+    return result.returncode, json.loads(result.stdout)
 
 
 def client_stream(path: Path) -> bytes:

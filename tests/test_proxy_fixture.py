@@ -130,12 +130,11 @@ def test_the_recording_keeps_what_the_proxy_did(whiztap_proxy):
 
 
 def test_whiztap_ctl_drives_the_fixtures_proxy(whiztap_proxy):
-    from click.testing import CliRunner
-    from whiztap.analyzer.cli.root import cli
+    from tests.cli_support import run_cli
 
     def ctl(*args):
-        result = CliRunner().invoke(cli, ["ctl", "--control", whiztap_proxy.control, *args])
-        assert result.exit_code == 0, result.stderr
+        result = run_cli("ctl", "--control", whiztap_proxy.control, *args)
+        assert result.returncode == 0, result.stderr
         return result.stdout
 
     assert ctl("fault", "add", "drop dir:s2c kind:response ch:12 nth:1", "--name", "once").startswith("added fault #1")

@@ -23,11 +23,9 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from whiztap.analyzer.analysis.exchanges import load_exchanges
-from whiztap.analyzer.cli.root import cli
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.encode import encode, encode_read
 from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_READS
@@ -41,6 +39,7 @@ from whiztap.sniffer.replay.plan import Selection, dry_run_lines, plan
 from whiztap.tui.data.model import TrafficModel
 from whiztap.tui.data.sources import FileSource
 
+from tests.cli_support import Ran, run_cli
 from tests.record_support import op_event
 
 # Pieces that reach the interesting states of the session model: frames of
@@ -148,12 +147,10 @@ def _parts(path: Path) -> list[Path]:
     return found
 
 
-def _run(*args: str):
+def _run(*args: str) -> Ran:
     """A command in this process; it may fail a gate (exit 1), never crash."""
-    result = CliRunner().invoke(cli, list(args))
-    if result.exception is not None and not isinstance(result.exception, SystemExit):
-        raise result.exception
-    assert result.exit_code in (0, 1), result.output
+    result = run_cli(*args)
+    assert result.returncode in (0, 1), result.stderr
     return result
 
 

@@ -25,7 +25,7 @@ from whiztap.tui.data.sources import LiveSource, ProxyRig
 
 from tests.middle_support import Raw, answer_channel, sensor
 from tests.record_support import read_all
-from tests.test_tui_cli import run
+from tests.cli_support import run_cli
 from tests.tui_support import SAMPLES, SIZE, paste, until
 
 LOCAL = "127.0.0.1"
@@ -211,15 +211,15 @@ async def test_keys_are_answered_while_a_hundred_frames_are_held(tmp_path):
 
 
 def test_the_middle_options_go_with_the_live_proxy_only():
-    result = run("tui", SAMPLES / "vpn.mcap", "--fault", "drop dir:s2c")
+    result = run_cli("tui", SAMPLES / "vpn.mcap", "--fault", "drop dir:s2c")
     assert result.returncode == 2 and "they go with --upstream" in result.stderr
-    result = run("tui", "--upstream", "127.0.0.1:5000", "--fault", "drop nowhere:1")
+    result = run_cli("tui", "--upstream", "127.0.0.1:5000", "--fault", "drop nowhere:1")
     assert result.returncode == 2 and "nowhere:1" in result.stderr
 
 
 def test_the_demo_runs_in_the_middle_with_the_faults_it_is_given(tmp_path):
     output = tmp_path / "demo.mcap"
-    result = run("demo", "--headless", "--seconds", "1", "-o", output, "--fault", "delay:1ms dir:s2c",
+    result = run_cli("demo", "--headless", "--seconds", "1", "-o", output, "--fault", "delay:1ms dir:s2c",
                  "--seed", "3")
     assert result.returncode == 0, result.stderr
     metadata = read_metadata(str(output))

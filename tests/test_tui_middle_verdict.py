@@ -21,7 +21,7 @@ from whiztap.tui.data.sources import LiveSource, ProxyRig
 
 from tests.middle_support import Raw, answer_channel, sensor
 from tests.test_control_api import ok
-from tests.test_tui_cli import run
+from tests.cli_support import run_cli
 from tests.test_tui_middle import LOCAL, proxy_port, quit_app
 from tests.tui_support import SIZE, until
 
@@ -62,7 +62,7 @@ async def test_the_tui_the_api_the_summary_and_analyze_give_one_verdict(tmp_path
             assert verdict_text(tui) in str(app.status.content)
             await quit_app(pilot)
     summary = rig.recording.summary
-    result = run("analyze", output, "--format", "json")
+    result = run_cli("analyze", output, "--format", "json")
     report = json.loads(result.stdout)
 
     assert tui.by_rule == {"PW-PAIR-UNANSWERED": 1}  # the dropped answer: the client's request unanswered
