@@ -112,6 +112,7 @@ def test_several_files_and_a_folder(tmp_path):
     assert serial["summary"]["connections"] == 2
 
 
+@pytest.mark.slow
 def test_a_report_on_several_files_names_the_file_of_each_connection_and_violation(tmp_path):
     """Each file numbers its connections from 1: 'conn 3' alone said which of
     several it was no more than a page number without its book."""
@@ -169,6 +170,7 @@ def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
     assert [c.name.split(":")[0] for c in skipped] == ["PW-DIRECTION"]
 
 
+@pytest.mark.slow
 def test_html_is_self_contained_with_plots(tmp_path):
     out = tmp_path / "report.html"
     assert run_cli("analyze", CLEAN, "--format", "html", "-o", out).returncode == 0
@@ -228,6 +230,7 @@ def test_truncated_part_file_names_recover(tmp_path, command):
     assert f"whiztap recover {part}" in one_line_error(run_cli(command, part))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
     shutil.copy(CLEAN, tmp_path / CLEAN.name)

@@ -134,6 +134,7 @@ def dropped(tmp_path_factory) -> Path:  # noqa: ANN001
     return _record(path, ("drop dir:s2c kind:response ch:12 every:2",), lambda client, rec: _sensors(client))
 
 
+@pytest.mark.slow
 def test_answers_the_proxy_dropped_are_the_clients_experience_never_the_servers(dropped):
     report = _report(dropped)
     assert _by_side(report, "PW-PAIR-UNANSWERED") == {"client": 2}
@@ -150,6 +151,7 @@ def test_answers_the_proxy_dropped_are_the_clients_experience_never_the_servers(
     assert _by_side(_report(dropped, middle=False), "PW-PAIR-UNANSWERED") == {}
 
 
+@pytest.mark.slow
 def test_a_delay_past_the_deadline_does_not_blame_the_server(tmp_path):
     path = _record(tmp_path / "delayed.mcap", ("delay:400ms dir:s2c kind:response ch:12 nth:2",),
                    lambda client, rec: _sensors(client), wait=2.0)
@@ -164,6 +166,7 @@ def test_a_delay_past_the_deadline_does_not_blame_the_server(tmp_path):
     assert report["interventions"]["causes"][0]["actions"] == {"delay": 1}
 
 
+@pytest.mark.slow
 def test_a_checksum_the_proxy_broke_is_an_effect_not_a_violation_of_either_side(tmp_path):
     async def session(client: Client, rec) -> None:  # noqa: ANN001
         await client.fetch_configuration()
@@ -206,6 +209,7 @@ def _passes_unless_asked(path: Path) -> dict:
     return report
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["dup dir:s2c kind:response ch:12 nth:1", "dup dir:c2s kind:command ch:12 nth:1"])
 def test_an_answer_the_proxy_duplicated_is_an_effect_of_the_dup(tmp_path, spec):
     report = _passes_unless_asked(_record(tmp_path / "dup.mcap", (spec,), lambda client, rec: _sensors(client, 2)))
@@ -213,6 +217,7 @@ def test_an_answer_the_proxy_duplicated_is_an_effect_of_the_dup(tmp_path, spec):
     assert report["interventions"]["causes"][0]["actions"] == {"dup": 1}
 
 
+@pytest.mark.slow
 def test_an_injected_answer_is_an_effect_of_the_injection(tmp_path):
     async def session(client: Client, rec) -> None:  # noqa: ANN001
         await _sensors(client, 1)
@@ -226,6 +231,7 @@ def test_an_injected_answer_is_an_effect_of_the_injection(tmp_path):
     assert report["interventions"]["causes"] == [{"cause": "injection", "count": 1, "actions": {"inject": 1}}]
 
 
+@pytest.mark.slow
 def test_the_answer_to_an_injected_request_is_an_effect_not_the_clients_or_the_servers(tmp_path):
     async def session(client: Client, rec) -> None:  # noqa: ANN001
         await _sensors(client, 1)
@@ -250,6 +256,7 @@ async def _held(rec, n: int = 1) -> list[dict]:  # noqa: ANN001
     raise AssertionError("nothing was held")
 
 
+@pytest.mark.slow
 def test_a_request_edited_by_hand_and_its_answer_are_effects_of_the_edit(tmp_path):
     """The client asked for channel 12; a person made it 13: the client's
     request goes unanswered and the answer it gets answers nothing it asked,
@@ -273,6 +280,7 @@ def test_a_request_edited_by_hand_and_its_answer_are_effects_of_the_edit(tmp_pat
                                                                          "hand edit"}
 
 
+@pytest.mark.slow
 def test_an_answer_replaced_by_another_channels_is_an_effect_and_a_drop_beside_it_still_fails(tmp_path):
     """Replacing an answer takes it from the request it answered and gives the
     client one it never asked for: effects.  The answer the proxy dropped
@@ -290,6 +298,7 @@ def test_an_answer_replaced_by_another_channels_is_an_effect_and_a_drop_beside_i
     assert report["unanswered"] == {"Sensor Request": 1}
 
 
+@pytest.mark.slow
 def test_what_a_side_really_did_is_still_its_own_and_counted_once(tmp_path):
     """In the middle, a server that drops answers and a client that sends junk are
     each blamed, once, on their own side."""
@@ -308,6 +317,7 @@ def test_what_a_side_really_did_is_still_its_own_and_counted_once(tmp_path):
     assert single["rule_counts"] == report["rule_counts"]
 
 
+@pytest.mark.slow
 def test_every_format_lists_the_interventions_and_the_sides(dropped):
     cause = "fault fault-1: drop dir:s2c kind:response ch:12 every:2"
     for fmt in ("text", "markdown", "junit", "html"):
@@ -320,6 +330,7 @@ def test_every_format_lists_the_interventions_and_the_sides(dropped):
 # -- cat and info ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_info_says_the_recording_was_made_in_the_middle(dropped):
     result = run_cli("info", dropped)
     assert re.search(r"^in the middle\s+yes: the proxy changed the traffic 2 times", result.stdout, re.MULTILINE)
@@ -477,6 +488,7 @@ def _connections(draw) -> list[tuple[str, int, str, bytes | int]]:
     return ops
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(ops=_connections())
 def test_without_interventions_the_two_views_judge_as_the_one_session(ops):

@@ -171,6 +171,7 @@ def test_the_command_keeps_an_existing_recording_unless_forced(tmp_path):
     assert streams(str(out)) == {(1, "c2s"): C2S, (1, "s2c"): S2C}
 
 
+@pytest.mark.slow
 def test_the_import_says_how_far_into_the_file_it_is(tmp_path):
     frames = [b"rr1-%d--0--0-ss1" % (12 + i % 10) for i in range(1100)]  # 2,200 data packets and more
     answers = [f.replace(b"rr1-", b"cr1-") for f in frames]
@@ -226,6 +227,7 @@ def _payload_bytes_seen(pcap, port: int) -> dict[str, int]:  # noqa: ANN001
     return {d: len(covered) for d, covered in spans.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("tcpdump") is None,
                     reason="tcpdump is not installed (make test installs it with apt-get as root)")
 @pytest.mark.skipif(os.geteuid() != 0, reason="tcpdump on lo needs root")
@@ -267,6 +269,7 @@ async def test_a_tcpdump_capture_imports_to_the_frames_the_proxy_recorded(tmp_pa
     assert len(a["/camera"]) == 1
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(os.geteuid() != 0, reason="live capture needs root or CAP_NET_RAW")
 async def test_live_capture_on_loopback_until_ctrl_c(tmp_path):
     out = tmp_path / "live.mcap"
@@ -286,6 +289,7 @@ async def test_live_capture_on_loopback_until_ctrl_c(tmp_path):
     assert recorded[(1, "c2s")] == b"rr1-24--0--0-ss1rr1-15--0--0-ss1"
 
 
+@pytest.mark.slow
 def test_live_capture_without_the_right_says_what_is_needed(tmp_path):
     command = [WHIZTAP, "capture", "--iface", "lo", "--port", "5000", "-o", str(tmp_path / "x.mcap")]
     if os.geteuid() == 0:

@@ -85,6 +85,7 @@ def test_decode_judges_one_line_of_a_pipe_as_a_frame_and_more_as_a_session():
 _frame_text = st.text(st.characters(codec="utf-8", exclude_characters="/\\\x00"), min_size=1, max_size=30)
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None)
 @given(st.lists(_frame_text.filter(lambda t: not os.path.exists(t)), min_size=1, max_size=4))
 def test_decode_never_judges_a_session_on_frames_given_alone(texts):

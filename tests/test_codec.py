@@ -136,6 +136,7 @@ valid_messages = st.one_of(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=500, deadline=None)
 @given(valid_messages)
 def test_encode_then_decode_gives_the_message_back(message):

@@ -205,6 +205,7 @@ async def test_a_non_loopback_control_api_warns_and_a_bad_path_is_one_line(tmp_p
     assert not (tmp_path / "b.mcap").exists()
 
 
+@pytest.mark.slow
 async def test_whiztap_record_prints_where_the_api_is_and_takes_its_socket_away(tmp_path, monkeypatch, short_dir):
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(short_dir))
     async with Simulator(port=0, mode="vpn") as sim:
@@ -276,6 +277,7 @@ async def _throw(endpoint: Endpoint, raw: bytes) -> tuple[bytes, list]:
     return answer, list(controller.faults)
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(raw=st.one_of(heads, st.binary(max_size=200)))
 def test_no_request_without_the_token_gets_past_the_guard_and_none_makes_the_server_fail(raw):
@@ -286,6 +288,7 @@ def test_no_request_without_the_token_gets_past_the_guard_and_none_makes_the_ser
         assert status in {400, 401, 403, 411, 431} and headers["server"] == SIGNATURE, (raw, answer)
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(raw=st.one_of(heads, st.binary(max_size=200)))
 def test_any_bytes_on_the_socket_are_answered_in_json_never_with_a_500(raw):

@@ -111,6 +111,7 @@ async def test_ctl_pointed_at_a_robot_says_so_and_sends_it_nothing(patient):
     assert (sim.stats.connections, sim.stats.bytes_in) == (1, 0)
 
 
+@pytest.mark.slow
 async def test_ctl_pointed_at_the_proxys_listen_port_says_so_and_the_recording_gets_no_http(tmp_path, patient):
     path = tmp_path / "r.mcap"
     async with Simulator(port=0, mode="winsock", password="pw") as sim:
@@ -197,6 +198,7 @@ async def proxies(tmp_path: Path, *controls: Endpoint) -> AsyncIterator[list]:
                for n, control in enumerate(controls)]
 
 
+@pytest.mark.slow
 async def test_ctl_finds_the_one_control_api_running_for_the_user(tmp_path, runtime):
     assert one_line(await ctl("held")) == (f"no control API is running for you (none in {runtime}): start "
                                            f"'whiztap record --control', or say where one is with "
@@ -235,6 +237,7 @@ async def test_a_runtime_folder_others_may_open_is_refused_by_ctl_and_by_the_ser
             pass
 
 
+@pytest.mark.slow
 async def test_ctl_over_tcp_takes_the_token_printed_at_start(tmp_path, runtime):
     async with proxies(tmp_path, Endpoint(host=LOCAL, port=0)) as [rec]:
         where = rec.control_url.removeprefix("http://")
@@ -250,6 +253,7 @@ async def test_ctl_over_tcp_takes_the_token_printed_at_start(tmp_path, runtime):
         assert (after.returncode, after.stdout) == (0, "no held frames\n")
 
 
+@pytest.mark.slow
 async def test_ctl_takes_its_options_before_or_after_the_subcommand(tmp_path, runtime):
     async with proxies(tmp_path, Endpoint(path="")) as [rec]:
         before = await ctl("--format", "json", "--control", rec.control_url, "held")
@@ -264,6 +268,7 @@ async def test_ctl_takes_its_options_before_or_after_the_subcommand(tmp_path, ru
 # -- the TUI's proxy and the demo's -----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_the_live_tui_and_the_demo_say_where_their_control_api_is(tmp_path, runtime):
     from whiztap.sniffer.record.record_run import RecordSettings
     from whiztap.tui.demo import run_headless
@@ -343,6 +348,7 @@ answers = st.one_of(
               st.one_of(st.binary(max_size=100), st.sampled_from([b"{}", b'{"error": "no"}', b"[1]", b"2\r\n{}\r\n0\r\n\r\n"]))))
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(answer=answers)
 def test_whatever_a_peer_answers_ctl_says_one_line_or_takes_json(answering, answer):

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from whiztap.analyzer.protocol.checksum import CHECKSUM_RULES
 from whiztap.analyzer.protocol.rules import RULES
 
@@ -39,6 +41,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_the_readme_session_runs_as_written(tmp_path):
     """Each line of the README's session, in order, in a shell.  What a person
     does between lines is done here too: wait until a server started with '&'

@@ -83,6 +83,7 @@ def _by_mcap_python(path: Path) -> dict[str, list[tuple[int, bytes]]]:
     return found
 
 
+@pytest.mark.slow
 def test_the_same_recording_reads_identically_in_every_reader(tmp_path):
     path = tmp_path / "every.mcap"
     asyncio.run(_record(path))
@@ -100,6 +101,7 @@ def test_the_same_recording_reads_identically_in_every_reader(tmp_path):
     assert json.loads(result.stdout)["digests"] == {topic: _digest(found) for topic, found in ours.items()}
 
 
+@pytest.mark.slow
 def test_the_same_recording_means_the_same_in_analyze_cat_the_tui_and_replay(tmp_path):
     path = tmp_path / "every.mcap"
     asyncio.run(_record(path))

@@ -138,6 +138,7 @@ def test_a_fault_that_acted_on_a_timer_is_not_quiet():
     assert [f.name for f in mid.controller.end()] == ["fault-2"]
 
 
+@pytest.mark.slow
 async def test_a_quiet_fault_is_named_on_stderr_in_the_summary_and_on_log(tmp_path):
     async with middle(tmp_path / "r.mcap", "drop dir:s2c ch:99", "drop dir:s2c ch:12 nth:1") as mid:
         raw = await Raw.open(mid.port)
@@ -208,6 +209,7 @@ FAULT_LINES = ["fault-1: delay 200 ms, s2c, all frames",
                "fault-2: drop, s2c, every 2nd frame of kind response on channel 12 of each connection"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("quiet", [False, True], ids=["plain", "-q"])
 async def test_record_prints_each_fault_in_words_at_start_unless_quiet(tmp_path, quiet):
     faults = tmp_path / "faults.toml"
@@ -229,6 +231,7 @@ def test_tui_prints_each_fault_in_words_before_the_app_starts(tmp_path):
     assert result.stderr.splitlines()[:2] == FAULT_LINES and "needs a terminal" in result.stderr
 
 
+@pytest.mark.slow
 def test_demo_prints_each_fault_in_words_at_start(tmp_path):
     result = run_cli("demo", "--headless", "--seconds", "0.2", "-o", tmp_path / "d.mcap", *FAULT_ARGS)
     assert result.returncode == 0, result.stderr

@@ -328,6 +328,7 @@ _WORDS = st.sampled_from([
 ])
 
 
+@pytest.mark.slow
 @settings(max_examples=500, deadline=None)
 @given(st.one_of(st.text(), st.lists(_WORDS, max_size=12).map("".join)))
 def test_any_text_parses_or_raises_a_fault_spec_error(text):

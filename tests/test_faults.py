@@ -16,6 +16,7 @@ import struct
 import time
 from collections import Counter
 
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -56,6 +57,7 @@ STREAM_HIGH_WATER = 64 << 10  # asyncio's default: a stream's drain() waits whil
 # -- delay ----------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_delay_holds_every_answer_back_and_keeps_their_order(tmp_path):
     async with middle(tmp_path / "r.mcap", "delay:200ms dir:s2c") as mid:
         raw = await Raw.open(mid.port)
@@ -81,6 +83,7 @@ async def test_delay_holds_every_answer_back_and_keeps_their_order(tmp_path):
 # -- drop, dup, corrupt, replace ----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_drop_every_second_answer_of_one_channel(tmp_path):
     async with middle(tmp_path / "r.mcap", "drop dir:s2c kind:response ch:12 every:2") as mid:
         raw = await Raw.open(mid.port)
@@ -137,6 +140,7 @@ async def test_corrupt_changes_the_set_configuration_checksum_and_the_server_ign
     assert (corrupt["before"], corrupt["after"]) == (escape(frame), escape(changed))
 
 
+@pytest.mark.slow
 async def test_replace_the_first_answer_of_channel_12(tmp_path):
     spec = 'replace:"cr1-12--999--0-ss1" dir:s2c kind:response ch:12 nth:1'
     async with middle(tmp_path / "r.mcap", spec) as mid:
@@ -164,6 +168,7 @@ async def _config_in_reads(mid: Middle) -> Reads:
     return reads
 
 
+@pytest.mark.slow
 async def test_slice_1_delivers_an_answer_a_byte_at_a_time(tmp_path):
     async with middle(tmp_path / "r.mcap", "slice:1 dir:s2c") as mid:
         reads = await _config_in_reads(mid)
@@ -184,6 +189,7 @@ async def test_slice_range_delivers_pieces_of_two_to_four_bytes(tmp_path):
     assert set(sizes[:-1]) == {2, 3, 4}
 
 
+@pytest.mark.slow
 async def test_bandwidth_paces_a_configuration_answer(tmp_path):
     async with middle(tmp_path / "r.mcap", "bandwidth:2kB/s dir:s2c") as mid, \
             await Client.connect(LOCAL, mid.port) as client:
@@ -218,6 +224,7 @@ def test_after_takes_seconds_and_counts():
     assert parse_fault("close dir:c2s after:10").after_frames == 10
 
 
+@pytest.mark.slow
 async def test_reset_after_a_time_resets_both_sides(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="whiztap.sim")
     async with middle(tmp_path / "r.mcap", "reset after:0.3s") as mid:
@@ -248,6 +255,7 @@ async def test_reset_after_a_time_resets_both_sides(tmp_path, caplog):
     assert reset["t_ns"] > max(d["t_ns"] for d in topics["/tcp/delivered"] if d["dir"] == "s2c")
 
 
+@pytest.mark.slow
 async def test_close_after_ten_client_frames(tmp_path):
     switch = encode(m.ActivateSwitch(6))  # no answer: nothing races the close
     async with middle(tmp_path / "r.mcap", "close dir:c2s after:10") as mid:
@@ -273,6 +281,7 @@ async def test_close_after_ten_client_frames(tmp_path):
 # -- no fault crashes the proxy ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_odd_frames_and_a_reset_under_a_delay_leave_the_proxy_serving(tmp_path):
     empty = dataclasses.replace(parse_fault("replace:x dir:s2c kind:response nth:1 conn:1"), replacement=b"")
     faults = (empty, "corrupt dir:c2s kind:unframed,eol conn:1", "slice:3 dir:c2s conn:1",
@@ -297,6 +306,7 @@ async def test_odd_frames_and_a_reset_under_a_delay_leave_the_proxy_serving(tmp_
 # -- flow control under a delay -------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_delay_under_a_client_that_keeps_sending_pauses_the_client(tmp_path):
     chunk = (sensor(12) + b"x" * 1006 + b"\r\n") * 64  # 64 KiB a write: requests and long junk lines
     async with middle(tmp_path / "r.mcap", "delay:400ms dir:c2s") as mid:
@@ -366,6 +376,7 @@ def _as_delivered(data: bytes, specs: tuple[FaultSpec, ...]) -> tuple[bytes, dic
     return bytes(out), counts
 
 
+@pytest.mark.slow
 def test_what_no_fault_chose_passes_untouched_and_in_order(tmp_path, monkeypatch):
     monkeypatch.setattr(lane_module, "STALL_NS", int(WAIT * 1e9))  # an unfinished item waits for more (or the FIN)
     bg = Background(tmp_path / "property.mcap", _PROPERTY_FAULTS)

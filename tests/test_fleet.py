@@ -113,6 +113,7 @@ def test_the_middle_recording_is_judged_as_analyze_judges_it_alone(fleet: list[P
     assert day2["rule_counts"] == alone["rule_counts"] and day2["violations"] > 0
 
 
+@pytest.mark.slow
 def test_group_by_several_keys_together(fleet: list[Path]) -> None:
     data = report(*fleet, "--group-by", "firmware,robot", "--group-by", "firmware")
     assert list(_groups(data, 0)) == ["1.0 / r1", "1.1 / r2", "1.1 / r3", "None / None"]
@@ -138,6 +139,7 @@ def test_a_group_by_that_is_no_key_is_refused(fleet: list[Path], value: str) -> 
     assert done.returncode == 2 and "--group-by" in done.stderr and len(done.stderr.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_the_fleet_table_is_in_every_format(fleet: list[Path], tmp_path: Path) -> None:
     args = [*fleet, "--group-by", "robot", "-o"]
     text = tmp_path / "r.txt"
@@ -173,6 +175,7 @@ def _fleet_lines(data: dict, width: int) -> list[str]:
                  lines.index(next(line for line in lines if line.startswith("Connections")))]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", [80, 120, UNWRAPPED])
 def test_long_fleet_cells_wrap_between_rules_never_inside_one(fleet: list[Path], width: int) -> None:
     """A group that broke 38 rules had them in one cell: folded inside rule
@@ -191,6 +194,7 @@ def test_long_fleet_cells_wrap_between_rules_never_inside_one(fleet: list[Path],
 # -- merging is exact --------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.lists(st.integers(0, 10**12), max_size=60), min_size=1, max_size=6))
 def test_latency_stats_merge_exactly(parts: list[list[int]]) -> None:
@@ -285,6 +289,7 @@ def test_a_result_missing_is_never_a_report(fleet: list[Path]) -> None:
 # -- recordings named by URL -----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_file_urls_read_as_the_files_do(fleet: list[Path]) -> None:
     folder = fleet[0].parent
     by_path = report(*fleet, "--group-by", "robot")

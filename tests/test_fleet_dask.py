@@ -28,6 +28,8 @@ from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.sets import find_recordings
 from whiztap.sniffer.fleet import cluster as cluster_module
 
+pytestmark = pytest.mark.slow  # a Dask cluster of processes: not in make check
+
 WAIT = 60.0  # a bound on waiting for the cluster; never a timing assertion
 
 

@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 FLEET_DOC = (Path(__file__).parent.parent / "docs" / "fleet.md").read_text()
 _PORT = re.compile(r"(?:--port |--listen 127\.0\.0\.1:|--dashboard-address 127\.0\.0\.1:|tcp://127\.0\.0\.1:)(\d+)")
 
@@ -52,6 +54,7 @@ def _script(lines: list[str]) -> str:
                                 "for job in $(jobs -p | tac); do kill $job; wait $job 2>/dev/null; done"])
 
 
+@pytest.mark.slow
 def test_the_fleet_session_runs_as_written(tmp_path: Path) -> None:
     lines = _session()
     assert lines[0] == "mkdir fleet" and any("--dask local" in line for line in lines)

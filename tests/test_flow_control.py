@@ -253,6 +253,7 @@ async def _slow_reader(port: int, held: list) -> None:
             await asyncio.sleep(0.1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("clients", [(1, _never_reader), (20, _slow_reader)], ids=["never-reader", "20-slow"])
 async def test_memory_bounded_with_readers_that_lag_before_during_and_after_a_backlog(tmp_path, clients):
     count, client = clients
@@ -317,6 +318,7 @@ def _gaps(out: Path, conn: int, direction: str) -> list[tuple[int, int]]:
                 if e["event"] == "gap" and e["conn"] == conn and e["dir"] == direction]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["pause", "gap"])
 async def test_a_flood_never_stalls_another_connections_round_trips(tmp_path, mode):
     out = tmp_path / "flood.mcap"

@@ -135,6 +135,7 @@ def advertised(client: FoxgloveClient) -> dict[str, tuple]:
 # -- a real proxy in front of the simulator, a real WebSocket client --------------------------------
 
 
+@pytest.mark.slow
 async def test_a_foxglove_client_gets_live_what_the_file_gets(tmp_path):
     path = tmp_path / "live.mcap"
     async with Simulator(port=0, mode="winsock", password=PASSWORD, seed=7) as sim, \
@@ -182,6 +183,7 @@ async def test_a_foxglove_client_gets_live_what_the_file_gets(tmp_path):
     assert live["/sensors/12"] and set(live["/sensors/12"]) <= set(in_file["/sensors/12"])
 
 
+@pytest.mark.slow
 async def test_a_client_that_stops_reading_never_holds_up_the_recording(tmp_path):
     """The SDK keeps a bounded queue per client and drops the oldest: a client
     that subscribes to everything and reads nothing more costs the recording
@@ -278,6 +280,7 @@ def _taken_port() -> socket.socket:
     return s
 
 
+@pytest.mark.slow
 async def test_record_says_where_foxglove_connects_and_serves_there(tmp_path):
     out = tmp_path / "cli.mcap"
     async with EchoServer() as server:
@@ -332,6 +335,7 @@ async def test_the_recording_api_raises_a_writer_error_for_a_port_in_use(tmp_pat
             raise AssertionError("started on a port in use")
 
 
+@pytest.mark.slow
 def test_the_headless_demo_serves_foxglove_too(tmp_path):
     out = tmp_path / "demo.mcap"
     out.write_bytes(b"old")
@@ -343,6 +347,7 @@ def test_the_headless_demo_serves_foxglove_too(tmp_path):
     assert out.stat().st_size > 1000
 
 
+@pytest.mark.slow
 async def test_the_live_tui_names_the_foxglove_url_in_its_title(tmp_path):
     async with Simulator(port=0, mode="vpn", seed=1, camera=False) as sim:
         settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(tmp_path / "tui.mcap"), quiet=True,
@@ -440,6 +445,7 @@ async def test_a_web_page_you_did_not_choose_cannot_read_the_traffic_live(tmp_pa
     assert any("refused a connection" in w and "--foxglove-origin http://evil.example" in w for w in refusals)
 
 
+@pytest.mark.slow
 def test_the_sdks_own_lines_and_a_network_bind_are_said_by_whiztap(tmp_path):
     """A handshake the SDK fails itself (no Sec-WebSocket-Key) makes it log
     'Dropping client ...': that reaches the user as whiztap's warning, not raw

@@ -201,6 +201,7 @@ _PIECES = st.sampled_from([*CONSOLE_WORDS, "stop", "internal", "on", "off", "ser
                            "-1", "99999", "rr1-", "cr1-", "'", '"', "\\", "\\x4", "\\r", " ", "\ud800", "é", ":"])
 
 
+@pytest.mark.slow
 @settings(max_examples=500, deadline=None)
 @given(st.one_of(st.text(), st.lists(_PIECES, max_size=8).map(" ".join), st.lists(_PIECES, max_size=8).map("".join)))
 def test_any_text_is_bytes_or_a_frame_text_error(text):

@@ -257,6 +257,7 @@ def test_max_item_has_a_floor():
 # -- properties ------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(data=st.binary(max_size=600), cuts=st.lists(st.integers(0, 600), max_size=20))
 def test_lossless_and_chunking_independent_on_any_bytes(data, cuts):
@@ -267,6 +268,7 @@ def test_lossless_and_chunking_independent_on_any_bytes(data, cuts):
     assert all(i.raw for i in many)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(pieces=stream_pieces(), cuts=st.lists(st.integers(0, 4000), max_size=30))
 def test_lossless_and_chunking_independent_on_protocol_like_streams(pieces, cuts):
@@ -277,6 +279,7 @@ def test_lossless_and_chunking_independent_on_protocol_like_streams(pieces, cuts
     assert shape(many) == shape(one)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(lead=st.sampled_from([b"", b"\r\n", b"\n", b"\r", b"x" * 300]), pieces=stream_pieces(),
        cuts=st.lists(st.integers(0, 4000), max_size=30))
@@ -301,6 +304,7 @@ def test_a_password_is_cut_the_same_in_any_reads(lead, pieces, cuts):
         assert not passwords[0].startswith((b"rr1-", b"cr1-", b"sr1-"))
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None)
 @given(pieces=stream_pieces(), cuts=st.lists(st.integers(0, 4000), max_size=30))
 def test_bounded_with_smallest_limit(pieces, cuts):
@@ -315,6 +319,7 @@ def test_bounded_with_smallest_limit(pieces, cuts):
     assert all(len(i.raw) <= MIN_MAX_ITEM for i in out)
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(frames=st.lists(st.sampled_from(ALL_FRAMES), min_size=1, max_size=30),
        cuts=st.lists(st.integers(0, 3000), max_size=30))
@@ -354,6 +359,7 @@ def test_the_framer_holds_no_more_than_the_image_limit():
         assert framer.buffered < 100_000 + 4096
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None)
 @given(sizes=st.lists(st.integers(0, 6000), min_size=1, max_size=4), pieces=stream_pieces(),
        cuts=st.lists(st.integers(0, 30000), max_size=40), limit=st.sampled_from([MIN_MAX_ITEM, 4000, 10**6]))

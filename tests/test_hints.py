@@ -63,6 +63,7 @@ def test_a_write_failure_that_leaves_a_part_names_recover(tmp_path):
     assert command_in(str(failed.value), "whiztap", "recover") == ["whiztap", "recover", part]
 
 
+@pytest.mark.slow
 def test_the_demo_hints_are_shell_commands_and_its_replay_hint_seeds_the_simulator(tmp_path):
     out = tmp_path / f"{NAME}.mcap"
     result = run_cli("demo", "--headless", "--seconds", "1", "-o", out)

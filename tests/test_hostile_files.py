@@ -511,6 +511,7 @@ EXPECTED.update({kind: SALVAGED for kind in bombs()})
 RECOVER_SAYS.update({kind: SKIPPED for kind in bombs()})
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(bombs()))
 def test_bombs_are_refused_in_bounded_memory_and_time(bomb_files, busy_port, tmp_path, kind):
     def run(command: str) -> tuple[int, str, str, int, float]:
@@ -526,6 +527,7 @@ def test_bombs_are_refused_in_bounded_memory_and_time(bomb_files, busy_port, tmp
         "opcode 0" in results["analyze"][2], results["analyze"][2]
 
 
+@pytest.mark.slow
 def test_the_limit_is_settable_and_named_when_it_refuses(tmp_path):
     path = tmp_path / "big-chunk.mcap"
     path.write_bytes(with_reads(*[read_json(data="QUJD" * 4096)] * 300))  # a chunk of about 5 MB
@@ -540,6 +542,7 @@ def test_the_limit_is_settable_and_named_when_it_refuses(tmp_path):
 # -- any damage at all ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_any_damage_is_read_or_refused_in_one_line_and_recover_copies_what_checks_out(tmp_path, data):

@@ -12,6 +12,7 @@ import subprocess
 import sys
 from collections import Counter, deque
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from whiztap.analyzer.protocol import pairing
@@ -97,6 +98,7 @@ print(json.dumps({"inside": inside, "across": across,
 """
 
 
+@pytest.mark.slow
 def test_unanswered_requests_cost_bounded_memory_and_are_each_reported_once():
     """1.2M requests nobody answers within one deadline, and 500k across many:
     every one is reported unanswered exactly once, and the session keeps at most
@@ -152,6 +154,7 @@ def _mismatched(n: int, interleaved: bool) -> tuple[tuple[int, int], int]:
     return verdicts(events), CountingDeque.looked
 
 
+@pytest.mark.slow
 def test_answers_that_match_nothing_cost_linear_work(monkeypatch):
     """Every answer used to scan every waiting request (20,000 such pairs: 15 s)."""
     monkeypatch.setattr(pairing, "deque", CountingDeque)
@@ -266,6 +269,7 @@ ANSWERS = [b"cr1-3--7--0-ss1", b"cr1-2--0--0-ss1", b"cr1-1--40--0-ss1", b"cr1-0-
 step = st.tuples(st.booleans(), st.integers(0, len(REQUESTS) - 1), st.sampled_from([0, 400_000, 1_500_000, 9_000_000]))
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.lists(step, min_size=8, max_size=60), st.booleans(), st.integers(1, 6), st.integers(1, 6),
        st.integers(1_000_000, 8_000_000), st.sampled_from([0, 2, pairing.REBUILD_SLACK]))
@@ -423,6 +427,7 @@ print(done.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss //
 """
 
 
+@pytest.mark.slow
 def test_capture_of_a_syn_flood_stays_within_bounded_memory(tmp_path):
     """100k half-open connections: ``whiztap capture --pcap`` grew by about
     7 KB each (878 MB for 120k) and kept them all; it now follows at most MAX_OPEN."""
@@ -464,6 +469,7 @@ class ConfigThenSink(TcpServer):
             writer.close()
 
 
+@pytest.mark.slow
 async def test_a_recording_of_junk_is_about_the_size_of_the_junk(tmp_path):
     """1 MiB of random bytes from a client through ``whiztap record``: the file
     was 4.7 times the traffic (a /frames and a /violations message, with the
@@ -499,6 +505,7 @@ async def test_a_recording_of_junk_is_about_the_size_of_the_junk(tmp_path):
     assert recorded == json.loads(analyzed.stdout)["rule_counts"]
 
 
+@pytest.mark.slow
 def test_a_flood_of_line_breaks_is_a_message_per_read(tmp_path):
     """Each line break is an item; 100 in a read were 100 /frames and 100
     /violations messages."""
@@ -522,6 +529,7 @@ def test_a_flood_of_line_breaks_is_a_message_per_read(tmp_path):
     assert both_ways(str(path))[(1, "c2s")] == b"rr1-24--0--0-ss1" + b"\n" * 50_000
 
 
+@pytest.mark.slow
 def test_a_client_pipelining_200k_requests_ahead_of_their_answers_breaks_no_rule():
     """A cap of 10,000 waiting requests gave up 190,000 requests of the pipelined
     benchmark (200k Sensor Requests sent before the first answer arrived):

@@ -25,6 +25,8 @@ import textwrap
 import zipfile
 from pathlib import Path
 
+import pytest
+
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("analyzer", "sniffer", "tui")
@@ -128,6 +130,7 @@ def _foreign_packages(tmp: Path) -> Path:
     return foreign
 
 
+@pytest.mark.slow
 def test_the_wheel_installs_under_one_name_and_its_plugin_runs_beside_other_top_level_packages(
         tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PYTEST", "VIRTUAL_ENV"))}

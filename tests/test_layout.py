@@ -25,6 +25,7 @@ import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
 import grimp
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -154,6 +155,7 @@ def _long_functions(path: Path) -> Iterator[str]:
             yield f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({lines} lines)"
 
 
+@pytest.mark.slow
 def test_no_function_is_over_60_lines_unless_it_is_a_documented_hot_loop() -> None:
     long = [found for path in _modules() for found in _long_functions(path)]
     assert not long, (f"functions over {MAX_FUNCTION_LINES} lines (split them, or say \"hot loop\" and why "
@@ -198,6 +200,7 @@ def _documented_names() -> set[str]:
             for name in found.split(",")}
 
 
+@pytest.mark.slow
 def test_no_library_module_defines_a_helper_only_tests_use() -> None:
     """A top-level function or class of the library that the tests use but no
     library module does (nor pyproject.toml, nor the docs' examples) belongs in

@@ -49,6 +49,7 @@ _FIELD_TEXT = st.text(st.characters(min_codepoint=0x20, max_codepoint=0xFF, blac
                       max_size=60)
 
 
+@pytest.mark.slow
 @given(origin=_FIELD_TEXT.filter(lambda o: not origin_allowed(o.strip(" \t") or None, NONE)),
        name=st.sampled_from(["Origin", "origin", "ORIGIN", "oRiGiN"]),
        before=st.lists(st.tuples(st.from_regex(r"X-[A-Za-z0-9-]{1,12}", fullmatch=True), _FIELD_TEXT), max_size=4),

@@ -241,6 +241,7 @@ def _hammer(control: str, stop: threading.Event, statuses: list[int]) -> None:
             statuses.append(post_status(f"http://{control}{path}", json.dumps(body).encode()))
 
 
+@pytest.mark.slow
 async def test_whiztap_record_shows_no_traceback_when_frames_and_commands_race_the_close(tmp_path):
     """Connections whose server answers and closes at once while their answer
     is delayed past the close, and while injections and releases hammer the

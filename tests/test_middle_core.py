@@ -273,6 +273,7 @@ def test_a_replace_that_grows_each_frame_stops_reading_its_sender_not_the_memory
     assert not mid.core.may_read(S2C)  # the proxy stops reading the server
 
 
+@pytest.mark.slow
 def test_an_injection_past_the_room_is_refused_and_the_proxy_says_so():
     mid = FakeClockMiddle(ready=False)
     frame = "cr1-12--1--0-ss1"

@@ -270,6 +270,7 @@ def _middle_traffic(draw) -> list[TrafficEvent]:  # noqa: C901 - one drawing, st
     return events
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(events=_middle_traffic())
 def test_the_report_is_the_one_the_views_always_fed_give(events):
@@ -317,6 +318,7 @@ def _record(path: Path, judges: tuple[Judge, ...]) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_recording_made_in_the_middle_reads_as_it_did_with_the_views_always_fed(tmp_path, monkeypatch):
     limits = Limits(answer_timeout_ns=200 * MS)
     judges = {lazy: Judge(limits=limits, middle=True) for lazy in (True, False)}

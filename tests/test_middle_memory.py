@@ -38,6 +38,8 @@ from tests.cli_support import Ran, run_cli
 from tests.record_support import CONTROL_TOKEN, LOCAL, RecordProcess, post_status, running_record
 from tests.test_flow_control import _ThreadedServer, rss_kib, watch_memory
 
+pytestmark = pytest.mark.slow  # memory bounds of a recorder process under load: not in make check
+
 RSS_BOUND_KIB = 150 << 10  # the bound for the proxy process (it starts at about 30 MB)
 SAMPLE_S = 0.05
 WATCH_S = 2.5  # the figures: 246 MB to 1.8 GB in 2.5 s

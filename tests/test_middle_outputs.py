@@ -298,6 +298,7 @@ RAW_BEHIND_A_DELAY = ("eager, then a pause", [("c", b"\r\nKx9hunter2Tq4"), ("t",
                       ["delay:2s dir:c2s nth:1"], None, ["release"])
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(session=sessions())
@@ -364,12 +365,14 @@ def every_case(tmp_path_factory, logging_script):  # noqa: ANN001, ANN201
     return drive, script, path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("output", sorted(FILE_OUTPUTS))
 def test_no_reader_of_a_recording_made_in_the_middle_shows_the_password(every_case, output):
     _, _, path = every_case
     assert_no_leak(output, FILE_OUTPUTS[output](path))
 
 
+@pytest.mark.slow
 def test_nothing_else_the_middle_said_shows_the_password(every_case):
     drive, script, _ = every_case
     for where, text in in_memory_outputs(drive, script):
@@ -445,6 +448,7 @@ async def _get(url: str) -> str:
     return await asyncio.to_thread(lambda: urllib.request.urlopen(request, timeout=10).read().decode())  # noqa: S310
 
 
+@pytest.mark.slow
 async def test_whiztap_record_in_the_middle_shows_the_password_nowhere(tmp_path, logging_script):
     """An eager client's password held by an interception, listed, released,
     duplicated and delayed by faults, through ``whiztap record --control
@@ -503,6 +507,7 @@ async def test_whiztap_record_in_the_middle_shows_the_password_nowhere(tmp_path,
         assert_no_leak(name, read(path))
 
 
+@pytest.mark.slow
 async def test_the_live_tui_shows_a_held_password_masked_in_its_row_and_its_editor(tmp_path):
     """The screen itself (a real app, through Pilot): the held row, the
     detail pane and the editor opened on it show the password masked."""

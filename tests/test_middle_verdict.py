@@ -42,6 +42,7 @@ def _analyze(path: Path, *args: str, fmt: str = "json") -> tuple[int, str]:
 # -- one verdict ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_judge_fed_live_says_what_analyze_says_of_the_file(tmp_path):
     """A dropped answer (the client's experience, an error) and an injected
     one (an effect, no side's violation): live, the injection is an effect
@@ -120,6 +121,7 @@ def _rows(report: dict, key: str) -> dict[str, dict]:
     return {row["request"]: row for row in report[key]}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("direction", ["s2c", "c2s"])
 def test_the_json_report_has_the_servers_latency_and_the_clients(slowed, direction):
     code, output = _analyze(slowed[direction])
@@ -134,6 +136,7 @@ def test_the_json_report_has_the_servers_latency_and_the_clients(slowed, directi
         assert client[title]["p50_ns"] >= DELAY_MS * MS  # the client waited for the proxy's delay too
 
 
+@pytest.mark.slow
 def test_every_format_names_both_latencies(slowed):
     labels = ("the server's: from the request as it received it to the answer it sent",
               "the client's: from the request as it sent it to the answer as it received it")
@@ -195,6 +198,7 @@ def test_cat_shows_both_latencies_on_each_answer(slowed, direction):
     assert all(r["server_latency_ns"] < 100 * MS <= DELAY_MS * MS <= r["client_latency_ns"] for r in answered)
 
 
+@pytest.mark.slow
 def test_cat_says_the_client_had_no_answer_where_the_proxy_dropped_it(tmp_path):
     path = _record(tmp_path / "dropped.mcap", ("drop dir:s2c kind:response ch:12 every:2",),
                    lambda client, rec: _sensors(client))

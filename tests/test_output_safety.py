@@ -162,6 +162,7 @@ async def test_replay_keeps_an_existing_output_unless_forced(tmp_path):
     assert read_all(str(output))
 
 
+@pytest.mark.slow
 def test_demo_and_the_live_tui_keep_an_existing_recording_unless_forced(tmp_path):
     output = tmp_path / "demo.mcap"
     output.write_bytes(b"an earlier demo")
@@ -201,6 +202,7 @@ def test_standard_output_and_devices_are_never_refused(tmp_path):
         assert result.returncode == 0 and result.stderr == "", (args, result.stderr)
 
 
+@pytest.mark.slow
 async def test_the_tui_replay_never_saves_over_the_recording_or_an_existing_file(tmp_path):
     recording = tmp_path / "in.mcap"
     shutil.copy(SAMPLE, recording)
@@ -349,6 +351,7 @@ def test_replay_output_quotes_recorded_and_replayed_bytes_escaped(hostile):
     shows_no_raw_control(out + err)
 
 
+@pytest.mark.slow
 async def test_record_echo_lines_are_escaped(tmp_path):
     async with EchoServer() as server:
         rec = await RecordProcess.start(server.port, tmp_path / "r.mcap", "--analyze")
@@ -436,6 +439,7 @@ def test_printable_shows_every_character_and_is_stable(text):
         assert shown_text == text
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(ANY_TEXT, ANY_TEXT)
 def test_a_markdown_cell_reads_as_the_value_and_never_as_html(value, frame):

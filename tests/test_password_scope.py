@@ -70,6 +70,7 @@ async def count_frames(reader: asyncio.StreamReader, wanted: int) -> bytes:
     return bytes(got)
 
 
+@pytest.mark.slow
 async def test_a_vpn_client_pipelining_2000_requests_at_connect_is_recorded_as_sent(tmp_path):
     path = tmp_path / "pipelined.mcap"
     sent = FETCH + REQUEST * 1999
@@ -87,6 +88,7 @@ async def test_a_vpn_client_pipelining_2000_requests_at_connect_is_recorded_as_s
     assert status == 0 and report["passed"], report["rule_counts"]
 
 
+@pytest.mark.slow
 async def test_a_vpn_server_whose_first_answer_is_late_is_recorded_as_sent(tmp_path):
     """2.5 s: longer than anything is held undecided.  The request stays a
     request and its answer answers it."""
@@ -104,6 +106,7 @@ async def test_a_vpn_server_whose_first_answer_is_late_is_recorded_as_sent(tmp_p
     assert "PW-PAIR-UNSOLICITED" not in report["rule_counts"]
 
 
+@pytest.mark.slow
 async def test_commands_to_a_server_that_never_speaks_are_every_one_recorded(tmp_path):
     """A client that only drives outputs: Normal Sends, which get no answer,
     blasted at a server that says nothing at all."""
@@ -121,6 +124,7 @@ async def test_commands_to_a_server_that_never_speaks_are_every_one_recorded(tmp
     assert m and int(m.group(1).replace(",", "")) == ONE_WAY, stdout  # every one a frame of its own in /frames
 
 
+@pytest.mark.slow
 async def test_binary_echoed_back_is_never_masked(tmp_path):
     """64 KiB of binary in one write at connect, echoed: 20 connections, none masked."""
     path = tmp_path / "binary.mcap"
@@ -138,6 +142,7 @@ async def test_binary_echoed_back_is_never_masked(tmp_path):
         assert recorded[(n, "c2s")] == data, f"#{n} was masked"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("after", [b"\r\n", b""], ids=["line break", "none"])
 async def test_a_command_before_readytogo_is_the_clients_fault_and_is_answered(tmp_path, after):
     """A Winsock client sends its password and, without waiting, a Fetch

@@ -131,6 +131,7 @@ def test_gaps_are_jumps_in_the_sequence_numbers_and_come_back_as_gaps(tmp_path):
         assert lost.stdout.split() == ["27", "37"]  # "previous segment not captured": c2s data, s2c FIN
 
 
+@pytest.mark.slow
 def test_a_read_longer_than_a_packet_is_several_segments(tmp_path):
     big = b"sr1-25--" + bytes(range(1, 21)) * 10_000  # 200,008 bytes in one read
     events = _session()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -29,6 +30,7 @@ def test_the_login_words_are_the_specs():
     assert HANDSHAKE_WORDS == WORDS == tuple(HANDSHAKE_SERVER)
 
 
+@pytest.mark.slow
 def test_the_login_words_are_spelled_only_in_handshake_py():
     """No library module but analyzer/protocol/handshake.py spells a login
     word in bytes, or as a string that is just the word: the others import
@@ -76,6 +78,7 @@ first_bytes = st.one_of(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=400, deadline=None)
 @given(first_bytes, st.binary(max_size=20))
 def test_more_bytes_never_change_what_the_first_ones_told(first, more):

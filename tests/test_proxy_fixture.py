@@ -153,6 +153,7 @@ def run(pytester: pytest.Pytester, *args: str) -> pytest.RunResult:
                               *args)
 
 
+@pytest.mark.slow
 def test_a_client_tested_through_the_proxy_in_the_middle(pytester: pytest.Pytester) -> None:
     pytester.makeini(INI)
     pytester.makeconftest(CONFTEST)

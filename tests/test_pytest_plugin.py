@@ -92,6 +92,7 @@ def run(pytester: pytest.Pytester, *args: str) -> pytest.RunResult:
                               *args)
 
 
+@pytest.mark.slow
 def test_record_once_then_serve_from_the_recording(project, monkeypatch):
     recording = project.path / "recordings" / "sensors.mcap"
     default = project.path / "recordings" / "test_client" / "test_default_name.mcap"
@@ -121,6 +122,7 @@ def test_record_once_then_serve_from_the_recording(project, monkeypatch):
     run(project, "-k", "test_sensors").assert_outcomes(passed=1)  # and it has the new request
 
 
+@pytest.mark.slow
 def test_replay_fixture_passes_on_the_same_server_and_fails_with_the_diff(project, monkeypatch):
     run(project, "--whiztap-record=once", "-k", "test_sensors").assert_outcomes(passed=1)
     run(project, "-k", "replay").assert_outcomes(passed=1)

@@ -180,6 +180,7 @@ def _read_everything(path: Path) -> dict:
     return facts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["text", "markdown", "junit", "html"])
 def test_every_report_format_renders_hostile_traffic(tmp_path, fmt):
     """Every token the strategies use, in both directions of two connections, one
@@ -199,6 +200,7 @@ settings_ = settings(max_examples=40, deadline=None, suppress_health_check=[Heal
                                                                            HealthCheck.function_scoped_fixture])
 
 
+@pytest.mark.slow
 @settings_
 @given(ops=traffic(any_order=False), keep_secrets=st.booleans())
 def test_recorded_traffic_reads_the_same_everywhere(tmp_path_factory, ops, keep_secrets):
@@ -207,6 +209,7 @@ def test_recorded_traffic_reads_the_same_everywhere(tmp_path_factory, ops, keep_
     _read_everything(path)
 
 
+@pytest.mark.slow
 @settings_
 @given(ops=traffic(any_order=False), keep_secrets=st.booleans(), split_size=st.sampled_from([1, 600, 3000]))
 def test_a_recording_split_anywhere_reads_as_the_whole(tmp_path_factory, ops, keep_secrets, split_size):
@@ -220,6 +223,7 @@ def test_a_recording_split_anywhere_reads_as_the_whole(tmp_path_factory, ops, ke
     assert len(split["connections"]) == len(one["connections"])
 
 
+@pytest.mark.slow
 @settings_
 @given(ops=traffic(any_order=True))
 def test_a_file_in_any_order_reads_the_same_everywhere(tmp_path_factory, ops):

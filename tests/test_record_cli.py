@@ -11,6 +11,7 @@ import signal
 import socket
 from pathlib import Path
 
+import pytest
 from mcap.stream_reader import StreamReader
 
 from whiztap.analyzer.recording.format import TOPIC_READS
@@ -38,6 +39,7 @@ async def _talk(port: int, payload: bytes) -> bytes:
     return got
 
 
+@pytest.mark.slow
 async def test_ctrl_c_finishes_the_file_and_prints_a_summary(tmp_path):
     out = tmp_path / "session.mcap"
     async with EchoServer() as server:
@@ -56,6 +58,7 @@ async def test_ctrl_c_finishes_the_file_and_prints_a_summary(tmp_path):
     assert both_ways(str(out)) == {(1, "c2s"): payload, (1, "s2c"): payload}
 
 
+@pytest.mark.slow
 async def test_sigterm_closes_open_connections_and_finishes_the_file(tmp_path):
     out = tmp_path / "term.mcap"
     async with EchoServer() as server:
@@ -73,6 +76,7 @@ async def test_sigterm_closes_open_connections_and_finishes_the_file(tmp_path):
     assert events(by_topic, 0) == ["recording_started", "recording_stopped"]
 
 
+@pytest.mark.slow
 async def test_analyze_prints_violations_as_they_happen(tmp_path):
     out = tmp_path / "analyze.mcap"
     async with EchoServer() as server:
@@ -103,6 +107,7 @@ def test_user_errors_are_one_line_and_exit_2(tmp_path):
     assert code == 2 and err == "whiztap: --upstream must be HOST:PORT, got 'nowhere'\n"
 
 
+@pytest.mark.slow
 async def test_an_existing_recording_is_not_overwritten_without_force(tmp_path):
     out = tmp_path / "kept.mcap"
     async with EchoServer() as server:
@@ -130,6 +135,7 @@ async def test_an_existing_recording_is_not_overwritten_without_force(tmp_path):
     assert both_ways(str(out))[(1, "c2s")] == b"rr1-2--0--0-ss1"
 
 
+@pytest.mark.slow
 async def test_split_size_rotates_without_losing_or_repeating_a_byte(tmp_path):
     out = tmp_path / "split.mcap"
     async with EchoServer() as server:
@@ -160,6 +166,7 @@ async def test_split_size_rotates_without_losing_or_repeating_a_byte(tmp_path):
     assert f"finished {parts[0]}" in stdout
 
 
+@pytest.mark.slow
 async def test_a_full_disk_stops_recording_cleanly_and_keeps_what_was_written(tmp_path):
     out = tmp_path / "full.mcap"
     limit = 1_000_000

@@ -4,6 +4,8 @@ real command, the simulator, a client; and the one-line errors."""
 from __future__ import annotations
 
 
+import pytest
+
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.simulator import Simulator
 from tests.cli_support import Ran, run_cli
@@ -18,6 +20,7 @@ spec = 'replace:"cr1-13--999--0-ss1" dir:s2c kind:response ch:13 nth:1'
 '''
 
 
+@pytest.mark.slow
 async def test_a_faults_file_and_a_fault_act_together_each_named_in_the_recording(tmp_path):
     faults = tmp_path / "faults.toml"
     faults.write_text(FAULTS_TOML)

@@ -87,6 +87,7 @@ def _exchange(port: int, tag: bytes, c2s_pieces: list[bytes]) -> bytes:
         return bytes(got)
 
 
+@pytest.mark.slow
 def test_random_payloads_and_segmentations_arrive_and_are_recorded_exactly(tmp_path):
     bg = _Background(str(tmp_path / "exact.mcap"))
     expected: dict[bytes, tuple[bytes, bytes]] = {}
@@ -187,6 +188,7 @@ async def test_upstream_down_resets_the_client_and_is_recorded(tmp_path):
                for line in rec.lines), rec.lines
 
 
+@pytest.mark.slow
 async def test_record_says_at_start_that_the_upstream_refuses(tmp_path):
     """whiztap record tries the upstream once as it starts: a wrong
     --upstream is said at once, and the recording runs anyway."""
@@ -204,6 +206,7 @@ async def test_record_says_at_start_that_the_upstream_refuses(tmp_path):
     assert "reset after" in out and "recorded 1 connection" in out, out
 
 
+@pytest.mark.slow
 async def test_record_says_nothing_of_an_upstream_that_listens(tmp_path):
     async with EchoServer() as server, running_record(server.port, tmp_path / "r.mcap") as rec:
         await asyncio.wait_for(_until(lambda: len(server.received) == 1), WAIT)  # the start's try, closed at once
@@ -281,6 +284,7 @@ async def test_a_hundred_concurrent_clients(tmp_path):
         assert recorded[(conn, "c2s")] == recorded[(conn, "s2c")]
 
 
+@pytest.mark.slow
 async def test_a_client_that_stops_reading_does_not_grow_the_proxy(tmp_path):
     path = tmp_path / "backpressure.mcap"
     # random digits: more than every kernel buffer on the way can hold, and cheap

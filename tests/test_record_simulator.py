@@ -57,6 +57,7 @@ async def test_a_winsock_session_through_the_proxy_is_recorded_whole(tmp_path):
         events(by_topic, 1)[-1] == "closed"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("faults", [
     FaultConfig(split=True),
     FaultConfig(garbage_rate=0.5, split=True),

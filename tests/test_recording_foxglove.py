@@ -13,6 +13,7 @@ import shutil
 import threading
 from pathlib import Path
 
+import pytest
 import jsonschema
 import whiztap.analyzer.recording.scan as scan_module
 from mcap.reader import make_reader
@@ -186,6 +187,7 @@ def test_a_channel_past_the_spec_is_plotted_on_the_other_topic(tmp_path):
     assert set(_channels(path)) == set(TOPICS) | {"/sensors/16", "/sensors/other"}  # one topic for both past 23
 
 
+@pytest.mark.slow
 def test_each_part_of_a_split_recording_defines_the_channels_it_uses_with_the_same_ids(tmp_path):
     """Parts begin between reads and, for a read of thousands of frames, in the
     middle of its messages: the channels used after the cut are defined again
@@ -288,6 +290,7 @@ def _leaves(node: object) -> list[str]:
     return _leaves(node["first"]) + _leaves(node["second"])
 
 
+@pytest.mark.slow
 def test_the_sample_layout_shows_what_a_demo_recording_holds(tmp_path):
     layout = json.loads((ROOT / "samples" / "foxglove-layout.json").read_text())
     panels = layout["configById"]

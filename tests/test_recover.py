@@ -35,6 +35,7 @@ def _complete(result: RecoverResult) -> bool:
     return result.cut_at is None and not result.skipped and not result.orphans
 
 
+@pytest.mark.slow
 async def test_sigkill_mid_session_then_recover_gets_back_everything_flushed(tmp_path):
     out = tmp_path / "crash.mcap"
     part = str(out) + ".part"
@@ -244,6 +245,7 @@ def test_a_failed_recovery_leaves_no_temporary_file(tmp_path):
     assert list(tmp_path.iterdir()) == [junk]
 
 
+@pytest.mark.slow
 def test_200_mb_of_junk_inside_a_recording_is_crossed_in_bounded_memory(tmp_path):
     original = write_recording(tmp_path / "r.mcap")
     data = original.read_bytes()

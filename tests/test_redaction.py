@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import random
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -251,6 +252,7 @@ def _masked_at(shown_bytes: bytes, client: bytes) -> set[int]:
     return {i for i, (a, b) in enumerate(zip(shown_bytes, client)) if a != b}
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(drawn=connections(), cuts=st.sets(st.integers(0, 300), max_size=40))
 def test_the_rule_holds_for_any_arrival_order_and_any_reads(drawn, cuts):
@@ -271,6 +273,7 @@ def test_the_rule_holds_for_any_arrival_order_and_any_reads(drawn, cuts):
         assert _masked_at(want, client) <= _masked_at(got, client) <= set(range(start, line_end))
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(drawn=connections(), cuts=st.lists(st.integers(0, 300), max_size=40))
 def test_a_mask_fed_in_any_reads_decides_at_the_same_bytes(drawn, cuts):

@@ -62,6 +62,7 @@ async def replay(exchanges, opts: ReplayOptions, events: list | None = None):  #
 # -- against the simulator ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_same_seed_matches_exactly_and_the_output_is_a_recording_of_the_same_bytes(exchanges, recorded,
                                                                                         tmp_path):
     out = tmp_path / "replayed.mcap"
@@ -101,6 +102,7 @@ async def test_another_seed_matches_in_structure_but_not_exactly(exchanges):
         assert d.diff.startswith(f"MISMATCH c1 at {d.recorded_s:.6f} s after rr1-")
 
 
+@pytest.mark.slow
 async def test_lockstep_reports_each_dropped_answer_as_missing(exchanges):
     faults = FaultConfig(latency_ms=20, drop_rate=0.5)
     async with simulator(seed=1, faults=faults) as sim:
@@ -244,6 +246,7 @@ async def test_pause_step_resume(exchanges):
     assert result.ok and not result.stopped and result.writes == len(writes())
 
 
+@pytest.mark.slow
 async def test_stop_ends_the_replay_at_once(exchanges):
     sent: list = []
     async with simulator(seed=1) as sim:
@@ -292,6 +295,7 @@ def test_plan_selects_by_window_kind_and_connection(exchanges):
 # -- the command --------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_command_exit_status_0_then_1_with_a_readable_diff(recorded, tmp_path):
     out = tmp_path / "cli.mcap"
     async with simulator(seed=1) as same, simulator(seed=2) as other:
@@ -403,6 +407,7 @@ async def _until_answered(sim) -> None:  # noqa: ANN001 - a Simulator
         await asyncio.sleep(0.01)
 
 
+@pytest.mark.slow
 async def test_ctrl_c_stops_the_replay_with_what_was_found_so_far_and_one_status(recorded):
     code, out, err = await _interrupted(recorded, "-v")
     assert code == 2 and err == b"whiztap: interrupted\n"
@@ -410,6 +415,7 @@ async def test_ctrl_c_stops_the_replay_with_what_was_found_so_far_and_one_status
     assert b"result:" not in out  # 'interrupted' is the one status, not a verdict on half a replay too
 
 
+@pytest.mark.slow
 async def test_ctrl_c_in_json_says_the_status_the_command_exits_with(recorded):
     code, out, err = await _interrupted(recorded, "--format", "json")
     assert code == 2 and err == b"whiztap: interrupted\n"
@@ -417,6 +423,7 @@ async def test_ctrl_c_in_json_says_the_status_the_command_exits_with(recorded):
     assert report["stopped"] is True and report["exit_status"] == 2 and report["ok"] is False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sent", [b"", b"repl"])
 async def test_a_client_that_never_finished_its_password_is_replayed_without_one(tmp_path, sent):
     """A port probe or health check (reads sendchkpass, leaves), or a client

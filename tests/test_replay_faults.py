@@ -102,6 +102,7 @@ def missing(result: dict) -> list[str]:
 # -- the command -------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_the_recordings_faults_drop_the_same_answers_again_and_that_reproduces_it(faulted):
     dropped = [m["before"] for m in interventions(faulted) if m["action"] == "drop"]
     assert len(dropped) == ROUNDS // 2 and all(d.startswith("cr1-12--") for d in dropped)
@@ -117,6 +118,7 @@ async def test_the_recordings_faults_drop_the_same_answers_again_and_that_reprod
     assert server["ok"] and server["answers"]["match"] == 2 * ROUNDS and server["differences"] == []
 
 
+@pytest.mark.slow
 async def test_a_replay_under_faults_that_does_not_reproduce_fails(faulted):
     """One more answer dropped than the recorded client missed: a difference."""
     code, result, _ = await replay_command(faulted, "--faults-from-recording", "--fault", LATE, *LOCKSTEP)
@@ -156,6 +158,7 @@ class _OddTarget:
         writer.close()
 
 
+@pytest.mark.slow
 async def test_a_server_that_differs_only_where_the_faults_hide_it_is_reported_apart(faulted):
     """The target sends a wrong value exactly in the answers the recording's
     fault drops: the client's experience is the recorded one (exit 0), and the
@@ -177,6 +180,7 @@ async def test_a_server_that_differs_only_where_the_faults_hide_it_is_reported_a
     assert text.count("  MISMATCH c1 at ") == ROUNDS // 2
 
 
+@pytest.mark.slow
 async def test_by_default_no_fault_is_applied_and_every_answer_comes(faulted):
     code, result, stderr = await replay_command(faulted, *LOCKSTEP)
     assert (code, stderr) == (0, "")
@@ -185,6 +189,7 @@ async def test_by_default_no_fault_is_applied_and_every_answer_comes(faulted):
     assert code == 0 and "proxy in the middle" not in text
 
 
+@pytest.mark.slow
 async def test_typed_faults_apply_alone_or_after_the_recordings(faulted):
     code, result, stderr = await replay_command(faulted, "--fault", LATE, "--seed", "3", *LOCKSTEP)
     assert (code, stderr) == (1, "")
@@ -196,6 +201,7 @@ async def test_typed_faults_apply_alone_or_after_the_recordings(faulted):
     assert code == 1 and [f["spec"] for f in result["faults"]] == [DROP, LATE]
 
 
+@pytest.mark.slow
 async def test_text_output_names_the_faults(faulted):
     code, text, _ = await replay_command(faulted, "--faults-from-recording", "--pace", "lockstep",
                                          "--timeout", WAIT_S)
@@ -205,6 +211,7 @@ async def test_text_output_names_the_faults(faulted):
     assert "against the recorded server's: 8 match, 0 mismatch, 0 missing" in text
 
 
+@pytest.mark.slow
 async def test_a_recording_without_faults_is_replayed_with_a_note(plain):
     code, result, stderr = await replay_command(plain, "--faults-from-recording", *LOCKSTEP)
     assert code == 0 and result["ok"] and result["faults"] == []
@@ -223,6 +230,7 @@ def test_a_bad_spec_is_one_line_naming_the_word(plain, args, word):
     assert word in stderr and "Traceback" not in stderr
 
 
+@pytest.mark.slow
 async def test_seed_without_faults_and_an_unreachable_target_are_one_line(faulted):
     code, _, stderr = await run_process_async("replay", str(faulted), "--target", f"{LOCAL}:1", "--seed", "3")
     assert (code, stderr) == (2, "whiztap: --seed seeds faults: give --fault or --faults-from-recording\n")
@@ -232,6 +240,7 @@ async def test_seed_without_faults_and_an_unreachable_target_are_one_line(faulte
     assert code == 2 and stderr.startswith(f"whiztap: cannot connect to {LOCAL}:{port}: ") and stderr.count("\n") == 1
 
 
+@pytest.mark.slow
 async def test_the_output_is_recorded_through_the_faults_and_replays_under_them(faulted, tmp_path):
     out = tmp_path / "out.mcap"
     code, _, stderr = await replay_command(faulted, "--faults-from-recording", "-o", str(out), *LOCKSTEP)
@@ -249,6 +258,7 @@ async def test_the_output_is_recorded_through_the_faults_and_replays_under_them(
 # -- faults added while recording, and what is not a fault ------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_faults_added_at_run_time_come_from_the_interventions_and_holds_do_not(tmp_path):
     path = tmp_path / "late.mcap"
 

@@ -22,6 +22,7 @@ import os
 import threading
 from pathlib import Path
 
+import pytest
 import whiztap.sniffer.record.recorder as recorder_module
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
@@ -130,6 +131,7 @@ async def record_every_client(path: Path) -> str:
     return stdout + stderr
 
 
+@pytest.mark.slow
 async def test_an_eager_or_odd_client_never_leaves_its_password_anywhere(tmp_path):
     path = tmp_path / "eager.mcap"
     printed = await record_every_client(path)
@@ -382,6 +384,7 @@ SERVO_ANSWER = (["vpn"], [
     ("data", 1, "s2c", CONFIG + b"cr1-1--400--0-ss1"), ("closed", 1, "", b"")])
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(drawn=sessions())
@@ -454,6 +457,7 @@ def _masked(client: bytes, server: bytes, order: list[bool], cuts: set[int]) -> 
     return bytes(out)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(drawn=arrivals(), cuts=st.sets(st.integers(0, 200), max_size=30))
 def test_what_is_masked_does_not_depend_on_how_reads_were_cut(drawn, cuts):

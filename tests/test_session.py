@@ -202,6 +202,7 @@ exchange = st.one_of(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.lists(exchange, max_size=60), st.integers(1, 4), st.booleans())
 def test_fast_path_matches_the_general_path(exchanges, batch, winsock):

@@ -317,6 +317,7 @@ async def test_a_flood_under_latency_is_answered_whole_and_in_order():
 # -- load ---------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_200_clients_with_100_requests_each():
     async with Simulator(clock=frozen) as sim:
         robot = sim.robot

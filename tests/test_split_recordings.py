@@ -7,6 +7,8 @@ import asyncio
 import json
 from pathlib import Path
 
+import pytest
+
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.recording.sets import find_recordings
 from whiztap.analyzer.traffic import Closed, Data, Opened
@@ -116,6 +118,7 @@ def _whole_streams(files: list[str]) -> dict[tuple[int, str], bytes]:
     return out
 
 
+@pytest.mark.slow
 async def test_a_part_name_taken_while_recording_is_skipped_and_the_recording_goes_on(tmp_path):
     """Someone else's file at the second part's name, a link at the third's
     .part: each is skipped with a warning, neither is touched, the client's

@@ -84,6 +84,7 @@ async def test_a_raw_socket_client_gets_the_recorded_stream(recorded):
     assert got == streams[(1, "s2c")]
 
 
+@pytest.mark.slow
 async def test_whiztap_client_gets_what_the_simulator_gave_it(tmp_path):
     """The simulator's own test client, before (simulator) and after (stub)."""
     script = b"config\nsensor 12\nsensor 13\nservo 2 1500\nservo 2\nswitch 7 on\nsensor 12\n"

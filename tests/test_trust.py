@@ -79,6 +79,7 @@ def foreign_mcap(path) -> str:
     return str(path)
 
 
+@pytest.mark.slow
 async def test_a_report_on_nothing_does_not_pass(tmp_path):
     from tests.record_support import closed_port, recording
 
@@ -145,6 +146,7 @@ def test_cat_takes_the_filter_bars_words():
     assert bad.returncode == 2 and bad.stderr.startswith("whiztap: --filter: kind:")
 
 
+@pytest.mark.slow
 async def test_cat_follow_tails_a_recording_being_written(tmp_path):
     import asyncio
 
@@ -183,6 +185,7 @@ async def test_info_and_cat_say_a_recording_is_being_written_not_a_crash_leftove
     assert "cut short" not in cat.stderr
 
 
+@pytest.mark.slow
 async def test_a_camera_image_of_several_megabytes_is_one_frame_end_to_end(tmp_path):
     from tests.streams import big_jpeg
 
@@ -221,6 +224,7 @@ def test_the_progress_bar_moves_with_several_processes(tmp_path, monkeypatch):
     assert done == total
 
 
+@pytest.mark.slow
 def test_columns_is_honoured_on_a_terminal():
     import os
     import pty

@@ -2,6 +2,7 @@
 
 import contextlib
 
+import pytest
 from textual import events
 
 from whiztap.analyzer.protocol.framing import ItemKind
@@ -36,6 +37,7 @@ async def test_a_recording_opens_on_its_first_frame_with_its_connections():
         assert f"{store.count:,} frames" in status
 
 
+@pytest.mark.slow
 async def test_vim_keys_move_the_cursor_and_the_detail_follows():
     async with loaded_app("vpn.mcap") as (app, pilot):
         last = app.frames.rows - 1
@@ -57,6 +59,7 @@ async def test_vim_keys_move_the_cursor_and_the_detail_follows():
         assert app.detail.frame == 0
 
 
+@pytest.mark.slow
 async def test_n_and_N_walk_the_violations_in_order():
     async with loaded_app("violations.mcap") as (app, pilot):
         store = app.model.store
@@ -73,6 +76,7 @@ async def test_n_and_N_walk_the_violations_in_order():
         assert app.frames.cursor == app.frames.rows - 1
 
 
+@pytest.mark.slow
 async def test_p_jumps_between_a_request_and_its_response():
     async with loaded_app("clean-winsock.mcap") as (app, pilot):
         store = app.model.store
@@ -87,6 +91,7 @@ async def test_p_jumps_between_a_request_and_its_response():
         assert app.frames.frame == request
 
 
+@pytest.mark.slow
 async def test_the_filter_bar_narrows_the_list_and_an_empty_filter_restores_it():
     async with loaded_app("vpn.mcap") as (app, pilot):
         total = app.frames.rows
@@ -104,6 +109,7 @@ async def test_the_filter_bar_narrows_the_list_and_an_empty_filter_restores_it()
         assert app.frames.view.all
 
 
+@pytest.mark.slow
 async def test_free_text_and_violations_only_in_the_filter():
     async with loaded_app("violations.mcap") as (app, pilot):
         await pilot.press("slash", *"violations junk", "enter")
@@ -114,6 +120,7 @@ async def test_free_text_and_violations_only_in_the_filter():
         assert all("junk" in store.observation(n).item.raw.decode("latin-1") for n in shown)
 
 
+@pytest.mark.slow
 async def test_a_bad_filter_is_refused_on_the_bar_and_the_filter_in_force_stays():
     async with loaded_app("vpn.mcap") as (app, pilot):
         await pilot.press("slash", *"kind:response", "enter")
@@ -131,6 +138,7 @@ async def test_a_bad_filter_is_refused_on_the_bar_and_the_filter_in_force_stays(
         assert app.frames.has_focus and bar.value == "kind:response" and not bar.has_class("-invalid")
 
 
+@pytest.mark.slow
 async def test_choosing_a_connection_shows_only_its_frames():
     async with loaded_app("violations.mcap") as (app, pilot):
         await settled(pilot)
@@ -171,6 +179,7 @@ async def test_help_opens_over_the_list_and_closes():
         assert not isinstance(app.screen, HelpScreen)
 
 
+@pytest.mark.slow
 async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
     async with loaded_app("vpn.mcap") as (app, pilot):
         await pilot.press("s")
@@ -187,6 +196,7 @@ async def test_the_stats_pane_shows_rates_latencies_and_a_plot_per_channel():
         assert app.tabs.active == "detail"
 
 
+@pytest.mark.slow
 async def test_s_pressed_twice_at_once_draws_the_plots():
     """The second s came while the first one's plots were mounted but not yet
     composed: updating one looked for its sparkline and found nothing."""

@@ -81,6 +81,7 @@ def test_what_does_not_read_is_one_line(text, words):
 # -- to the first violation --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_rule_id_jumps_to_its_first_frame_whatever_the_cursor():
     async with loaded_app(SAMPLES / "violations.mcap") as (app, pilot):
         store = app.model.store
@@ -97,6 +98,7 @@ async def test_a_rule_id_jumps_to_its_first_frame_whatever_the_cursor():
         assert app.detail.frame == wanted
 
 
+@pytest.mark.slow
 async def test_a_severity_and_a_filter_are_honoured():
     async with loaded_app(SAMPLES / "violations.mcap") as (app, pilot):
         store = app.model.store
@@ -111,6 +113,7 @@ async def test_a_severity_and_a_filter_are_honoured():
         assert app.frames.frame == next(n for n in warnings if store.direction(n) is Direction.S2C)
 
 
+@pytest.mark.slow
 async def test_an_unknown_rule_is_said_in_the_prompt_which_stays():
     async with loaded_app(SAMPLES / "violations.mcap") as (app, pilot):
         await pilot.press("j")
@@ -130,6 +133,7 @@ async def test_an_unknown_rule_is_said_in_the_prompt_which_stays():
         assert app.screen is not prompt
 
 
+@pytest.mark.slow
 async def test_the_selected_frames_rule_is_offered():
     async with loaded_app(SAMPLES / "violations.mcap") as (app, pilot):
         store = app.model.store
@@ -180,6 +184,7 @@ def connection(app: WhiztapApp, conn: int) -> list[int]:
     return [n for n in range(store.count) if store.conn[n] == conn]
 
 
+@pytest.mark.slow
 async def test_two_connections_part_at_a_known_frame_shown_side_by_side(tmp_path):
     path = await sessions(tmp_path / "two.mcap", [500, 501, 502, 503, 504], [500, 501, 777, 503, 504])
     async with loaded_app(path) as (app, pilot):
@@ -206,6 +211,7 @@ async def test_two_connections_part_at_a_known_frame_shown_side_by_side(tmp_path
         assert app.frames.frame == k and app.frames.has_focus
 
 
+@pytest.mark.slow
 async def test_a_connection_that_goes_on_differs_where_the_other_ended(tmp_path):
     path = await sessions(tmp_path / "longer.mcap", [500, 501], [500, 501, 502], [500, 501])
     async with loaded_app(path) as (app, pilot):
@@ -264,6 +270,7 @@ def statuses(screen: ReplayScreen) -> list[tuple[str, bytes | None]]:
     return [(str(c.status), c.request) for c in screen.runner.comparisons if not c.match]
 
 
+@pytest.mark.slow
 async def test_the_recordings_faults_drop_the_same_answers_again(faulted):
     screen = await replayed(faulted, "recording")
     runner = screen.runner
@@ -273,6 +280,7 @@ async def test_the_recordings_faults_drop_the_same_answers_again(faulted):
     assert screen.faults_said == f"through faults: {DROP}"
 
 
+@pytest.mark.slow
 async def test_by_default_no_fault_is_applied_and_every_answer_comes(faulted):
     screen = await replayed(faulted, "none", specs=LATE)  # typed but not chosen: not applied
     assert screen.runner.options.faults == () and statuses(screen) == []
@@ -280,12 +288,14 @@ async def test_by_default_no_fault_is_applied_and_every_answer_comes(faulted):
     assert screen.faults_said == ""
 
 
+@pytest.mark.slow
 async def test_typed_faults_apply_instead_of_the_recordings(faulted):
     screen = await replayed(faulted, "typed", specs=f"{LATE} ; delay:1ms dir:c2s")
     assert [f.text for f in screen.runner.options.faults] == [LATE, "delay:1ms dir:c2s"]
     assert statuses(screen) == [("missing", b"rr1-13--0--0-ss1")]
 
 
+@pytest.mark.slow
 async def test_a_typed_spec_that_does_not_read_is_said_on_its_field():
     async with loaded_app(SAMPLES / "vpn.mcap") as (app, pilot):
         await pilot.press("r")

@@ -10,6 +10,7 @@ from tests.cli_support import run_cli
 from tests.tui_support import ROOT, SAMPLES
 from whiztap.tui.demo import DELIBERATE_RULES
 
+@pytest.mark.slow
 def test_the_headless_demo_prints_its_report_and_exits_0(tmp_path):
     result = run_cli("demo", "--headless", "--seconds", "2", "-o", tmp_path / "demo.mcap")
     assert result.returncode == 0, result.stderr
@@ -24,6 +25,7 @@ def test_the_headless_demo_prints_its_report_and_exits_0(tmp_path):
     assert analysis.frames > 50
 
 
+@pytest.mark.slow
 def test_the_demo_without_a_terminal_runs_headless_and_says_so(tmp_path):
     result = run_cli("demo", "--seconds", "1", cwd=tmp_path)  # stdin and stdout are not a terminal
     assert result.returncode == 0, result.stderr

@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 from unittest import mock
 
+import pytest
 from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
 from textual import events
@@ -90,6 +91,7 @@ KEY_SETTINGS = settings(max_examples=16, deadline=None, phases=(Phase.explicit, 
                         suppress_health_check=[HealthCheck.too_slow])
 
 
+@pytest.mark.slow
 @KEY_SETTINGS
 @example(steps=[("s", 2, True)])  # 's' twice at once: the plots' first update raced their mounting
 @given(steps=SEQUENCE)
@@ -103,6 +105,7 @@ async def test_random_keys_on_a_recording_never_raise(steps):
                 await play(pilot, steps)
 
 
+@pytest.mark.slow
 @settings(KEY_SETTINGS, max_examples=8)
 @given(steps=SEQUENCE, intercept=st.sampled_from(("", "kind:command ch:12", "dir:s2c")))
 async def test_random_keys_on_live_traffic_through_the_proxy_never_raise(steps, intercept):

@@ -6,6 +6,7 @@ import io
 import time
 from pathlib import Path
 
+import pytest
 from rich.console import Console
 
 from whiztap.analyzer.cli.analyze import analyse_file
@@ -58,6 +59,7 @@ class GrowingRecording:
         self.recorder.stop(self.t)
 
 
+@pytest.mark.slow
 async def test_follow_shows_what_the_recorder_flushes_and_stops_when_it_finishes(tmp_path):
     path = tmp_path / "growing.mcap"
     growing = GrowingRecording(path)
@@ -120,6 +122,7 @@ async def test_follow_goes_on_to_each_part_of_a_split_recording(tmp_path):
         assert app.model.analyzer.summaries[1].notes == []
 
 
+@pytest.mark.slow
 async def test_live_mode_records_through_the_proxy_and_shows_frames_as_they_pass(tmp_path):
     output = tmp_path / "live.mcap"
     async with Simulator(mode="winsock", password="pw", seed=3) as sim:
@@ -167,6 +170,7 @@ async def test_live_mode_says_so_when_it_cannot_listen(tmp_path):
     assert app.error.startswith("cannot listen") and app.return_code == 2
 
 
+@pytest.mark.slow
 async def test_the_demo_runs_its_robot_live_and_finishes_demo_mcap_on_quit(tmp_path):
     output = tmp_path / "demo.mcap"
     app = WhiztapApp(LiveSource(DemoRig(str(output)), "demo"))
@@ -184,6 +188,7 @@ async def test_the_demo_runs_its_robot_live_and_finishes_demo_mcap_on_quit(tmp_p
     assert {"PW-SETCFG-CHECKSUM", "PW-FRAME-GARBAGE", "PW-HS-AFTER-FAILED"} <= rules
 
 
+@pytest.mark.slow
 def test_an_unexpected_failure_finishes_the_recording_says_where_it_is_and_exits_2(tmp_path, monkeypatch, capsys):
     """`whiztap demo` in-process, its screen broken on purpose once traffic flows:
     the recording is finished as q would finish it, the hints name it, and the
@@ -234,6 +239,7 @@ def test_the_hints_name_an_unfinished_recording_and_say_none_was_written_only_wh
 # -- the proxy in the middle: counts, held frames, injection ---------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_the_pane_the_list_and_the_detail_count_the_same_rows_with_frames_the_server_never_got(tmp_path):
     from whiztap.analyzer.mitm.spec import parse_fault
     from whiztap.analyzer.protocol.codec import encode
@@ -290,6 +296,7 @@ def recording_beside_a_controller(tmp_path: Path) -> tuple[WhiztapApp, Controlle
     return WhiztapApp(BesideAController(str(tmp_path / "robot.mcap"), controller)), controller, now
 
 
+@pytest.mark.slow
 async def test_a_held_frames_wait_and_countdown_tick_in_its_row_and_in_the_detail(tmp_path):
     app, controller, now = recording_beside_a_controller(tmp_path)
     async with app.run_test(size=SIZE) as pilot:

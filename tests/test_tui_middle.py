@@ -8,6 +8,7 @@ from __future__ import annotations
 import io
 import json
 
+import pytest
 from rich.console import Console
 
 from whiztap.analyzer.protocol.framing import ItemKind
@@ -58,6 +59,7 @@ def plain(renderable) -> str:  # noqa: ANN001
     return console.file.getvalue()
 
 
+@pytest.mark.slow
 async def test_an_intercepted_sensor_request_is_edited_and_the_simulator_answers_the_edit(tmp_path):
     output = tmp_path / "live.mcap"
     async with Simulator(port=0, mode="vpn", seed=7) as sim:
@@ -100,6 +102,7 @@ async def test_an_intercepted_sensor_request_is_edited_and_the_simulator_answers
     assert (edit["cause"], edit["held"]) == ("hand edit", 1)
 
 
+@pytest.mark.slow
 async def test_an_injected_sensor_request_pairs_with_its_answer(tmp_path):
     async with Simulator(port=0, mode="vpn", seed=7) as sim:
         app = live_app(sim, tmp_path / "live.mcap")
@@ -133,6 +136,7 @@ async def test_an_injected_sensor_request_pairs_with_its_answer(tmp_path):
             await quit_app(pilot)
 
 
+@pytest.mark.slow
 async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_path):
     async with Simulator(port=0, mode="vpn", seed=7) as sim:
         app = live_app(sim, tmp_path / "live.mcap")
@@ -179,6 +183,7 @@ async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_pa
             await quit_app(pilot)
 
 
+@pytest.mark.slow
 async def test_keys_are_answered_while_a_hundred_frames_are_held(tmp_path):
     async with Simulator(port=0, mode="vpn", seed=7) as sim:
         app = live_app(sim, tmp_path / "live.mcap")
@@ -217,6 +222,7 @@ def test_the_middle_options_go_with_the_live_proxy_only():
     assert result.returncode == 2 and "nowhere:1" in result.stderr
 
 
+@pytest.mark.slow
 def test_the_demo_runs_in_the_middle_with_the_faults_it_is_given(tmp_path):
     output = tmp_path / "demo.mcap"
     result = run_cli("demo", "--headless", "--seconds", "1", "-o", output, "--fault", "delay:1ms dir:s2c",
@@ -253,6 +259,7 @@ async def test_a_script_that_raises_is_a_notice_on_the_screen_not_a_traceback_ov
     assert "broken on purpose" not in capfd.readouterr().err
 
 
+@pytest.mark.slow
 async def test_frames_held_at_the_proxy_are_not_counted_as_new_frames(tmp_path):
     """Away from the end, "N new (End follows)" counts frames that arrived;
     a held frame is a row too, but not a new frame (it was counted as one)."""

@@ -63,10 +63,12 @@ async def steady(pilot) -> None:  # noqa: ANN001
     await pilot.pause()
 
 
+@pytest.mark.slow
 def test_a_held_frame_in_the_list(snap_compare, app):
     assert snap_compare(app, terminal_size=SIZE, run_before=on_the_held_frame)
 
 
+@pytest.mark.slow
 def test_the_editor_with_a_frame_that_breaks_a_rule(snap_compare, app):
     async def editing(pilot):
         await on_the_held_frame(pilot)
@@ -78,6 +80,7 @@ def test_the_editor_with_a_frame_that_breaks_a_rule(snap_compare, app):
     assert snap_compare(app, terminal_size=SIZE, run_before=editing)
 
 
+@pytest.mark.slow
 def test_the_inject_dialog(snap_compare, app):
     async def injecting(pilot):
         await loaded(pilot)
@@ -89,6 +92,7 @@ def test_the_inject_dialog(snap_compare, app):
     assert snap_compare(app, terminal_size=SIZE, run_before=injecting)
 
 
+@pytest.mark.slow
 def test_the_faults_pane_with_two_faults(snap_compare, app, controller):
     controller.add_fault("delay:200ms dir:s2c jitter:50ms", name="slow-server")
     lossy = controller.add_fault("drop dir:s2c kind:response every:2")

@@ -3,6 +3,8 @@
 import asyncio
 import socket
 
+import pytest
+
 from whiztap.analyzer.cli.analyze import analyse_file
 from whiztap.sniffer.sim.simulator import Simulator
 from tests.tui_support import SAMPLES, SIZE, WAIT, loaded, until
@@ -27,6 +29,7 @@ async def open_screen(pilot, port: int, pace: str, rate: str = "1", output: str 
     return screen
 
 
+@pytest.mark.slow
 async def test_a_replay_against_the_same_robot_matches_and_is_saved(tmp_path):
     output = tmp_path / "replayed.mcap"
     async with Simulator(mode="winsock", password=PASSWORD, seed=SEED) as sim:
@@ -47,6 +50,7 @@ async def test_a_replay_against_the_same_robot_matches_and_is_saved(tmp_path):
     assert analyse_file(output, "dev-sum").frames > len(runner.comparisons)
 
 
+@pytest.mark.slow
 async def test_a_missing_password_is_asked_for_in_the_screen_s_own_terms(monkeypatch):
     monkeypatch.delenv("WHIZTAP_PASSWORD", raising=False)
     async with Simulator(mode="winsock", password=PASSWORD, seed=SEED) as sim:
@@ -60,6 +64,7 @@ async def test_a_missing_password_is_asked_for_in_the_screen_s_own_terms(monkeyp
             assert sim.stats.connections == 0
 
 
+@pytest.mark.slow
 async def test_step_sends_one_write_at_a_time_then_resume_runs_to_the_end():
     async with Simulator(mode="winsock", password=PASSWORD, seed=SEED) as sim:
         app = WhiztapApp(FileSource(str(SAMPLES / "clean-winsock.mcap")))
@@ -77,6 +82,7 @@ async def test_step_sends_one_write_at_a_time_then_resume_runs_to_the_end():
             assert screen.runner.state == "finished" and screen.runner.sent > 20
 
 
+@pytest.mark.slow
 async def test_stop_ends_a_slow_replay_and_a_mismatch_shows_its_diff():
     async with Simulator(mode="winsock", password=PASSWORD, seed=SEED + 1, camera=False) as sim:
         app = WhiztapApp(FileSource(str(SAMPLES / "clean-winsock.mcap")))
@@ -97,6 +103,7 @@ async def test_stop_ends_a_slow_replay_and_a_mismatch_shows_its_diff():
             assert "MISMATCH" in diff and "recorded" in diff and "replayed" in diff
 
 
+@pytest.mark.slow
 async def test_an_unreachable_target_is_one_line_on_the_screen():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -111,6 +118,7 @@ async def test_an_unreachable_target_is_one_line_on_the_screen():
             assert "cannot connect" in str(screen.query_one("#replay-status").render())
 
 
+@pytest.mark.slow
 async def test_a_bad_target_is_refused_before_anything_starts():
     app = WhiztapApp(FileSource(str(SAMPLES / "vpn.mcap")))
     async with app.run_test(size=SIZE) as pilot:
@@ -133,6 +141,7 @@ async def test_replay_needs_a_finished_recording(tmp_path):
         assert any("finished recording" in n.message for n in app._notifications)  # noqa: SLF001
 
 
+@pytest.mark.slow
 async def test_quitting_during_a_replay_stops_it():
     async with Simulator(mode="winsock", password=PASSWORD, seed=SEED) as sim:
         app = WhiztapApp(FileSource(str(SAMPLES / "clean-winsock.mcap")))

@@ -36,14 +36,17 @@ def pressing(*keys: str):
     return run_before
 
 
+@pytest.mark.slow
 def test_frames_with_a_violation_in_detail(snap_compare):
     assert snap_compare(sample("violations.mcap"), terminal_size=SIZE, run_before=pressing("n", "n"))
 
 
+@pytest.mark.slow
 def test_statistics(snap_compare):
     assert snap_compare(sample("vpn.mcap"), terminal_size=SIZE, run_before=pressing("s"))
 
 
+@pytest.mark.slow
 def test_a_filtered_list(snap_compare):
     async def responses(pilot):
         await loaded(pilot)
@@ -55,6 +58,7 @@ def test_a_filtered_list(snap_compare):
     assert snap_compare(sample("vpn.mcap"), terminal_size=SIZE, run_before=responses)
 
 
+@pytest.mark.slow
 def test_help(snap_compare):
     async def help_screen(pilot):
         await loaded(pilot)
@@ -64,6 +68,7 @@ def test_help(snap_compare):
     assert snap_compare(sample("failed-password.mcap"), terminal_size=SIZE, run_before=help_screen)
 
 
+@pytest.mark.slow
 def test_replay_screen(snap_compare):
     async def replay(pilot):
         await loaded(pilot)
@@ -72,6 +77,7 @@ def test_replay_screen(snap_compare):
     assert snap_compare(sample("clean-winsock.mcap"), terminal_size=SIZE, run_before=replay)
 
 
+@pytest.mark.slow
 def test_following_with_new_frames_waiting(snap_compare, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     growing = GrowingRecording(tmp_path / "robot.mcap", t_ns=1_700_000_000_000_000_000)

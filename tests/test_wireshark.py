@@ -86,6 +86,7 @@ def _analyzer_rules(recording: Path, *args: str) -> dict[int, Counter]:
     return {conn: counts for conn, counts in out.items() if counts}
 
 
+@pytest.mark.slow
 def test_every_violation_of_the_sample_is_expert_info_with_its_rule_id(lua, tmp_path):
     recording = SAMPLES / "violations.mcap"
     pcap = _pcap(recording, tmp_path)
@@ -103,6 +104,7 @@ def test_every_violation_of_the_sample_is_expert_info_with_its_rule_id(lua, tmp_
     assert experts == {(rule.id, SEVERITY[str(rule.severity)]) for rule in RULES.values()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sample", ["clean-winsock", "vpn", "failed-password", "violations"])
 def test_items_and_their_meanings_are_the_analyzers(lua, tmp_path, sample):
     recording = SAMPLES / f"{sample}.mcap"
@@ -120,6 +122,7 @@ def test_items_and_their_meanings_are_the_analyzers(lua, tmp_path, sample):
     assert dict(seen) == dict(expected)
 
 
+@pytest.mark.slow
 def test_fields_are_filterable_by_name(lua, tmp_path):
     recording = SAMPLES / "clean-winsock.mcap"
     pcap = _pcap(recording, tmp_path)
@@ -139,6 +142,7 @@ def test_fields_are_filterable_by_name(lua, tmp_path):
     assert _tshark(pcap, lua, "progwhiz.rule", args=("-Y", "progwhiz.rule")) == []  # a clean session
 
 
+@pytest.mark.slow
 def test_frames_split_across_segments_are_reassembled(lua, tmp_path):
     stream = (b"rr1-24--0--0-ss1", b"sr1-\x04000000101200-ss1", b"rr1-3--0--0-ss1", b"cr1-3--1000--0-ss1",
               b"rr1-0--0--2-ss1", b"cr1-0--4000--0-ss1", b"sr1-25--\x0c\x03\x00\x0c--0-ss1", b"rr1-3--0--0-ss1")
@@ -166,6 +170,7 @@ def test_frames_split_across_segments_are_reassembled(lua, tmp_path):
         "sensor data, by the request in frame 15", "servo data, by the request in frame 22"]
 
 
+@pytest.mark.slow
 def test_the_checksum_rule_is_a_preference(lua, tmp_path):
     recording = SAMPLES / "clean-winsock.mcap"  # its Set Configuration's checksum is dev-sum's
     pcap = _pcap(recording, tmp_path)
@@ -174,6 +179,7 @@ def test_the_checksum_rule_is_a_preference(lua, tmp_path):
         assert _rules_by_connection(rows) == _analyzer_rules(recording, "--checksum-rule", rule)
 
 
+@pytest.mark.slow
 def test_the_port_preference_and_the_heuristic(lua, tmp_path):
     recording = SAMPLES / "vpn.mcap"
     pcap = _pcap(recording, tmp_path)
@@ -218,6 +224,7 @@ def _doc_commands() -> list[str]:
     return [line.split("  #")[0].strip() for line in block.splitlines()[1:] if line.strip()]
 
 
+@pytest.mark.slow
 def test_the_docs_commands_work_as_written(tmp_path):
     """Each command of docs/wireshark.md's walk-through, in order, in a shell,
     from a folder with the samples, as a person would type them."""

@@ -85,6 +85,7 @@ def _recording_files(folder: Path) -> list[Path]:
 # -- the proxy dies, the writer finishes the file -----------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("options", [(), ("--analyze",), ("--split-size", "64k"), ("--analyze", "--split-size", "64k")],
                          ids=["plain", "analyze", "split", "analyze-split"])
 async def test_killing_the_proxy_alone_finishes_the_file(tmp_path, options):
@@ -165,6 +166,7 @@ def _wait_readable(fd: int) -> bool:
     return bool(select.select([fd], [], [], 0.1)[0])
 
 
+@pytest.mark.slow
 async def test_a_closed_terminal_finishes_the_recording(tmp_path):
     out = tmp_path / "hup.mcap"
 
@@ -203,6 +205,7 @@ SPLIT = 256 << 10
 MARGIN = SPLIT + SPLIT // 8 + (256 << 10) * 4 // 3 + 1024
 
 
+@pytest.mark.slow
 async def test_split_size_holds_under_pipelined_load(tmp_path):
     out = tmp_path / "load.mcap"
     sent = b"rr1-1--0--0-ss1" * 100_000  # 1.5 MB of pipelined requests, echoed
@@ -257,6 +260,7 @@ async def test_record_refuses_a_name_whose_later_part_exists(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s-0002.mcap"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("force", [False, True])
 async def test_rotation_never_writes_through_a_link(tmp_path, force):
     """Links at later part names (the finished name and the .part) point at a
