@@ -66,7 +66,8 @@ ONE_WAY_FRAMES = int(os.environ.get("WHIZTAP_BENCH_ONE_WAY_FRAMES", "500000"))
 SOAK_S = float(os.environ.get("WHIZTAP_BENCH_SOAK_S", "60"))
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
 PEERS = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin"
-BAD_EVERY = int(os.environ.get("WHIZTAP_BENCH_BAD_EVERY", "10"))  # one pipelined request in this many asks channel 99: rules broken
+# one pipelined request in this many asks channel 99: rules broken
+BAD_EVERY = int(os.environ.get("WHIZTAP_BENCH_BAD_EVERY", "10"))
 TARGET_PIPELINED_FPS = 250_000
 TARGET_SOCAT_RATIO = 1.0
 MIDDLE = "record --control 0"  # the proxy in the middle, no fault
@@ -134,7 +135,7 @@ def _wait_port(port: int, proc: subprocess.Popen | None = None) -> None:
         except OSError:
             if proc is not None and proc.poll() is not None:
                 err = proc.stderr.read().decode().strip() if proc.stderr else ""
-                raise RuntimeError(f"{proc.args[1]} exited with status {proc.returncode}: {err}")
+                raise RuntimeError(f"{proc.args[1]} exited with status {proc.returncode}: {err}") from None
             time.sleep(0.02)
     raise RuntimeError(f"nothing listens on {port}")
 

@@ -49,7 +49,7 @@ def _instrument() -> None:
 
     render_line = FrameList.render_line
 
-    def timed(self, y):  # noqa: ANN001, ANN202
+    def timed(self, y):
         strip = render_line(self, y)
         row = self.scroll_offset.y + y
         if row < self.rows:
@@ -70,7 +70,7 @@ def _rss_kib() -> int:
 KEY_WAIT_S = 120.0  # a paint that has not come by then is reported as missing, not waited for
 
 
-async def _key(app, key: str, painted: dict, frame: int, or_later: bool = False) -> float | None:  # noqa: ANN001
+async def _key(app, key: str, painted: dict, frame: int, or_later: bool = False) -> float | None:
     """Seconds from a key reaching the app to ``frame`` being painted (with
     ``or_later``, any later frame: End while loading lands wherever the last
     row is by then, which on a slow machine can be thousands of rows on).  The
@@ -168,7 +168,7 @@ async def _drive(port: int, rate: int, seconds: float) -> None:
     print(sent)
 
 
-async def _hold(app, port: int, held: int) -> asyncio.StreamWriter:  # noqa: ANN001 - a WhiztapApp
+async def _hold(app, port: int, held: int) -> asyncio.StreamWriter:
     """Intercept ``HELD_FILTER`` and have a second client send ``held`` frames it matches."""
     controller = app.source.controller
     controller.set_intercept(HELD_FILTER)
@@ -224,7 +224,9 @@ async def _live(tmp: str, held: int = 0) -> dict:
     finally:
         sim.terminate()
         sim.wait()
-    pick = lambda q: lags[min(len(lags) - 1, int(q * len(lags)))] / 1e6  # noqa: E731
+    def pick(q: float) -> float:
+        return lags[min(len(lags) - 1, int(q * len(lags)))] / 1e6
+
     return {"sent_requests": sent, "frames_shown": frames, "lag_p50_ms": pick(0.5), "lag_p99_ms": pick(0.99),
             "lag_max_ms": lags[-1] / 1e6, "backlog_max": backlog, "ticks": len(lags), "held": still_held}
 
@@ -248,7 +250,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         live = asyncio.run(_live(tmp))
     print(f"live at {2 * LIVE_RATE:,} frames/s for {LIVE_SECONDS:g} s: {2 * live['sent_requests']:,} frames sent, "
-          f"{live['frames_shown']:,} shown; longest wait from arrival to screen per tick: p50 {live['lag_p50_ms']:.0f} ms, "
+          f"{live['frames_shown']:,} shown; longest wait from arrival to screen per tick: "
+          f"p50 {live['lag_p50_ms']:.0f} ms, "
           f"p99 {live['lag_p99_ms']:.0f} ms, max {live['lag_max_ms']:.0f} ms; "
           f"largest backlog {live['backlog_max']:,} reads")
     with tempfile.TemporaryDirectory() as tmp:

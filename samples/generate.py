@@ -22,7 +22,7 @@ LOCAL = "127.0.0.1"
 PASSWORD = "progwhiz"
 
 
-async def recorded(upstream_port: int, path: Path, session, keep_secrets: bool = False) -> None:  # noqa: ANN001
+async def recorded(upstream_port: int, path: Path, session, keep_secrets: bool = False) -> None:
     """Run ``session(proxy_port)`` (an async callable) through a recording proxy into ``path``."""
     path.unlink(missing_ok=True)
     recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, upstream_port), str(path), quiet=True,

@@ -89,7 +89,7 @@ def rerecord(sample: Path, path: Path, t0: int, meta: dict[str, str], middle: bo
         os.replace(written, path)
 
 
-def _shifted(event, shift: int):  # noqa: ANN001, ANN202 - a dataclass traffic event
+def _shifted(event, shift: int):
     from dataclasses import replace
 
     return replace(event, t_ns=event.t_ns + shift)
@@ -117,14 +117,14 @@ class DaskCluster:
     def __init__(self) -> None:
         self.proc = subprocess.Popen([sys.executable, "-c", CLUSTER_SCRIPT], cwd=REPO, stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True)
-        line = self.proc.stdout.readline()  # type: ignore[union-attr]
+        line = self.proc.stdout.readline()
         if not line:
             self.proc.kill()
             raise RuntimeError("the Dask cluster did not start")
         self.address = json.loads(line)["address"]
 
     def close(self) -> None:
-        self.proc.stdin.close()  # type: ignore[union-attr]
+        self.proc.stdin.close()
         try:
             self.proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
@@ -137,7 +137,7 @@ class DaskCluster:
 SLOW_S = 1.5  # each file's task sleeps this long before analysing it
 
 
-def slow_analysis(args: tuple):  # noqa: ANN201 - what _analyse_in_worker returns
+def slow_analysis(args: tuple):
     """``analyze``'s own task, after a pause; each attempt leaves a file
     ``started-LABEL-PID`` beside the recording (and ``done-LABEL-PID`` when it
     returns), so a test sees which worker process is in the middle of which file."""

@@ -59,19 +59,19 @@ class FakeShell:
         for command in commands:
             kind = type(command)
             if kind is Tell:
-                drive.events.append(command.event)  # type: ignore[union-attr]
+                drive.events.append(command.event)
             elif kind is Deliver:
                 if self.conn in drive.gone:
                     continue  # the shell writes to no closed transport
-                if command.direction in self.eof:  # type: ignore[union-attr]
+                if command.direction in self.eof:
                     raise WriteAfterEof(f"#{self.conn}: a write {command.direction} after its FIN was passed on")
-                self.got[command.direction] += command.data  # type: ignore[union-attr]
+                self.got[command.direction] += command.data
             elif kind is PassEof:
-                self.eof.add(command.direction)  # type: ignore[union-attr]
+                self.eof.add(command.direction)
             elif kind is WakeAt:
-                self.wake_at = command.t_ns  # type: ignore[union-attr]
+                self.wake_at = command.t_ns
             elif kind is EndConnection:
-                self.ended = command.how.value  # type: ignore[union-attr]
+                self.ended = command.how.value
                 drive.pending_ends.append(self.conn)
         self._takes_more()
 
@@ -92,7 +92,7 @@ class Drive:
     def __init__(self, controller: Controller | None = None, **options: object) -> None:
         self.t = T0
         self.reports: list[str] = []
-        self.controller = controller or Controller(seed=1, report=self.reports.append, **options)  # type: ignore[arg-type]
+        self.controller = controller or Controller(seed=1, report=self.reports.append, **options)
         self.events: list[object] = []
         self.controller.attach(lambda: self.t, self.events.append)
         self.shells: dict[int, FakeShell] = {}
@@ -118,20 +118,20 @@ class Drive:
 
     def connect(self, conn: int) -> None:
         shell = self.shells[conn]
-        shell.run(shell.core.ready(S2C, self.t))  # type: ignore[union-attr]
+        shell.run(shell.core.ready(S2C, self.t))
         self.events.append(UpstreamConnected(conn, self.t, "from 127.0.0.1:50000"))
-        shell.run(shell.core.ready(C2S, self.t))  # type: ignore[union-attr]
+        shell.run(shell.core.ready(C2S, self.t))
         self._ends()
 
     def core(self, conn: int) -> MiddleCore:
-        return self.shells[conn].core  # type: ignore[return-value]
+        return self.shells[conn].core
 
     def send(self, conn: int, direction: Direction, data: bytes) -> None:
         """The sender of ``direction`` sent ``data`` (one read), now."""
         if conn in self.gone or direction in self.lost[conn]:
             return
         shell = self.shells[conn]
-        shell.run(shell.core.received(direction, data, self.t))  # type: ignore[union-attr]
+        shell.run(shell.core.received(direction, data, self.t))
         self._ends()
 
     def fin(self, conn: int, direction: Direction) -> None:
@@ -139,7 +139,7 @@ class Drive:
             return
         self.events.append(HalfClosed(conn, self.t, direction))
         shell = self.shells[conn]
-        shell.run(shell.core.sender_ended(direction, self.t))  # type: ignore[union-attr]
+        shell.run(shell.core.sender_ended(direction, self.t))
         self._ends()
 
     def lose(self, conn: int, sender: Direction) -> None:
@@ -148,7 +148,7 @@ class Drive:
             return
         self.lost[conn].add(sender)
         shell = self.shells[conn]
-        shell.run(shell.core.lost(sender, self.t))  # type: ignore[union-attr]
+        shell.run(shell.core.lost(sender, self.t))
         if len(self.lost[conn]) == 2:
             self.close(conn)
         self._ends()
@@ -182,7 +182,7 @@ class Drive:
             self.t = max(self.t, at)
             shell = self.shells[conn]
             shell.wake_at = None
-            shell.run(shell.core.wake(self.t))  # type: ignore[union-attr]
+            shell.run(shell.core.wake(self.t))
             self._ends()
         self.t = end
 

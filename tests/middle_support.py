@@ -32,7 +32,7 @@ def sensor(ch: int) -> bytes:
 
 
 def answer_channel(raw: bytes) -> int:
-    return decode(ItemKind.RESPONSE, raw).message.channel  # type: ignore[union-attr]
+    return decode(ItemKind.RESPONSE, raw).message.channel
 
 
 # -- the proxy in the middle, in the test's loop -----------------------------------------------------
@@ -52,7 +52,7 @@ class Middle:
 
     @property
     def port(self) -> int:
-        return self.rec.proxy.port  # type: ignore[union-attr]
+        return self.rec.proxy.port
 
     def topics(self) -> dict[str, list[dict]]:
         """The finished recording by topic (after the ``middle`` block)."""
@@ -147,7 +147,7 @@ class Reads(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = transport
 
     def data_received(self, data: bytes) -> None:
         self.sizes.append(len(data))

@@ -107,7 +107,7 @@ def tui_store_text(path: Path) -> bytes:
     return store_text(model)
 
 
-def store_text(model) -> bytes:  # noqa: ANN001 - a whiztap.tui.data.model.TrafficModel
+def store_text(model) -> bytes:
     """The TUI's frame store as text: the bytes of every row, what it means, and the proxy's marks."""
     store = model.store
     described = [repr(store.observation(i)) for i in range(store.count)] if hasattr(store, "observation") else []
@@ -173,7 +173,7 @@ FILE_COMMANDS = {"analyze", "cat", "info", "export", "replay"}
 # -- the control API and ``whiztap ctl`` ------------------------------------------------------------
 
 
-def _ctl():  # noqa: ANN202 - the ctl command module
+def _ctl():
     import whiztap.sniffer.cli.ctl as ctl
 
     return ctl
@@ -269,7 +269,7 @@ def frame(flow):
 '''
 
 
-def script_log(script) -> str:  # noqa: ANN001 - a loaded whiztap.sniffer.mitm.scripts.Script
+def script_log(script) -> str:
     return "\n".join(script.module.LOG)
 
 

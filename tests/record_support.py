@@ -99,7 +99,7 @@ async def recording(upstream_port: int, path: str, **options):
     settings = RecordSettings((LOCAL, 0), (LOCAL, upstream_port), str(path), **options)
     lines: list[str] = []
     rec = Recording(settings, lines.append)
-    rec.lines = lines  # type: ignore[attr-defined]
+    rec.lines = lines
     await rec.start()
     try:
         yield rec
@@ -155,7 +155,7 @@ class RecordProcess:
 
     @classmethod
     async def start(cls, upstream: int, output: Path, *args: str, preexec_fn=None,
-                    new_session: bool = False) -> RecordProcess:  # noqa: ANN001
+                    new_session: bool = False) -> RecordProcess:
         proc = await start_process("record", "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{upstream}",
                                    "-o", output, *args, preexec_fn=preexec_fn, start_new_session=new_session)
         rec = cls(proc)
@@ -195,7 +195,7 @@ class RecordProcess:
 
 
 @contextlib.asynccontextmanager
-async def running_record(upstream: int, output: Path, *args: str):  # noqa: ANN201
+async def running_record(upstream: int, output: Path, *args: str):
     """``whiztap record`` in its own process; killed if the test fails half-way
     (a proxy under test may be too busy, or frozen, to stop)."""
     rec = await RecordProcess.start(upstream, output, *args)
@@ -218,7 +218,7 @@ def post_status(url: str, body: bytes) -> int:
     headers = {"Content-Type": "application/json", "Authorization": f"Bearer {CONTROL_TOKEN}"}
     request = urllib.request.Request(url, data=body, method="POST", headers=headers)
     try:
-        with urllib.request.urlopen(request, timeout=WAIT) as reply:  # noqa: S310 - a local test server
+        with urllib.request.urlopen(request, timeout=WAIT) as reply:  # a local test server
             return reply.status
     except urllib.error.HTTPError as e:
         return e.code

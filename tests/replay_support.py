@@ -53,7 +53,7 @@ async def until_closed(sim: Simulator) -> None:
         await asyncio.sleep(0.01)
 
 
-async def record(path: Path, seed: int = 1, session=client_session) -> list:  # noqa: ANN001 - async callable
+async def record(path: Path, seed: int = 1, session=client_session) -> list:
     """Record ``session`` through the proxy against a frozen-clock simulator."""
     async with simulator(seed) as sim, recording(sim.port, path) as rec:
         got = await session(rec.proxy.port)

@@ -1,5 +1,7 @@
 """Stream builders shared by the framing, codec and session tests."""
 
+from itertools import pairwise
+
 from hypothesis import strategies as st
 
 from whiztap.analyzer.protocol.framing import DEFAULT_MAX_IMAGE, DEFAULT_MAX_ITEM, Framer, Item
@@ -48,7 +50,7 @@ def frame_all(chunks: list[bytes], max_item: int | None = None, max_image: int |
 
 def chunked(data: bytes, cuts: list[int]) -> list[bytes]:
     points = sorted({c % (len(data) + 1) for c in cuts} | {0, len(data)})
-    return [data[a:b] for a, b in zip(points, points[1:]) if b > a]
+    return [data[a:b] for a, b in pairwise(points) if b > a]
 
 
 def stream_pieces():

@@ -5,6 +5,7 @@ import html
 import json
 import shutil
 import sys
+from itertools import pairwise
 from pathlib import Path
 
 import jsonschema
@@ -130,8 +131,7 @@ def test_a_report_on_several_files_names_the_file_of_each_connection_and_violati
     assert text[header].split()[:2] == ["file", "conn"]
     rows = text[header + 1:header + 1 + len(data["connections"])]
     assert all(row.split()[0] in (str(first), str(second)) for row in rows)
-    assert sum(line.startswith(f"  {first} conn 1: ") or line.startswith(f"  {first} conn 1 channels: ")
-               for line in text) >= 1
+    assert sum(line.startswith((f"  {first} conn 1: ", f"  {first} conn 1 channels: ")) for line in text) >= 1
     markdown = run_cli("analyze", "--format", "markdown", first, second).stdout
     assert markdown.count(f"| {md_text(second)} |") >= per_file  # its connections' and violations' rows
     alone = run_cli("analyze", VIOLATIONS).stdout
@@ -156,7 +156,7 @@ def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
     xml = JUnitXml.fromfile(str(out))
     [suite] = list(xml)
     assert suite.timestamp and suite.hostname  # CI shows when and where
-    cases = [case for case in suite]
+    cases = list(suite)
     _, data = report(VIOLATIONS)
     broken = {(r, c["conn"]) for c in data["connections"] for r in c["violations"]}
     clean_rules = set(RULES) - {r for r, _ in broken}
@@ -282,7 +282,7 @@ def cat_jsonl(*args):
 
 def test_cat_is_lossless_and_in_time_order():
     rows = [r for r in cat_jsonl(CLEAN) if r["kind"] != "late_violation"]
-    assert all(a["t_ns"] <= b["t_ns"] for a, b in zip(rows, rows[1:]))
+    assert all(a["t_ns"] <= b["t_ns"] for a, b in pairwise(rows))
     rebuilt: dict = {}
     for r in rows:
         rebuilt.setdefault((r["conn"], r["dir"]), bytearray()).extend(base64.b64decode(r["raw_b64"]))

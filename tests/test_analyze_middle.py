@@ -81,7 +81,7 @@ async def _sensors(client: Client, n: int = 4) -> None:
             pass  # the proxy (or the server) kept the answer from us: ask again
 
 
-def _record(path: Path, specs: tuple[str, ...], session, *, wait: float = CLIENT_WAIT,  # noqa: ANN001
+def _record(path: Path, specs: tuple[str, ...], session, *, wait: float = CLIENT_WAIT,
             server: FaultConfig = FaultConfig(), consumers: tuple = ()) -> Path:
     """``session(client, rec)`` through the proxy with ``specs`` in force, in
     front of the simulator; ``consumers`` get every traffic event, as the TUI's tap does."""
@@ -128,7 +128,7 @@ def _by_side(report: dict, rule_id: str) -> dict[str, int]:
 
 
 @pytest.fixture(scope="module")
-def dropped(tmp_path_factory) -> Path:  # noqa: ANN001
+def dropped(tmp_path_factory) -> Path:
     """Every second answer on channel 12 dropped by the proxy."""
     path = tmp_path_factory.mktemp("middle") / "dropped.mcap"
     return _record(path, ("drop dir:s2c kind:response ch:12 every:2",), lambda client, rec: _sensors(client))
@@ -168,7 +168,7 @@ def test_a_delay_past_the_deadline_does_not_blame_the_server(tmp_path):
 
 @pytest.mark.slow
 def test_a_checksum_the_proxy_broke_is_an_effect_not_a_violation_of_either_side(tmp_path):
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         await client.fetch_configuration()
         await client.set_configuration((SetConfigEntry(1, 12, 2),))
         await client.sensor(12)
@@ -219,7 +219,7 @@ def test_an_answer_the_proxy_duplicated_is_an_effect_of_the_dup(tmp_path, spec):
 
 @pytest.mark.slow
 def test_an_injected_answer_is_an_effect_of_the_injection(tmp_path):
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         await _sensors(client, 1)
         rec.controller.inject(1, "s2c", "cr1-12--5--0-ss1")
         await client.sensor(13)
@@ -233,7 +233,7 @@ def test_an_injected_answer_is_an_effect_of_the_injection(tmp_path):
 
 @pytest.mark.slow
 def test_the_answer_to_an_injected_request_is_an_effect_not_the_clients_or_the_servers(tmp_path):
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         await _sensors(client, 1)
         rec.controller.inject(1, "c2s", "sensor 13")  # the client never asked: the server's answer surprises it
         await client.sensor(12)
@@ -246,7 +246,7 @@ def test_the_answer_to_an_injected_request_is_an_effect_not_the_clients_or_the_s
     assert report["interventions"]["effects_by_severity"] == {"error": 1, "warning": 0, "info": 0}
 
 
-async def _held(rec, n: int = 1) -> list[dict]:  # noqa: ANN001
+async def _held(rec, n: int = 1) -> list[dict]:
     """Wait until ``n`` frames are held at the proxy."""
     for _ in range(500):
         held = rec.controller.held_frames()
@@ -261,7 +261,7 @@ def test_a_request_edited_by_hand_and_its_answer_are_effects_of_the_edit(tmp_pat
     """The client asked for channel 12; a person made it 13: the client's
     request goes unanswered and the answer it gets answers nothing it asked,
     and neither is the client's doing nor the server's."""
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         await _sensors(client, 1)
         rec.controller.set_intercept("dir:c2s kind:command ch:12")
         asked = asyncio.ensure_future(client.sensor(12))
@@ -302,7 +302,7 @@ def test_an_answer_replaced_by_another_channels_is_an_effect_and_a_drop_beside_i
 def test_what_a_side_really_did_is_still_its_own_and_counted_once(tmp_path):
     """In the middle, a server that drops answers and a client that sends junk are
     each blamed, once, on their own side."""
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         try:
             await client.fetch_configuration()
         except ResponseTimeout:
@@ -458,7 +458,7 @@ def test_reports_on_recordings_without_interventions_are_as_before():
 
 
 def test_every_rule_is_about_the_side_the_docs_say():
-    assert ANSWERING | SERVER_FRAMES | CLIENT_FRAMES | EITHER == set(RULES)
+    assert set(RULES) == ANSWERING | SERVER_FRAMES | CLIENT_FRAMES | EITHER
     report = json.loads(run_cli("analyze", "--format", "json", REPO / "samples/violations.mcap").stdout)
     for v in report["violations"]:
         rule = v["rule_id"]

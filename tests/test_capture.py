@@ -25,14 +25,14 @@ CLIENT, SERVER = ("10.1.1.2", 40000), ("10.1.1.9", 5000)
 ISN_C, ISN_S = 1000, 9000
 
 
-def _packet(src, dst, seq, ack, flags, payload=b"", t=0.0):  # noqa: ANN001, ANN202 - test shorthand
+def _packet(src, dst, seq, ack, flags, payload=b"", t=0.0):
     p = Ether() / IP(src=src[0], dst=dst[0]) / TCP(sport=src[1], dport=dst[1], seq=seq % (1 << 32),
                                                    ack=ack % (1 << 32), flags=flags) / payload
     p.time = t
     return p
 
 
-def _session(c2s_segments, s2c_segments, isn_c=ISN_C, isn_s=ISN_S):  # noqa: ANN001, ANN202
+def _session(c2s_segments, s2c_segments, isn_c=ISN_C, isn_s=ISN_S):
     """Packets of one connection: handshake, the given (offset, bytes) segments
     in the given order, then FINs.  Offsets are stream offsets."""
     t = [1_700_000_000.0]
@@ -57,7 +57,7 @@ def _session(c2s_segments, s2c_segments, isn_c=ISN_C, isn_s=ISN_S):  # noqa: ANN
     return pkts
 
 
-def _write(path, pkts, ng=False) -> str:  # noqa: ANN001
+def _write(path, pkts, ng=False) -> str:
     writer = (PcapNgWriter if ng else PcapWriter)(str(path))
     for p in pkts:
         writer.write(p)
@@ -114,7 +114,7 @@ def test_an_ack_beyond_a_fin_the_stream_reached_is_no_gap_after_the_close():
     events: list = []
 
     class Consumer:
-        def receive(self, event) -> None:  # noqa: ANN001
+        def receive(self, event) -> None:
             events.append(event)
 
     r = Reassembler(5000, Consumer())
@@ -196,7 +196,7 @@ def test_scapy_layer_dissects_both_directions():
 # -- real traffic ------------------------------------------------------------------------------------------
 
 
-async def _session_through_proxy(path, sim_port: int) -> None:  # noqa: ANN001
+async def _session_through_proxy(path, sim_port: int) -> None:
     async with recording(sim_port, path) as rec:
         async with await Client.connect(LOCAL, rec.proxy.port, password="progwhiz") as client:
             await client.fetch_configuration()
@@ -206,7 +206,7 @@ async def _session_through_proxy(path, sim_port: int) -> None:  # noqa: ANN001
             await client.fetch_camera_image()
 
 
-def _payload_bytes_seen(pcap, port: int) -> dict[str, int]:  # noqa: ANN001
+def _payload_bytes_seen(pcap, port: int) -> dict[str, int]:
     """Per direction of the capture's one connection to ``port``, how many stream
     bytes its packets cover (read with Scapy, not with the code under test):
     tcpdump itself sometimes misses packets when the machine is busy."""

@@ -137,7 +137,8 @@ def test_help_loads_no_event_loop_and_no_session_model():
     code = ("import sys; sys.argv = ['whiztap', '--help']\n"
             "from whiztap.analyzer.cli.root import cli\n"
             "try:\n    cli()\nexcept SystemExit:\n    pass\n"
-            "heavy = ('asyncio', 'whiztap.analyzer.protocol.session', 'whiztap.analyzer.analysis.analyzer', 'textual', 'scapy', 'mcap')\n"
+            "heavy = ('asyncio', 'whiztap.analyzer.protocol.session', 'whiztap.analyzer.analysis.analyzer', "
+            "'textual', 'scapy', 'mcap')\n"
             "print(sorted(m for m in heavy if m in sys.modules), file=sys.stderr)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "Commands:" in result.stdout, result.stderr

@@ -50,7 +50,7 @@ async def test_requests_with_answers(connected):
 
 
 async def test_normal_send_moves_a_servo_the_client_sees_travel(connected):
-    sim, client, clock = connected
+    _sim, client, clock = connected
     await client.normal_send(2, 1500)
     positions = []
     for _ in range(4):

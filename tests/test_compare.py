@@ -44,7 +44,7 @@ def _observe(*steps: tuple[Direction, bytes]) -> list[Observation]:
     return out
 
 
-def answer(request, response) -> Observation:  # noqa: ANN001 - messages
+def answer(request, response) -> Observation:
     return _observe((Direction.C2S, encode(request)), (Direction.S2C, encode(response)))[-1]
 
 

@@ -33,11 +33,11 @@ DROP_EVERY_SECOND = "drop dir:s2c kind:response ch:12 every:2"
 
 
 @contextlib.asynccontextmanager
-async def proxied(path, control: Endpoint | None = None, **middle) -> AsyncIterator[tuple[Recording, Client]]:  # noqa: ANN001
+async def proxied(path, control: Endpoint | None = None, **middle) -> AsyncIterator[tuple[Recording, Client]]:
     """The simulator behind a recording with the control API (by default on a
     new socket in the runtime folder, as a bare ``--control``), and a client through it."""
-    async with Simulator(port=0, mode="vpn", seed=7) as sim, \
-            recording(sim.port, str(path), middle=MiddleSettings(control=control or Endpoint(path=""), **middle)) as rec:
+    settings = MiddleSettings(control=control or Endpoint(path=""), **middle)
+    async with Simulator(port=0, mode="vpn", seed=7) as sim, recording(sim.port, str(path), middle=settings) as rec:
         client = await Client.connect(LOCAL, rec.proxy.port)
         try:
             yield rec, client
@@ -152,7 +152,8 @@ async def test_a_fault_is_added_switched_off_and_on_and_removed_while_traffic_fl
                                                                                  True, 0)
         assert [await answered(client, 12) for _ in range(4)] == [True, False, True, False]
         [listed] = (await ok(rec, "GET", "/faults"))["faults"]
-        assert (listed["id"], listed["name"], listed["spec"], listed["hits"]) == (fault["id"], "lossy", DROP_EVERY_SECOND, 2)
+        assert (listed["id"], listed["name"], listed["spec"], listed["hits"]) == \
+            (fault["id"], "lossy", DROP_EVERY_SECOND, 2)
         off = await ok(rec, "POST", "/faults/lossy/enable", {"enabled": False})
         assert off["enabled"] is False
         assert [await answered(client, 12) for _ in range(2)] == [True, True]
@@ -361,7 +362,8 @@ async def test_every_bad_request_answers_or_closes_and_the_proxy_goes_on(tmp_pat
 async def test_a_client_that_stalls_is_cut_off_alone(tmp_path, monkeypatch):
     monkeypatch.setattr(control_server, "CLIENT_TIMEOUT_S", 0.2)
     async with proxied(tmp_path / "r.mcap") as (rec, client):
-        stalled = b"POST /faults HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\nContent-Length: 10\r\n\r\n{"
+        stalled = (b"POST /faults HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\n"
+                   b"Content-Length: 10\r\n\r\n{")
         answer = await send_raw(rec, stalled, eof=False)
         status, body, _ = parse(answer)
         assert status == 408 and "no complete request" in body["error"]
@@ -369,7 +371,7 @@ async def test_a_client_that_stalls_is_cut_off_alone(tmp_path, monkeypatch):
 
 
 async def test_stopping_ends_the_control_connections_still_open(tmp_path):
-    async with proxied(tmp_path / "r.mcap") as (rec, client):
+    async with proxied(tmp_path / "r.mcap") as (rec, _client):
         reader, writer = await open_api(rec)
         writer.write(b"GET /state HTTP/1.1\r\n")  # and never the rest
         socket_path = Path(rec.control_url)
@@ -403,7 +405,8 @@ def line(result: Ran, code: int = 0) -> str:
 async def test_ctl_drives_faults(tmp_path):
     async with proxied(tmp_path / "r.mcap") as (rec, client):
         added = line(await ctl(rec, "fault", "add", DROP_EVERY_SECOND, "--name", "lossy"))
-        assert added.startswith("added fault #") and "lossy  on  matched 0  hits 0  " + DROP_EVERY_SECOND + "  (drop, s2c," in added
+        assert added.startswith("added fault #")
+        assert "lossy  on  matched 0  hits 0  " + DROP_EVERY_SECOND + "  (drop, s2c," in added
         assert [await answered(client, 12) for _ in range(2)] == [True, False]
         assert "lossy  on  matched 2  hits 1" in line(await ctl(rec, "fault", "list"))
         listed = json.loads((await ctl(rec, "--format", "json", "fault", "list")).stdout)

@@ -63,7 +63,8 @@ def attacks(host: str, rebound: str) -> list[tuple[str, bytes, str]]:
             "POST", "/faults", host, cross + "Sec-Fetch-Mode: navigate\r\nSec-Fetch-Dest: document\r\n"
             "Content-Type: application/x-www-form-urlencoded\r\n", b"spec=drop+dir%3As2c&name=evil"), "Origin"),
         ("a form's POST /held/release-all", browser(
-            "POST", "/held/release-all", host, cross + "Content-Type: application/x-www-form-urlencoded\r\n"), "Origin"),
+            "POST", "/held/release-all", host, cross + "Content-Type: application/x-www-form-urlencoded\r\n"),
+         "Origin"),
         ("rebinding GET /state", browser("GET", "/state", rebound, "Sec-Fetch-Site: same-origin\r\n"),
          f"Host '{rebound}'"),
         ("rebinding PUT /intercept", browser("PUT", "/intercept", rebound, same + "Content-Type: application/json\r\n",
@@ -191,7 +192,7 @@ async def test_a_non_loopback_control_api_warns_and_a_bad_path_is_one_line(tmp_p
 
     warned: list[str] = []
     async with Simulator(port=0, mode="vpn") as sim:
-        wide = MiddleSettings(control=Endpoint(host="0.0.0.0", port=0))  # noqa: S104 - the case under test
+        wide = MiddleSettings(control=Endpoint(host="0.0.0.0", port=0))  # the case under test
         rec = Recording(RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(tmp_path / "a.mcap"), middle=wide),
                         warn=warned.append)
         await rec.start()

@@ -93,10 +93,10 @@ def test_a_fault_that_chose_none_of_a_thousand_frames_of_its_direction_is_named_
     assert mid.reports == [] and logs == []
     mid.send(S2C, answers(1))
     assert mid.reports == [
-        f"warning: fault fault-1 (drop dir:s2c ch:99) chose none of the 1,000 s2c frames since it was put in "
-        f"force; is its SPEC what you meant?",
-        f"warning: fault fault-3 (drop ch:99) chose none of the 1,000 frames since it was put in force; "
-        f"is its SPEC what you meant?"]
+        "warning: fault fault-1 (drop dir:s2c ch:99) chose none of the 1,000 s2c frames since it was put in "
+        "force; is its SPEC what you meant?",
+        "warning: fault fault-3 (drop ch:99) chose none of the 1,000 frames since it was put in force; "
+        "is its SPEC what you meant?"]
     assert logs == [(name, line.removeprefix("warning: ")) for name, line in
                     zip(("fault-1", "fault-3"), mid.reports)]
     mid.send(S2C, answers(500))

@@ -116,7 +116,7 @@ def test_selects_reads_the_filter_words():
 def test_the_tables_name_every_action_and_option():
     assert set(ACTIONS) == {"delay", "drop", "dup", "corrupt", "replace", "slice", "bandwidth",
                             "blackhole", "reset", "close"}
-    assert ACTIONS_WITH_ARGUMENT == {"delay", "replace", "slice", "bandwidth"}
+    assert {"delay", "replace", "slice", "bandwidth"} == ACTIONS_WITH_ARGUMENT
     assert {"nth", "every", "prob", "after", "for", "jitter", "pause"} <= set(OPTIONS)
 
 

@@ -162,9 +162,9 @@ async def test_replace_the_first_answer_of_channel_12(tmp_path):
 
 async def _config_in_reads(mid: Middle) -> Reads:
     _, reads = await asyncio.get_running_loop().create_connection(Reads, LOCAL, mid.port)
-    reads.transport.write(encode(m.FetchConfiguration()))  # type: ignore[union-attr]
+    reads.transport.write(encode(m.FetchConfiguration()))
     await reads.until(81)  # the simulator's configuration answer
-    reads.transport.close()  # type: ignore[union-attr]
+    reads.transport.close()
     return reads
 
 
@@ -325,7 +325,7 @@ async def test_a_delay_under_a_client_that_keeps_sending_pauses_the_client(tmp_p
                 pass
 
         tasks = [asyncio.create_task(keep_sending()), asyncio.create_task(keep_reading())]
-        conn = mid.rec.proxy.connections[1]  # type: ignore[union-attr]
+        conn = mid.rec.proxy.connections[1]
         lane = conn.middle.core.lanes[Direction.C2S]
         queued, before = [], []
         start = time.monotonic()

@@ -87,7 +87,7 @@ def test_a_fleet_table_groups_by_robot_and_by_day(fleet: list[Path]) -> None:
     assert table["group_by"] == ["robot"] and table["day_of"] == "start_time"
     groups = _groups(data)
     assert list(groups) == ["r1", "r2", "r3", "None"]  # a recording without the key last
-    r1, r2, r3, bare = groups.values()
+    r1, _r2, r3, bare = groups.values()
     assert [g["recordings"] for g in groups.values()] == [2, 2, 1, 1]
     assert [d["day"] for d in r1["days"]] == ["2026-03-01", "2026-03-02"]
     assert r1["days"][0]["violations"] == 0 and r1["days"][1]["violations"] == r1["violations"] > 0
@@ -225,7 +225,7 @@ def test_merged_percentiles_are_those_of_every_latency(fleet: list[Path], monkey
 
     original = session_module.Session.__init__
 
-    def init(self, *args, **kwargs) -> None:  # noqa: ANN001, ANN002, ANN003
+    def init(self, *args, **kwargs) -> None:
         original(self, *args, **kwargs)
         self.latencies = Logged()
 

@@ -34,7 +34,7 @@ WAIT = 60.0  # a bound on waiting for the cluster; never a timing assertion
 
 
 @pytest.fixture(scope="module")
-def dask_cluster():  # noqa: ANN201
+def dask_cluster():
     cluster = DaskCluster()
     yield cluster
     cluster.close()

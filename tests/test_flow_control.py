@@ -240,7 +240,7 @@ async def finish(rec: RecordProcess) -> None:
 
 
 async def _never_reader(port: int, held: list) -> None:
-    reader, writer = await asyncio.open_connection(LOCAL, port, limit=1 << 16)
+    _reader, writer = await asyncio.open_connection(LOCAL, port, limit=1 << 16)
     writer.transport.pause_reading()
     held.append(writer)
 

@@ -46,7 +46,7 @@ class FoxgloveClient:
     advertised channel, subscribe to each as it is advertised (subscription id
     = channel id), and keep each message: topic -> [(log time, payload)]."""
 
-    def __init__(self, ws, stall: bool = False) -> None:  # noqa: ANN001 - a websockets connection
+    def __init__(self, ws, stall: bool = False) -> None:
         self.ws = ws
         self.stall = stall  # subscribe, then never read again
         self.server_info: dict = {}
@@ -101,7 +101,7 @@ class FoxgloveClient:
             await self.ws.close()
 
 
-async def until(condition, what: str) -> None:  # noqa: ANN001 - a callable
+async def until(condition, what: str) -> None:
     for _ in range(int(WAIT * 100)):
         if condition():
             return
@@ -168,7 +168,8 @@ async def test_a_foxglove_client_gets_live_what_the_file_gets(tmp_path):
     for topic in ("/tcp/reads", "/frames"):  # subscribed before the first: exactly the file's
         assert live[topic] == in_file[topic], topic
     # events from the connection's opening on (the recording's start came before the client)
-    events, opened = live["/tcp/events"], [i for i, (_, m) in enumerate(in_file["/tcp/events"]) if b'"opened"' in m][0]
+    events = live["/tcp/events"]
+    opened = next(i for i, (_, m) in enumerate(in_file["/tcp/events"]) if b'"opened"' in m)
     assert events == in_file["/tcp/events"][opened:opened + len(events)]
     assert len(events) >= len(in_file["/tcp/events"]) - opened - 1  # the recording's stop may come after the server
     # the Sensor Requests, decoded, live as in the file, with the same log times
@@ -210,7 +211,7 @@ class _Served:
     def __init__(self) -> None:
         self.got: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
 
-    def log_function(self, topic: str):  # noqa: ANN201
+    def log_function(self, topic: str):
         return lambda data, t_ns: self.got[topic].append((t_ns, data))
 
 
@@ -250,7 +251,7 @@ class _Failing(_Served):
         super().__init__()
         self.ok = ok
 
-    def log_function(self, topic: str):  # noqa: ANN201
+    def log_function(self, topic: str):
         def log(data: bytes, t_ns: int) -> None:
             if sum(map(len, self.got.values())) >= self.ok:
                 raise RuntimeError("the live server broke")
@@ -433,7 +434,8 @@ async def test_a_web_page_you_did_not_choose_cannot_read_the_traffic_live(tmp_pa
             writer.write(SENSOR_REQUEST)
             await asyncio.wait_for(reader.readexactly(len(SENSOR_REQUEST)), WAIT)
             for fox in clients:
-                await until(lambda fox=fox: any(json.loads(d)["raw"] == RAW_SENSOR_REQUEST for _, d in fox.got["/frames"]),
+                await until(lambda fox=fox: any(json.loads(d)["raw"] == RAW_SENSOR_REQUEST
+                                                for _, d in fox.got["/frames"]),
                             "the Sensor Request, live, to each allowed client")
             writer.close()
             for fox in clients:

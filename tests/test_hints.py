@@ -56,7 +56,7 @@ def test_a_write_failure_that_leaves_a_part_names_recover(tmp_path):
     file = RecordingFile(str(tmp_path / f"{NAME}.mcap"), {"session_id": "x"})
     file.open(1)
     file.write("/tcp/events", 1, b'{"event": "x"}')
-    os.close(file._stream.fd)  # noqa: SLF001 - the disk goes away: neither the write nor the cut-back works
+    os.close(file._stream.fd)  # the disk goes away: neither the write nor the cut-back works
     with pytest.raises(RecordingWriteError) as failed:
         file.flush()
     part = f"{tmp_path / NAME}.mcap.part"

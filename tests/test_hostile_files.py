@@ -29,6 +29,7 @@ import time
 import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
 from pathlib import Path
 
 import lz4.frame
@@ -92,7 +93,7 @@ def metadata(values: dict[bytes, bytes], name: bytes = METADATA_NAME.encode()) -
     return record(0x0C, string(name) + struct.pack("<I", len(body)) + body)
 
 
-def zeros(compressor, size: int) -> bytes:  # noqa: ANN001 - a zstd compressobj or an lz4 frame compressor
+def zeros(compressor, size: int) -> bytes:
     """``size`` zero bytes, compressed a MiB at a time."""
     out = [compressor.begin()] if hasattr(compressor, "begin") else []
     out += [compressor.compress(bytes(MIB)) for _ in range(size // MIB)]
@@ -179,7 +180,7 @@ def damaged(at: int, edit: Callable[[bytearray, int], None]) -> bytes:
 def read_chunks(data: bytes | None = None) -> list[int]:
     """Offsets of the chunks holding /tcp/reads (the ones every reader decompresses)."""
     records = layout(data or base())
-    return [pos for (pos, op, _), (index, op2, _) in zip(records, records[1:])
+    return [pos for (pos, op, _), (index, op2, _) in pairwise(records)
             if op == 0x06 and op2 == 0x07 and struct.unpack_from("<H", data or base(), index + 9)[0] == READS]
 
 
@@ -224,7 +225,9 @@ def _truncations() -> dict[str, Callable[[], bytes]]:
     def cut(where: Callable[[], int]) -> Callable[[], bytes]:
         return lambda: base()[:where()]
 
-    first_chunk = lambda: offsets_of(0x06)[0]  # noqa: E731
+    def first_chunk():
+        return offsets_of(0x06)[0]
+
     return {
         "cut-after-magic": cut(lambda: 8),
         "cut-in-header": cut(lambda: 13),
@@ -239,7 +242,7 @@ def _truncations() -> dict[str, Callable[[], bytes]]:
 
 # kind -> the file's bytes, given a folder for the ones the mcap library writes
 KINDS: dict[str, Callable[[Path], bytes]] = {
-    **{name: (lambda build: lambda tmp: build())(build) for name, build in _truncations().items()},
+    **{name: (lambda build: lambda tmp: build())(make) for name, make in _truncations().items()},
     "cut-in-summary": lambda tmp: base()[:data_end() + 40],
     "junk-after-header": lambda tmp: prefix() + bytes(range(256)) * 20,
     "huge-record-length": lambda tmp: prefix() + struct.pack("<BQ", 0x06, 1 << 63) + bytes(64),
@@ -321,11 +324,10 @@ EXPECTED.update({kind: MESSAGES for kind in KINDS if kind.startswith(("read-", "
 # the copy gets a new index, and messages are copied as they are).
 CUT, SKIPPED = "; the file ended mid-write at byte ", "; skipped 1 damaged region (at byte "
 RECOVER_SAYS = {
-    **{kind: CUT for kind in _truncations()}, "junk-after-header": CUT, "huge-record-length": CUT,
-    **{kind: SKIPPED for kind in ("chunk-claims-exabytes", "chunk-shorter-than-claimed", "uncompressed-size-mismatch",
-                                  "unknown-compression", "record-overruns-chunk", "zeros-in-a-chunk", "bad-crc",
-                                  "corrupt-zstd", "metadata-not-utf8", "metadata-map-overruns",
-                                  "metadata-string-overruns")},
+    **dict.fromkeys(_truncations(), CUT), "junk-after-header": CUT, "huge-record-length": CUT,
+    **dict.fromkeys(("chunk-claims-exabytes", "chunk-shorter-than-claimed", "uncompressed-size-mismatch",
+                     "unknown-compression", "record-overruns-chunk", "zeros-in-a-chunk", "bad-crc", "corrupt-zstd",
+                     "metadata-not-utf8", "metadata-map-overruns", "metadata-string-overruns"), SKIPPED),
 }
 
 # How each command is given its input (as in tests/test_bad_input.py).  Replay
@@ -362,7 +364,7 @@ def files(tmp_path_factory) -> dict[str, str]:
     return out
 
 
-def whiztap_in_process(args: list[str], capsys) -> tuple[int, str, str]:  # noqa: ANN001 - pytest's capsys
+def whiztap_in_process(args: list[str], capsys) -> tuple[int, str, str]:
     """``whiztap ARGS`` through its real entry point, in this process."""
     from whiztap.analyzer.cli.root import main
 
@@ -507,8 +509,8 @@ def bomb_files(tmp_path_factory) -> dict[str, str]:
     return out
 
 
-EXPECTED.update({kind: SALVAGED for kind in bombs()})
-RECOVER_SAYS.update({kind: SKIPPED for kind in bombs()})
+EXPECTED.update(dict.fromkeys(bombs(), SALVAGED))
+RECOVER_SAYS.update(dict.fromkeys(bombs(), SKIPPED))
 
 
 @pytest.mark.slow
@@ -532,8 +534,9 @@ def test_the_limit_is_settable_and_named_when_it_refuses(tmp_path):
     path = tmp_path / "big-chunk.mcap"
     path.write_bytes(with_reads(*[read_json(data="QUJD" * 4096)] * 300))  # a chunk of about 5 MB
     code, _, err = run_cli("analyze", path, env={"WHIZTAP_MAX_CHUNK": "1M"})
-    assert code == 2 and err.count("\n") == 1 and f"{path}: the chunk at byte {offsets_of(0x06, path.read_bytes())[0]}" \
-        " claims" in err and "WHIZTAP_MAX_CHUNK=5M lets whiztap read it" in err, err
+    chunk = offsets_of(0x06, path.read_bytes())[0]
+    assert code == 2 and err.count("\n") == 1 and f"{path}: the chunk at byte {chunk} claims" in err \
+        and "WHIZTAP_MAX_CHUNK=5M lets whiztap read it" in err, err
     assert run_cli("analyze", path, env={"WHIZTAP_MAX_CHUNK": "5M"}).returncode in (0, 1)
     code, _, err = run_cli("cat", path, env={"WHIZTAP_MAX_CHUNK": "lots"})
     assert code == 2 and err.count("\n") == 1 and "WHIZTAP_MAX_CHUNK: 'lots' is not a size" in err, err

@@ -333,7 +333,7 @@ def _flood(syns: int, syn_acks: bool = False) -> list[bytes]:
                        _frame(REAL, SERVER, ic + 1, is_ + 1, ACK),
                        _frame(REAL, SERVER, ic + 1, is_ + 1, PSH | ACK, REAL_C2S),
                        _frame(SERVER, REAL, is_ + 1, ic + 17, PSH | ACK, REAL_S2C)]
-        client = ("10.%d.%d.%d" % (1 + i // 60_000, i // 250 % 240, 1 + i % 250), 1024 + i % 60_000)
+        client = (f"10.{1 + i // 60_000}.{i // 250 % 240}.{1 + i % 250}", 1024 + i % 60_000)
         frames.append(_frame(client, SERVER, i * 7919, 0, SYN))
         if syn_acks:
             frames.append(_frame(SERVER, client, i, i * 7919 + 1, SYN | ACK))
@@ -343,7 +343,7 @@ def _flood(syns: int, syn_acks: bool = False) -> list[bytes]:
     return frames
 
 
-def _write_pcap(path, frames: list[bytes]) -> None:  # noqa: ANN001
+def _write_pcap(path, frames: list[bytes]) -> None:
     with open(path, "wb") as f:
         f.write(struct.pack("<IHHiIII", 0xA1B2C3D4, 2, 4, 0, 0, 65535, DLT_EN10MB))
         for i, frame in enumerate(frames):
@@ -358,7 +358,7 @@ class CountingRecorder(Recorder):
         super().__init__(*args, **kwargs)
         self.open_now = self.most_open = 0
 
-    def receive(self, event) -> None:  # noqa: ANN001
+    def receive(self, event) -> None:
         super().receive(event)
         if type(event) is Opened:
             self.open_now += 1
@@ -367,7 +367,7 @@ class CountingRecorder(Recorder):
             self.open_now -= 1
 
 
-def _reassemble(path, frames: list[bytes], max_open: int) -> CountingRecorder:  # noqa: ANN001
+def _reassemble(path, frames: list[bytes], max_open: int) -> CountingRecorder:
     recorder = CountingRecorder(RecordingFile(str(path), {"source": "pcap"}), keep_secrets=True)
     recorder.start(1)
     reassembler = Reassembler(SERVER[1], recorder, max_open)
@@ -379,7 +379,7 @@ def _reassemble(path, frames: list[bytes], max_open: int) -> CountingRecorder:  
     return recorder
 
 
-def _events(path) -> list[dict]:  # noqa: ANN001
+def _events(path) -> list[dict]:
     with open(path, "rb") as f:
         return [m for _, _, m in RecordingScan(f, (TOPIC_EVENTS,)).messages()]
 
@@ -399,7 +399,7 @@ def test_a_syn_flood_keeps_at_most_max_open_connections_each_closed_on_record(tm
     opened = [e for e in events if e["event"] == "opened"]
     assert len(opened) == syns + 1
     assert _closes(events) == {EVICTED: syns + 1 - cap, "the capture ended": cap - 1, "closed": 1}
-    [real] = [e["conn"] for e in opened if e["client"] == "%s:%d" % REAL]
+    [real] = [e["conn"] for e in opened if e["client"] == "{}:{}".format(*REAL)]
     recorded = streams(str(tmp_path / "flood.mcap"))
     assert (recorded[(real, "c2s")], recorded[(real, "s2c")]) == (REAL_C2S, REAL_S2C)
 
@@ -434,7 +434,8 @@ def test_capture_of_a_syn_flood_stays_within_bounded_memory(tmp_path):
     syns = 100_000
     pcap, out = tmp_path / "flood.pcap", tmp_path / "flood.mcap"
     _write_pcap(pcap, _flood(syns))
-    command = [WHIZTAP, "capture", "--pcap", str(pcap), "--port", str(SERVER[1]), "-o", str(out), "-q", "--keep-secrets"]
+    command = [WHIZTAP, "capture", "--pcap", str(pcap), "--port", str(SERVER[1]), "-o", str(out), "-q",
+               "--keep-secrets"]
     done = subprocess.run([sys.executable, "-c", _CAPTURE, *command], capture_output=True, text=True,
                           timeout=300, check=True)
     status, maxrss_mb, stderr = done.stdout.split(" ", 2)
@@ -442,7 +443,7 @@ def test_capture_of_a_syn_flood_stays_within_bounded_memory(tmp_path):
     assert int(maxrss_mb) < 250
     events = _events(out)
     assert _closes(events) == {EVICTED: syns + 1 - MAX_OPEN, "the capture ended": MAX_OPEN - 1, "closed": 1}
-    [real] = [e["conn"] for e in events if e["event"] == "opened" and e["client"] == "%s:%d" % REAL]
+    [real] = [e["conn"] for e in events if e["event"] == "opened" and e["client"] == "{}:{}".format(*REAL)]
     recorded = streams(str(out))
     assert (recorded[(real, "c2s")], recorded[(real, "s2c")]) == (REAL_C2S, REAL_S2C)
 

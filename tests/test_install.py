@@ -147,7 +147,8 @@ def test_the_wheel_installs_under_one_name_and_its_plugin_runs_beside_other_top_
     project.mkdir()
     (project / "test_client.py").write_text(textwrap.dedent(PROJECT_TEST))
     python = venv / "bin" / "python"
-    pytest_args = [python, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-W", "error::pytest.PytestUnknownMarkWarning"]
+    pytest_args = [python, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                   "-W", "error::pytest.PytestUnknownMarkWarning"]
 
     recorded = _run([*pytest_args, "--whiztap-record=once"], project, env)
     assert "4 passed" in recorded, recorded

@@ -150,7 +150,7 @@ def _long_functions(path: Path) -> Iterator[str]:
     for node in ast.walk(_tree(path)):
         if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             continue
-        lines = node.end_lineno - node.lineno + 1  # type: ignore[operator]
+        lines = node.end_lineno - node.lineno + 1
         if lines > MAX_FUNCTION_LINES and "hot loop" not in (ast.get_docstring(node) or ""):
             yield f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({lines} lines)"
 
@@ -213,7 +213,7 @@ def test_no_library_module_defines_a_helper_only_tests_use() -> None:
     only_tests = []
     for path in library:
         for node in _tree(path).body:
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-                if node.name in used_by_tests and node.name not in used_by_library:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) \
+                    and node.name in used_by_tests and node.name not in used_by_library:
                     only_tests.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}")
     assert not only_tests, "library helpers only tests use (move them to tests/):\n  " + "\n  ".join(only_tests)

@@ -10,7 +10,7 @@ import asyncio
 import socket
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from whiztap.sniffer.record import live_gate
@@ -128,7 +128,7 @@ async def gate():
     sock.setblocking(False)
     warnings: list[str] = []
     g = LiveGate(sock, (LOCAL, behind.server.sockets[0].getsockname()[1]), (), warnings.append)
-    g.behind, g.warnings, g.port = behind, warnings, sock.getsockname()[1]  # type: ignore[attr-defined]
+    g.behind, g.warnings, g.port = behind, warnings, sock.getsockname()[1]
     g.start()
     yield g
     g.loop.call_soon_threadsafe(g.loop.stop)
@@ -150,7 +150,7 @@ async def test_a_viewer_that_stops_reading_stops_the_gate_reading(gate):
     held back (TCP pushes back on it) rather than the gate taking it all."""
     behind = gate.behind
     behind.flood = 256 << 20
-    reader, writer = await asyncio.open_connection(LOCAL, gate.port, limit=1 << 16)
+    _reader, writer = await asyncio.open_connection(LOCAL, gate.port, limit=1 << 16)
     writer.transport.pause_reading()
     writer.write(head() + b"\r\n\r\n")
     quiet, last = 0, -1
@@ -215,7 +215,7 @@ GATE_BUFFERS: dict[str, dict[str, int]] = {
 }
 
 
-def _containers(gate) -> list[tuple[str, str, object]]:  # noqa: ANN001 - a LiveGate
+def _containers(gate) -> list[tuple[str, str, object]]:
     owners = [gate, gate.refusals]
     for conn in list(gate.conns):
         owners += [conn, conn.client] + ([conn.upstream] if conn.upstream is not None else [])
@@ -259,7 +259,7 @@ async def _answer(port: int, data: bytes) -> bytes:
         writer.close()
 
 
-async def _until(condition) -> None:  # noqa: ANN001 - a callable
+async def _until(condition) -> None:
     for _ in range(int(WAIT * 100)):
         if condition():
             return

@@ -53,11 +53,11 @@ def _setup(drive: Drive, faults: list[str], intercept: str | None) -> None:
     drive.open(1)
 
 
-def _frame_for(direction) -> bytes:  # noqa: ANN001
+def _frame_for(direction) -> bytes:
     return SENSOR if direction is C2S else ANSWER
 
 
-def _receiver_goes(drive: Drive, direction, going: str) -> None:  # noqa: ANN001
+def _receiver_goes(drive: Drive, direction, going: str) -> None:
     receiver_sends = S2C if direction is C2S else C2S  # the socket of the receiver is the one that sends the other way
     if going == "sender FIN then receiver reset":
         drive.fin(1, direction)
@@ -71,12 +71,12 @@ def _receiver_goes(drive: Drive, direction, going: str) -> None:  # noqa: ANN001
     drive.close(1)
 
 
-def record(path, drive: Drive):  # noqa: ANN001, ANN201
+def record(path, drive: Drive):
     metadata = metadata_record(source="proxy", secrets="kept", **middle_metadata([], 1))
     recorder = Recorder(RecordingFile(str(path), metadata), keep_secrets=True)
     recorder.start(T0)
     for event in drive.events:
-        recorder.receive(event)  # type: ignore[arg-type]
+        recorder.receive(event)
     recorder.stop(drive.t + MS)
     return read_all(str(path))
 
@@ -150,7 +150,7 @@ def test_a_command_racing_the_end_is_answered_409_or_done_never_500(moment):
         drive.send(1, C2S, SENSOR * 3)
         drive.send(1, S2C, ANSWER)
         _, answer = drive.api("GET", "/held")
-        held = answer["held"]  # type: ignore[index]
+        held = answer["held"]
         if order:
             _to(drive, moment)
         if order == 2:
@@ -159,7 +159,7 @@ def test_a_command_racing_the_end_is_answered_409_or_done_never_500(moment):
             status, answer = drive.api(method, path, body)  # never 500: Drive.api asserts it
             assert status in (200, 404, 409), (method, path, status, answer)
             if status == 409:
-                assert CLOSING.match(answer["error"]), answer  # type: ignore[index]
+                assert CLOSING.match(answer["error"]), answer
         if not order:
             _to(drive, moment)
         drive.settle()  # nothing raises later either (a write after its FIN raises in the drive's shell)
@@ -170,17 +170,17 @@ def test_once_a_side_is_gone_every_command_is_refused_in_one_line():
     _setup(drive, [], "dir:c2s")
     drive.send(1, C2S, SENSOR)
     _, answer = drive.api("GET", "/held")
-    [held] = answer["held"]  # type: ignore[index]
+    [held] = answer["held"]
     drive.lose(1, S2C)  # the server went: the connection is ending
     for method, path, body in _requests([held]):
         status, answer = drive.api(method, path, body)
         if path.startswith("/held/") and status == 404:  # the held frame expired as its receiver went
-            assert "no held frame" in answer["error"], answer  # type: ignore[index]
+            assert "no held frame" in answer["error"], answer
             continue
         if path == "/held/release-all":
             assert (status, answer) == (200, {"released": 0}), answer
             continue
-        assert (status, CLOSING.match(answer["error"]) is not None) == (409, True), (path, status, answer)  # type: ignore[index]
+        assert (status, CLOSING.match(answer["error"]) is not None) == (409, True), (path, status, answer)
 
 
 def test_an_injection_toward_a_side_already_sent_its_fin_is_409():
@@ -191,7 +191,7 @@ def test_an_injection_toward_a_side_already_sent_its_fin_is_409():
     drive.fin(1, C2S)
     assert C2S in drive.shells[1].eof
     status, answer = drive.api("POST", "/inject", {"conn": 1, "dir": "c2s", "frame": "sensor 12"})
-    assert status == 409 and CLOSING.match(answer["error"]), answer  # type: ignore[index]
+    assert status == 409 and CLOSING.match(answer["error"]), answer
     status, _ = drive.api("POST", "/inject", {"conn": 1, "dir": "s2c", "frame": ANSWER.decode()})
     assert status == 200  # the other way is still open
     assert drive.delivered(1, S2C).endswith(ANSWER)
@@ -259,7 +259,7 @@ async def test_whiztap_record_shows_no_traceback_when_frames_and_commands_race_t
         hammer = threading.Thread(target=_hammer, args=(m.group(1), stop, statuses), daemon=True)
         hammer.start()
         for _ in range(6):
-            reader, writer = await asyncio.open_connection(LOCAL, rec.port)
+            _reader, writer = await asyncio.open_connection(LOCAL, rec.port)
             writer.write(SENSOR)
             await writer.drain()
             await asyncio.sleep(0.05)  # the server answered and closed; its answer is due in 300 ms

@@ -207,7 +207,7 @@ _CALM = ["now"] * 40 + ["pieces"] * 4 + _WAYS[7:]  # mostly in step, for a while
 
 
 @st.composite
-def _middle_traffic(draw) -> list[TrafficEvent]:  # noqa: C901 - one drawing, step by step
+def _middle_traffic(draw) -> list[TrafficEvent]:  # one drawing, step by step
     """One or two connections, interleaved: reads both ways (protocol pieces and
     junk), each delivered at once, in pieces, later (or part of it), changed,
     dropped or not at all; injections; half-closes and a gap."""
@@ -329,7 +329,7 @@ def test_a_recording_made_in_the_middle_reads_as_it_did_with_the_views_always_fe
 
     def spied(self: Sides, conn: int, c: object) -> list:
         out_of_step.append(conn)
-        return diverge(self, conn, c)  # type: ignore[arg-type]
+        return diverge(self, conn, c)
 
     monkeypatch.setattr(sides_module.Sides, "_diverge", spied)
     lazy = build(analyse_file(path, "dev-sum", limits))

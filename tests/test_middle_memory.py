@@ -64,7 +64,7 @@ GROW = MAX_REPLACEMENT * (MAX_DUP_FAULTS + 1)
 Size = Callable[[object], int]
 
 
-def _bytes(value) -> int:  # noqa: ANN001
+def _bytes(value) -> int:
     if isinstance(value, (bytes, bytearray)):
         return len(value)
     if isinstance(value, deque) and value and hasattr(value[0], "data"):  # Out
@@ -76,7 +76,7 @@ def _bytes(value) -> int:  # noqa: ANN001
     return 0
 
 
-def _count(value) -> int:  # noqa: ANN001
+def _count(value) -> int:
     return len(value)
 
 
@@ -141,7 +141,7 @@ def test_every_buffer_of_the_middle_is_registered():
 # -- the abuse, on the fake clock ----------------------------------------------------------------------
 
 
-def transport_buffer(drive: Drive, direction) -> int:  # noqa: ANN001
+def transport_buffer(drive: Drive, direction) -> int:
     """What the proxy's transport toward a receiver that never reads would hold:
     what the core delivered to it, less what the kernel took."""
     drive.never_reads.add((1, direction))
@@ -154,7 +154,7 @@ def told_bytes(events: list[object]) -> int:
                for e in events)
 
 
-def _flood(drive: Drive, direction, reads: int, data: bytes) -> dict[str, int]:  # noqa: ANN001
+def _flood(drive: Drive, direction, reads: int, data: bytes) -> dict[str, int]:
     """The sender of ``direction`` sends ``reads`` reads of ``data``, read as the
     proxy reads (only while the core lets it and the transport toward the
     receiver is under its mark); after each, every buffer is checked, and so
@@ -210,7 +210,7 @@ def test_injections_past_the_room_are_refused_and_nothing_grows():
         held = transport_buffer(drive, S2C)
         assert held <= TRANSPORT_HIGH_WATER + INJECT_ROOM, f"the transport toward the client holds {held:,} bytes"
     assert set(statuses) == {200, 429} and statuses.count(429) > 1000
-    errors = {answer["error"] for _, _, status, answer in drive.answers if status == 429}  # type: ignore[index]
+    errors = {answer["error"] for _, _, status, answer in drive.answers if status == 429}
     assert errors and all("already wait" in e and "\n" not in e for e in errors), errors
 
 
@@ -234,7 +234,7 @@ class Answers(_ThreadedServer):
 
 
 async def _never_reading_client(port: int) -> asyncio.StreamWriter:
-    reader, writer = await asyncio.open_connection(LOCAL, port, limit=1 << 16)
+    _reader, writer = await asyncio.open_connection(LOCAL, port, limit=1 << 16)
     writer.transport.pause_reading()
     writer.write(b"rr1-12--0--0-ss1")  # the server starts answering
     await writer.drain()
@@ -327,6 +327,6 @@ def test_the_api_refuses_them_in_one_line_too():
     for _ in range(MAX_DUP_FAULTS):
         assert drive.api("POST", "/faults", {"spec": "dup dir:s2c"})[0] == 201
     status, answer = drive.api("POST", "/faults", {"spec": "dup dir:s2c"})
-    assert status == 400 and "dup faults" in answer["error"] and "\n" not in answer["error"]  # type: ignore[index]
+    assert status == 400 and "dup faults" in answer["error"] and "\n" not in answer["error"]
     status, answer = drive.api("POST", "/faults", {"spec": f'replace:"{"9" * (MAX_REPLACEMENT + 1)}" dir:s2c'})
-    assert status in (400, 413) and "\n" not in answer["error"]  # type: ignore[index]
+    assert status in (400, 413) and "\n" not in answer["error"]

@@ -74,26 +74,29 @@ SENSOR, SENSOR_ANSWER = b"rr1-12--0--0-ss1", b"cr1-12--5--0-ss1"
 ASKS, YES, NO = b"sendchkpass", b"readytogo", b"Failed Validation"
 
 # The actions, each as a fault SPEC that may choose the password's frame (or the line break next to it).
-FAULT_ACTIONS = ("drop", "dup", "delay:40ms", "delay:2s", "corrupt", 'replace:"rr1-13--0--0-ss1"', "slice:3", "bandwidth:1kB/s",
-                 "blackhole", "reset", "close")
+FAULT_ACTIONS = ("drop", "dup", "delay:40ms", "delay:2s", "corrupt", 'replace:"rr1-13--0--0-ss1"', "slice:3",
+                 "bandwidth:1kB/s", "blackhole", "reset", "close")
 CHOOSERS = ("dir:c2s", "dir:c2s nth:1", "dir:c2s nth:2", "dir:c2s every:2", "", "dir:c2s kind:unframed")
-SHAPES = ("eager", "eager, no line break", "eager, then a pause", "split", "no line break, then a command", "no line break, alone", "wrong")
+SHAPES = ("eager", "eager, no line break", "eager, then a pause", "split", "no line break, then a command",
+          "no line break, alone", "wrong")
 
 
 # -- the sessions -------------------------------------------------------------------------------------
 
 
-def _cut(draw, data: bytes) -> list[bytes]:  # noqa: ANN001 - hypothesis' draw
+def _cut(draw, data: bytes) -> list[bytes]:
     """``data`` in random reads."""
     cuts = sorted(draw(st.lists(st.integers(1, max(len(data) - 1, 1)), max_size=4)))
     return [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)]) if b > a]
 
 
-def login(shape: str, lead: bytes, cut=lambda data: [data]) -> list[tuple]:  # noqa: ANN001
+def login(shape: str, lead: bytes, cut=lambda data: [data]) -> list[tuple]:
     """One Winsock login of ``shape`` as steps: ("c", bytes) the client sends,
     ("s", bytes) the server sends, ("t", ns) time passes; ``lead``: line
     breaks before the password; ``cut``: the client's bytes into reads."""
-    c = lambda data: [("c", piece) for piece in cut(data)]  # noqa: E731
+    def c(data):
+        return [("c", piece) for piece in cut(data)]
+
     if shape == "eager":
         return [*c(lead + SECRET + b"\r\n" + COMMAND), ("s", ASKS), ("s", YES), ("s", ANSWER)]
     if shape == "eager, no line break":
@@ -117,7 +120,7 @@ ENDS = ("both FIN", "the client resets", "the server goes", "both go at once")
 
 
 @st.composite
-def sessions(draw):  # noqa: ANN001
+def sessions(draw):
     """A login, faults in force, interception or not, injections and what a
     person does with held frames, and how the connection ends."""
     shape = draw(st.sampled_from(SHAPES))
@@ -143,7 +146,7 @@ def sessions(draw):  # noqa: ANN001
 def _act_on_held(drive: Drive, people: list[str], turn: int) -> None:
     """A person looks at the held frames and does what ``people`` says, in turn."""
     _, answer = drive.api("GET", "/held")
-    for held in answer["held"]:  # type: ignore[index]
+    for held in answer["held"]:
         what = people[turn % len(people)]
         turn += 1
         if what == "release":
@@ -175,7 +178,7 @@ def _end(drive: Drive, conn: int, end: str) -> None:
         drive.close(conn)
 
 
-def drive_session(drive: Drive, session, conn: int = 1) -> None:  # noqa: ANN001
+def drive_session(drive: Drive, session, conn: int = 1) -> None:
     """Play ``session`` (from ``sessions()``) on connection ``conn`` of
     ``drive``, its faults and interception aimed at it (``conn:N``), and take
     them away once it is over."""
@@ -184,7 +187,7 @@ def drive_session(drive: Drive, session, conn: int = 1) -> None:  # noqa: ANN001
     for spec in faults:
         status, answer = drive.api("POST", "/faults", {"spec": f"{spec} conn:{conn}"})
         assert status == 201, answer
-        ids.append(answer["id"])  # type: ignore[index]
+        ids.append(answer["id"])
         drive.api("POST", f"/faults/{ids[-1]}/enable", {"enabled": False})
         drive.api("POST", f"/faults/{ids[-1]}/enable", {"enabled": True})
     if intercept is not None:
@@ -225,7 +228,7 @@ def record(path: Path, drive: Drive, keep_secrets: bool = False) -> Path:
     recorder = Recorder(RecordingFile(str(path), metadata), keep_secrets=keep_secrets)
     recorder.start(T0)
     for event in drive.events:
-        recorder.receive(event)  # type: ignore[arg-type]
+        recorder.receive(event)
     recorder.stop(drive.t + MS)
     return path
 
@@ -235,8 +238,8 @@ def live_tui(drive: Drive, redact: bool = True) -> bytes:
     from whiztap.tui.data.model import TrafficModel
     from whiztap.tui.data.sources import LiveSource
 
-    source = LiveSource(None, "live", redact_passwords=redact)  # type: ignore[arg-type]
-    source.recording = types.SimpleNamespace(controller=drive.controller)  # type: ignore[assignment]
+    source = LiveSource(None, "live", redact_passwords=redact)
+    source.recording = types.SimpleNamespace(controller=drive.controller)
     source.queue.extend(drive.events)
     source.stopped.set()
     model = TrafficModel("live", redact_passwords=redact)
@@ -244,7 +247,7 @@ def live_tui(drive: Drive, redact: bool = True) -> bytes:
     return store_text(model)
 
 
-def in_memory_outputs(drive: Drive, script=None) -> list[tuple[str, str | bytes]]:  # noqa: ANN001
+def in_memory_outputs(drive: Drive, script=None) -> list[tuple[str, str | bytes]]:
     """Every output that needs no file: the API's answers and ctl's lines for
     them, the proxy's warnings, the script's log and the interventions as told."""
     shown: list[tuple[str, str | bytes]] = []
@@ -260,7 +263,7 @@ def in_memory_outputs(drive: Drive, script=None) -> list[tuple[str, str | bytes]
 
 
 @pytest.fixture(scope="module")
-def logging_script(tmp_path_factory):  # noqa: ANN001, ANN201
+def logging_script(tmp_path_factory):
     path = tmp_path_factory.mktemp("script") / "logs_every_flow.py"
     path.write_text(LOGGING_SCRIPT)
     return path
@@ -355,7 +358,7 @@ def case_session(shape: str, action: str, n: int) -> tuple:
 
 
 @pytest.fixture(scope="module")
-def every_case(tmp_path_factory, logging_script):  # noqa: ANN001, ANN201
+def every_case(tmp_path_factory, logging_script):
     """Every case of CASES as a connection of its own, one after the other;
     the drive, the script, and the recording the recorder made of it."""
     drive, script = _drive_with_script(logging_script)
@@ -391,7 +394,7 @@ def test_the_cases_reach_every_action_topic_and_route(every_case):
     assert wanted <= done, wanted - done
     asked = {(method, path_) for method, path_, _, _ in drive.answers}
     assert {route_key(m, p) for m, p in asked} == set(API_OUTPUTS)
-    assert any(line.startswith("channel=") for line in script.module.LOG)  # type: ignore[attr-defined]
+    assert any(line.startswith("channel=") for line in script.module.LOG)
     # kept secrets are kept: the check can fail
     kept = Drive(redact=False)
     drive_session(kept, case_session("eager", "intercept edit", 1))
@@ -403,7 +406,7 @@ def test_the_cases_reach_every_action_topic_and_route(every_case):
 
 def _choices(command: click.Command, option: str) -> list[str]:
     [param] = [p for p in command.params if p.name == option]
-    return list(param.type.choices)  # type: ignore[attr-defined]
+    return list(param.type.choices)
 
 
 def test_every_output_is_registered():
@@ -445,7 +448,7 @@ async def _ctl(control: str, *args: str) -> str:
 
 async def _get(url: str) -> str:
     request = urllib.request.Request(url, headers={"Authorization": f"Bearer {CONTROL_TOKEN}"})
-    return await asyncio.to_thread(lambda: urllib.request.urlopen(request, timeout=10).read().decode())  # noqa: S310
+    return await asyncio.to_thread(lambda: urllib.request.urlopen(request, timeout=10).read().decode())
 
 
 @pytest.mark.slow
@@ -536,7 +539,7 @@ async def test_the_live_tui_shows_a_held_password_masked_in_its_row_and_its_edit
                 await until(pilot, lambda: isinstance(app.screen, EditorScreen), "the editor")
                 await pilot.pause()
                 screens.append(app.export_screenshot())
-                edited.append(app.screen.typed_input.value)  # type: ignore[attr-defined]
+                edited.append(app.screen.typed_input.value)
                 await pilot.press("escape")
                 await until(pilot, lambda: not isinstance(app.screen, EditorScreen), "the editor to close")
             assert "*" * len(SECRET) in edited  # the editor opened on the password, masked

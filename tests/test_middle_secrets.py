@@ -23,7 +23,7 @@ def _everything(path) -> str:
     import base64
 
     text = []
-    for topic, messages in read_all(str(path)).items():
+    for messages in read_all(str(path)).values():
         for m in messages:
             text.append(json.dumps(m))
             for key in ("data", "raw"):

@@ -58,8 +58,8 @@ async def test_a_fin_passed_before_a_write_of_the_other_way_does_not_close_over_
     controller.add_fault("delay:1ms dir:s2c")
     connection = Connection(proxy, 1)
     log: list[tuple[str, object]] = []
-    connection.client.transport = NotingTransport(log, "client")  # type: ignore[assignment]
-    connection.upstream.transport = NotingTransport(log, "server")  # type: ignore[assignment]
+    connection.client.transport = NotingTransport(log, "client")
+    connection.upstream.transport = NotingTransport(log, "server")
     shell = connection.middle = MiddleShell(controller, connection, lambda: now[0])
     shell.ready(C2S)
     shell.ready(S2C)

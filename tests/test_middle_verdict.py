@@ -31,7 +31,7 @@ DELAY_MS = 300
 
 
 def _judge(**options: object) -> Judge:
-    return Judge(limits=Limits(answer_timeout_ns=int(ANSWER_S * 1e9)), middle=True, **options)  # type: ignore[arg-type]
+    return Judge(limits=Limits(answer_timeout_ns=int(ANSWER_S * 1e9)), middle=True, **options)
 
 
 def _analyze(path: Path, *args: str, fmt: str = "json") -> tuple[int, str]:
@@ -51,7 +51,7 @@ def test_the_judge_fed_live_says_what_analyze_says_of_the_file(tmp_path):
     live, strict = _judge(), _judge(fail_on_interventions=True)
     seen: list = []
 
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         await _sensors(client, 1)
         rec.controller.inject(1, "s2c", "cr1-12--5--0-ss1")
         for _ in range(300):
@@ -79,7 +79,7 @@ def test_the_judge_fed_live_says_what_analyze_says_of_the_file(tmp_path):
 
 
 def test_a_judge_reading_the_file_agrees_and_effects_alone_fail_only_when_asked(tmp_path):
-    async def session(client: Client, rec) -> None:  # noqa: ANN001
+    async def session(client: Client, rec) -> None:
         await _sensors(client, 1)
         rec.controller.inject(1, "c2s", "sensor 13")
         await client.sensor(12)
@@ -109,7 +109,7 @@ def test_a_judge_reading_the_file_agrees_and_effects_alone_fail_only_when_asked(
 
 
 @pytest.fixture(scope="module")
-def slowed(tmp_path_factory) -> dict[str, Path]:  # noqa: ANN001
+def slowed(tmp_path_factory) -> dict[str, Path]:
     """The same session with every answer (s2c) or every request (c2s) held
     DELAY_MS by the proxy; the client waits longer than that."""
     folder = tmp_path_factory.mktemp("latency")
@@ -166,7 +166,7 @@ def test_the_live_judge_has_both_latencies_too(slowed):
 
 
 def test_without_the_middle_there_is_one_latency_unlabelled():
-    code, output = _analyze(Path(__file__).parent.parent / "samples/vpn.mcap")
+    _code, output = _analyze(Path(__file__).parent.parent / "samples/vpn.mcap")
     report = json.loads(output)
     assert "client_latency" not in report and report["latency"]
     _, text = _analyze(Path(__file__).parent.parent / "samples/vpn.mcap", fmt="text")

@@ -109,7 +109,8 @@ def test_no_command_writes_over_its_input_even_with_force(tmp_path, command, nam
     elif named == "hardlink":
         os.link(source, output)
     for force in ([], ["--force"]):
-        line = refused(run_cli(*WRITERS[command](source.name, output), *force, cwd=tmp_path), "input", "even with --force")
+        ran = run_cli(*WRITERS[command](source.name, output), *force, cwd=tmp_path)
+        line = refused(ran, "input", "even with --force")
         assert source.read_bytes() == before, (force, line)
     assert sorted(p.name for p in tmp_path.iterdir() if ".part" in p.name or "recover" in p.name) == []
 
@@ -222,7 +223,7 @@ async def test_the_tui_replay_never_saves_over_the_recording_or_an_existing_file
                              (existing, "exists; choose another name")):
             screen.query_one("#output").value = str(output)
             await pilot.press("f5")
-            await until(pilot, lambda: any(said in n.message for n in app._notifications),  # noqa: SLF001
+            await until(pilot, lambda said=said: any(said in n.message for n in app._notifications),
                         f"the refusal of {output.name}")
             assert screen.runner is None
     assert recording.read_bytes() == before and existing.read_bytes() == b"an earlier replay"
@@ -375,7 +376,7 @@ async def test_the_tui_shows_hostile_text_literally(hostile):
         assert "[bold]B[/bold][link=http://e]L[/link]" in client.plain and not client.spans
         store = app.model.store
         garbage = next(n for n in range(store.count) if HOSTILE_BYTES[:8] in store.raw(n))
-        console = Console(width=200, record=True, file=open(os.devnull, "w"))  # noqa: SIM115
+        console = Console(width=200, record=True, file=open(os.devnull, "w"))
         console.print(describe_frame(store, garbage))
         shown = console.export_text()
         assert "[bold]B[/bold][link=http://e]L[/link]" in shown and "<script>alert(1)</script>" in shown
@@ -393,7 +394,7 @@ class _Cells(html.parser.HTMLParser):
         self.cells: dict[str, list] = {"td": [], "code": [], "rows": []}
         self._open: list[str] = []
 
-    def handle_starttag(self, tag: str, attrs: list) -> None:  # noqa: ANN001
+    def handle_starttag(self, tag: str, attrs: list) -> None:
         if tag == "tr":
             self.cells["rows"].append([])
         if tag in ("td", "code"):

@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 from collections import defaultdict
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -147,8 +148,8 @@ def test_a_read_longer_than_a_packet_is_several_segments(tmp_path):
 
 
 def test_refused_reset_and_ipv6_connections_come_back_as_they_were(tmp_path):
-    events = [Opened(1, T0 + MS, "[2001:db8::7]:40001", "[2001:db8::1]:5000"), UpstreamFailed(1, T0 + 2 * MS, "refused"),
-              Closed(1, T0 + 3 * MS, "server", "reset (refused)")]
+    events = [Opened(1, T0 + MS, "[2001:db8::7]:40001", "[2001:db8::1]:5000"),
+              UpstreamFailed(1, T0 + 2 * MS, "refused"), Closed(1, T0 + 3 * MS, "server", "reset (refused)")]
     events += _session(2, T0 + 10 * MS, "[2001:db8::7]:40002", "[2001:db8::1]:5000")[:-2]
     events += [Closed(2, T0 + 30 * MS, "server", "reset (by peer)")]
     recording = _record(tmp_path / "ends.mcap", events)
@@ -206,10 +207,10 @@ def test_the_export_command_writes_to_standard_output_and_refuses_what_it_should
 # -- capture without --port ---------------------------------------------------------------------
 
 
-def _conversation(client, server, c2s: bytes, s2c: bytes, t: float, syn: bool = True):  # noqa: ANN001, ANN202
+def _conversation(client, server, c2s: bytes, s2c: bytes, t: float, syn: bool = True):
     """One TCP conversation's packets: a handshake (if ``syn``), the server's
     bytes, the client's, and FINs."""
-    def packet(src, dst, seq, ack, flags, payload=b""):  # noqa: ANN001, ANN202
+    def packet(src, dst, seq, ack, flags, payload=b""):
         p = IP(src=src[0], dst=dst[0]) / TCP(sport=src[1], dport=dst[1], seq=seq, ack=ack, flags=flags) / payload
         p.time = t + len(out) * 0.001
         return p
@@ -249,7 +250,8 @@ async def test_a_live_capture_without_a_port_finds_the_robot(tmp_path):
     async with Simulator(port=0, mode="vpn", seed=2, camera=False) as sim:
         port = sim.port
         proc = await start_process("capture", "--iface", "lo", "-o", out)
-        assert b"capturing Progwhiz conversations on any TCP port" in await asyncio.wait_for(proc.stdout.readline(), WAIT)
+        said = await asyncio.wait_for(proc.stdout.readline(), WAIT)
+        assert b"capturing Progwhiz conversations on any TCP port" in said
         async with await Client.connect(LOCAL, port) as client:
             await client.fetch_configuration()
             await client.sensor(15)
@@ -302,10 +304,10 @@ def test_export_and_the_shared_reader_agree_on_offsets_and_masks_of_a_split_mask
     assert got == expected
     assert any(masked for *_, masked in got)  # the password, masked
     c2s = [offset for _, d, offset, _ in got if d is C]
-    assert any(b - a > 15 for a, b in zip(c2s, c2s[1:]))  # the missing part: a jump
+    assert any(b - a > 15 for a, b in pairwise(c2s))  # the missing part: a jump
 
     packets = [p for p in rdpcap(str(_export(Path(files[0]), tmp_path / "s.pcapng"))) if TCP in p]
-    syn = {("192.0.2.7" == p[IP].src): p[TCP].seq for p in packets if p[TCP].flags & 0x02}
+    syn = {(p[IP].src == "192.0.2.7"): p[TCP].seq for p in packets if p[TCP].flags & 0x02}
     segments = [(C if p[IP].src == "192.0.2.7" else S, p[TCP].seq - syn[p[IP].src == "192.0.2.7"] - 1,
                  b"password, masked" in (p.comment or b"")) for p in packets if len(p[TCP].payload)]
     assert segments == [(d, offset, masked) for _, d, offset, masked in got]

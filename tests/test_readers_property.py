@@ -89,7 +89,7 @@ def traffic(draw, any_order: bool):
         lifecycle = [("opened", conn, "", b""), *body, ("closed", conn, "", b"")]
         if draw(st.booleans()):
             lifecycle.pop()  # still open when the recording stops
-        ops.append(lifecycle)  # type: ignore[arg-type]
+        ops.append(lifecycle)
     # Connections interleave too.
     merged: list = []
     queues = [list(q) for q in ops]

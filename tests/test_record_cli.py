@@ -81,7 +81,7 @@ async def test_analyze_prints_violations_as_they_happen(tmp_path):
     out = tmp_path / "analyze.mcap"
     async with EchoServer() as server:
         rec = await RecordProcess.start(server.port, out, "--analyze")
-        reader, writer = await asyncio.open_connection(LOCAL, rec.port)
+        _reader, writer = await asyncio.open_connection(LOCAL, rec.port)
         writer.write(b"rr1-99--5--0-ss1")
         line = await rec.wait_line(r"PW-RANGE-CHANNEL")
         writer.close()
@@ -186,7 +186,7 @@ async def test_a_full_disk_stops_recording_cleanly_and_keeps_what_was_written(tm
         except (asyncio.IncompleteReadError, ConnectionError):
             pass  # the recorder stopped and closed the connection
         writer.close()
-        code, stdout, stderr = await rec.finish(None)
+        code, _stdout, stderr = await rec.finish(None)
     assert code == 2
     assert stderr.count("\n") == 1 and stderr.startswith("whiztap: cannot write ")
     assert "File too large" in stderr and "recording stopped" in stderr

@@ -37,7 +37,7 @@ from tests.streams import stream_pieces
 
 def _cut(data: bytes, cuts: list[int]) -> list[bytes]:
     points = sorted({c % (len(data) + 1) for c in cuts} | {0, len(data)})
-    return [data[a:b] for a, b in zip(points, points[1:]) if b > a]
+    return [data[a:b] for a, b in itertools.pairwise(points) if b > a]
 
 
 # -- byte-exactness with random payloads and segmentations ---------------------------------------------
@@ -53,7 +53,7 @@ class _Background:
         self.thread.start()
         self.path = path
 
-    def run(self, coro):  # noqa: ANN001, ANN201 - any coroutine
+    def run(self, coro):
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(WAIT)
 
     async def start(self) -> None:
@@ -214,7 +214,7 @@ async def test_record_says_nothing_of_an_upstream_that_listens(tmp_path):
     assert code == 0 and err == "" and server.received == [bytearray()], err
 
 
-async def _until(condition) -> None:  # noqa: ANN001 - a callable
+async def _until(condition) -> None:
     while not condition():
         await asyncio.sleep(0.01)
 
@@ -299,7 +299,7 @@ async def test_a_client_that_stops_reading_does_not_grow_the_proxy(tmp_path):
     server = await asyncio.start_server(flooder, LOCAL, 0)
     async with recording(server.sockets[0].getsockname()[1], path) as rec:
         reader, writer = await asyncio.open_connection(LOCAL, rec.proxy.port, limit=1 << 16)
-        reader._transport.pause_reading()  # this client stops reading  # noqa: SLF001
+        reader._transport.pause_reading()  # this client stops reading
         conn = None
         for _ in range(500):
             await asyncio.sleep(0.01)
@@ -312,7 +312,7 @@ async def test_a_client_that_stops_reading_does_not_grow_the_proxy(tmp_path):
             high = max(high, conn.client.transport.get_write_buffer_size())
         assert high <= TRANSPORT_HIGH_WATER + (1 << 20)
         assert conn.upstream.received < len(flood)  # the proxy stopped pulling from the server
-        reader._transport.resume_reading()  # noqa: SLF001
+        reader._transport.resume_reading()
         got = await asyncio.wait_for(reader.read(-1), WAIT)
         writer.close()
         assert got == flood

@@ -50,7 +50,7 @@ async def test_a_winsock_session_through_the_proxy_is_recorded_whole(tmp_path):
     assert camera["frame_id"] == "conn-1" and set(camera["timestamp"]) == {"sec", "nsec"}
     kinds = [k for k, _ in frame_items(by_topic["/frames"], 1, "s2c")]
     assert kinds[:3] == ["handshake", "handshake", "config"] and "image" in kinds
-    assert [k for k, _ in frame_items(by_topic["/frames"], 1, "c2s")][0] == "password"
+    assert next(k for k, _ in frame_items(by_topic["/frames"], 1, "c2s")) == "password"
     assert not [v for v in by_topic["/violations"] if v["severity"] == "error"]
     assert summary["frames"]["c2s"] == 8 and summary["violations"].get("error", 0) == 0
     assert events(by_topic, 1) == ["opened", "upstream_connected", "half_closed", "closed"] or \

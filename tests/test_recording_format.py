@@ -65,7 +65,7 @@ CHECK = Path(__file__).parent / "mcap_check"
 
 
 
-def frame_message(conn: int, obs, offset: int, redact: bool) -> dict:  # noqa: ANN001 - an Observation
+def frame_message(conn: int, obs, offset: int, redact: bool) -> dict:
     """A /frames message built plainly, as a dict: what ``FrameEncoder`` must
     give byte for byte (docs/recording-format.md)."""
     item = obs.item
@@ -433,7 +433,7 @@ def test_a_failing_disk_keeps_what_was_flushed_readable(tmp_path, monkeypatch):
     real_write = os.write
 
     def full(fd: int, data: bytes) -> int:
-        if fd == rec.file._stream.fd:  # noqa: SLF001 - fail only the recording's writes
+        if fd == rec.file._stream.fd:  # fail only the recording's writes
             real_write(fd, bytes(data)[:10])  # a partial write, then the disk is full
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         return real_write(fd, data)
@@ -452,7 +452,7 @@ def test_a_failing_disk_keeps_what_was_flushed_readable(tmp_path, monkeypatch):
 
 def test_an_unwritable_path_fails_at_once(tmp_path):
     file = RecordingFile(str(tmp_path / "missing" / "x.mcap"), metadata_record())
-    with pytest.raises(RecordingWriteError, match="cannot write .*x.mcap.part: No such file or directory"):
+    with pytest.raises(RecordingWriteError, match=r"cannot write .*x\.mcap\.part: No such file or directory"):
         file.open(T0)
 
 

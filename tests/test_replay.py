@@ -51,11 +51,11 @@ def options(port: int, **kw) -> ReplayOptions:
     return ReplayOptions(target=(LOCAL, port), **kw)
 
 
-def answers(exchanges) -> int:  # noqa: ANN001
+def answers(exchanges) -> int:
     return sum(1 for c in exchanges.connections for i in c.items if i.answer is not None)
 
 
-async def replay(exchanges, opts: ReplayOptions, events: list | None = None):  # noqa: ANN001, ANN201
+async def replay(exchanges, opts: ReplayOptions, events: list | None = None):
     return await Replay(exchanges, opts, on_event=events.append if events is not None else None).run()
 
 
@@ -224,7 +224,9 @@ async def test_pause_step_resume(exchanges):
         r.pause()
         task = asyncio.create_task(r.run())
         await asyncio.sleep(0.2)
-        writes = lambda: [e for e in sent if isinstance(e, RequestSent)]  # noqa: E731
+        def writes():
+            return [e for e in sent if isinstance(e, RequestSent)]
+
         assert r.paused and writes() == []  # the connection opened, nothing written
         r.step()
         for _ in range(200):
@@ -357,7 +359,7 @@ def test_command_errors_are_one_line_with_status_2(recorded, tmp_path, args, mes
     closed = str(closed_port())
     fill = {"recorded": str(recorded), "garbage": str(garbage), "closed": closed}
     args = [a.format(**fill) for a in args]
-    code, stdout, stderr = run_cli("replay", *args)
+    code, _stdout, stderr = run_cli("replay", *args)
     assert code == 2
     assert stderr.startswith(message.format(**fill)) and stderr.count("\n") == 1, stderr
     assert "Traceback" not in stderr
@@ -387,7 +389,7 @@ def test_command_dry_run_prints_the_plan_and_sends_nothing(recorded):
     assert stdout.startswith("conn 1 (winsock,")
 
 
-async def _interrupted(recorded, *args: str) -> tuple[int, bytes, bytes]:  # noqa: ANN001 - a Path
+async def _interrupted(recorded, *args: str) -> tuple[int, bytes, bytes]:
     """A replay stopped by Ctrl-C once its first write has left: status, stdout, stderr."""
     async with simulator(seed=1) as sim:
         proc = await start_process("replay", recorded, "--target", f"{LOCAL}:{sim.port}", "--password", PASSWORD,
@@ -402,7 +404,7 @@ async def _interrupted(recorded, *args: str) -> tuple[int, bytes, bytes]:  # noq
     return proc.returncode, out, err
 
 
-async def _until_answered(sim) -> None:  # noqa: ANN001 - a Simulator
+async def _until_answered(sim) -> None:
     while not sim.stats.answers_sent:
         await asyncio.sleep(0.01)
 

@@ -263,8 +263,8 @@ async def test_faults_added_at_run_time_come_from_the_interventions_and_holds_do
     path = tmp_path / "late.mcap"
 
     async def halfway(rec: Recording) -> None:
-        rec.controller.add_fault(LATE, name="late")  # type: ignore[union-attr]
-        rec.controller.inject(1, "s2c", "cr1-14--5--0-ss1", force=True)  # type: ignore[union-attr]
+        rec.controller.add_fault(LATE, name="late")
+        rec.controller.inject(1, "s2c", "cr1-14--5--0-ss1", force=True)
 
     await record(path, MiddleSettings(faults=(parse_fault(DROP),), seed=11), halfway)
     metadata = read_metadata(str(path))

@@ -120,7 +120,8 @@ def test_a_channel_out_of_range_cites_the_section_of_the_message_it_is_in():
     # bytes with several meanings (no channel map can choose one for channel 31): every one of them
     assert _sections(b"rr1-31--0--0-ss1", "PW-RANGE-CHANNEL") == [
         "Sensor Request, De-Activate/Open Switch or Normal Send to Channel/Port"]
-    assert _sections(b"rr1-31--1--0-ss1", "PW-RANGE-CHANNEL") == ["Activate/Close Switch or Normal Send to Channel/Port"]
+    assert _sections(b"rr1-31--1--0-ss1", "PW-RANGE-CHANNEL") == [
+        "Activate/Close Switch or Normal Send to Channel/Port"]
 
 
 def test_a_fixed_field_cites_its_message_and_other_rules_their_own_section():

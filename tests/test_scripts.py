@@ -58,7 +58,7 @@ def causes(topics: dict[str, list[dict]]) -> set[str]:
 
 async def _seen(mid: Middle, direction: Direction, count: int, conn: int = 1) -> None:
     """Wait until the proxy has decided ``count`` frames of ``direction``."""
-    core, _ = mid.rec.controller.cores[conn]  # type: ignore[union-attr]
+    core, _ = mid.rec.controller.cores[conn]
     lane = core.lanes[direction]
     async with asyncio.timeout(WAIT):
         while lane.index < count:
@@ -135,7 +135,7 @@ async def test_a_hook_that_raises_is_reported_once_and_every_frame_passes(tmp_pa
             for ch in (12, 13, 14):
                 assert 0 <= await client.sensor(ch) <= 1024
             await client.fetch_configuration()
-        module = mid.rec.controller.scripts[0].module  # type: ignore[union-attr]
+        module = mid.rec.controller.scripts[0].module
         assert len(module.seen) == 8  # called for every frame both ways, the later ones too
     [warning] = mid.warnings
     assert warning.startswith("boom.py: its 'frame' hook raised")
@@ -209,7 +209,7 @@ async def test_opened_and_closed_are_called_for_each_connection(tmp_path):
             calls.append(("closed", conn))
     """)
     async with middle(tmp_path / "r.mcap", scripts=(path,)) as mid:
-        module = mid.rec.controller.scripts[0].module  # type: ignore[union-attr]
+        module = mid.rec.controller.scripts[0].module
         for conn in (1, 2):
             async with await Client.connect(LOCAL, mid.port) as client:
                 await client.sensor(12)

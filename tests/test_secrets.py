@@ -20,6 +20,7 @@ import base64
 import json
 import os
 import threading
+from itertools import accumulate
 from pathlib import Path
 
 import pytest
@@ -240,11 +241,7 @@ def logins(draw, conn: int):
     server = greeting + middle + verdict
     server_pieces = _cut(draw, server)
     if verdict:  # the piece that completes the verdict comes after every password byte
-        done, last = 0, 0
-        for last, piece in enumerate(server_pieces):
-            done += len(piece)
-            if done == len(server):
-                break
+        last = list(accumulate(len(piece) for piece in server_pieces)).index(len(server))
         early, decisive, late = server_pieces[:last], [server_pieces[last]], []
     else:
         early, decisive, late = server_pieces, [], []

@@ -281,11 +281,11 @@ def test_an_early_password_is_still_asked_for_by_a_server_that_begins_with_a_lin
 
 
 def test_an_early_password_with_a_header_that_never_completes_is_one_password():
-    session, events = run([(C, b"secrr1-et\r\nrr1-24--0--0-ss1"), (S, b"sendchkpass"), (S, b"readytogo"),
+    _session, events = run([(C, b"secrr1-et\r\nrr1-24--0--0-ss1"), (S, b"sendchkpass"), (S, b"readytogo"),
                            (S, b"sr1-\x01200-ss1")])
     assert client_items(events) == [("password", b"secrr1-et"), ("eol", b"\r\n"), ("command", b"rr1-24--0--0-ss1")]
     assert fired(events) == ["PW-HS-ORDER", "PW-HS-COMMAND-BEFORE-READY"]
-    command = [o for o in observations(events) if o.item.kind == "command"][0]
+    command = next(o for o in observations(events) if o.item.kind == "command")
     assert observations(events)[-1].answers is command
 
 

@@ -169,7 +169,8 @@ def test_client_reads_commands_from_stdin(sim_port):
 
 def test_help_is_fast_to_load():
     code = ("import sys, whiztap.sniffer.cli.sim; "
-            "print(sorted(m for m in ('PIL', 'textual', 'scapy', 'whiztap.sniffer.sim.simulator') if m in sys.modules))")
+            "print(sorted(m for m in ('PIL', 'textual', 'scapy', 'whiztap.sniffer.sim.simulator') "
+            "if m in sys.modules))")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
     assert result.stdout == "[]\n", result.stderr
     listing = run_cli("--help").stdout
@@ -213,7 +214,8 @@ async def test_every_command(session, tmp_path):
 
 @pytest.mark.parametrize("line, text", [
     ("", "no command"), ("bogus", "unknown command"), ("sensor x", "whole number"), ("sensor", "wrong arguments"),
-    ("sensor -1", "must not be negative"), ("switch 7 maybe", "on or off"), ("script stop all", "usage"), ("script stop", "usage"),
+    ("sensor -1", "must not be negative"), ("switch 7 maybe", "on or off"), ("script stop all", "usage"),
+    ("script stop", "usage"),
     ("camera -x", "usage"), ("setconfig motor:0", "bad channel group"), ("setconfig servo:0 300", "one byte"),
     ("sleep soon", "seconds"), ("raw", "needs the bytes"),
 ])

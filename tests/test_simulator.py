@@ -79,7 +79,8 @@ async def test_spec_example_split_at_every_offset_over_tcp(frame, message):
             await send_in_two(sim, writer, frame, cut)
             writer.write(FETCH_CONFIG)  # no reply for many commands: a known answer shows it was done
             configs = 2 if isinstance(message, FetchConfiguration) else 1
-            items = await read_items(reader, Framer(), lambda its: sum(i.kind == "config" for i in its) == configs)
+            items = await read_items(reader, Framer(),
+                                     lambda its, n=configs: sum(i.kind == "config" for i in its) == n)
             assert items[-1].raw == encode(robot.configuration())
             check_effect(message, robot, [i.raw for i in items[:-1]], FROZEN)
             writer.close()

@@ -164,12 +164,12 @@ async def test_each_client_connection_is_answered_from_its_recorded_connection(t
 
 async def test_stub_command_errors(tmp_path, recorded):
     path, _ = recorded
-    code, out, err = await run_process_async("stub", str(tmp_path / "nothing.mcap"))
+    code, _out, err = await run_process_async("stub", str(tmp_path / "nothing.mcap"))
     assert code == 2 and err == f"whiztap: {tmp_path / 'nothing.mcap'}: no such file (see 'whiztap stub --help')\n"
     blocker = await asyncio.start_server(lambda r, w: None, LOCAL, 0)
     port = blocker.sockets[0].getsockname()[1]
     try:
-        code, out, err = await run_process_async("stub", str(path), "--listen", f"{LOCAL}:{port}")
+        code, _out, err = await run_process_async("stub", str(path), "--listen", f"{LOCAL}:{port}")
     finally:
         blocker.close()
     assert code == 2 and err.startswith(f"whiztap: cannot listen on {LOCAL}:{port}: ") and err.count("\n") == 1

@@ -14,7 +14,12 @@ C2S, S2C = Direction.C2S, Direction.S2C
 ints = st.integers(min_value=0, max_value=2**63)
 text = st.text(max_size=20)
 directions = st.sampled_from([C2S, S2C])
-maybe = lambda s: st.none() | s  # noqa: E731
+
+
+def maybe(s):
+    return st.none() | s
+
+
 events = st.one_of(
     st.builds(t.RecordingStarted, ints, text),
     st.builds(t.Opened, ints, ints, text, text),

@@ -236,7 +236,7 @@ async def test_a_recording_cut_short_shows_what_was_complete_and_says_how_to_rec
     async with app.run_test(size=SIZE) as pilot:
         await loaded(pilot)
         assert app.model.store.count == 2
-        assert any("whiztap recover" in n.message for n in app._notifications)  # noqa: SLF001
+        assert any("whiztap recover" in n.message for n in app._notifications)
 
 
 def test_the_detail_cites_the_section_of_the_message_a_violation_is_in():

@@ -38,7 +38,7 @@ async def loaded_app(path: Path | str):
         yield app, pilot
 
 
-async def ask(pilot, query: str) -> BisectPrompt:  # noqa: ANN001
+async def ask(pilot, query: str) -> BisectPrompt:
     """``b``, the prompt emptied, ``query`` typed and submitted."""
     await pilot.press("b")
     prompt = pilot.app.screen
@@ -163,7 +163,7 @@ class ServerPerConnection(StepServer):
         super().__init__(scripts[0])
         self.scripts = list(scripts)
 
-    async def _serve_connection(self, reader, writer) -> None:  # noqa: ANN001
+    async def _serve_connection(self, reader, writer) -> None:
         self.steps = self.scripts.pop(0)
         await super()._serve_connection(reader, writer)
 
@@ -174,7 +174,8 @@ async def sessions(path: Path, *answers: list[int]) -> Path:
     servers = [[s for v in values for s in (("recv", len(REQUEST)), ("send", answer(v)))] for values in answers]
     async with ServerPerConnection(*servers) as server, recording(server.port, str(path)) as rec:
         for values in answers:
-            await play_client(rec.proxy.port, [s for v in values for s in (("send", REQUEST), ("recv", len(answer(v))))])
+            await play_client(rec.proxy.port,
+                              [s for v in values for s in (("send", REQUEST), ("recv", len(answer(v))))])
         await asyncio.sleep(0.05)  # the last close reaches the proxy
     return path
 
@@ -261,8 +262,8 @@ async def replayed(path: Path, faults: str, specs: str = "") -> ReplayScreen:
         await until(pilot, lambda: screen.runner.done, "the replay")
         await until(pilot, lambda: screen.comparisons.rows == len(screen.runner.comparisons))
         await pilot.pause(0.2)
-        screen.status = str(screen.query_one("#replay-status").render())  # type: ignore[attr-defined]
-        screen.faults_said = str(screen.comparisons.border_subtitle or "")  # type: ignore[attr-defined]
+        screen.status = str(screen.query_one("#replay-status").render())
+        screen.faults_said = str(screen.comparisons.border_subtitle or "")
     return screen
 
 

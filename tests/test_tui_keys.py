@@ -63,7 +63,7 @@ def _key(key: str) -> events.Key:
     return events.Key(key, CHARACTERS.get(key, key if len(key) == 1 else None))
 
 
-async def play(pilot, steps: list[tuple[str, int, bool]]) -> None:  # noqa: ANN001
+async def play(pilot, steps: list[tuple[str, int, bool]]) -> None:
     """Each step a key pressed ``times`` or a paste; a fast one is posted
     without waiting (the next comes before the app has dealt with it), a slow
     one waits for the app to idle, as Pilot's press does."""

@@ -253,10 +253,11 @@ async def test_the_pane_the_list_and_the_detail_count_the_same_rows_with_frames_
         async with app.run_test(size=SIZE) as pilot:
             source = app.source
             await until(pilot, lambda: source.recording is not None and source.recording.proxy is not None, "the proxy")
-            reader, writer = await asyncio.open_connection(LOCAL, source.recording.proxy.port)
+            _reader, writer = await asyncio.open_connection(LOCAL, source.recording.proxy.port)
             writer.write(b"".join(encode(SensorRequest(12 + n % 3)) for n in range(6)))
             store, frames = app.model.store, app.frames
-            await until(pilot, lambda: store.count == 9 and frames.store_rows == 9, "6 requests (3 dropped) and 3 answers")
+            await until(pilot, lambda: store.count == 9 and frames.store_rows == 9,
+                        "6 requests (3 dropped) and 3 answers")
             app.refresh_summaries()
             [row] = app.model.connections()
             assert row.frames == 9 == store.count  # the session saw 6 of them; the list shows 9
@@ -272,7 +273,7 @@ async def test_the_pane_the_list_and_the_detail_count_the_same_rows_with_frames_
             await until(pilot, lambda: not app.is_running, "the app to quit")
 
 
-def plain(renderable) -> str:  # noqa: ANN001
+def plain(renderable) -> str:
     console = Console(file=io.StringIO(), width=100)
     console.print(renderable)
     return console.file.getvalue()
@@ -298,7 +299,7 @@ def recording_beside_a_controller(tmp_path: Path) -> tuple[WhiztapApp, Controlle
 
 @pytest.mark.slow
 async def test_a_held_frames_wait_and_countdown_tick_in_its_row_and_in_the_detail(tmp_path):
-    app, controller, now = recording_beside_a_controller(tmp_path)
+    app, _controller, now = recording_beside_a_controller(tmp_path)
     async with app.run_test(size=SIZE) as pilot:
         await until(pilot, lambda: app.fed and app.frames.rows == 3, "the recording and the held frame")
         await pilot.press("G")
@@ -322,4 +323,4 @@ async def test_inject_on_a_closed_connection_says_so_and_opens_no_dialog(tmp_pat
         assert app.frames.frame == 0
         await pilot.press("I")
         assert not isinstance(app.screen, InjectScreen)
-        assert any("conn #1 is closed" in n.message for n in app._notifications)  # noqa: SLF001
+        assert any("conn #1 is closed" in n.message for n in app._notifications)

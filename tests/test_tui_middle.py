@@ -33,27 +33,27 @@ LOCAL = "127.0.0.1"
 C2S, S2C = Direction.C2S, Direction.S2C
 
 
-def live_app(sim: Simulator, output) -> WhiztapApp:  # noqa: ANN001 - a Path
+def live_app(sim: Simulator, output) -> WhiztapApp:
     settings = RecordSettings((LOCAL, 0), (LOCAL, sim.port), str(output), quiet=True)
     return WhiztapApp(LiveSource(ProxyRig(settings), "live"))
 
 
-async def proxy_port(pilot) -> int:  # noqa: ANN001
+async def proxy_port(pilot) -> int:
     source = pilot.app.source
     await until(pilot, lambda: source.recording is not None and source.recording.proxy is not None, "the proxy")
     return source.recording.proxy.port
 
 
-async def quit_app(pilot) -> None:  # noqa: ANN001
+async def quit_app(pilot) -> None:
     await pilot.press("q")  # finishes the recording first
     await until(pilot, lambda: not pilot.app.is_running, "the app to quit")
 
 
-def rows_with(store, raw: bytes, direction: Direction) -> list[int]:  # noqa: ANN001
+def rows_with(store, raw: bytes, direction: Direction) -> list[int]:
     return [n for n in range(store.count) if store.raw(n) == raw and store.direction(n) is direction]
 
 
-def plain(renderable) -> str:  # noqa: ANN001
+def plain(renderable) -> str:
     console = Console(file=io.StringIO(), width=100)
     console.print(renderable)
     return console.file.getvalue()
@@ -151,7 +151,7 @@ async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_pa
             assert "dir: wants c2s or s2c" in str(pane.query_one("#fault-error").content)
             assert not controller.faults  # nothing applied while typing
             await pilot.press("ctrl+u", *"dro")
-            await until(pilot, lambda: pane.spec._suggestion == "drop", "the completion")  # noqa: SLF001
+            await until(pilot, lambda: pane.spec._suggestion == "drop", "the completion")
             await pilot.press("tab")
             await paste(pilot, " dir:s2c kind:response every:2")
             await pilot.press("enter")
@@ -170,7 +170,8 @@ async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_pa
             assert [answer_channel(a) for a in got] == [12, 14]  # every second answer dropped
             answers = [n for n in range(store.count) if store.kind(n) is ItemKind.RESPONSE]
             await until(pilot, lambda: len(store.marked) >= 2, "the drop marks")
-            assert [[mark_kind(m) for m in store.marks.get(n, ())] for n in answers] == [[], ["dropped"], [], ["dropped"]]
+            marks = [[mark_kind(m) for m in store.marks.get(n, ())] for n in answers]
+            assert marks == [[], ["dropped"], [], ["dropped"]]
             for n, dropped in zip(answers, (False, True, False, True)):
                 request = store.pair[n]  # the server answered every request
                 unanswered = [v for v in store.violations.get(request, ()) if v.rule_id == "PW-PAIR-UNANSWERED"]

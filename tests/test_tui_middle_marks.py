@@ -67,7 +67,7 @@ class Rig:
             self.run(self.core.wake(self.now))
 
     @property
-    def store(self):  # noqa: ANN201
+    def store(self):
         return self.model.store
 
     def rows(self, direction: Direction) -> list[int]:
@@ -77,7 +77,7 @@ class Rig:
         return [m.action for m in self.store.marks.get(n, ())]
 
 
-def unanswered(store, n: int) -> bool:  # noqa: ANN001
+def unanswered(store, n: int) -> bool:
     return any(v.rule_id == "PW-PAIR-UNANSWERED" for v in store.violations.get(n, ()))
 
 

@@ -49,7 +49,7 @@ def app(tmp_path, monkeypatch, controller) -> WhiztapApp:
     return WhiztapApp(BesideAController("robot.mcap", controller))
 
 
-async def on_the_held_frame(pilot) -> None:  # noqa: ANN001
+async def on_the_held_frame(pilot) -> None:
     app = pilot.app
     await loaded(pilot)
     await pilot.press("G")
@@ -57,7 +57,7 @@ async def on_the_held_frame(pilot) -> None:  # noqa: ANN001
     await settled(pilot)
 
 
-async def steady(pilot) -> None:  # noqa: ANN001
+async def steady(pilot) -> None:
     """The focused line's cursor stops blinking (the one thing that moves)."""
     pilot.app.screen.focused.cursor_blink = False
     await pilot.pause()

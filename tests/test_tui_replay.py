@@ -16,7 +16,7 @@ from whiztap.tui.data.sources import FileSource, FollowSource
 PASSWORD, SEED = "progwhiz", 1
 
 
-async def open_screen(pilot, port: int, pace: str, rate: str = "1", output: str = "") -> ReplayScreen:  # noqa: ANN001
+async def open_screen(pilot, port: int, pace: str, rate: str = "1", output: str = "") -> ReplayScreen:
     await loaded(pilot)
     await pilot.press("r")
     screen = pilot.app.screen
@@ -127,7 +127,7 @@ async def test_a_bad_target_is_refused_before_anything_starts():
         await pilot.press("f5")
         await pilot.pause()
         assert screen.runner is None
-        assert any("HOST:PORT" in n.message for n in app._notifications)  # noqa: SLF001
+        assert any("HOST:PORT" in n.message for n in app._notifications)
 
 
 async def test_replay_needs_a_finished_recording(tmp_path):
@@ -138,7 +138,7 @@ async def test_replay_needs_a_finished_recording(tmp_path):
     async with app.run_test(size=SIZE) as pilot:
         await pilot.press("r")
         assert not isinstance(app.screen, ReplayScreen)
-        assert any("finished recording" in n.message for n in app._notifications)  # noqa: SLF001
+        assert any("finished recording" in n.message for n in app._notifications)
 
 
 @pytest.mark.slow

@@ -192,7 +192,7 @@ def test_the_detail_of_a_camera_image_shows_its_size_not_sensor_ranges():
     store = FrameStore()
     store.add(1, session.receive(Direction.C2S, b"rr1-24--0--0-ss1rr1-29--0--0-ss1", 1))
     store.add(1, session.receive(Direction.S2C, b"sr1-\x01200-ss1" + TINY_JPEG, 2))
-    console = Console(width=200, record=True, file=open("/dev/null", "w"))  # noqa: SIM115
+    console = Console(width=200, record=True, file=open("/dev/null", "w"))
     console.print(describe_frame(store, store.count - 1))
     text = console.export_text()
     assert "Camera Image" in text and f"{len(TINY_JPEG)} bytes" in text

@@ -187,7 +187,8 @@ def test_the_port_preference_and_the_heuristic(lua, tmp_path):
     count = len(_analyzer_items(recording))
 
     def items(*args: str) -> int:
-        return sum(len([k for k in row[1].split("\x1f") if k]) for row in _tshark(pcap, lua, "progwhiz.kind", args=args))
+        rows = _tshark(pcap, lua, "progwhiz.kind", args=args)
+        return sum(len([k for k in row[1].split("\x1f") if k]) for row in rows)
 
     assert items() == count  # found on a port nobody told it of
     assert items("--disable-heuristic", "progwhiz_tcp") == 0

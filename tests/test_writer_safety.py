@@ -126,7 +126,7 @@ async def test_killing_the_proxy_alone_finishes_the_file(tmp_path, options):
 # -- a closed terminal finishes the recording ------------------------------------------------------
 
 
-def _on_new_terminal(slave: int):  # noqa: ANN202 - a preexec_fn
+def _on_new_terminal(slave: int):
     """Run the child as the session leader of a terminal of its own, as a login shell runs a command."""
     def become_leader() -> None:
         os.setsid()
@@ -134,7 +134,7 @@ def _on_new_terminal(slave: int):  # noqa: ANN202 - a preexec_fn
     return become_leader
 
 
-async def _hang_up(command: list[str], first_line: str, traffic=None) -> tuple[int, str]:  # noqa: ANN001
+async def _hang_up(command: list[str], first_line: str, traffic=None) -> tuple[int, str]:
     """Run ``command`` on a pseudo-terminal, wait for ``first_line`` (a regex with
     the port as its group), run ``traffic(match)``, then close the terminal as a
     closed ssh session does.  The exit status and what went to stderr."""
@@ -239,7 +239,7 @@ async def _record_split(tmp_path: Path, out: Path, *args: str) -> tuple[int, str
             return proc.returncode, stderr.decode()
         rec.port = int(re.search(rb"127\.0\.0\.1:(\d+) -> ", first).group(1))
         reader, writer = await rec.connect()
-        for i in range(40):
+        for _ in range(40):
             chunk = os.urandom(2000)  # incompressible: parts fill up
             writer.write(chunk)
             await asyncio.wait_for(reader.readexactly(len(chunk)), WAIT)
@@ -287,7 +287,7 @@ async def test_rotation_never_writes_through_a_link(tmp_path, force):
         _finished(part)
 
 
-def _fill(file, parts: int) -> None:  # noqa: ANN001 - a RecordingFile
+def _fill(file, parts: int) -> None:
     """Messages into ``file`` until it has begun part ``parts`` (it rotates on its own)."""
     t = 1
     while file.part < parts:
@@ -378,8 +378,8 @@ def test_every_flush_and_the_finish_reach_the_disk(tmp_path, monkeypatch):
 
     calls: list[tuple[str, str]] = []
 
-    def spy(name: str, real):  # noqa: ANN001, ANN202
-        def call(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def spy(name: str, real):
+        def call(*args, **kwargs):
             what = os.readlink(f"/proc/self/fd/{args[0]}") if isinstance(args[0], int) else str(args[1])
             calls.append((name, what))
             return real(*args, **kwargs)

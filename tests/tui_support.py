@@ -15,7 +15,7 @@ WAIT = 20.0  # a generous bound on anything awaited; never a timing assertion
 SIZE = (130, 40)
 
 
-async def until(pilot, condition: Callable[[], bool], what: str = "condition") -> None:  # noqa: ANN001
+async def until(pilot, condition: Callable[[], bool], what: str = "condition") -> None:
     """Let the app run until ``condition()`` holds (fail after WAIT seconds)."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + WAIT
@@ -25,7 +25,7 @@ async def until(pilot, condition: Callable[[], bool], what: str = "condition") -
         await pilot.pause(0.02)
 
 
-async def paste(pilot, text: str) -> None:  # noqa: ANN001
+async def paste(pilot, text: str) -> None:
     """Paste ``text`` into the focused widget, as a terminal's bracketed paste
     does: one event.  Pilot spends about 0.1 s on each key it presses (it
     waits for the app to idle three times), so the tests press the keys a
@@ -36,7 +36,7 @@ async def paste(pilot, text: str) -> None:  # noqa: ANN001
     await pilot.pause()
 
 
-async def loaded(pilot) -> None:  # noqa: ANN001
+async def loaded(pilot) -> None:
     """Until the recording is read and the list shows all of it."""
     app = pilot.app
     await until(pilot, lambda: app.fed and app.frames.store_rows == len(app.frames.view) and app.frames.view.complete,
@@ -44,7 +44,7 @@ async def loaded(pilot) -> None:  # noqa: ANN001
     await pilot.pause()
 
 
-async def settled(pilot) -> None:  # noqa: ANN001
+async def settled(pilot) -> None:
     """Until the slow panes caught up: every connection in its table, every plot drawn."""
     app = pilot.app
     app.refresh_summaries()
@@ -58,7 +58,7 @@ async def settled(pilot) -> None:  # noqa: ANN001
     await pilot.pause()
 
 
-def frames_shown(app) -> list[int]:  # noqa: ANN001
+def frames_shown(app) -> list[int]:
     """The frame ids of the list's rows."""
     view = app.frames.view
     return [view[row] for row in range(app.frames.rows)]

@@ -29,7 +29,7 @@ from whiztap.analyzer.analysis.item_filter import FILTER_HELP, FilterSyntaxError
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.text import printable
-from whiztap.tui.data.controls import Controls
+from whiztap.tui.data.controls import Controls, HeldKey
 from whiztap.tui.data.model import TrafficModel, verdict_text
 from whiztap.tui.data.sources import LiveSource, Source, SourceError
 from whiztap.tui.data.view import FrameView, with_connection
@@ -105,7 +105,7 @@ class WhiztapApp(App):
         self._stop = threading.Event()
         self._quitting = False
         self._last_sync = 0.0
-        self._detail_due: int | None = None  # the frame the detail pane should show
+        self._detail_due: int | HeldKey | None = None  # the frame the detail pane should show
         self._detail_at = 0.0
 
     # -- layout ------------------------------------------------------------------------------
@@ -154,7 +154,7 @@ class WhiztapApp(App):
         if isinstance(self.source, LiveSource):
             self.source.on_failure = self._live_failed
             self.source.on_warning = self._live_warning
-            self._start_live()
+            self._start_live(self.source)
         else:
             self._feed()
         # Move what the app holds at start into the collector's permanent
@@ -170,9 +170,9 @@ class WhiztapApp(App):
     # -- workers -----------------------------------------------------------------------------
 
     @work(group="live", exit_on_error=False)
-    async def _start_live(self) -> None:
+    async def _start_live(self, source: LiveSource) -> None:
         try:
-            await self.source.start()
+            await source.start()
         except SourceError as e:
             self.error = str(e)
             self.exit(return_code=2)
@@ -229,7 +229,7 @@ class WhiztapApp(App):
             self.sub_title = self.source.title  # a followed recording moved on to its next part
         self.controls.poll()
         before = frames.store_rows
-        if frames.sync():
+        if frames.take_in():
             self.detail.refresh_frame()
         if self._detail_due != self.detail.frame and now - self._detail_at >= FOLLOWING_DETAIL_S:
             self._show_detail()
@@ -286,7 +286,8 @@ class WhiztapApp(App):
     def _on_moved(self, message: VirtualList.Moved) -> None:
         """Show the frame under the cursor; while following a fast stream, only
         now and then (laying out a detail pane costs more than a tick)."""
-        self._detail_due = message.key
+        key = message.key
+        self._detail_due = key if isinstance(key, (int, HeldKey)) else None  # the frame list's keys
         if not self.frames.tail or time.monotonic() - self._detail_at >= FOLLOWING_DETAIL_S:
             self._show_detail()
 
@@ -335,9 +336,7 @@ class WhiztapApp(App):
         """The main screen's keys do nothing while another screen (help, replay) is on top."""
         if action in MIDDLE_ACTIONS:
             return self.controls.available and len(self.screen_stack) == 1  # live, in the middle only
-        if action in self.MAIN_SCREEN_ACTIONS and len(self.screen_stack) > 1:
-            return False
-        return True
+        return action not in self.MAIN_SCREEN_ACTIONS or len(self.screen_stack) <= 1
 
     def action_help(self) -> None:
         self.push_screen(HelpScreen())
@@ -377,7 +376,7 @@ class WhiztapApp(App):
         """The first frame with a violation of a rule, or where two connections part (screens/bisect.py)."""
         from whiztap.tui.screens.bisect import open_bisect
 
-        open_bisect(self)
+        open_bisect(self, self.model.store, self.frames, self.fed)
 
     def action_intercept(self) -> None:
         self.intercept_bar.open()
@@ -411,16 +410,20 @@ class WhiztapApp(App):
             return
         self._quitting = True
         try:
-            if self._recording_unfinished():
+            unfinished = self._unfinished_recording()
+            if unfinished is not None:
                 self.notify("finishing the recording…", timeout=30)
-                await self.source.stop()
+                await unfinished.stop()
         finally:
             self._stop.set()
             self.exit()
 
-    def _recording_unfinished(self) -> bool:
+    def _unfinished_recording(self) -> LiveSource | None:
+        """The live source whose recording is still being written, if there is one."""
         source = self.source
-        return isinstance(source, LiveSource) and source.recording is not None and not source.stopped.is_set()
+        if isinstance(source, LiveSource) and source.recording is not None and not source.stopped.is_set():
+            return source
+        return None
 
     async def run_async(self, **options: Any) -> Any:
         """Run the app (``App.run`` comes here); whatever ended it, ``q`` or
@@ -431,8 +434,9 @@ class WhiztapApp(App):
         try:
             return await super().run_async(**options)
         finally:
-            if self._recording_unfinished():
-                await self.source.stop()
+            unfinished = self._unfinished_recording()
+            if unfinished is not None:
+                await unfinished.stop()
 
     def _handle_exception(self, error: Exception) -> None:
         """An unexpected failure (Textual ends the app on one): kept for the

@@ -8,7 +8,7 @@ file, a bad address, a port in use) is one line and exit status 2.
 from __future__ import annotations
 
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from whiztap.analyzer.cli.errors import fail
@@ -24,6 +24,12 @@ from whiztap.sniffer.cli.params import (
     middle_settings,
 )
 
+if TYPE_CHECKING:
+    from whiztap.analyzer.recording.sets import RecordingSet
+    from whiztap.sniffer.record.record_run import MiddleSettings
+    from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.data.sources import LiveSource, Source
+
 HEADLESS_SECONDS = 5.0  # `whiztap demo` without a terminal, as `make demo` in CI
 
 
@@ -38,7 +44,7 @@ def _check_recording(path: str) -> None:
         fail(f"{path}: cannot read ({e.strerror})")
 
 
-def _one_recording(path: str):  # noqa: ANN202 - a RecordingSet
+def _one_recording(path: str) -> RecordingSet:
     """The recording to browse: a file, or a split one named by any of its parts,
     its folder or a glob; checked readable before the app starts."""
     recording = one_recording((path,))
@@ -75,7 +81,7 @@ def _hints(path: str, password: str = "PASSWORD", seed: int | None = None) -> li
             f"                                replay it against a server, such as: {sim}"]
 
 
-def _announce_faults(middle) -> None:  # noqa: ANN001 - a MiddleSettings
+def _announce_faults(middle: MiddleSettings) -> None:
     """Each fault the live proxy starts with, in words, on stderr before the
     app takes the screen (``record`` prints the same); a fault file that does
     not read, or a fault refused, is one line here rather than in the app."""
@@ -93,7 +99,7 @@ def _announce_faults(middle) -> None:  # noqa: ANN001 - a MiddleSettings
         click.echo(printable(line), err=True)
 
 
-def _quiet_faults(source) -> None:  # noqa: ANN001 - a LiveSource
+def _quiet_faults(source: LiveSource) -> None:
     """The faults that chose no frame, said once the app is gone (its own
     notice of them went with the screen)."""
     from whiztap.analyzer.protocol.text import printable
@@ -103,7 +109,7 @@ def _quiet_faults(source) -> None:  # noqa: ANN001 - a LiveSource
         click.echo(printable(f"warning: fault {fault} chose no frame"), err=True)
 
 
-def _failed(app) -> None:  # noqa: ANN001 - a WhiztapApp
+def _failed(app: WhiztapApp) -> None:
     """The app broke unexpectedly: one line and exit status 2, after the hints
     said where the recording is (the app finished it first)."""
     if app.failure is not None:
@@ -174,6 +180,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
     limits = limits_from(answer_timeout, max_frame, max_image)
     from whiztap.tui.data.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
+    source: Source
     if path is not None:
         source = FileSource(_one_recording(path))
     elif follow is not None:
@@ -183,6 +190,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
     else:
         from whiztap.sniffer.record.record_run import RecordSettings
 
+        assert upstream is not None  # one of the three, as checked above
         output = output or default_output()
         check_recording_output(output, split=False, force=force)
         settings = RecordSettings(listen, upstream, output,
@@ -242,18 +250,18 @@ def demo_command(headless: bool, seconds: float | None, output: str, force: bool
     from whiztap.tui.data.sources import LiveSource
     from whiztap.tui.demo import PASSWORD, SEED, DemoRig
 
-    app = WhiztapApp(LiveSource(DemoRig(output, foxglove, settings), "demo", redact_passwords=True),
-                     quit_after=seconds)
+    source = LiveSource(DemoRig(output, foxglove, settings), "demo", redact_passwords=True)
+    app = WhiztapApp(source, quit_after=seconds)
     app.run()
     if app.error:
         fail(app.error)
-    _quiet_faults(app.source)
+    _quiet_faults(source)
     for line in _hints(output, PASSWORD, SEED):
         click.echo(line)
     _failed(app)
 
 
-def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, middle) -> None:  # noqa: ANN001 - a MiddleSettings
+def _headless(output: str, seconds: float, foxglove: tuple[str, int] | None, middle: MiddleSettings) -> None:
     import asyncio
     from pathlib import Path
 

@@ -16,10 +16,16 @@ import asyncio
 import contextlib
 import dataclasses
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, SENDCHKPASS
 from whiztap.sniffer.sim.client import Client, ClientError
 from whiztap.sniffer.sim.tour import SPEC_EXAMPLE_ENTRIES, every_command
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.record.record_run import MiddleSettings, Recording
+    from whiztap.sniffer.sim.simulator import Simulator
+    from whiztap.tui.data.sources import Tap
 
 LOCAL = "127.0.0.1"
 PASSWORD = "progwhiz"
@@ -100,39 +106,40 @@ class DemoRig:
     The proxy always stands in the middle (``middle``, with ``always`` set),
     so the TUI's keys can hold, edit, drop and inject the demo's frames."""
 
-    def __init__(self, output: str, foxglove: tuple[str, int] | None = None, middle=None) -> None:  # noqa: ANN001 - a MiddleSettings
+    def __init__(self, output: str, foxglove: tuple[str, int] | None = None,
+                 middle: MiddleSettings | None = None) -> None:
         from whiztap.sniffer.record.record_run import MiddleSettings
 
         self.output = output
         self.foxglove = foxglove  # (host, port): serve it live to the Foxglove app too
         self.middle = dataclasses.replace(middle or MiddleSettings(), always=True)
-        self.simulator = None
-        self.recording = None
+        self.simulator: Simulator | None = None
+        self.recording: Recording | None = None
         self.client: asyncio.Task | None = None
         self.client_error: str | None = None
         self._stop_client = asyncio.Event()
 
-    async def start(self, tap):  # noqa: ANN001, ANN201 - a tui.sources.Tap or None; a whiztap.sniffer.record.record_run.Recording
+    async def start(self, tap: Tap | None) -> Recording:
         from whiztap.sniffer.record.record_run import Recording, RecordSettings
         from whiztap.sniffer.sim.simulator import Simulator
 
-        self.simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
-        await self.simulator.start()
-        self.recording = Recording(RecordSettings((LOCAL, 0), (LOCAL, self.simulator.port), self.output,
-                                                  quiet=True, foxglove=self.foxglove, middle=self.middle),
-                                   consumers=[tap] if tap is not None else [],
-                                   warn=tap.warn if tap is not None else None)
+        self.simulator = simulator = Simulator(mode="winsock", password=PASSWORD, seed=SEED)
+        await simulator.start()
+        self.recording = recording = Recording(
+            RecordSettings((LOCAL, 0), (LOCAL, simulator.port), self.output, quiet=True, foxglove=self.foxglove,
+                           middle=self.middle),
+            consumers=[tap] if tap is not None else [], warn=tap.warn if tap is not None else None)
         try:
-            await self.recording.start()
+            await recording.start()
         except BaseException:
-            await self.simulator.close()
+            await simulator.close()
             raise
-        self.client = asyncio.get_running_loop().create_task(self._client())
-        return self.recording
+        self.client = asyncio.get_running_loop().create_task(self._client(recording.port))
+        return recording
 
-    async def _client(self) -> None:
+    async def _client(self, port: int) -> None:
         try:
-            await demo_client(self.recording.proxy.port, self._stop_client)
+            await demo_client(port, self._stop_client)
         except (ClientError, OSError) as e:
             self.client_error = str(e)
 
@@ -154,7 +161,8 @@ class DemoRig:
         return summary
 
 
-async def run_headless(output: str, seconds: float, foxglove: tuple[str, int] | None = None, middle=None,  # noqa: ANN001
+async def run_headless(output: str, seconds: float, foxglove: tuple[str, int] | None = None,
+                       middle: MiddleSettings | None = None,
                        announce: Callable[[str], None] | None = None) -> str | None:
     """The demo without a screen for ``seconds``; the client's error, if it had
     one.  ``announce`` is told where the Foxglove app connects (``foxglove:

@@ -82,8 +82,7 @@ CAUSES_SHOWN = 3  # causes named in the detail of a violation only the client sa
 Verdict = tuple[ViolationRecord, str | None]  # a violation, and the title of the request it says was never answered
 _Held = tuple[ViolationRecord, str | None, Key | None]  # a verdict, and what pairs the request or answer it is about
 MakeRecord = Callable[[int, Violation, Observation, int, bool], ViolationRecord]
-# rule, direction, the frame's length and hash: the same violation in both views
-_Key = tuple[str, str | None, int, int]
+_Key = tuple[str, str | None, int, int]  # rule, direction, frame length and hash: one violation in both views
 
 
 def side_of(rule_id: str, direction: str | None) -> str:

@@ -376,10 +376,9 @@ class Recorder:
         # after what the session made of the side's last bytes: the file keeps each stream's order
         self._write_event(e)
 
-    def _gap(self, c: _Conn, e: Gap, end: int) -> None:
-        """``end``: the stream offset after the missing bytes."""
+    def _gap(self, c: _Conn, e: Gap, offset_after: int) -> None:
         self._write_event(e)
-        c.written[e.direction] = end
+        c.written[e.direction] = offset_after
         # The framer cannot know what the missing bytes were: it finishes what it
         # has and starts a fresh session model after the hole.
         self._observe_all(e.conn, c, self._traffic.receive(e))

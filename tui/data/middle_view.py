@@ -135,24 +135,23 @@ class MiddleView:
         self._order = count()
 
     def receive(self, event: TrafficEvent) -> None:
-        kind = type(event)
-        if kind is Data:
+        if type(event) is Data:
             if event.direction is S2C:  # what the client sent is told by the delivered bytes and the marks
                 self._add(event.conn, self.analyze(event))
-        elif kind is Delivered:
+        elif type(event) is Delivered:
             if event.direction is C2S:  # what the client got differs from what the server sent by the marks
                 data = b"*" * len(event.data) if event.secret and self.redact else event.data
                 self._add(event.conn, self.analyze(Data(event.conn, C2S, event.t_ns, data)))
             else:
-                self._to_client(event)  # type: ignore[arg-type]
-        elif kind is Intervention:
-            self._intervention(event)  # type: ignore[arg-type]
+                self._to_client(event)
+        elif type(event) is Intervention:
+            self._intervention(event)
         else:
-            if kind is Continued:  # a later part of a split recording: the server's stream goes on from here
-                self._track(event.conn, S2C).offset = event.s2c_offset  # type: ignore[union-attr]
-            elif kind is Gap and event.direction is S2C and event.length:  # type: ignore[union-attr]
+            if type(event) is Continued:  # a later part of a split recording: the server's stream goes on from here
+                self._track(event.conn, S2C).offset = event.s2c_offset
+            elif type(event) is Gap and event.direction is S2C and event.length:
                 track = self._track(event.conn, S2C)
-                track.offset = (event.offset if event.offset is not None else track.offset) + event.length  # type: ignore[union-attr]
+                track.offset = (event.offset if event.offset is not None else track.offset) + event.length
             self._add(event.conn, self.analyze(event))
 
     def _track(self, conn: int, direction: Direction) -> _Track:
@@ -283,7 +282,7 @@ class MiddleView:
         end = self.to_client[conn] = start + len(event.data)
         arriving = self.arriving.get(conn)
         if arriving:
-            for delivered, n in [a for a in arriving if a[0] < end]:
+            for _delivered, n in [a for a in arriving if a[0] < end]:
                 self.store.client_t[n] = event.t_ns
             self.arriving[conn] = [a for a in arriving if a[0] >= end][-PENDING_MAX:]
 

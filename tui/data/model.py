@@ -83,11 +83,12 @@ class TrafficModel:
                 self.first_ns = t
             if self.last_ns is None or t > self.last_ns:
                 self.last_ns = t
-            if self.middle is not None:
-                self.middle.receive(event)
+            middle, judge = self.middle, self.judge
+            if middle is not None and judge is not None:  # both, from in_the_middle() on
+                middle.receive(event)
                 if self._redact_delivered and type(event) is Delivered and event.secret:
                     event = event._replace(data=b"*" * len(event.data))  # as the file has it
-                self.judge.receive(event)  # type: ignore[union-attr]
+                judge.receive(event)
             elif type(event) not in _MIDDLE_ONLY:  # they mean something only in the middle
                 self.store.add(event.conn, self.analyzer.receive(event))
 

@@ -19,9 +19,17 @@ import asyncio
 import threading
 from dataclasses import replace
 
+from whiztap.analyzer.analysis.exchanges import RecordedSessions
 from whiztap.analyzer.recording.scan import RecordingError
 from whiztap.sniffer.replay.engine import Replay
-from whiztap.sniffer.replay.events import ConnectionOpened, Event, Finished, ReplayResult, RequestSent, ResponseCompared
+from whiztap.sniffer.replay.events import (
+    ConnectionOpened,
+    Event,
+    Finished,
+    ReplayResult,
+    RequestSent,
+    ResponseCompared,
+)
 from whiztap.sniffer.replay.options import ReplayError, ReplayOptions
 
 CONTROLS = ("pause", "resume", "step", "stop")
@@ -87,7 +95,7 @@ class ReplayRunner:
             self.note = "the recording was made without faults: there are none to re-apply"
         self.options = replace(self.options, faults=recorded.faults, fault_seed=recorded.seed)
 
-    async def _replay_on(self, loop: asyncio.AbstractEventLoop, recording) -> None:  # noqa: ANN001
+    async def _replay_on(self, loop: asyncio.AbstractEventLoop, recording: RecordedSessions) -> None:
         try:
             replay = Replay(recording, self.options, on_event=self._on_event)
             replay.check()

@@ -12,35 +12,43 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import gc
-import os
 import shlex
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Protocol
+from typing import TYPE_CHECKING, Protocol
+
+from whiztap.analyzer.errors import WhiztapError
 
 from whiztap.analyzer.recording.redaction import Redactor
+from whiztap.analyzer.recording.remote import PartFile, open_part, part_size
 from whiztap.analyzer.recording.scan import made_in_the_middle
 from whiztap.analyzer.recording.sets import Follower, PartError, RecordingSet, Stopped, scan_set
 from whiztap.analyzer.traffic import Closed, Data, TrafficEvent
 from whiztap.tui.data.model import TrafficModel
 
+if TYPE_CHECKING:
+    from whiztap.sniffer.mitm.controller import Controller
+    from whiztap.sniffer.record.record_run import Recording, RecordSettings
+
 DRAIN_S = 0.01  # the live queue is emptied this often when it runs dry
 LOADING_GC_THRESHOLD = 100_000
 
 
-class SourceError(Exception):
+class SourceError(WhiztapError):
     """The traffic cannot be read; one line for the user."""
 
 
 class Source(Protocol):
-    title: str  # what the header says
     live: bool  # traffic keeps coming: the frame list follows it
     redact_passwords: bool  # show passwords as '*' (recordings are redacted already)
     progress: float | None  # 0..1 while a file loads, None when not known
     note: str  # what went wrong or is worth saying once the feed ended ("" if nothing)
+
+    @property
+    def title(self) -> str: ...  # what the header says
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None: ...
 
@@ -51,7 +59,7 @@ class FileSource:
     live = False
     redact_passwords = False
 
-    def __init__(self, recording) -> None:  # noqa: ANN001 - a RecordingSet, or one file's path
+    def __init__(self, recording: RecordingSet | Path | str) -> None:
         if not isinstance(recording, RecordingSet):
             recording = RecordingSet((Path(recording),))
         self.recording = recording
@@ -59,7 +67,7 @@ class FileSource:
         self.title = str(recording)
         self.progress: float | None = 0.0
         self.note = ""
-        self._size = max(sum(os.path.getsize(p) for p in recording.parts), 1)
+        self._size = max(sum(part_size(p) for p in recording.parts), 1)
         self._done = 0
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
@@ -77,7 +85,7 @@ class FileSource:
             model.in_the_middle(self.redact_passwords)
         receive = model.receive
         try:
-            for event in scan_set(self.recording, lambda p: _Counting(open(p, "rb"), self, stop)):
+            for event in scan_set(self.recording, lambda p: _Counting(open_part(p), self, stop)):
                 receive(event)
         except Stopped:
             return
@@ -98,13 +106,16 @@ class FileSource:
 class _Counting:
     """A file whose reads advance the source's progress and notice a stop."""
 
-    def __init__(self, f: IO[bytes], source: FileSource, stop: threading.Event) -> None:
+    def __init__(self, f: PartFile, source: FileSource, stop: threading.Event) -> None:
         self.f, self.source, self.stop = f, source, stop
 
     def __enter__(self) -> _Counting:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
         self.f.close()
 
     def read(self, n: int = -1) -> bytes:
@@ -122,7 +133,7 @@ class FollowSource:
     the header says which part it is at."""
 
     live = True
-    progress = None
+    progress: float | None = None
     redact_passwords = False
 
     def __init__(self, path: str) -> None:
@@ -181,8 +192,8 @@ class Rig(Protocol):
 
     output: str
 
-    async def start(self, tap: Tap): ...  # noqa: ANN201 - a whiztap.sniffer.record.record_run.Recording
-    async def stop(self) -> None: ...
+    async def start(self, tap: Tap) -> Recording: ...
+    async def stop(self) -> dict | None: ...  # the writer's summary, if it finished
 
 
 class ProxyRig:
@@ -190,21 +201,22 @@ class ProxyRig:
     the middle (its ``MiddleSettings`` get ``always``): the TUI's keys drive
     its Controller, as ``whiztap ctl`` does."""
 
-    def __init__(self, settings) -> None:  # noqa: ANN001 - whiztap.sniffer.record.record_run.RecordSettings
+    def __init__(self, settings: RecordSettings) -> None:
         self.settings = dataclasses.replace(settings, middle=dataclasses.replace(settings.middle, always=True))
         self.output = settings.output
-        self.recording = None
+        self.recording: Recording | None = None
 
-    async def start(self, tap: Tap):  # noqa: ANN201 - a whiztap.sniffer.record.record_run.Recording
+    async def start(self, tap: Tap) -> Recording:
         from whiztap.sniffer.record.record_run import Recording
 
-        self.recording = Recording(self.settings, consumers=[tap], warn=tap.warn)
-        await self.recording.start()
-        return self.recording
+        self.recording = recording = Recording(self.settings, consumers=[tap], warn=tap.warn)
+        await recording.start()
+        return recording
 
-    async def stop(self) -> None:
+    async def stop(self) -> dict | None:
         if self.recording is not None and self.recording.writer is not None:
-            await self.recording.stop()
+            return await self.recording.stop()
+        return None
 
 
 class LiveSource:
@@ -215,22 +227,22 @@ class LiveSource:
     model and the screen get the bytes the file gets, never the password."""
 
     live = True
-    progress = None
+    progress: float | None = None
 
     def __init__(self, rig: Rig, title: str, redact_passwords: bool = True) -> None:
         self.rig = rig
         self.redact_passwords = redact_passwords
         self.title = title
         self.note = ""
-        self.queue: deque = deque()
-        self.recording = None
+        self.queue: deque[TrafficEvent] = deque()
+        self.recording: Recording | None = None
         self.stopped = threading.Event()  # the proxy is closed: drain and finish
         self.on_failure: Callable[[str], None] | None = None  # the recording stopped on its own
         self.on_warning: Callable[[str], None] | None = None  # the proxy has something to say (a script raised)
         self._watcher: asyncio.Task | None = None
 
     @property
-    def controller(self):  # noqa: ANN201 - a whiztap.sniffer.mitm.controller.Controller, or None before start
+    def controller(self) -> Controller | None:
         """The proxy's control layer (faults, interception, injection), once started."""
         return self.recording.controller if self.recording is not None else None
 
@@ -247,26 +259,27 @@ class LiveSource:
         from whiztap.sniffer.record.record_run import StartError
 
         try:
-            self.recording = await self.rig.start(Tap(self.queue, self._warn))
+            self.recording = recording = await self.rig.start(Tap(self.queue, self._warn))
         except (WriterError, FaultSpecError, ScriptError, StartError) as e:
             raise SourceError(str(e)) from None
         except OSError as e:
             raise SourceError(f"cannot listen: {e.strerror or e}") from None
-        proxy = self.recording.proxy
+        proxy = recording.proxy
+        assert proxy is not None  # started
         self.title = f"{self.title}: {proxy.listen_text} -> {proxy.upstream_text}, recording {self.rig.output}"
-        if self.recording.foxglove_url:
-            self.title += f", foxglove {self.recording.foxglove_url}"
-        if self.recording.control_text:
-            self.title += f", control {self.recording.control_text}"
-        self._watcher = asyncio.get_running_loop().create_task(self._watch_writer())
+        if recording.foxglove_url:
+            self.title += f", foxglove {recording.foxglove_url}"
+        if recording.control_text:
+            self.title += f", control {recording.control_text}"
+        self._watcher = asyncio.get_running_loop().create_task(self._watch_writer(recording))
 
     def _warn(self, text: str) -> None:
         if self.on_warning is not None:
             self.on_warning(text)
 
-    async def _watch_writer(self) -> None:
-        await self.recording.stopped.wait()
-        self.note = f"recording stopped: {self.recording.error}"
+    async def _watch_writer(self, recording: Recording) -> None:
+        await recording.stopped.wait()
+        self.note = f"recording stopped: {recording.error}"
         if self.on_failure is not None:
             self.on_failure(self.note)
 
@@ -281,7 +294,7 @@ class LiveSource:
 
     def feed(self, model: TrafficModel, stop: threading.Event) -> None:
         queue = self.queue
-        if self.recording.controller is not None:
+        if self.controller is not None:
             model.in_the_middle(self.redact_passwords)
         take = _Redacting(model) if self.redact_passwords else _Plain(model)
         while True:
@@ -335,7 +348,7 @@ class _Redacting:
         if type(event) is Data:
             redactor.read(conn, event.direction, event.data, event, time.monotonic())
         else:
-            redactor.tell(event)  # type: ignore[arg-type]
+            redactor.tell(event)
             redactor.event(conn, event)
         self._release(redactor)
         if type(event) is Closed and redactor.idle:
@@ -356,7 +369,8 @@ class _Redacting:
     def _release(self, redactor: Redactor[TrafficEvent]) -> None:
         receive = self.model.receive
         for r in redactor.released():
-            receive(r.record if r.direction is None else r.record._replace(data=r.data))
+            event = r.record
+            receive(event._replace(data=r.data) if isinstance(event, Data) else event)
 
 
 def default_output() -> str:

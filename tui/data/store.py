@@ -97,7 +97,7 @@ class FrameStore:
         cap, redact = self.raw_cap, self.redact_passwords
         rates, second, counts = self.rates, self._second, self._counts
         for e in events:
-            if type(e) is LateViolation:
+            if isinstance(e, LateViolation):
                 self._mark_late(index, e)
                 continue
             at, direction, item, message, candidates, violations, answers, _ = e
@@ -141,9 +141,10 @@ class FrameStore:
             this_second = t_end // NS
             if this_second != second:
                 second = this_second
-                counts = rates.get(second)
-                if counts is None:
-                    counts = rates[second] = [0, 0]
+                known = rates.get(second)
+                if known is None:
+                    known = rates[second] = [0, 0]
+                counts = known
             counts[s2c] += 1
             n += 1
         self._second, self._counts = second, counts

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from array import array
 from bisect import bisect_left, insort
+from collections.abc import Callable
 from dataclasses import replace
 
 from whiztap.analyzer.analysis.item_filter import ItemFilter
@@ -57,7 +58,7 @@ class FrameView:
             return frame
         return bisect_left(self.rows, frame)
 
-    def judge(self, cancelled=lambda: False) -> None:  # noqa: ANN001 - a callable
+    def judge(self, cancelled: Callable[[], bool] = lambda: False) -> None:
         """Judge the frames not judged yet (in a worker thread), in slices."""
         store = self.store
         accepts = self.filter.accepts

@@ -24,7 +24,7 @@ class InterceptBar(FilterBar):
     InterceptBar { border: round $warning; }
     """
 
-    def __init__(self, controls: Controls, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, controls: Controls, *, id: str | None = None) -> None:
         super().__init__(placeholder=FILTER_HELP, id=id)
         self.controls = controls
         self.border_title = Text("Intercept: hold the frames these words choose (Enter sets; empty holds nothing)")
@@ -58,4 +58,4 @@ class InterceptBar(FilterBar):
 
     def action_close(self) -> None:
         self.remove_class("shown")
-        self.app.action_leave()  # type: ignore[attr-defined]
+        self.app.action_leave()  # type: ignore[attr-defined]  # WhiztapApp's: a pane may not import the app

@@ -29,6 +29,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from rich.text import Text
 from textual import on, work
@@ -38,11 +39,15 @@ from textual.containers import Vertical, VerticalScroll
 from textual.screen import ModalScreen
 from textual.widgets import Input, Static
 from textual.worker import Worker, WorkerState, get_current_worker
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.rules import RULES, Severity, Violation
 from whiztap.analyzer.protocol.text import escape, printable
 from whiztap.tui.data.store import FrameStore
 from whiztap.tui.data.view import FrameView
+
+if TYPE_CHECKING:
+    from whiztap.tui.widgets.frame_list import FrameList
 
 CONTEXT = 4  # frames shown before and after the first difference
 SIDE_WIDTH = 56  # characters for each connection's side of a row
@@ -56,7 +61,7 @@ HINT = "type a rule id (whiztap rules lists them), error, warning or info, or tw
 Key = tuple[bool, int]  # (server to client, index among the connection's frames that way)
 
 
-class BisectError(ValueError):
+class BisectError(WhiztapError, ValueError):
     """The query does not read, or finds nothing (one line, shown in the prompt)."""
 
 
@@ -343,19 +348,19 @@ class DivergenceScreen(ModalScreen[int | None]):
         self.dismiss(row.a if row.a is not None else row.b)
 
 
-def open_bisect(app: App) -> None:
+def open_bisect(app: App, store: FrameStore, frames: FrameList, fed: bool) -> None:
     """The prompt, pre-filled with the rule of the selected frame's first
-    violation; then the list's jump, or the side-by-side screen and the jump."""
-    store, frames = app.model.store, app.frames  # type: ignore[attr-defined]
+    violation; then the list's jump, or the side-by-side screen and the jump.
+    ``fed``: the traffic is all in (the app's source ended)."""
     selected = frames.frame
     violations = store.violations.get(selected, ()) if selected is not None else ()
-    settled = app.fed and frames.view.complete  # type: ignore[attr-defined]
+    settled = fed and frames.view.complete
 
     def jump(frame: int | None) -> None:
         if frame is None:
             return
         frames.focus()
-        if not frames._jump(frame):  # noqa: SLF001 - the list's own jump, as n and p use it
+        if not frames._jump(frame):  # the list's own jump, as n and p use it
             app.notify("that frame is hidden by the filter", severity="warning", timeout=4)
 
     def found(result: int | Divergence | None) -> None:

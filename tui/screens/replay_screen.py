@@ -33,6 +33,8 @@ from whiztap.tui.widgets.virtual_list import VirtualList
 
 if TYPE_CHECKING:
     from whiztap.analyzer.mitm.spec import FaultSpec
+    from whiztap.sniffer.replay.options import ReplayOptions
+    from whiztap.tui.data.replay_runner import ReplayRunner
 
 TICK_S = 0.1
 DEFAULT_TARGET = "127.0.0.1:5000"  # where `whiztap sim` listens by default
@@ -49,9 +51,9 @@ def _cut(text: str, width: int) -> str:
 class ComparisonList(VirtualList):
     """Recorded and replayed answers side by side, one row per judged answer."""
 
-    def __init__(self, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, *, id: str | None = None) -> None:
         super().__init__(id=id)
-        self.runner = None
+        self.runner: ReplayRunner | None = None
         self.counts_new = False
 
     def row_count(self) -> int:
@@ -61,6 +63,7 @@ class ComparisonList(VirtualList):
         return id(self.runner), row
 
     def row_cells(self, row: int) -> list[tuple[str, Style]]:
+        assert self.runner is not None  # there are rows: a runner made them
         c = self.runner.comparisons[row]
         status = str(c.status)
         style = Style.parse(STATUS_STYLES.get(status, ""))
@@ -101,8 +104,8 @@ class ReplayScreen(Screen):
     def __init__(self, path: str) -> None:
         super().__init__()
         self.path = path
-        self.runner = None
-        self._shown_finished = None  # the finished runner whose end is on screen
+        self.runner: ReplayRunner | None = None
+        self._shown_finished: ReplayRunner | None = None  # the finished runner whose end is on screen
         self.comparisons = ComparisonList(id="comparisons")
         # the form's fields and the lines the timer updates, made here: never a query of a subtree
         self.target = Input(DEFAULT_TARGET, id="target")
@@ -161,7 +164,7 @@ class ReplayScreen(Screen):
 
     # -- options -------------------------------------------------------------------------------
 
-    def _options(self, output: str | None):  # noqa: ANN202 - a whiztap.sniffer.replay.options.ReplayOptions
+    def _options(self, output: str | None) -> ReplayOptions:
         """The form as ReplayOptions; raises ValueError with a line for the user."""
         from whiztap.analyzer.analysis.compare import CompareError, CompareRules
         from whiztap.sniffer.nettext import parse_address
@@ -211,7 +214,8 @@ class ReplayScreen(Screen):
 
     # -- actions -------------------------------------------------------------------------------
 
-    def _start(self, paused: bool) -> bool:
+    def _start(self, paused: bool) -> ReplayRunner | None:
+        """A replay begun as the form says (None: the form says something wrong)."""
         from whiztap.analyzer.mitm.spec import FaultSpecError
         from whiztap.tui.data.replay_runner import ReplayRunner
 
@@ -220,20 +224,21 @@ class ReplayScreen(Screen):
             options = self._options(output)
         except FaultSpecError as e:
             self._fault_error(str(e))
-            return False
+            return None
         except ValueError as e:
             self.notify(str(e), severity="error", timeout=6, markup=False)
-            return False
+            return None
         from_recording = self.faults.value == "recording"
-        self.runner = ReplayRunner(self.path, options, start_paused=paused, faults_from_recording=from_recording)
-        self.comparisons.runner = self.runner
+        self.runner = runner = ReplayRunner(self.path, options, start_paused=paused,
+                                            faults_from_recording=from_recording)
+        self.comparisons.runner = runner
         self.comparisons.tail = True
         self.comparisons.reset()
-        self._run(self.runner)
-        return True
+        self._run(runner)
+        return runner
 
     @work(thread=True, group="replay")
-    def _run(self, runner) -> None:  # noqa: ANN001 - a ReplayRunner
+    def _run(self, runner: ReplayRunner) -> None:
         runner.run()
 
     def action_start(self) -> None:
@@ -248,10 +253,12 @@ class ReplayScreen(Screen):
         self.runner.control("resume" if self.runner.state == "paused" else "pause")
 
     def action_step(self) -> None:
-        if self.runner is None or self.runner.done:
-            if not self._start(paused=True):
+        runner = self.runner
+        if runner is None or runner.done:
+            runner = self._start(paused=True)
+            if runner is None:
                 return
-        self.runner.control("step")
+        runner.control("step")
 
     def action_stop(self) -> None:
         if self.runner is not None and not self.runner.done:
@@ -312,7 +319,7 @@ class ReplayScreen(Screen):
         self.comparisons.border_subtitle = self._faults_text(runner)
 
     @staticmethod
-    def _faults_text(runner) -> Text | None:  # noqa: ANN001 - a ReplayRunner
+    def _faults_text(runner: ReplayRunner) -> Text | None:
         """The faults the replay goes through, or why there are none."""
         faults = runner.options.faults
         if faults:
@@ -320,7 +327,7 @@ class ReplayScreen(Screen):
         return Text(runner.note) if runner.note else None
 
     @staticmethod
-    def _status_text(runner) -> Text:  # noqa: ANN001 - a ReplayRunner
+    def _status_text(runner: ReplayRunner) -> Text:
         text = Text()
         text.append(runner.state.upper(), style="bold red" if runner.state == "failed" else "bold")
         if runner.error:

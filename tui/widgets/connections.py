@@ -40,7 +40,7 @@ class ConnectionsPane(DataTable):
             super().__init__()
             self.conn = conn
 
-    def __init__(self, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, *, id: str | None = None) -> None:
         super().__init__(id=id, cursor_type="row", zebra_stripes=True)
         self.border_title = "Connections (Enter: show only this one)"
         self._shown: dict[str, tuple] = {}
@@ -84,4 +84,4 @@ class ConnectionsPane(DataTable):
     def on_data_table_row_selected(self, event: DataTable.RowSelected) -> None:
         event.stop()
         key = event.row_key.value
-        self.post_message(self.Chosen(None if key == ALL else int(key)))
+        self.post_message(self.Chosen(None if key is None or key == ALL else int(key)))

@@ -15,6 +15,7 @@ from typing import Any
 from rich.console import Group, RenderableType
 from rich.table import Table
 from rich.text import Text
+from textual.app import ComposeResult
 from textual.containers import VerticalScroll
 from textual.widgets import Static
 from whiztap.analyzer.protocol.codec import (
@@ -70,7 +71,7 @@ _SCRIPT_RANGES = {
 
 def clock(t_ns: int) -> str:
     """UTC wall time with microseconds: recordings move between time zones."""
-    t = datetime.datetime.fromtimestamp(t_ns / NS, datetime.timezone.utc)
+    t = datetime.datetime.fromtimestamp(t_ns / NS, datetime.UTC)
     return t.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
@@ -300,14 +301,14 @@ class DetailPane(VerticalScroll):
     DetailPane > Static { width: 100%; }
     """
 
-    def __init__(self, store: FrameStore, controls: Controls | None = None, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, store: FrameStore, controls: Controls | None = None, *, id: str | None = None) -> None:
         super().__init__(id=id)
         self.store = store
         self.controls = controls
         self.frame: int | HeldKey | None = None
         self.body = Static("No frame yet.", id="detail-body")  # made here: updates never wait on a query
 
-    def compose(self):  # noqa: ANN201
+    def compose(self) -> ComposeResult:
         yield self.body
 
     def show(self, frame: int | HeldKey | None) -> None:

@@ -85,7 +85,7 @@ class FrameList(HeldActions, VirtualList):
     """
 
     def __init__(self, store: FrameStore, view: FrameView, *, live: bool, controls: Controls | None = None,
-                 id: str | None = None) -> None:  # noqa: A002
+                 id: str | None = None) -> None:
         super().__init__(id=id)
         self.store = store
         self.view = view
@@ -112,7 +112,8 @@ class FrameList(HeldActions, VirtualList):
     def row_key(self, row: int) -> int | HeldKey:
         if row < self.store_rows:
             return self.view[row]
-        return self.controls.key(self._held[row - self.store_rows])  # type: ignore[union-attr]
+        assert self.controls is not None  # rows after the store's are held frames: there are controls
+        return self.controls.key(self._held[row - self.store_rows])
 
     @property
     def frame(self) -> int | None:
@@ -132,8 +133,9 @@ class FrameList(HeldActions, VirtualList):
         self.view = view
         self.reset(view.row_of(frame) if frame is not None else 0)
 
-    def sync(self) -> bool:
-        """Take in new rows; True when a late violation changed how frames look."""
+    def take_in(self) -> bool:
+        """``sync`` (new rows, held frames' waits); True when a late violation
+        or a mark of the middle changed how frames already shown look."""
         marked, middle = len(self.store.late_marked), len(self.store.marked)
         changed = marked != self._late_seen or middle != self._marks_seen
         if changed:
@@ -247,8 +249,10 @@ class FrameList(HeldActions, VirtualList):
         where the meaning goes, its number and the seconds left before it goes
         on as it is (``--hold-timeout``; the detail pane says it in full)."""
         style = self.get_component_rich_style
-        state = held.as_dict(self.controls.now_ns)  # type: ignore[union-attr]
-        _, left = self.controls.waits(held)  # type: ignore[union-attr]
+        controls = self.controls
+        assert controls is not None  # a held frame is shown: there are controls
+        state = held.as_dict(controls.now_ns)
+        _, left = controls.waits(held)
         c2s = held.direction is Direction.C2S
         waiting = style("framelist--held")
         return [

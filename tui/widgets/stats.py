@@ -91,7 +91,7 @@ class StatsPane(VerticalScroll):
     StatsPane #rate-s2c > Sparkline > .sparkline--max-color { color: $warning; }
     """
 
-    def __init__(self, model: TrafficModel, live: bool, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, model: TrafficModel, live: bool, *, id: str | None = None) -> None:
         super().__init__(id=id)
         self.model = model
         self.live = live

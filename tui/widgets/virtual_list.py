@@ -66,7 +66,7 @@ class VirtualList(ScrollView, can_focus=True):
         def control(self) -> VirtualList:
             return self.virtual_list
 
-    def __init__(self, *, id: str | None = None) -> None:  # noqa: A002
+    def __init__(self, *, id: str | None = None) -> None:
         super().__init__(id=id)
         self.rows = 0  # rows known to the widget (the data may already hold more)
         self.cursor = 0
