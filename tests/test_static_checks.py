@@ -10,6 +10,7 @@ each is a decision someone can read.
 
 from __future__ import annotations
 
+import functools
 import re
 import subprocess
 import sys
@@ -58,18 +59,22 @@ def test_the_configuration_holds_new_code_to_the_rules(tmp_path: Path) -> None:
     assert {"ANN001", "ANN201", "E501"} <= set(re.findall(r"\b([A-Z]+\d+)\b", done.stdout)), done.stdout
 
 
-def _comments(pattern: re.Pattern[str]) -> list[tuple[str, str]]:
-    """(where, what follows the marker) of each comment ``pattern`` finds:
-    comments only, as Python reads them, never text in a string."""
+@functools.cache
+def _all_comments() -> list[tuple[str, str]]:
+    """(where, text) of every comment in the checked folders: comments only,
+    as Python reads them, never text in a string."""
     found = []
     for top in CHECKED:
         for path in sorted((ROOT / top).rglob("*.py")):
             with path.open("rb") as f:
-                for token in tokenize.tokenize(f.readline):
-                    m = pattern.search(token.string) if token.type == tokenize.COMMENT else None
-                    if m is not None:
-                        found.append((f"{path.relative_to(ROOT)}:{token.start[0]}", m["rest"]))
+                found += [(f"{path.relative_to(ROOT)}:{token.start[0]}", token.string)
+                          for token in tokenize.tokenize(f.readline) if token.type == tokenize.COMMENT]
     return found
+
+
+def _comments(pattern: re.Pattern[str]) -> list[tuple[str, str]]:
+    """(where, what follows the marker) of each comment ``pattern`` finds."""
+    return [(where, m["rest"]) for where, text in _all_comments() if (m := pattern.search(text)) is not None]
 
 
 @pytest.mark.parametrize(("kind", "pattern", "with_reason"), [
