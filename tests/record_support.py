@@ -183,10 +183,12 @@ class RecordProcess:
             if re.search(pattern, line):
                 return line
 
-    async def finish(self, sig: int | None = signal.SIGINT) -> tuple[int, str, str]:
+    async def finish(self, sig: int | None = signal.SIGINT, wait: float = WAIT) -> tuple[int, str, str]:
+        """Signal the recorder (SIGINT: Ctrl-C) and wait up to ``wait`` seconds
+        for it to finish its file and exit: status, stdout, stderr."""
         if sig is not None:
             self.proc.send_signal(sig)
-        out, err = await asyncio.wait_for(self.proc.communicate(), WAIT)
+        out, err = await asyncio.wait_for(self.proc.communicate(), wait)
         return self.proc.returncode, "\n".join(self.lines) + out.decode(), err.decode()
 
 
