@@ -21,16 +21,21 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/whiztap demo --force
 
-# Every test, on every core (pytest-xdist; --dist loadgroup keeps the tests of one
-# xdist_group in one process), each line of dots counting the tests run; the
-# slowest are listed at the end.
+# Tests run in JOBS processes at once (pytest-xdist): two a core, as many tests
+# wait on sockets, servers and other processes (on 2 cores, 4 took 2m55-3m16 for
+# the whole suite where 2 took 4m00; docs/benchmarks.md).  --dist loadgroup keeps
+# the tests of one xdist_group in one process.
+JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 2 )))
+
+# Every test; each line of dots ends with how many have run, and the slowest
+# are listed at the end.
 test: $(STAMP) test-deps
-	$(BIN)/pytest -q -n auto --dist loadgroup --durations=15
+	$(BIN)/pytest -q -n $(JOBS) --dist loadgroup --durations=15
 
 # The fast subset to run while you work: every test not marked slow (processes
 # under load, Dask, tshark, soaks, memory bounds), in under a minute.
 check: $(STAMP)
-	$(BIN)/pytest -q -n auto --dist loadgroup -m "not slow"
+	$(BIN)/pytest -q -n $(JOBS) --dist loadgroup -m "not slow"
 
 # Debian and npm packages some tests use (tcpdump, socat, tshark, @mcap/core); idempotent.
 test-deps:
