@@ -4,7 +4,6 @@ language in-process."""
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import socket
@@ -259,8 +258,7 @@ def test_client_refuses_a_command_that_breaks_the_spec_unless_raw():
 def test_client_takes_the_password_from_the_environment():
     proc, port = start_sim("-q", "--password", "from-env")
     try:
-        env_ok = subprocess.run([WHIZTAP, "client", f"127.0.0.1:{port}", "sensor 12"], capture_output=True,
-                                text=True, timeout=30, env={**os.environ, "WHIZTAP_PASSWORD": "from-env"})
+        env_ok = run_cli("client", f"127.0.0.1:{port}", "sensor 12", env={"WHIZTAP_PASSWORD": "from-env"})
     finally:
         stop(proc)
     assert env_ok.returncode == 0 and env_ok.stdout.startswith("sensor 12 = "), env_ok.stderr
