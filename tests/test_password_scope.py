@@ -116,7 +116,9 @@ async def test_commands_to_a_server_that_never_speaks_are_every_one_recorded(tmp
         rec = await RecordProcess.start(server.port, path)
         await play_client(rec.port, [("send", sent), ("eof",), ("sleep", 0.2)])
         await rec.wait_line(r"#1 closed by")
-        code, stdout, stderr = await rec.finish()
+        # the writer (a niced process) has a million messages to write: under a loaded
+        # machine (both cores running tests) that takes longer than a hang's usual bound
+        code, stdout, stderr = await rec.finish(wait=120)
         assert server.received == sent
     assert code == 0, stderr
     assert client_stream(path) == sent
