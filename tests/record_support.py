@@ -183,9 +183,12 @@ class RecordProcess:
             if re.search(pattern, line):
                 return line
 
-    async def finish(self, sig: int | None = signal.SIGINT, wait: float = WAIT) -> tuple[int, str, str]:
+    async def finish(self, sig: int | None = signal.SIGINT, wait: float = 3 * WAIT) -> tuple[int, str, str]:
         """Signal the recorder (SIGINT: Ctrl-C) and wait up to ``wait`` seconds
-        for it to finish its file and exit: status, stdout, stderr."""
+        for it to finish its file and exit: status, stdout, stderr.  Wider than
+        WAIT: the writer, a process of its own at a lower priority, writes what
+        is still queued first, and beside other tests (make test runs several
+        at once) it gets little of the CPU; a bound, never a timing assertion."""
         if sig is not None:
             self.proc.send_signal(sig)
         out, err = await asyncio.wait_for(self.proc.communicate(), wait)
