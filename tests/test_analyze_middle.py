@@ -18,6 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.replay_support import until_closed
 from tests.cli_support import run_cli
 from tests.record_support import LOCAL, op_event
 from tests.streams import stream_pieces
@@ -94,10 +95,7 @@ def _record(path: Path, specs: tuple[str, ...], session, *, wait: float = CLIENT
             try:
                 async with await Client.connect(LOCAL, rec.proxy.port, timeout=wait) as client:
                     await session(client, rec)
-                for _ in range(200):  # until the simulator has seen the client go
-                    if sim.stats.open_connections == 0:
-                        break
-                    await asyncio.sleep(0.01)
+                await until_closed(sim)  # the simulator has seen its clients go
             finally:
                 await rec.stop()
     asyncio.run(run())

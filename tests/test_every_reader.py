@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
+from tests.replay_support import until_closed
 from tests.cli_support import run_cli
 from tests.record_support import LOCAL, recording
 from whiztap.analyzer.analysis.exchanges import load_exchanges
@@ -50,10 +51,7 @@ async def _record(path: Path) -> None:
             await client.exchange_raw(b"rr1-99--0--0-ss1", 0.2)  # an unconfigured channel: broken rules
             await client.send_raw(b"not a frame\r\n")
             await client.sensor(15)
-        for _ in range(200):  # until the simulator has seen the client go
-            if sim.stats.open_connections == 0:
-                break
-            await asyncio.sleep(0.01)
+        await until_closed(sim)  # the simulator has seen its clients go
         await rec.stop()
 
 

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.replay_support import until_closed
 from tests.record_support import LOCAL
 from tests.streams import stream_pieces
 from whiztap.analyzer.analysis import analyzer as analyzer_module
@@ -308,10 +309,7 @@ def _record(path: Path, judges: tuple[Judge, ...]) -> Path:
                     rec.controller.inject(1, "s2c", "cr1-12--5--0-ss1")
                     await asyncio.sleep(0.05)
                     await two.sensor(13)
-                for _ in range(200):  # until the simulator has seen the clients go
-                    if sim.stats.open_connections == 0:
-                        break
-                    await asyncio.sleep(0.01)
+                await until_closed(sim)  # the simulator has seen its clients go
             finally:
                 await rec.stop()
     asyncio.run(run())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import base64
 
 import pytest
@@ -10,6 +9,7 @@ import pytest
 from whiztap.sniffer.sim.client import Client, ResponseTimeout
 from whiztap.sniffer.sim.faults import FaultConfig
 from whiztap.sniffer.sim.simulator import Simulator
+from tests.replay_support import until_closed
 from tests.record_support import LOCAL, both_ways, events, frame_items, on_channels, read_all, recording
 
 PASSWORD = "s3cret-pw"
@@ -27,10 +27,7 @@ async def test_a_winsock_session_through_the_proxy_is_recorded_whole(tmp_path):
             await client.activate_switch(7)
             await client.deactivate_switch(7)
             image = await client.fetch_camera_image()
-        for _ in range(200):  # until the simulator has seen the client go
-            if sim.stats.open_connections == 0:
-                break
-            await asyncio.sleep(0.01)
+        await until_closed(sim)  # the simulator has seen its clients go
         summary = await rec.stop()
         stats = sim.stats
     assert len(config.channels) == 24
@@ -82,10 +79,7 @@ async def test_simulator_faults_are_forwarded_and_recorded_exactly(tmp_path, fau
                     answered += 1
                 except ResponseTimeout:
                     pass  # a dropped answer
-        for _ in range(200):
-            if sim.stats.open_connections == 0:
-                break
-            await asyncio.sleep(0.01)
+        await until_closed(sim)  # the simulator has seen its clients go
         await rec.stop()
     recorded = both_ways(str(path))
     assert len(recorded[(1, "s2c")]) == sim.stats.bytes_out
