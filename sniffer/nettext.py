@@ -4,10 +4,15 @@ connection failed (in the system's own words)."""
 from __future__ import annotations
 
 import ipaddress
+from typing import TYPE_CHECKING
 import os
 import socket
+import struct
 
 from whiztap.analyzer.errors import WhiztapError
+
+if TYPE_CHECKING:
+    import asyncio
 
 
 def reason(e: OSError) -> str:
@@ -61,3 +66,17 @@ def parse_address(text: str, default_host: str | None, what: str) -> tuple[str, 
     if not port.isdigit() or int(port) > 65535:
         raise AddressError(f"{what} needs a port number 0-65535, got {text!r}")
     return host, int(port)
+
+_LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP reset
+
+
+def arm_reset(transport: asyncio.BaseTransport) -> None:
+    """Make the next close of ``transport``'s socket a TCP RST, not a FIN
+    (a socket already gone is left as it is); the caller aborts it."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_NOW)
+        except OSError:
+            pass
+

@@ -14,20 +14,18 @@ another connection.
 from __future__ import annotations
 
 import asyncio
-import socket
-import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from whiztap.analyzer.mitm.commands import Command, Deliver, EndConnection, PassEof, Tell, WakeAt
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Action
+from whiztap.sniffer.nettext import arm_reset
 
 if TYPE_CHECKING:
     from whiztap.sniffer.mitm.controller import Controller
 
 C2S, S2C = Direction.C2S, Direction.S2C
-_LINGER_NOW = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends a TCP reset
 
 
 class Leg(Protocol):
@@ -177,12 +175,7 @@ class MiddleShell:
             transport = leg.transport
             if transport is None or leg.lost:
                 continue
-            sock = transport.get_extra_info("socket")
-            if sock is not None:
-                try:
-                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_NOW)
-                except OSError:
-                    pass
+            arm_reset(transport)
         if connection.closed_by is None:
             connection.closed_by, connection.detail = "proxy", "reset by a fault"
         connection.abort()

@@ -37,14 +37,13 @@ from __future__ import annotations
 import asyncio
 import itertools
 import socket
-import struct
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, cast
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Closed, Data, HalfClosed, Opened, UpstreamConnected, UpstreamFailed
-from whiztap.sniffer.nettext import reason, show_address
+from whiztap.sniffer.nettext import arm_reset, reason, show_address
 from whiztap.sniffer.record.consumers import Consumer
 
 if TYPE_CHECKING:
@@ -54,7 +53,6 @@ if TYPE_CHECKING:
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
 CLOSE_GRACE_S = 2.0
-_RESET = struct.pack("ii", 1, 0)  # SO_LINGER on, 0 s: close() sends an RST
 
 
 class Clock:
@@ -238,12 +236,7 @@ class Connection:
         transport = self.client.transport
         if transport is None:  # never: a connection starts with its client's
             return
-        sock = transport.get_extra_info("socket")
-        if sock is not None:
-            try:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _RESET)
-            except OSError:
-                pass
+        arm_reset(transport)
         transport.abort()
 
     # -- teardown -------------------------------------------------------------------------
