@@ -44,7 +44,14 @@ RAW_SENSOR_REQUEST = base64.b64encode(SENSOR_REQUEST).decode()  # as /frames has
 class FoxgloveClient:
     """What the Foxglove app does, minimally: read serverInfo, keep every
     advertised channel, subscribe to each as it is advertised (subscription id
-    = channel id), and keep each message: topic -> [(log time, payload)]."""
+    = channel id), and keep each message: topic -> [(log time, payload)].
+
+    The protocol does not acknowledge a subscription, so after each subscribe
+    the client asks for parameters, which this server does not offer: its
+    status answer comes after the subscription was taken (the SDK handles a
+    client's messages in order).  ``subscribed`` is set when every advertised
+    channel's subscription has been taken, so a test can start traffic then
+    and expect every message."""
 
     def __init__(self, ws, stall: bool = False) -> None:
         self.ws = ws
@@ -52,7 +59,9 @@ class FoxgloveClient:
         self.server_info: dict = {}
         self.channels: dict[int, dict] = {}  # channel id -> its advertised channel
         self.got: dict[str, list[tuple[int, bytes]]] = defaultdict(list)
+        self.statuses: list[str] = []  # the server's status messages other than the barrier's answers
         self.subscribed = asyncio.Event()
+        self._awaited = 0  # barriers sent and not answered yet
         self._task: asyncio.Task | None = None
 
     @classmethod
@@ -84,13 +93,22 @@ class FoxgloveClient:
             pass
 
     async def _control(self, message: dict) -> None:
+        if message["op"] == "status" and "parameters" in message["message"]:
+            self._awaited -= 1
+            if not self._awaited:
+                self.subscribed.set()
+            return
+        if message["op"] == "status":
+            self.statuses.append(message["message"])
         if message["op"] != "advertise":
             return
         for channel in message["channels"]:
             self.channels[channel["id"]] = channel
+        self.subscribed.clear()
+        self._awaited += 1
         await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": channel["id"], "channelId": channel["id"]} for channel in message["channels"]]}))
-        self.subscribed.set()
+        await self.ws.send(json.dumps({"op": "getParameters", "parameterNames": [], "id": "taken?"}))
 
     async def close(self) -> None:
         if self._task is not None:
@@ -163,6 +181,7 @@ async def test_a_foxglove_client_gets_live_what_the_file_gets(tmp_path):
         await until(lambda: any(b'"closed"' in m for _, m in fox.got["/tcp/events"]), "the closed event, live")
         await rec.stop()
         await fox.close()
+    assert not fox.statuses  # no subscription refused
     in_file, file_channels = file_messages([path])
     live = fox.got
     for topic in ("/tcp/reads", "/frames"):  # subscribed before the first: exactly the file's

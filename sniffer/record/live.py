@@ -193,17 +193,28 @@ class LiveRecordingFile(RecordingFile):
 
     Messages come as (channel id, t_ns, data), ids from ``channel_ids``
     (topic -> id), fixed for the whole recording (every part uses the same
-    ids) and only ever growing: when it has grown, the map back to topics is
-    made again.  A live channel is made when the file has its topic, at the
-    first message after: for the format's topics, when the recording starts;
-    for one registered as it goes (``/sensors/12``), after its first message,
-    which no client can have subscribed to yet and which is not served."""
+    ids) and only ever growing.  A live channel is made as soon as the file
+    knows its topic: the format's topics and, in the middle, the middle's
+    (``Recorder``) before the recording says it is ready, so a viewer that
+    connects then lists and subscribes to them before the first message; a
+    plot topic (``/sensors/12``) when it joins, just before its first
+    message, which no viewer can have subscribed to yet."""
 
     def __init__(self, live: LiveServer, *args: Any, **kwargs: Any) -> None:  # RecordingFile's
         super().__init__(*args, **kwargs)
         self.live = live
-        self._logs: dict[int, Log] = {}  # channel id -> its live channel's log
+        self._logs: dict[int, Log] = {channel_id: live.log_function(topic)
+                                      for topic, channel_id in self.channel_ids.items()}
         self.serving = True  # False once the live server failed: the file goes on alone
+
+    def channel_id(self, topic: str) -> int:
+        channel_id = super().channel_id(topic)
+        if self.serving and channel_id not in self._logs:
+            try:
+                self._logs[channel_id] = self.live.log_function(topic)
+            except Exception as e:  # whatever the live server does wrong, the file goes on
+                self._stop_serving(e)
+        return channel_id
 
     def write_all(self, messages: list[tuple[int, int, bytes]]) -> None:
         if self.serving:
@@ -214,20 +225,13 @@ class LiveRecordingFile(RecordingFile):
         """Hand each message to its live channel.  Serving must never cost the
         recording: if the SDK raises, say so once on stderr, serve nothing
         more, and record on."""
-        ids = self.channel_ids
+        logs = self._logs
         try:
-            if len(ids) != len(self._logs):
-                self._remap(ids)
-            logs = self._logs
             for channel_id, t_ns, data in messages:
                 logs.get(channel_id, _nowhere)(data, t_ns)
         except Exception as e:  # whatever the live server does wrong, the file goes on
-            self.serving = False
-            self.warn(f"warning: the live Foxglove server stopped ({type(e).__name__}: {e}); "
-                      "the recording goes on")
+            self._stop_serving(e)
 
-    def _remap(self, ids: dict[str, int]) -> None:
-        """Channel ids back to topics, and a live channel for every topic the
-        file has (so the app lists the file's topics, and a client subscribed
-        early gets their first messages too)."""
-        self._logs = {channel_id: self.live.log_function(topic) for topic, channel_id in ids.items()}
+    def _stop_serving(self, e: Exception) -> None:
+        self.serving = False
+        self.warn(f"warning: the live Foxglove server stopped ({type(e).__name__}: {e}); the recording goes on")

@@ -48,6 +48,7 @@ from whiztap.analyzer.recording.encode import (
 )
 from whiztap.analyzer.recording.format import (
     MASK_BYTE,
+    MITM_TOPICS,
     TOPIC_DELIVERED,
     TOPIC_EVENTS,
     TOPIC_FRAMES,
@@ -147,6 +148,9 @@ class Recorder:
         # In the middle, analyze's judging of what the file gets (each side by what it sent and
         # received); without it, the session's violations are analyze's verdict already.
         self.judge = Judge(checksum_rule, limits, middle=True) if middle else None
+        if middle:  # the middle's topics known from the start (each part defines them at its
+            for topic in MITM_TOPICS:  # first message), so a live viewer has them before it
+                file.channel_id(topic)
         self._conns: dict[int, _Conn] = {}  # open, as far as the input goes
         self._live: dict[int, _Conn] = {}  # open, as far as the file goes
         # None with --keep-secrets; a queued record is a _ReadNote, or the work
