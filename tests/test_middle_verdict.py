@@ -212,3 +212,22 @@ def test_cat_says_the_client_had_no_answer_where_the_proxy_dropped_it(tmp_path):
 
 def test_cat_without_the_middle_shows_no_latency():
     assert not [line for line in _cat(Path(__file__).parent.parent / "samples/vpn.mcap") if "[latency:" in line]
+
+
+def test_a_connection_is_open_until_its_close_even_before_its_first_delivery():
+    """In the middle a read waits for its delivery before a session takes it:
+    until then the connection has no session, yet it is open (``/state``'s
+    ``open``, the TUI's row), and the verdict's count must not say it closed
+    (a view waiting for "no connection open" stopped before the traffic)."""
+    from whiztap.analyzer.protocol.observations import Direction
+    from whiztap.analyzer.traffic import Closed, Data, Opened
+    from whiztap.sniffer.record.summary import verdict_dict
+
+    judge = _judge()
+    analyzer = judge.analyzer
+    judge.receive(Opened(1, 1))
+    judge.receive(Data(1, Direction.C2S, 2, b"rr1-12--0--0-ss1"))  # sent, not delivered yet
+    assert not analyzer.sessions and analyzer.open_connections == 1
+    assert verdict_dict(judge.verdict(), analyzer.open_connections, 0)["open"] == 1
+    judge.receive(Closed(1, 3, "client"))
+    assert analyzer.open_connections == 0

@@ -47,7 +47,7 @@ async def test_the_tui_the_api_the_summary_and_analyze_give_one_verdict(tmp_path
             await raw.close()
 
             model = app.model
-            await until(pilot, lambda: model.verdict().connections == 1 and not model.analyzer.sessions,
+            await until(pilot, lambda: model.verdict().connections == 1 and model.analyzer.open_connections == 0,
                         "the connection judged in the TUI")
             state = {}
             for _ in range(100):  # the writer reports its verdict as it changes

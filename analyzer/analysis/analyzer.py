@@ -74,6 +74,9 @@ class Analyzer:
         self.traffic = Traffic(partial(limits.session, self._rule.name, every_event), self._ended)
         self.sessions = self.traffic.sessions
         self.summaries: dict[int, ConnectionSummary] = {}
+        # connections whose close came; the others are open, whether or not a session has
+        # begun (in the middle a read waits for its delivery before its session takes it)
+        self.closed: set[int] = set()
         self.result = Analysis([file] if file else [], checksum_rule, max_violations=max_violations)
         self._counted: dict[int, Counter] = {}  # per connection: counts already put in a bin
         self._bin_second = 0
@@ -144,6 +147,7 @@ class Analyzer:
                                  else f"gap in {direction}: {why}")
         elif isinstance(event, Closed):
             summary.closed_by = event.by or ""
+            self.closed.add(event.conn)
         sides = self._sides
         held = None
         if sides is not None and kind in ENDS:  # the sessions take it: a read held was never delivered before it
@@ -156,6 +160,11 @@ class Analyzer:
             if kind is Closed or kind is Gap:
                 self._settle(event.conn, sides.settle(event.conn, closed=kind is Closed))
         return held + events if held else events
+
+    @property
+    def open_connections(self) -> int:
+        """Connections seen and not closed yet."""
+        return len(self.summaries) - len(self.closed)
 
     def open_judgements(self) -> list[tuple[int, Settled]]:
         """In the middle, how each connection not yet settled would be judged if

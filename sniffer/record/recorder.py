@@ -355,7 +355,7 @@ class Recorder:
         if judge is None:
             return None
         analyzer = judge.analyzer
-        return verdict_dict(judge.verdict(), len(analyzer.sessions), sum(analyzer.result.interventions.values()))
+        return verdict_dict(judge.verdict(), analyzer.open_connections, sum(analyzer.result.interventions.values()))
 
     def _judged(self, e: TrafficEvent) -> None:
         """An event written: the judge (in the middle) takes it in the same place."""

@@ -111,13 +111,15 @@ class TrafficModel:
             for conn, summary in sorted(analyzer.summaries.items()):
                 session = analyzer.sessions.get(conn)
                 violations = judged.get(conn, 0)
-                if session is not None:  # still open: the live session knows more than the summary
+                if session is not None:  # going on: the live session knows more than the summary
                     mode, handshake = str(session.mode), session.handshake_outcome
                     if self.judge is None:
                         violations = sum(session.violation_counts.values())
-                    state = "open"
                 else:
                     mode, handshake = summary.mode, summary.handshake
+                if conn not in analyzer.closed:  # in the middle, open before its session begins
+                    state = "open"
+                else:
                     state = f"closed by {summary.closed_by}" if summary.closed_by else "ended"
                 rows.append(ConnectionRow(conn, summary.client, summary.upstream, mode, handshake,
                                           self.store.conn_rows(conn), violations, state))
