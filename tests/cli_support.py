@@ -30,6 +30,7 @@ from click.testing import CliRunner
 from whiztap.analyzer.cli.root import main
 
 WHIZTAP = str(Path(sys.executable).with_name("whiztap"))
+_STARTED: list[asyncio.subprocess.Process] = []  # by start_process; killed after each test (conftest)
 TIMEOUT = 120  # seconds a command run to its end may take before the test fails
 
 
@@ -116,4 +117,27 @@ async def start_process(*args: object, **kwargs: Any) -> asyncio.subprocess.Proc
     kwargs.setdefault("stdout", asyncio.subprocess.PIPE)
     kwargs.setdefault("stderr", asyncio.subprocess.PIPE)
     kwargs.setdefault("stdin", asyncio.subprocess.DEVNULL)
-    return await asyncio.create_subprocess_exec(WHIZTAP, *map(str, args), **kwargs)
+    proc = await asyncio.create_subprocess_exec(WHIZTAP, *map(str, args), **kwargs)
+    _STARTED.append(proc)
+    return proc
+
+
+def kill_leftovers() -> list[int]:
+    """Kill what ``start_process`` started and the test left running (one that
+    failed half-way, before it stopped its server): the pids killed.  A
+    process already reaped is left alone (``waitpid`` says so), so a pid the
+    system gave to another process since is never signalled."""
+    killed = []
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.returncode is not None:
+            continue
+        try:
+            if os.waitpid(proc.pid, os.WNOHANG) != (0, 0):
+                continue  # it had ended: reaped now
+            os.kill(proc.pid, 9)
+            os.waitpid(proc.pid, 0)
+        except ChildProcessError:  # reaped already by the event loop's watcher
+            continue
+        killed.append(proc.pid)
+    return killed

@@ -1,4 +1,5 @@
-"""What every test process shares: a runtime folder of its own.
+"""What every test process shares: a runtime folder of its own, and no
+``whiztap`` process left running by a test that failed half-way.
 
 ``make test`` runs the tests in several processes at once (pytest-xdist).
 ``whiztap record --control`` puts its control socket in $XDG_RUNTIME_DIR/whiztap,
@@ -38,3 +39,13 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         os.environ[_RUNTIME] = before
     shutil.rmtree(folder, ignore_errors=True)
 
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_processes():
+    """A test that fails before it stops what it started (a stub, a recorder)
+    would leave it running for the rest of the suite: killed here."""
+    from tests.cli_support import kill_leftovers
+
+    yield
+    kill_leftovers()
