@@ -269,6 +269,11 @@ async def test_memory_bounded_with_readers_that_lag_before_during_and_after_a_ba
             await connect()  # before any backlog
             fast = await asyncio.to_thread(FastReader, rec.port)
             try:
+                for _ in range(int(WAIT * 20)):  # traffic flows (on a loaded machine it may take a while)
+                    if fast.received:
+                        break
+                    await asyncio.sleep(0.05)
+                assert fast.received > 0, "no traffic reached the fast reader before the backlog"
                 with writer_stopped(writer_pid(rec.proc.pid)):
                     await watch_memory(rec.proc.pid, 1.0)  # the backlog fills
                     await connect()  # during it
@@ -281,7 +286,6 @@ async def test_memory_bounded_with_readers_that_lag_before_during_and_after_a_ba
                     task.cancel()
                 for writer in held:
                     writer.close()
-            assert fast.received > 0
             await finish(rec)
 
 
