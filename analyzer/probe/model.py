@@ -12,11 +12,11 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 
-class Outcome(str, Enum):
+class Outcome(StrEnum):
     """A case's verdict.  ``SKIP`` is for a case whose expectation the spec
     leaves open or that the target cannot take (its reason says which): never
     a guess reported as a failure."""
@@ -24,9 +24,6 @@ class Outcome(str, Enum):
     PASS = "pass"
     FAIL = "fail"
     SKIP = "skip"
-
-    def __str__(self) -> str:
-        return self.value
 
 
 @dataclass(frozen=True, slots=True)
