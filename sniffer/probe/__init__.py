@@ -1,0 +1,1 @@
+"""Running probes over sockets and processes: the cases of ``whiztap.analyzer.probe`` against a live peer."""
