@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from whiztap.sniffer.sim.simulator import Simulator
 
 DEFAULT_PORT = 5000
+CRASHED = 70  # exit status after a planted bug crashed the server (EX_SOFTWARE)
 _LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
 
 
@@ -54,31 +55,47 @@ _LOG_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
 @click.option("--split", is_flag=True, help="Write every reply in random small pieces.")
 @click.option("--garbage-rate", type=click.FloatRange(0, 1), default=0.0, metavar="P",
               help="Probability of stray bytes before a reply.")
+@click.option("--bug", "bugs", multiple=True, metavar="NAME",
+              help="Plant a server defect for a conformance suite to catch (repeatable; --bugs lists them).")
+@click.option("--bugs", "list_bugs", is_flag=True, help="List the planted bugs --bug takes, and exit.")
 @click.option("-v", "--verbose", count=True, help="-v logs every line break and more.")
 @click.option("-q", "--quiet", is_flag=True, help="Log only problems, not connections.")
 def sim_command(host: str, port: int, mode: str, password: str, channels: str, seed: int, servo_speed: float,
                 camera: str, checksum_rule: str, latency: float, jitter: float, drop_rate: float, split: bool,
-                garbage_rate: float, verbose: int, quiet: bool) -> None:
-    """Run a simulated Progwhiz Robotics Server (Rev 1.8) until interrupted."""
+                garbage_rate: float, bugs: tuple[str, ...], list_bugs: bool, verbose: int, quiet: bool) -> None:
+    """Run a simulated Progwhiz Robotics Server (Rev 1.8) until interrupted.
+
+    With --bug it misbehaves on purpose; a bug that crashes it ends it with
+    exit status 70 and the line 'whiztap sim: crashed (planted bug NAME)'.
+    """
+    from whiztap.sniffer.sim.bugs import BugError, listing
     from whiztap.sniffer.sim.channels import ChannelSpecError
     from whiztap.sniffer.sim.faults import FaultConfig
     from whiztap.sniffer.sim.simulator import Simulator
 
+    if list_bugs:
+        click.echo(listing())
+        return
     if mode == "winsock" and not password:
         fail("winsock mode needs a non-empty --password")
     try:
         faults = FaultConfig(latency, jitter, drop_rate, split, garbage_rate)
         sim = Simulator(host, port, mode=mode, password=password, channels=channels, seed=seed,
                         servo_speed=servo_speed, camera=camera == "test", checksum_rule=checksum_rule,
-                        faults=faults)
+                        faults=faults, bugs=bugs)
+    except BugError as e:
+        fail(f"--bug: {e}")
     except (ChannelSpecError, ValueError) as e:
         fail(f"--channels: {e}" if isinstance(e, ChannelSpecError) else str(e))
     level = logging.WARNING if quiet else _LOG_LEVELS[min(1 + verbose, 2)]
     logging.basicConfig(stream=sys.stderr, level=level, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    run(_run_sim(sim))
+    if run(_run_sim(sim)):
+        click.echo(f"whiztap sim: crashed (planted bug {sim.crash_reason})", err=True)
+        sys.exit(CRASHED)
 
 
-async def _run_sim(sim: Simulator) -> None:
+async def _run_sim(sim: Simulator) -> bool:
+    """Serve until told to stop; True if a planted bug crashed the server."""
     try:
         await sim.start()
     except OSError as e:
@@ -92,9 +109,14 @@ async def _run_sim(sim: Simulator) -> None:
             where = ", ".join(show_address(host, port) for host, port in sim.addresses)
             click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
                        f"seed {sim.seed})")
-            await stopped.wait()
+            stop = asyncio.create_task(stopped.wait())
+            crash = asyncio.create_task(sim.crashed.wait())
+            await asyncio.wait((stop, crash), return_when=asyncio.FIRST_COMPLETED)
+            stop.cancel()
+            crash.cancel()
     finally:
         await sim.close()
+    return sim.crashed.is_set()
 
 
 @click.command("client", context_settings={"ignore_unknown_options": True})

@@ -16,6 +16,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Protocol
 
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
@@ -62,6 +63,29 @@ class Output:
     replies: list[Reply] = field(default_factory=list)
     notes: list[Note] = field(default_factory=list)
     close: bool = False  # send the replies, then close the connection
+    crash: str | None = None  # a planted bug (its name) crashes the whole server: nothing more is sent
+
+
+class Hooks(Protocol):
+    """What planted bugs may change in one connection (``sniffer/sim/bugs.py``).
+
+    A clean connection has none (``RobotConnection.hooks is None``), so it pays
+    one test per read and per item, nothing more.
+    """
+
+    any_password: bool  # every password is right
+
+    def greet(self, out: Output) -> None:
+        """Change what the server sends on connect."""
+
+    def item(self, item: Item, reply: bytes | None, out: Output) -> bytes | None:
+        """See each item the client sent with the server's answer to it (None:
+        none); return the answer to send instead.  Setting ``out.crash`` stops
+        the connection's work at once."""
+
+    def read(self, data: bytes, buffered: int, out: Output) -> None:
+        """See each read once its items are served: its bytes, how many of the
+        stream's last bytes the framer still holds, and the replies about to go."""
 
 
 @dataclass(slots=True)
@@ -123,8 +147,9 @@ class Robot:
         self._sensors: list[Signal] = [make_signal(seed, ch) for ch in range(MAX_CHANNEL + 1)]
         self._sweep: tuple[int, list[float]] | None = None  # (start time, each servo's origin)
 
-    def connect(self, mode: ServerMode, password: bytes = b"", max_item: int = DEFAULT_MAX_ITEM) -> RobotConnection:
-        return RobotConnection(self, mode, password, max_item)
+    def connect(self, mode: ServerMode, password: bytes = b"", max_item: int = DEFAULT_MAX_ITEM,
+                hooks: Hooks | None = None) -> RobotConnection:
+        return RobotConnection(self, mode, password, max_item, hooks)
 
     # -- what a client can read ------------------------------------------------------------
 
@@ -254,7 +279,8 @@ class RobotConnection:
     line break after it is an ``eol`` item like any other and is ignored.
     """
 
-    def __init__(self, robot: Robot, mode: ServerMode, password: bytes, max_item: int) -> None:
+    def __init__(self, robot: Robot, mode: ServerMode, password: bytes, max_item: int,
+                 hooks: Hooks | None = None) -> None:
         if mode is ServerMode.WINSOCK and not password:
             raise ValueError("winsock mode needs a non-empty password")
         self.robot = robot
@@ -263,12 +289,14 @@ class RobotConnection:
         self.state = ConnectionState.AWAIT_PASSWORD if mode is ServerMode.WINSOCK else ConnectionState.READY
         self._matched = 0  # password bytes received so far
         self._framer = Framer(max_item)
+        self.hooks = hooks  # planted bugs, if any
 
     def start(self, t_ns: int) -> Output:
         """What the server sends as soon as the client connects."""
-        if self.mode is ServerMode.WINSOCK:
-            return Output([Reply(encode(m.SendCheckPassword()), answer=False)])
-        return Output()
+        out = Output([Reply(encode(m.SendCheckPassword()), answer=False)] if self.mode is ServerMode.WINSOCK else [])
+        if self.hooks is not None:
+            self.hooks.greet(out)
+        return out
 
     def receive(self, data: bytes, t_ns: int) -> Output:
         out = Output()
@@ -276,6 +304,8 @@ class RobotConnection:
             data = self._password(data, out)
         if self.state is ConnectionState.READY and data:
             self._serve(self._framer.feed(data, t_ns), t_ns, out)
+            if self.hooks is not None and out.crash is None:
+                self.hooks.read(data, self._framer.buffered, out)
         return out
 
     def end(self, t_ns: int) -> Output:
@@ -291,7 +321,7 @@ class RobotConnection:
         """Consume password bytes; return what follows a complete password."""
         expected = self.password[self._matched:]
         take = data[:len(expected)]
-        if not expected.startswith(take):
+        if not expected.startswith(take) and not (self.hooks is not None and self.hooks.any_password):
             self.state = ConnectionState.FAILED
             out.replies.append(Reply(encode(m.FailedValidation()), answer=False))
             out.notes.append(Note(logging.WARNING, "wrong password: Failed Validation, closing"))
@@ -306,13 +336,12 @@ class RobotConnection:
         return data[len(take):]
 
     def _serve(self, items: list[Item], t_ns: int, out: Output) -> None:
-        robot = self.robot
+        robot, hooks = self.robot, self.hooks
         for item in items:
             kind = item.kind
+            reply = None
             if kind is ItemKind.COMMAND or kind is ItemKind.SET_CONFIG:
                 reply = robot.command(decode(kind, item.raw), item.raw, t_ns, out.notes)
-                if reply is not None:
-                    out.replies.append(Reply(reply, answer=True))
             elif kind is ItemKind.EOL:
                 out.notes.append(Note(logging.DEBUG, "line break ignored"))
             elif kind is ItemKind.UNFRAMED:
@@ -321,3 +350,9 @@ class RobotConnection:
             else:
                 out.notes.append(Note(logging.WARNING, f"a {kind} item came from the client: "
                                       f"{_quote(item.raw)}, ignored", "PW-DIRECTION"))
+            if hooks is not None:
+                reply = hooks.item(item, reply, out)
+                if out.crash is not None:
+                    return
+            if reply is not None:
+                out.replies.append(Reply(reply, answer=True))

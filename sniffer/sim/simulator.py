@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.messages import ChannelConfig
+from whiztap.sniffer.sim.bugs import Planted, check_bugs
 from whiztap.sniffer.sim.camera import render_frame
 from whiztap.sniffer.sim.channels import DEFAULT_CHANNELS, parse_channels
 from whiztap.sniffer.sim.faults import FaultConfig, FaultPlanner
@@ -65,7 +66,10 @@ class Simulator(TcpServer):
         checksum_rule: str = DEFAULT_CHECKSUM_RULE,
         faults: FaultConfig = FaultConfig(),
         clock: Callable[[], int] = time.monotonic_ns,
+        bugs: tuple[str, ...] = (),
     ) -> None:
+        """``bugs`` plants defects by name (``sniffer/sim/bugs.py``); a name not
+        known, or one the mode cannot show, is a ``BugError`` (a ValueError)."""
         super().__init__(host, port)
         self.mode = ServerMode(mode)
         self.password = password.encode() if isinstance(password, str) else password
@@ -74,16 +78,22 @@ class Simulator(TcpServer):
         self.seed = seed
         self.faults = faults
         self.clock = clock
+        self.bugs = check_bugs(bugs, self.mode)
+        self.crashed = asyncio.Event()  # set when a planted bug has crashed the server
         if isinstance(channels, str):
             channels = parse_channels(channels)
         self.robot = Robot(channels, seed=seed, servo_speed=servo_speed,
                            camera=render_frame if camera else None,
                            checksum_rule=checksum_rule, start_ns=clock())
         self.stats = Stats()
+        self.crash_reason: str | None = None  # the planted bug that crashed the server
 
     # -- one connection ----------------------------------------------------------------
 
     async def _serve_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self.crashed.is_set():  # accepted while the crash was closing the listening socket
+            writer.transport.abort()
+            return
         self.stats.connections += 1
         self.stats.open_connections += 1
         number = self.stats.connections
@@ -94,7 +104,8 @@ class Simulator(TcpServer):
         log.info("%s: connected", name)
         graceful = True
         try:
-            connection = self.robot.connect(self.mode, self.password)
+            hooks = Planted(self.bugs, self.robot) if self.bugs else None
+            connection = self.robot.connect(self.mode, self.password, hooks=hooks)
             await self._serve(connection, reader, sender, name)
         except asyncio.CancelledError:  # the server is closing
             graceful = False
@@ -106,7 +117,7 @@ class Simulator(TcpServer):
             log.exception("%s: internal error, closing this connection", name)
         finally:
             try:
-                if graceful:
+                if graceful and not self.crashed.is_set():
                     await sender.close()
                 else:
                     sender.abort()
@@ -131,10 +142,26 @@ class Simulator(TcpServer):
         """Log the notes and send the replies; True when the connection must close."""
         for note in out.notes:
             log.log(note.level, "%s: %s", name, note)
+        if out.crash is not None:
+            self._crash(out.crash, name)
+            return True
         for reply in out.replies:
             sender.send(reply.data, reply.answer)
         await sender.flush()
         return out.close
+
+    def _crash(self, bug: str, name: str) -> None:
+        """A planted bug brings the whole server down, as a crashed process
+        would: the listening socket closes, every connection is reset (this
+        one as its handler returns) and ``crashed`` is set."""
+        log.info("%s: this crashes the server (planted bug %s)", name, bug)
+        self.crash_reason = bug
+        self.crashed.set()
+        self.stop_listening()
+        current = asyncio.current_task()
+        for task in list(self._handlers):
+            if task is not current:
+                task.cancel()
 
 
 class _Sender:

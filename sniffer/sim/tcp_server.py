@@ -40,6 +40,11 @@ class TcpServer:
         self._server = await asyncio.start_server(
             self._accept, self.host, self.requested_port, backlog=BACKLOG, limit=READ_SIZE)
 
+    def stop_listening(self) -> None:
+        """Close the listening socket at once; connections are left as they are."""
+        if self._server is not None:
+            self._server.close()
+
     async def close(self) -> None:
         """Stop listening and end every connection."""
         if self._server is None:
