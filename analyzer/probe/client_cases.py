@@ -35,6 +35,8 @@ from whiztap.analyzer.protocol.images import JPEG_SOI
 from whiztap.analyzer.protocol.observations import may_tell
 
 SEPARATOR = b"--"
+GAP_S = 0.002  # between the pieces of a cut reply, so that a client reading at once gets them apart
+MAX_GAPPED = 64  # a reply cut in more pieces (an image) goes without gaps: TCP may join them
 SLOW_DELAY_S = 0.25  # how long each of the slow server's writes waits
 LINGER_S = 1.0  # how long the server keeps reading after Failed Validation, for the client to close
 LARGEST_IMAGE = DEFAULT_MAX_IMAGE  # the spec sets no limit; this is the largest the analyzer takes as one item
@@ -146,6 +148,16 @@ def select(cases: Iterable[ClientCase], patterns: Iterable[str]) -> list[ClientC
     """The cases whose id matches one of the glob ``patterns`` (all of them for none)."""
     patterns = list(patterns)
     return [c for c in cases if not patterns or any(fnmatch.fnmatchcase(c.id, p) for p in patterns)]
+
+
+def catalogue_table(cases: Iterable[ClientCase]) -> str:
+    """The cases as a Markdown table (what ``probe client --list`` prints and docs/probe.md holds)."""
+    rows = ["| id | spec section | a conforming server? | what the played server does |", "|---|---|---|---|"]
+    for case in cases:
+        normal = "yes: exit 0 expected" if case.must_succeed else "no: any exit status but a crash"
+        only = " (winsock only)" if case.winsock_only else ""
+        rows.append(f"| `{case.id}` | {case.spec} | {normal} | {case.title}{only} |")
+    return "\n".join(rows) + "\n"
 
 
 # -- what a schedule does to one reply ---------------------------------------------------------------

@@ -22,13 +22,14 @@ import asyncio
 import os
 import shlex
 import signal
+import socket
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.probe.client_cases import (
-    LARGEST_IMAGE, LINGER_S, NEED_REASON, ClientCase, Need, Shaper, pad_jpeg)
+    GAP_S, LARGEST_IMAGE, LINGER_S, MAX_GAPPED, NEED_REASON, ClientCase, Need, Shaper, pad_jpeg)
 from whiztap.analyzer.probe.model import CaseResult, Finding, Outcome, ProbeReport
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.rules import Severity
@@ -224,6 +225,9 @@ class PlayedServer:
         if len(self.connections) >= MAX_CONNECTIONS:
             writer.transport.abort()
             return
+        sock = writer.get_extra_info("socket")
+        if sock is not None:  # each piece of a cut reply its own segment
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         task = asyncio.current_task()
         assert task is not None
         self._tasks.add(task)
@@ -348,7 +352,10 @@ class PlayedConnection:
                     pass
                 break
             await asyncio.sleep(max(0.0, write.due - loop.time()))
-            for piece in write.pieces:
+            gap = GAP_S if 1 < len(write.pieces) <= MAX_GAPPED else 0.0
+            for n, piece in enumerate(write.pieces):
+                if gap and n:
+                    await asyncio.sleep(gap)
                 self.writer.write(piece)
                 self._observe(Direction.S2C, piece)
                 await self.writer.drain()
