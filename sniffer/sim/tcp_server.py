@@ -22,6 +22,7 @@ class TcpServer:
         self.host = host
         self.requested_port = port
         self._server: asyncio.Server | None = None
+        self._addresses: list[tuple[str, int]] = []  # kept once listening stops (a crash)
         self._handlers: set[asyncio.Task] = set()
 
     @property
@@ -29,7 +30,7 @@ class TcpServer:
         """Every (address, port) listened on: a host name may resolve to several."""
         if self._server is None:
             raise RuntimeError(f"the {type(self).__name__.lower()} is not listening")
-        return [sock.getsockname()[:2] for sock in self._server.sockets]
+        return self._addresses
 
     @property
     def port(self) -> int:
@@ -39,6 +40,7 @@ class TcpServer:
         """Listen (OSError if the address cannot be bound)."""
         self._server = await asyncio.start_server(
             self._accept, self.host, self.requested_port, backlog=BACKLOG, limit=READ_SIZE)
+        self._addresses = [sock.getsockname()[:2] for sock in self._server.sockets]
 
     def stop_listening(self) -> None:
         """Close the listening socket at once; connections are left as they are."""
