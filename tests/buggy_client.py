@@ -24,7 +24,8 @@ from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, READYTOGO, SE
 
 WAIT = 1.0  # seconds a correct client waits for the server
 LARGE = 1 << 20
-CONFIG, SENSOR, CAMERA, OUT_OF_RANGE = b"rr1-24--0--0-ss1", b"rr1-12--0--0-ss1", b"rr1-29--0--0-ss1", b"rr1-99--0--0-ss1"
+CONFIG, SENSOR, CAMERA = b"rr1-24--0--0-ss1", b"rr1-12--0--0-ss1", b"rr1-29--0--0-ss1"
+OUT_OF_RANGE = b"rr1-99--0--0-ss1"
 
 BUGS = {  # name -> (what it does wrong, the case that catches it, the finding)
     "early-commands": ("sends its first command with the password, before 'readytogo'",

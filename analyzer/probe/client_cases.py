@@ -24,6 +24,7 @@ client should report, so any exit status passes, but not a crash.
 from __future__ import annotations
 
 import fnmatch
+import itertools
 import random
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -175,10 +176,13 @@ def field_cuts(data: bytes) -> list[bytes]:
         bounds.update((at, at + len(SEPARATOR)))
         at = data.find(SEPARATOR, at + len(SEPARATOR), end)
     points = [0, *sorted(b for b in bounds if 0 < b < len(data)), len(data)]
-    return [data[a:b] for a, b in zip(points, points[1:], strict=False) if b > a]
+    return [data[a:b] for a, b in itertools.pairwise(points) if b > a]
 
 
 def cut(data: bytes, how: Cut) -> list[bytes]:
+    """The pieces ``data`` is written in (none for no bytes)."""
+    if not data:
+        return []
     if how is Cut.BYTES:
         return [data[i:i + 1] for i in range(len(data))]
     if how is Cut.FIELDS:
