@@ -386,6 +386,7 @@ async def test_sim_process_exits_70_with_one_line_when_a_bug_crashes_it():
     proc = await start_process("sim", "--port", "0", "--mode", "vpn", "--bug", "crash-on-frame", "-q")
     line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
     port = int(re.search(r"127\.0\.0\.1:(\d+)", line)[1])
+    assert line.endswith("(vpn, 24 channels, seed 0, planted bugs: crash-on-frame)\n")
     _, writer = await asyncio.open_connection("127.0.0.1", port)
     writer.write(b"rr1-12--000--0-ss1")
     await writer.drain()

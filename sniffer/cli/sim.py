@@ -107,8 +107,9 @@ async def _run_sim(sim: Simulator) -> bool:
     try:
         with stop_signals(stopped.set):
             where = ", ".join(show_address(host, port) for host, port in sim.addresses)
+            planted = f", planted bugs: {', '.join(sim.bugs)}" if sim.bugs else ""
             click.echo(f"whiztap sim: listening on {where} ({sim.mode}, {len(sim.robot.channels)} channels, "
-                       f"seed {sim.seed})")
+                       f"seed {sim.seed}{planted})")
             stop = asyncio.create_task(stopped.wait())
             crash = asyncio.create_task(sim.crashed.wait())
             await asyncio.wait((stop, crash), return_when=asyncio.FIRST_COMPLETED)

@@ -3,7 +3,8 @@
 Usable in-process (``async with Simulator(port=0) as sim: sim.port``) and from
 ``whiztap sim``.  One ``Robot`` is shared by every connection, as one robot would
 be; each connection gets its own handshake, framer and fault generator.  Nothing
-a client sends, and no error inside one connection, stops the server.
+a client sends, and no error inside one connection, stops the server, unless a
+planted bug (``bugs=``, ``sniffer/sim/bugs.py``) is there to crash it.
 """
 
 from __future__ import annotations
