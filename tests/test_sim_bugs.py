@@ -5,6 +5,7 @@ breaks a rule, and the same script against the clean simulator unaffected."""
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 from pathlib import Path
 
@@ -23,6 +24,8 @@ from whiztap.sniffer.sim.channels import DEFAULT_CHANNELS, parse_channels
 from whiztap.sniffer.sim.simulator import Simulator
 
 from tests.cli_support import run_cli, start_process
+from tests.record_support import recording
+from tests.replay_support import until_closed
 
 C, S = Direction.C2S, Direction.S2C
 FROZEN = 42_000_000_000  # a stopped clock: the same sensor values every run
@@ -51,8 +54,10 @@ class Wire:
         self.received = b""
 
     @classmethod
-    async def open(cls, sim: Simulator) -> Wire:
-        return cls(*await asyncio.open_connection("127.0.0.1", sim.port))
+    async def open(cls, sim: Simulator | int) -> Wire:
+        """A connection to the simulator, or to a port (a proxy in front of one)."""
+        port = sim if isinstance(sim, int) else sim.port
+        return cls(*await asyncio.open_connection("127.0.0.1", port))
 
     async def send(self, data: bytes) -> None:
         self.transcript.append((C, data))
@@ -150,11 +155,20 @@ async def test_wrong_channel_answers_name_the_next_channel():
     assert {"PW-PAIR-UNSOLICITED", "PW-PAIR-UNANSWERED"} <= buggy.rules()
 
 
-async def test_bad_config_answers_with_a_non_digit_unit_type():
-    async def fetch(wire: Wire) -> None:
-        await wire.send(CONFIG)
-        await wire.finish()
+async def fetch(wire: Wire) -> None:
+    await wire.send(CONFIG)
+    await wire.finish()
 
+
+async def blind_password(wire: Wire) -> None:
+    """The password sent unasked: the only way to the no-sendchkpass bug's readytogo."""
+    await wire.send(PASSWORD)
+    await wire.read_until(b"readytogo")
+    await wire.send(CONFIG)
+    await wire.finish()
+
+
+async def test_bad_config_answers_with_a_non_digit_unit_type():
     clean, buggy = await both("bad-config", fetch)
     assert [i.kind for i in buggy.items()] == [ItemKind.CONFIG]
     assert buggy.received.replace(b"?", b"2") == clean.received and buggy.received.endswith(b"?00-ss1")
@@ -216,12 +230,6 @@ async def test_no_sendchkpass_answers_readytogo_unasked():
         await wire.read_until(b"sendchkpass")
         await blind_password(wire)
 
-    async def blind_password(wire: Wire) -> None:  # the only way to the bug's readytogo
-        await wire.send(PASSWORD)
-        await wire.read_until(b"readytogo")
-        await wire.send(CONFIG)
-        await wire.finish()
-
     clean = await played((), password_when_asked, mode="winsock")
     buggy = await played(("no-sendchkpass",), blind_password, mode="winsock")
     assert clean.received.startswith(b"sendchkpassreadytogosr1-")
@@ -229,6 +237,45 @@ async def test_no_sendchkpass_answers_readytogo_unasked():
     assert clean.rules() == set()
     assert ("PW-HS-ORDER", "got 'readytogo' from the server, expected 'sendchkpass' from the server or a first "
             "command from the client") in buggy.violations()
+
+
+# -- one verdict: the analyzer on a recording through the proxy --------------------------------------------
+
+
+RULE_SCRIPTS = {  # a script showing each bug that breaks a rule of the analyzer
+    "out-of-range": ("vpn", lambda w: configured(w, sensor(12), servo(0))),
+    "wrong-channel": ("vpn", lambda w: configured(w, sensor(12))),
+    "bad-config": ("vpn", fetch),
+    "drop-nth": ("vpn", lambda w: configured(w, *map(sensor, range(12, 22)))),
+    "bad-trailer": ("vpn", lambda w: configured(w, *map(sensor, range(12, 20)))),
+    "camera-length": ("vpn", lambda w: configured(w, CAMERA)),
+    "silent-after-garbage": ("vpn", lambda w: configured(w, b"#", sensor(12))),
+    "no-sendchkpass": ("winsock", blind_password),
+}
+
+
+def test_every_bug_that_breaks_a_rule_has_a_script():
+    assert set(RULE_SCRIPTS) == {name for name, bug in BUGS.items() if bug.caught_by.startswith("PW-")}
+
+
+@pytest.mark.parametrize("bug", sorted(RULE_SCRIPTS))
+async def test_analyze_of_a_recording_names_the_rule_the_bug_breaks(bug, tmp_path):
+    """Recorded through the proxy, ``whiztap analyze`` finds the rule the
+    registry names, and exactly the rules the Session found on the client's
+    own view of the same connection."""
+    mode, script = RULE_SCRIPTS[bug]
+    path = tmp_path / f"{bug}.mcap"
+    async with Simulator(mode=mode, clock=lambda: FROZEN, bugs=(bug,)) as sim, \
+            recording(sim.port, path) as rec:
+        wire = await Wire.open(rec.proxy.port)
+        await script(wire)
+        await until_closed(sim)
+        await rec.stop()
+    result = run_cli("analyze", path, "--format", "json")
+    assert result.returncode == 1, result.stderr
+    [connection] = json.loads(result.stdout)["connections"]
+    assert BUGS[bug].caught_by in connection["violations"]
+    assert set(connection["violations"]) == wire.rules()
 
 
 # -- the crashes --------------------------------------------------------------------------------------
