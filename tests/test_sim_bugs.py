@@ -10,7 +10,7 @@ import re
 from pathlib import Path
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from whiztap.analyzer.protocol import messages as m
@@ -389,6 +389,20 @@ def test_split_crash_crashes_exactly_when_a_read_ends_inside_a_frame(frames, dat
         if crashed:
             break
     assert crashed == any(cut not in ends for cut in cuts)
+
+
+@settings(max_examples=200, deadline=None)
+@given(fields=st.tuples(*[st.text("0123456789", min_size=1, max_size=5)] * 3))
+@example(("12", "000", "0")).via("the planted frame")
+@example(("012", "000", "0")).via("its channel with a leading zero")
+@example(("0", "000", "0")).via("a servo's Normal Send 0")
+@example(("12", "00", "0")).via("two digits")
+def test_crash_on_frame_crashes_only_on_a_sensor_request_with_a_3_digit_value(fields):
+    channel, value, code = fields
+    frame = b"rr1-%s--%s--%s-ss1" % tuple(f.encode() for f in fields)
+    out = planted("crash-on-frame").receive(frame, 0)
+    sensor_channel = int(channel) <= 23 and parse_channels(DEFAULT_CHANNELS)[int(channel)].unit_type == 2
+    assert (out.crash == "crash-on-frame") == (sensor_channel and value == "000" and code == "0")
 
 
 # -- choosing bugs ----------------------------------------------------------------------------------------
