@@ -10,6 +10,7 @@ standard-error watch) are properties over any bytes.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import random
 import re
@@ -26,9 +27,11 @@ from whiztap.analyzer.probe.client_cases import (
     GARBAGE_ALPHABET, LARGEST_IMAGE, Cut, Schedule, Shaper, catalogue, catalogue_table, cut, field_cuts, pad_jpeg)
 from whiztap.analyzer.protocol.framing import Framer, ItemKind
 from whiztap.analyzer.protocol.observations import may_tell
+from whiztap.analyzer.protocol.rules import RULES
 from whiztap.sniffer.probe.client_run import (
     MAX_QUEUED, STDERR_TAIL, TRACEBACK, ClientProbe, PlayedServer, _watch_stderr)
 from whiztap.sniffer.sim.camera import render_frame
+from whiztap.sniffer.sim.robot import ServerMode
 
 from tests.buggy_client import BUGS
 from tests.cli_support import WHIZTAP, run_cli
@@ -247,6 +250,38 @@ async def _watched(stream: bytes, rng: random.Random) -> tuple[bool, bytes]:
             reader.feed_data(stream[a:b])
     reader.feed_eof()
     return await _watch_stderr(reader)
+
+
+QUICK_CASES = [c for c in catalogue() if not c.schedule.delay_s]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from(QUICK_CASES), st.sampled_from(["winsock", "vpn"]),
+       st.lists(st.one_of(st.binary(max_size=40), st.sampled_from(
+           [b"pw", b"rr1-24--0--0-ss1", b"rr1-12--0--0-ss1", b"rr1-29--0--0-ss1", b"sr1-25--", b"\r\n"])),
+           max_size=8))
+def test_whatever_a_client_sends_the_played_server_judges_it_and_ends(case, mode, pieces):
+    """Bytes from outside: any client's, in any reads, on any schedule; no
+    error escapes a connection and every finding is one of the analyzer's rules."""
+    findings = asyncio.run(_play(case, mode, pieces))
+    assert set(findings) <= RULES.keys()
+
+
+async def _play(case, mode: str, pieces: list[bytes]) -> list[str]:
+    server = PlayedServer(ClientProbe("any", mode=ServerMode(mode), password="pw"), case)
+    await server.start()
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        for piece in pieces:
+            writer.write(piece)
+            await writer.drain()
+        writer.write_eof()
+        with contextlib.suppress(ConnectionError):
+            await reader.read()  # until the server closes its side
+        writer.close()
+    finally:
+        await server.finish()
+    return [f.rule for f in server.findings()]
 
 
 # -- memory ---------------------------------------------------------------------------------------------

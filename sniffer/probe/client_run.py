@@ -210,6 +210,7 @@ class PlayedServer:
         self.robot = Robot(parse_channels(DEFAULT_CHANNELS), seed=probe.seed, camera=_camera(case),
                            start_ns=time.monotonic_ns())
         self.connections: list[PlayedConnection] = []
+        self.errors: list[Exception] = []  # raised while serving a connection
         self._tasks: set[asyncio.Task] = set()
         self._server: asyncio.Server | None = None
 
@@ -235,11 +236,14 @@ class PlayedServer:
         self.connections.append(connection)
         try:
             await connection.serve()
+        except Exception as e:  # whiztap's own bug: asyncio would only log it; finish() raises it
+            self.errors.append(e)
         finally:
             self._tasks.discard(task)
 
     async def finish(self) -> None:
-        """The client has ended: let its connections be seen closing, then close the rest."""
+        """The client has ended: let its connections be seen closing, then close
+        the rest.  An error that escaped serving a connection is raised here."""
         assert self._server is not None
         self._server.close()
         if self._tasks:
@@ -250,6 +254,8 @@ class PlayedServer:
         for connection in self.connections:
             connection.close_session()
         await self._server.wait_closed()
+        if self.errors:
+            raise self.errors[0]
 
     def findings(self) -> list[Finding]:
         """The client's violations on every connection, one finding per rule."""
