@@ -11,16 +11,13 @@ the events themselves.  It runs on one thread (the writer's), so
 messages reach each channel in the order they happened and ``log_time`` never
 goes backwards.
 
-Passwords are redacted unless asked otherwise, by the rule of
-``whiztap.analyzer.recording.redaction``: the client's first line, when the
-server asks for a password (or never says), is masked.  The masking comes
-first: the session model, and so every frame, violation and printed line,
-sees the bytes as the file has them, never the password.  A client read that
-holds part of a first line still undecided (it has not ended, or the server
-has not said yet whether it asks) waits, and every read and event after it
-waits behind it, so the file stays in arrival order; the wait is bounded
-(``HOLD_LIMIT_S``, and caps on the bytes), after which the line's bytes are
-masked.
+Passwords are masked unless asked otherwise, by the rule of
+``whiztap.analyzer.recording.redaction`` (only the client's first line, only
+when the server begins with ``sendchkpass``).  Masking comes first: the
+session model, and so every frame, violation and printed line, sees the bytes
+as the file has them.  A client read still undecided waits, and everything
+after it waits behind it (the file keeps arrival order), for a bounded time
+(``HOLD_LIMIT_S``, and caps on the bytes), after which it is masked.
 """
 
 from __future__ import annotations
@@ -148,9 +145,8 @@ class Recorder:
         # In the middle, analyze's judging of what the file gets (each side by what it sent and
         # received); without it, the session's violations are analyze's verdict already.
         self.judge = Judge(checksum_rule, limits, middle=True) if middle else None
-        if middle:  # the middle's topics known from the start (each part defines them at its
-            for topic in MITM_TOPICS:  # first message), so a live viewer has them before it
-                file.channel_id(topic)
+        for topic in MITM_TOPICS if middle else ():  # known from the start (each part defines it at its
+            file.channel_id(topic)  # first message), so a live viewer has them before it
         self._conns: dict[int, _Conn] = {}  # open, as far as the input goes
         self._live: dict[int, _Conn] = {}  # open, as far as the file goes
         # None with --keep-secrets; a queued record is a _ReadNote, or the work
