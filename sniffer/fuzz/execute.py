@@ -85,18 +85,24 @@ class _Connection:
         for n, piece in enumerate(pieces):
             if n:
                 await asyncio.sleep(SPLIT_PAUSE)
+            if self.writer.transport.is_closing():
+                self.closed = True
+                return False
             try:
                 self.writer.write(piece)
                 await self.writer.drain()
-            except OSError:
+            except (OSError, RuntimeError):  # RuntimeError: uvloop's word for a transport gone meanwhile
                 self.closed = True
                 return False
             self.judge.client(piece, _now())
         return True
 
     async def play(self, frames: Session, password: bytes, sync: bool) -> Verdict | None:
-        for frame in frames:
-            if not frame.pipelined and (verdict := await self.settle()) is not None:
+        for n, frame in enumerate(frames):
+            # the first frame waits for the greeting, pipelined or not: a Winsock
+            # server speaks first, and a frame sent before that would make its
+            # greeting look out of order
+            if (not n or not frame.pipelined) and (verdict := await self.settle()) is not None:
                 return verdict
             if self.closed or not await self.send(frame, password):
                 return None
@@ -184,3 +190,17 @@ async def learn(address: tuple[str, int], password: bytes, deadline: float) -> K
         raise FuzzError(f"the server did not answer Fetch Configuration Settings ({detail})")
     channels = judge.session.channel_map
     return Knowledge.of(mode, (channels[ch] for ch in sorted(channels)))
+
+
+async def checked(address: tuple[str, int], session: Session, knowledge: Knowledge, password: bytes,
+                  deadline: float) -> tuple[Outcome, bool]:
+    """An execution, then (when the server closed, or crashed or hung) whether
+    it still serves; True when it is down, and the verdict is then a crash."""
+    outcome = await execute(address, session, knowledge, password, deadline)
+    verdict = outcome.verdict
+    if not outcome.closed and (verdict is None or verdict.kind not in (CRASH, HANG)):
+        return outcome, False
+    if await alive(address, knowledge, password, deadline):
+        return outcome, False
+    detail = f" ({verdict.detail})" if verdict is not None and verdict.kind == CRASH else ""
+    return Outcome(Verdict(CRASH, "the server stopped accepting connections" + detail), outcome.behaviour, True), True
