@@ -19,6 +19,7 @@ from whiztap.analyzer.cli.output import check_output, output_stream
 from whiztap.analyzer.cli.params import force_option
 from whiztap.analyzer.probe.report import FORMATS
 from whiztap.sniffer.cli.params import Address
+from whiztap.sniffer.cli.probe_client import probe_client_command
 from whiztap.sniffer.cli.run import run
 
 if TYPE_CHECKING:
@@ -131,3 +132,6 @@ def _write(report: ProbeReport, fmt: str, output: str | None, force: bool) -> No
         fail(f"cannot read the recording for the report: {e}")
     with output_stream(output, force) as out:
         out.write(text)
+
+
+probe_command.add_command(probe_client_command)

@@ -13,10 +13,10 @@ from whiztap.analyzer.cli.output import check_output, output_stream
 from whiztap.analyzer.cli.params import force_option
 from whiztap.analyzer.probe.client_cases import ClientCase, catalogue, catalogue_table, select
 from whiztap.analyzer.probe.model import ProbeReport
+from whiztap.analyzer.probe.report import FORMATS
 from whiztap.sniffer.cli.run import run
 from whiztap.sniffer.sim.robot import DEFAULT_PASSWORD
 
-FORMATS = ("text", "json", "junit", "markdown", "html")
 DEFAULT_TIMEOUT = 10.0  # (the runner's; repeated here so --help needs no runner)
 
 
@@ -66,7 +66,7 @@ def probe_client_command(command: str | None, patterns: tuple[str, ...], seed: i
     check_output(output, force=force)
     report = run(_probe(command, mode, password, seed, timeout, cases))
     with output_stream(output, force) as out:
-        out.write(render_report(report, fmt))
+        out.write(render_report(report, fmt, colour=fmt == "text" and out.isatty()))
     raise SystemExit(report.exit_status)
 
 
@@ -89,9 +89,10 @@ async def _probe(command: str, mode: str, password: str, seed: int, timeout: flo
         fail(str(e))
 
 
-def render_report(report: ProbeReport, fmt: str) -> str:
-    """The report in ``fmt``: the shapes ``probe server`` prints."""
-    import json
+def render_report(report: ProbeReport, fmt: str, colour: bool) -> str:
+    """The report in ``fmt``, in the shapes ``probe server`` prints (no
+    recording: the HTML report lists the cases without frames)."""
+    from whiztap.analyzer.probe.report import render
 
-    return json.dumps(report.to_json(), indent=2) + "\n"
+    return render(report, fmt, colour=colour)
 
