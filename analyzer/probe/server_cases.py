@@ -198,7 +198,7 @@ FIELDS = (
            lambda t, v: encode(set_configuration(t, v, 0)), lambda t: (0, MAX_DEVICE), False),
     _Field("set-configuration.port", m.SetConfiguration,
            lambda t, v: encode(set_configuration(t, DEFAULT_DEV, v)),
-           lambda t: (0, min(MAX_CHANNEL, len(t.channels) - 1)), False),
+           lambda t: (0, min(MAX_CHANNEL, len(t.channels) - 1)) if t.channels else None, False),
 )
 _EDGES = {"lowest": "the lowest valid value", "highest": "the highest valid value",
           "below": "one below the range", "above": "one past the range"}
@@ -230,7 +230,15 @@ def _range_case(f: _Field, edge: str) -> ServerCase:
 
 
 def _sensor_frame(target: Target) -> bytes:
-    return encode(m.SensorRequest(_first(_S, target))) if target.of_unit(_S) else FETCH
+    """A Sensor Request on the target's first sensor channel: what the malformed,
+    split and slow cases send (check ``_with_sensor`` first)."""
+    return encode(m.SensorRequest(_first(_S, target)))
+
+
+def _with_sensor(make: Callable[[Target], list[Step]]) -> Callable[[Target], list[Step] | str]:
+    """``make``, on a target with a sensor channel: the frames these cases
+    change are Sensor Requests, whose answer no other request takes."""
+    return lambda t: make(t) if t.of_unit(_S) else "the server's configuration has no sensor channel"
 
 
 def _fields(frame: bytes) -> list[bytes]:
@@ -252,7 +260,7 @@ def _widened(position: int, width: int) -> Callable[[Target], list[Step]]:
 
 def _malformed(name: str, title: str, make: Callable[[bytes, Target], bytes]) -> ServerCase:
     return ServerCase(f"malformed.{name}", f"{title}; then a request the server must answer", SECTION_MESSAGES,
-                      lambda t: canary(Send(make(_sensor_frame(t), t))), may_close=CLOSE_AFTER_BAD_FRAME)
+                      _with_sensor(lambda t: canary(Send(make(_sensor_frame(t), t)))), may_close=CLOSE_AFTER_BAD_FRAME)
 
 
 def _malformed_cases() -> Iterator[ServerCase]:
@@ -284,7 +292,7 @@ def _malformed_cases() -> Iterator[ServerCase]:
                 f"malformed.width.data{position}.{digits}-digits",
                 f"a Sensor Request with Data{position} written in {digits} digits (leading zeros"
                 + (f"; the Layout allows {width})" if wide else ")"),
-                SECTION_MESSAGES, _widened(position - 1, digits), may_close=CLOSE_AFTER_BAD_FRAME)
+                SECTION_MESSAGES, _with_sensor(_widened(position - 1, digits)), may_close=CLOSE_AFTER_BAD_FRAME)
 
 
 # -- the handshake ----------------------------------------------------------------------------------
@@ -363,23 +371,23 @@ def _more_cases() -> list[ServerCase]:
         ServerCase("pipeline.mixed", "requests and commands without a reply interleaved in one write",
                    api, lambda t: [Send(b"".join(_mixed(t))), Until.ANSWERED]),
         ServerCase("pipeline.same-channel", "eight requests on one channel in one write: eight answers",
-                   api, lambda t: [Send(_sensor_frame(t) * 8), Until.ANSWERED]),
+                   api, _with_sensor(lambda t: [Send(_sensor_frame(t) * 8), Until.ANSWERED])),
         ServerCase("split.bytes", "a request written one byte at a time", api,
-                   lambda t: [Send(_sensor_frame(t), Cut.BYTES, SPLIT_GAP_S), Until.ANSWERED]),
+                   _with_sensor(lambda t: [Send(_sensor_frame(t), Cut.BYTES, SPLIT_GAP_S), Until.ANSWERED])),
         ServerCase("split.every-field", "a request cut at every field boundary (header, separators, trailer)",
-                   api, lambda t: [Send(_sensor_frame(t), Cut.FIELDS, SPLIT_GAP_S), Until.ANSWERED]),
+                   api, _with_sensor(lambda t: [Send(_sensor_frame(t), Cut.FIELDS, SPLIT_GAP_S), Until.ANSWERED])),
         ServerCase("split.two-frames", "two requests in three writes, the middle one straddling both",
-                   api, _split_two),
+                   api, _with_sensor(_split_two)),
         ServerCase("split.set-configuration", "a Set Configuration (raw bytes) one byte at a time",
                    m.SetConfiguration.title,
                    lambda t: canary(Send(encode(set_configuration(t, DEFAULT_DEV, 0)), Cut.BYTES, SPLIT_GAP_S))),
         ServerCase("slow.client", f"a request one byte every {SLOW_GAP_S * 1000:g} ms", api,
-                   lambda t: [Send(_sensor_frame(t), Cut.BYTES, SLOW_GAP_S), Until.ANSWERED]),
+                   _with_sensor(lambda t: [Send(_sensor_frame(t), Cut.BYTES, SLOW_GAP_S), Until.ANSWERED])),
         ServerCase("idle.client", f"{IDLE_S:g} s of silence after the configuration, then a request", api,
                    _fixed(Pause(IDLE_S), *canary()),
                    may_close="the server closed an idle connection; the spec sets no idle limit either way"),
         ServerCase("many.connections", f"{MANY} connections at once, each through the handshake and a request",
-                   api, lambda t: [Send(_sensor_frame(t)), Until.ANSWERED], connections=MANY),
+                   api, _with_sensor(lambda t: [Send(_sensor_frame(t)), Until.ANSWERED]), connections=MANY),
     ]
 
 

@@ -18,7 +18,7 @@ from whiztap.analyzer.probe.client_cases import GARBAGE_ALPHABET, Cut, field_cut
 from whiztap.analyzer.protocol import messages as m
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 from whiztap.analyzer.protocol.codec import encode
-from whiztap.analyzer.protocol.handshake import HandshakeState
+from whiztap.analyzer.protocol.handshake import VERDICTS, HandshakeState
 from whiztap.analyzer.protocol.rules import Severity
 from whiztap.analyzer.protocol.session import Session
 
@@ -52,6 +52,7 @@ class Target:
     channels: tuple[m.ChannelConfig, ...]
     checksum_rule: str = DEFAULT_CHECKSUM_RULE
     seed: int = 0  # chooses the stray bytes
+    greets: bool = True  # a Winsock server asks for the password on connect (one that does not is waited for once)
 
     def garbage(self) -> bytes:
         """Eight stray bytes no item begins with, chosen by the seed."""
@@ -98,12 +99,14 @@ class Pause:
 Step = Send | Pause | Until
 
 
-def reached(point: Until, session: Session) -> bool:
-    """Whether the live ``session`` has come to ``point``."""
+def reached(point: Until, session: Session, words: list[bytes]) -> bool:
+    """Whether the live ``session`` has come to ``point``; ``words``: the
+    handshake words the server said so far (a server out of step says its
+    verdict where the session's handshake does not move)."""
     if point is Until.ASKED:
-        return session.state is not HandshakeState.START
+        return session.state is not HandshakeState.START or bool(words)
     if point is Until.VERDICT:
-        return session.state in (HandshakeState.READY, HandshakeState.FAILED)
+        return session.state in (HandshakeState.READY, HandshakeState.FAILED) or any(w in VERDICTS for w in words)
     return not any(p.certain and not broke_a_rule(p.request.violations) for p in session.awaited.pending)
 
 
@@ -152,7 +155,8 @@ class ServerCase:
 
 def opening(target: Target) -> list[Step]:
     """The Functional Flow up to the Configuration Settings."""
-    login: list[Step] = [Until.ASKED, Send(target.password), Until.VERDICT] if target.mode is Mode.WINSOCK else []
+    asked: list[Step] = [Until.ASKED] if target.greets else []
+    login = [*asked, Send(target.password), Until.VERDICT] if target.mode is Mode.WINSOCK else []
     return login + [Send(FETCH), Until.ANSWERED]
 
 

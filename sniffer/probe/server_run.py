@@ -30,6 +30,7 @@ from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.probe.judging import Trace, judge
 from whiztap.analyzer.probe.model import CaseResult, Outcome, ProbeReport
 from whiztap.analyzer.probe.server_plan import (
+    FETCH,
     Mode,
     Pause,
     Send,
@@ -40,8 +41,9 @@ from whiztap.analyzer.probe.server_plan import (
     opening,
     reached,
 )
-from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, SENDCHKPASS
-from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, HANDSHAKE_WORDS, SENDCHKPASS
+from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.record.proxy import try_upstream
@@ -77,6 +79,7 @@ class _Conn:
         self.reader, self.writer, self.wait_s = reader, writer, wait_s
         self.trace = Trace()
         self.session = Session()
+        self.words: list[bytes] = []  # the handshake words the server said
         self.changed = asyncio.Event()
         self.closed = False  # the server's side is over
         self.done = False  # the probe is done: a close from now on is no finding
@@ -85,7 +88,9 @@ class _Conn:
     def _note(self, direction: Direction, data: bytes) -> None:
         t_ns = time.monotonic_ns()
         self.trace.events.append((direction, data, t_ns))
-        self.session.receive(direction, data, t_ns)
+        for event in self.session.receive(direction, data, t_ns):
+            if isinstance(event, Observation) and event.item.kind is ItemKind.HANDSHAKE and direction is S2C:
+                self.words.append(event.item.raw)
 
     def _lost(self, how: str) -> None:
         if not self.closed and not self.done:
@@ -131,7 +136,7 @@ class _Conn:
     async def _until(self, point: Until) -> None:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.wait_s
-        while not reached(point, self.session) and not self.closed:
+        while not reached(point, self.session, self.words) and not self.closed:
             self.changed.clear()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self.changed.wait(), deadline - loop.time())
@@ -150,6 +155,15 @@ class _Conn:
         self.writer.transport.abort()
         self.trace.end_ns = time.monotonic_ns()
         return self.trace
+
+
+def _said(conn: _Conn, word: bytes) -> bool:
+    return any(d is S2C and word in data for d, data, _ in conn.trace.events)
+
+
+def _channels(session: Session) -> tuple:
+    """The channel map the server announced, channel 0 upwards (empty if it announced none it could be read from)."""
+    return tuple(session.channel_map[ch] for ch in sorted(session.channel_map))
 
 
 class ServerProbe:
@@ -204,31 +218,42 @@ class ServerProbe:
         self.conns += 1
         return _Conn(reader, writer, self.settings.wait_s)
 
-    async def discover(self) -> Target:
-        """The server's mode and channels, through one connection. Raises ProbeError."""
-        s = self.settings
+    async def _first_connection(self) -> _Conn:
         try:
-            conn = await self._connect()
+            return await self._connect()
         except (TimeoutError, OSError) as e:
             raise ProbeError(f"cannot connect to {self.target_text}: {reason(e)}") from None
-        greeted = Until.ASKED
+
+    async def discover(self) -> Target:
+        """The server's mode and channels. Raises ProbeError.
+
+        Winsock when the server says 'sendchkpass' within ``DETECT_S``;
+        otherwise the first command, Fetch Configuration, says: answered with
+        a handshake word, the server wants a password it never asked for
+        (still Winsock, which the handshake cases then report); else VPN."""
+        s = self.settings
+        conn = await self._first_connection()
         conn.wait_s = DETECT_S
-        await conn.play([greeted])
+        await conn.play([Until.ASKED])
         conn.wait_s = s.wait_s
-        asked = any(d is S2C and data.startswith(SENDCHKPASS) for d, data, _ in conn.trace.events)
-        mode = Mode.WINSOCK if asked else Mode.VPN
-        if mode is Mode.WINSOCK and s.password is None:
+        greets = _said(conn, SENDCHKPASS)
+        if not greets:
+            await conn.play([Send(FETCH), Until.ANSWERED])
+            if not any(_said(conn, word) for word in HANDSHAKE_WORDS):
+                await conn.finish()
+                return Target(Mode.VPN, b"", _channels(conn.session), seed=s.seed)
+            await conn.finish()
+            conn = await self._first_connection()
+        if s.password is None:
             await conn.finish()
             raise ProbeError(f"{self.target_text} asks for a password (Winsock): give it with --password")
-        password = s.password or b""
-        await conn.play(opening(Target(mode, password, ()))[1 if mode is Mode.WINSOCK else 0:])
-        refused = any(d is S2C and FAILED_VALIDATION in data for d, data, _ in conn.trace.events)
-        channels = tuple(conn.session.channel_map[ch] for ch in sorted(conn.session.channel_map))
+        target = Target(Mode.WINSOCK, s.password, (), seed=s.seed, greets=greets)
+        await conn.play(opening(target)[1 if greets else 0:])
         await conn.finish()
-        if refused:
+        if _said(conn, FAILED_VALIDATION):
             raise ProbeError(f"{self.target_text} refused the password ('Failed Validation'): "
                              "give the right one with --password")
-        return Target(mode, password, channels, seed=s.seed)
+        return Target(Mode.WINSOCK, s.password, _channels(conn.session), seed=s.seed, greets=greets)
 
     async def run(self, case: ServerCase, target: Target) -> CaseResult:
         """One case, judged; skipped when it cannot run there or the server is down."""
