@@ -166,6 +166,8 @@ NOT_OUTPUTS = {
     "stub": "serves a recording's server side (no client bytes)",
     "tui": "LIVE_OUTPUTS (live) and FILE_OUTPUTS (a recording)",
     "demo": "the simulator's own demo password through the TUI (LIVE_OUTPUTS)",
+    "probe": "every report format, its progress lines and its --record recording are read by "
+             "tests/test_probe_server.py::test_no_output_shows_the_password",
 }
 FILE_COMMANDS = {"analyze", "cat", "info", "export", "replay"}
 
