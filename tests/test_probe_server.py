@@ -138,7 +138,7 @@ def test_the_catalogue_in_the_docs_is_the_one_the_code_lists():
     listed = run_cli("probe", "server", "--list", "--format", "markdown").stdout
     text = DOCS.read_text()
     start = text.index("| case | spec section |")
-    assert text[start:start + len(listed)] == listed, "docs/probe.md: paste `whiztap probe server --list --format markdown`"
+    assert text[start:start + len(listed)] == listed, "paste `whiztap probe server --list --format markdown` there"
 
 
 def test_case_ids_are_unique_and_one_past_a_range_is_out_of_it():

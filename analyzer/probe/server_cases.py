@@ -218,7 +218,9 @@ def _range_case(f: _Field, edge: str) -> ServerCase:
         if value is None:
             return f"no value {_EDGES[edge]} can be written in {f.name}"
         send = Send(f.frame(target, value))
-        return [send, Until.ANSWERED] + canary() if f.answered and edge in ("lowest", "highest") else canary(send)
+        if f.answered and edge in ("lowest", "highest"):
+            return canary(send, Until.ANSWERED)
+        return canary(send)
 
     valid = edge in ("lowest", "highest")
     return ServerCase(f"range.{f.name}.{edge}", f"{f.name} at {_EDGES[edge]}"

@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.probe.judging import Trace, judge
@@ -43,10 +44,14 @@ from whiztap.analyzer.probe.server_plan import (
 )
 from whiztap.analyzer.protocol.handshake import FAILED_VALIDATION, HANDSHAKE_WORDS, SENDCHKPASS
 from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.messages import ChannelConfig
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.sniffer.nettext import reason, show_address
 from whiztap.sniffer.record.proxy import try_upstream
+
+if TYPE_CHECKING:
+    from whiztap.sniffer.record.record_run import Recording
 
 DETECT_S = 0.3  # how long a server has to say 'sendchkpass' before it is taken for a VPN server
 WAIT_S = 2.0  # how long each wait of a case lasts at most (an answer, a handshake word)
@@ -161,7 +166,7 @@ def _said(conn: _Conn, word: bytes) -> bool:
     return any(d is S2C and word in data for d, data, _ in conn.trace.events)
 
 
-def _channels(session: Session) -> tuple:
+def _channels(session: Session) -> tuple[ChannelConfig, ...]:
     """The channel map the server announced, channel 0 upwards (empty if it announced none it could be read from)."""
     return tuple(session.channel_map[ch] for ch in sorted(session.channel_map))
 
@@ -173,7 +178,7 @@ class ServerProbe:
         self.settings = settings
         self.connect_to = (settings.host, settings.port)
         self.target_text = show_address(settings.host, settings.port)
-        self.recording = None
+        self.recording: Recording | None = None
         self.recording_path = ""
         self.conns = 0  # connections opened so far: the next one's number in the recording is this + 1
         self.down = ""  # why the server is taken to be down (the cases after are skipped)
