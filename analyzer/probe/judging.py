@@ -14,7 +14,8 @@ would read a recording of it, and keeps what the server is to blame for:
   ``PROBE-NO-ANSWER`` (no handshake word where the Functional Flow wants one),
   ``PROBE-WRONG-VERDICT`` (``readytogo`` for a wrong password, or ``Failed
   Validation`` for the right one), ``PROBE-CLOSED`` (the server closed or reset
-  a connection that had given it no reason) and ``PROBE-DOWN`` (the server
+  a connection that had given it no reason, and not after ``Failed
+  Validation``) and ``PROBE-DOWN`` (the server
   stopped accepting connections).
 
 What the probe sends on purpose breaks client rules; those are the probe's,
@@ -138,13 +139,14 @@ def judge(case: ServerCase, target: Target, traces: list[Trace],
         found += server_findings(events)
         found += order_findings(events)
         found += handshake_findings(case, target, events)
-        if trace.closed_early and not closed:
+        refused = FAILED_VALIDATION in _words(events)  # then closing is what the server should do (A16)
+        if trace.closed_early and not refused and not closed:
             closed = trace.how or "closed"
     if down:
         found.append(Finding("PROBE-DOWN", down))
     if case.silent_ok and found and all(_camera_silence(f) for f in found):
         return Outcome.SKIP, (), case.silent_ok
-    if closed and not case.close_ok:
+    if closed:
         if case.may_close:
             kept = [f for f in found if f.rule not in ("PW-PAIR-UNANSWERED", "PROBE-NO-ANSWER")]
             return (Outcome.FAIL, tuple(kept), "") if kept else (Outcome.SKIP, (), case.may_close)

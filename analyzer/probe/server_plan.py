@@ -124,8 +124,8 @@ class ServerCase:
     """One case.  ``build`` makes its steps for a target (a string: why it
     cannot run there); ``login``: the handshake and Fetch Configuration come
     first; ``may_close``: the server may close the connection (the reason a
-    close is a skip), empty when a close is a failure; ``close_ok``: a close
-    is what the server should do, neither a skip nor a failure; ``silent_ok``:
+    close is a skip), empty when a close is a failure (a close after
+    'Failed Validation' is neither: docs/protocol.md, A16); ``silent_ok``:
     a request left wholly unanswered is a skip, for this reason; ``verdict``: the
     handshake word the server must answer the password with; ``greeting``:
     the server must ask for the password; ``mode``: the only mode it runs in."""
@@ -136,7 +136,6 @@ class ServerCase:
     build: Callable[[Target], list[Step] | str] = field(repr=False, compare=False)
     login: bool = True
     may_close: str = ""
-    close_ok: bool = False
     silent_ok: str = ""
     verdict: bytes | None = None
     greeting: bool = False

@@ -157,7 +157,7 @@ class _Conn:
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(asyncio.shield(self.task), LINGER_S)
         self.task.cancel()
-        self.writer.transport.abort()
+        self.writer.close()
         self.trace.end_ns = time.monotonic_ns()
         return self.trace
 
