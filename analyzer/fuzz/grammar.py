@@ -118,13 +118,17 @@ REQUESTS: tuple[type[m.Message], ...] = tuple(
     cls for cls in vars(m).values()
     if isinstance(cls, type) and issubclass(cls, m.Message) and cls.sender == "client"
     and cls not in (m.Password, m.SetConfiguration, m.UnknownCommand))
+# Requests that have an answer come three times as often: what a server
+# computes and sends back is where it goes wrong most.
+REQUEST_WEIGHTS = tuple(3 if cls in (m.SensorRequest, m.ServoPositionRequest, m.FetchConfiguration,
+                                     m.FetchCameraImage) else 1 for cls in REQUESTS)
 SYNC_FRAME = Frame(encode(m.FetchConfiguration()))
 """The request that ends every execution: its answer says the server got through everything before it."""
 
 
 def request(rng: random.Random, knowledge: Knowledge) -> Frame:
     """One well-formed request, its fields drawn from their domains."""
-    cls = rng.choice(REQUESTS)
+    cls = rng.choices(REQUESTS, REQUEST_WEIGHTS)[0]
     values = {f.name: FIELD_DOMAINS[f.name](rng, knowledge, cls) for f in dataclasses.fields(cls)}
     return Frame(encode(cls(**values)))
 

@@ -9,7 +9,8 @@ one the session awaits for certain and that broke no rule of warning weight
 or more but where it came (first command not Fetch Configuration) (what the spec leaves open, such as the answer to a malformed frame,
 is never owed).  Answers are counted by what answers them (kind and
 channel), not by the session's pairing: a server that answers a malformed
-request it may ignore does not make the clean one after it look unanswered.
+request it may ignore does not make the clean one after it look unanswered
+(nor does the answer count for a clean request sent after it).
 A password is owed its verdict once its bytes are complete
 or go wrong (the spec gives it no end marker).
 """
@@ -65,8 +66,7 @@ class Judge:
         self.events: list[Event] = []
         self._line = b""  # the client's first bytes, as long as a password may be
         self._server_kinds: list[str] = []
-        self._asked: Counter[tuple[ItemKind, int | None]] = Counter()  # clean requests, by what answers them
-        self._answered: Counter[tuple[ItemKind, int | None]] = Counter()
+        self._owed: Counter[tuple[ItemKind, int | None]] = Counter()  # clean requests unanswered, by what answers them
         self._breach: Verdict | None = None
 
     def client(self, data: bytes, t_ns: int) -> None:
@@ -88,13 +88,14 @@ class Judge:
             if event.direction is Direction.C2S:
                 kind, channel, certain = answer_spec(event.message, event.candidates)
                 if kind is not None and certain and _clean(event):
-                    self._asked[kind, channel] += 1
+                    self._owed[kind, channel] += 1
                 continue
             if len(self._server_kinds) < BEHAVIOUR_KEPT:
                 self._server_kinds.append(event.item.kind.value)
             if event.item.kind in _ANSWERS:
                 channel = event.message.channel if isinstance(event.message, ChannelResponse) else None
-                self._answered[event.item.kind, channel] += 1
+                if self._owed[event.item.kind, channel] > 0:  # else it answers a request that was not owed one
+                    self._owed[event.item.kind, channel] -= 1
             if self._breach is None:
                 self._breach = next((Verdict(VIOLATION, _line(v), v.rule_id) for v in event.violations
                                      if v.severity >= Severity.WARNING), None)
@@ -113,8 +114,7 @@ class Judge:
             line = self._line
             whole = len(line) >= len(self.password) or not self.password.startswith(line)
             return 1 if line and whole else 0
-        answered = self._answered
-        return sum(max(0, n - answered[key]) for key, n in self._asked.items())
+        return sum(self._owed.values())
 
     def breach(self) -> Verdict | None:
         """The first rule the server broke, of warning weight or more."""

@@ -58,7 +58,8 @@ class _Connection:
         self.closed = False  # the server closed or reset
 
     async def settle(self) -> Verdict | None:
-        """Read until nothing is owed; a crash or hang verdict if it never is."""
+        """Read until nothing is owed; a crash or hang verdict if it never is,
+        or the server's first breach as soon as it is seen."""
         loop = asyncio.get_running_loop()
         end = loop.time() + self.deadline
         while (owed := self.judge.due()) > 0:
@@ -98,6 +99,14 @@ class _Connection:
         return True
 
     async def play(self, frames: Session, password: bytes, sync: bool) -> Verdict | None:
+        """The frames, then the sync request; the first verdict."""
+        verdict = await self._frames(frames, password)
+        if verdict is None and sync and self.judge.ready and not self.closed:
+            await self.send(SYNC_FRAME, password)
+            verdict = await self.settle()
+        return verdict
+
+    async def _frames(self, frames: Session, password: bytes) -> Verdict | None:
         for n, frame in enumerate(frames):
             # the first frame waits for the greeting, pipelined or not: a Winsock
             # server speaks first, and a frame sent before that would make its
@@ -106,11 +115,7 @@ class _Connection:
                 return verdict
             if self.closed or not await self.send(frame, password):
                 return None
-        verdict = await self.settle()
-        if verdict is None and sync and self.judge.ready and not self.closed:
-            await self.send(SYNC_FRAME, password)
-            verdict = await self.settle()
-        return verdict
+        return await self.settle()
 
     def close(self) -> None:
         try:
@@ -194,12 +199,11 @@ async def learn(address: tuple[str, int], password: bytes, deadline: float) -> K
 
 async def checked(address: tuple[str, int], session: Session, knowledge: Knowledge, password: bytes,
                   deadline: float) -> tuple[Outcome, bool]:
-    """An execution, then (when the server closed, or crashed or hung) whether
-    it still serves; True when it is down, and the verdict is then a crash."""
+    """An execution, then whether the server still serves (asked after every
+    one: a frame may kill it after the last answer came); True when it is
+    down, and the verdict is then a crash."""
     outcome = await execute(address, session, knowledge, password, deadline)
     verdict = outcome.verdict
-    if not outcome.closed and (verdict is None or verdict.kind not in (CRASH, HANG)):
-        return outcome, False
     if await alive(address, knowledge, password, deadline):
         return outcome, False
     detail = f" ({verdict.detail})" if verdict is not None and verdict.kind == CRASH else ""

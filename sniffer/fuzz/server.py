@@ -5,8 +5,12 @@ crash.  ``Given`` is a server someone else runs: it cannot be restarted, so a
 crash that stops it accepting ends the run.  ``Command`` is ``--run 'CMD'``: the
 command line is started in a process group of its own, the fuzzer waits until
 the address accepts connections, and a crash kills what is left of the group
-and starts it again.
+and starts it again.  ``InProcess`` does the same for a server started by a
+coroutine in this process (the simulator, from Python: tests and benchmarks)::
+
+    from whiztap.sniffer.fuzz.server import InProcess
 """
+
 
 from __future__ import annotations
 
@@ -15,7 +19,8 @@ import os
 import shlex
 import signal
 import subprocess
-from typing import Protocol
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol
 
 from whiztap.sniffer.fuzz.execute import FuzzError
 
@@ -112,3 +117,28 @@ class Command:
             except ProcessLookupError:
                 pass
             process.wait()
+
+
+class InProcess:
+    """A server this process runs: ``start`` is a coroutine function that
+    starts one (listening on the fuzzer's address) and returns it; what it
+    returns is closed with ``await server.close()`` before a restart."""
+
+    def __init__(self, start: Callable[[], Awaitable[Any]]) -> None:
+        self._start = start
+        self.server: Any = None
+        self.starts = 0
+
+    async def start(self) -> None:
+        self.server = await self._start()
+        self.starts += 1
+
+    async def restart(self) -> bool:
+        await self.stop()
+        await self.start()
+        return True
+
+    async def stop(self) -> None:
+        server, self.server = self.server, None
+        if server is not None:
+            await server.close()
