@@ -29,17 +29,17 @@ OUT_OF_RANGE = b"rr1-99--0--0-ss1"
 
 BUGS = {  # name -> (what it does wrong, the case that catches it, the finding)
     "early-commands": ("sends its first command with the password, before 'readytogo'",
-                       "slow-answers", "PW-HS-COMMAND-BEFORE-READY"),
+                       "slow.answers", "PW-HS-COMMAND-BEFORE-READY"),
     "ignore-failed-validation": ("keeps sending commands after 'Failed Validation'",
-                                 "handshake-failed-validation", "PW-HS-AFTER-FAILED"),
+                                 "handshake.failed-validation", "PW-HS-AFTER-FAILED"),
     "hang-on-split": ("waits forever for an answer that comes in more than one read",
-                      "split-bytes", "PROBE-CLIENT-HANG"),
-    "crash-on-large-image": ("raises on a camera image over 1 MiB", "camera-largest", "PROBE-CLIENT-CRASH"),
-    "sensor-out-of-range": ("sends a Sensor Request on channel 99", "baseline", "PW-RANGE-CHANNEL"),
-    "never-closes": ("stays connected after its last answer, forever", "baseline", "PROBE-CLIENT-HANG"),
-    "no-timeout": ("waits for the server without a time limit", "idle-server", "PROBE-CLIENT-HANG"),
-    "crash-on-close": ("raises when the server closes the connection", "close-mid-session", "PROBE-CLIENT-CRASH"),
-    "crash-on-garbage": ("raises on bytes that form no item", "garbage-before-answer", "PROBE-CLIENT-CRASH"),
+                      "split.bytes", "PROBE-CLIENT-HANG"),
+    "crash-on-large-image": ("raises on a camera image over 1 MiB", "camera.largest", "PROBE-CLIENT-CRASH"),
+    "sensor-out-of-range": ("sends a Sensor Request on channel 99", "session.baseline", "PW-RANGE-CHANNEL"),
+    "never-closes": ("stays connected after its last answer, forever", "session.baseline", "PROBE-CLIENT-HANG"),
+    "no-timeout": ("waits for the server without a time limit", "idle.server", "PROBE-CLIENT-HANG"),
+    "crash-on-close": ("raises when the server closes the connection", "close.mid-session", "PROBE-CLIENT-CRASH"),
+    "crash-on-garbage": ("raises on bytes that form no item", "garbage.before-answer", "PROBE-CLIENT-CRASH"),
 }
 
 

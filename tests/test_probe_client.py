@@ -78,20 +78,20 @@ def test_whiztaps_own_client_passes_every_case():
 
 def test_whiztaps_own_client_passes_in_vpn_mode_and_the_handshake_case_is_skipped_with_its_reason():
     status, data = report("--run", OWN_VPN_CLIENT, "--mode", "vpn",
-                          "--cases", "baseline,split-*,handshake-*,close-mid-session")
+                          "--cases", "session.baseline,split.*,handshake.*,close.mid-session")
     cases = {c["id"]: c for c in data["cases"]}
     assert status == 0
     assert {i: c["verdict"] for i, c in cases.items()} == {
-        "baseline": "pass", "handshake-failed-validation": "skip", "split-bytes": "pass", "split-fields": "pass",
-        "close-mid-session": "pass"}
-    assert "VPN" in cases["handshake-failed-validation"]["reason"]
+        "session.baseline": "pass", "handshake.failed-validation": "skip", "split.bytes": "pass", "split.fields": "pass",
+        "close.mid-session": "pass"}
+    assert "VPN" in cases["handshake.failed-validation"]["reason"]
 
 
 def test_a_case_the_client_gives_nothing_to_act_on_is_skipped_with_the_reason():
     """whiztap's client asking only for the configuration never asks for a picture."""
     only_config = f"{WHIZTAP} client --timeout 0.5 {{host}}:{{port}} config"
     status, data = report("--run", f"sh -c 'WHIZTAP_PASSWORD=\"$WHIZTAP_PROBE_PASSWORD\" exec {only_config}'",
-                          "--cases", "camera-largest")
+                          "--cases", "camera.largest")
     assert status == 0 and data["cases"][0]["verdict"] == "skip"
     assert "Fetch Camera Image" in data["cases"][0]["reason"]
 
@@ -99,7 +99,7 @@ def test_a_case_the_client_gives_nothing_to_act_on_is_skipped_with_the_reason():
 # -- each planted defect caught by its case ----------------------------------------------------------
 
 
-SLOW = {bug for bug, (_, case, rule) in BUGS.items() if rule == "PROBE-CLIENT-HANG" or case == "slow-answers"}
+SLOW = {bug for bug, (_, case, rule) in BUGS.items() if rule == "PROBE-CLIENT-HANG" or case == "slow.answers"}
 
 
 @pytest.mark.parametrize("bug", [pytest.param(b, marks=pytest.mark.slow) if b in SLOW else b for b in BUGS])
@@ -113,7 +113,7 @@ def test_each_planted_client_defect_is_caught_by_its_case(bug):
 @pytest.mark.slow  # the slow server's case takes a second
 def test_the_buggy_client_without_a_bug_passes_the_cases_that_catch_them():
     """So what each case caught is the defect, not the test client."""
-    cases = sorted({case for _, case, _ in BUGS.values()} - {"idle-server"})
+    cases = sorted({case for _, case, _ in BUGS.values()} - {"idle.server"})
     status, data = report("--run", buggy(), "--cases", ",".join(cases))
     assert status == 0 and {c["verdict"] for c in data["cases"]} == {"pass"}, data
 
@@ -122,15 +122,15 @@ def test_the_buggy_client_without_a_bug_passes_the_cases_that_catch_them():
 def test_a_hung_client_is_killed_with_its_whole_process_group(tmp_path):
     """A shell pipeline's children too: nothing the client started outlives its case."""
     pid_file = tmp_path / "child.pid"
-    status, data = report("--run", f"sh -c 'sleep 300 & echo $! > {pid_file}; wait'", "--cases", "baseline")
-    assert status == 1 and verdicts(data)["baseline"] == ("fail", ["PROBE-CLIENT-HANG"])
+    status, data = report("--run", f"sh -c 'sleep 300 & echo $! > {pid_file}; wait'", "--cases", "session.baseline")
+    assert status == 1 and verdicts(data)["session.baseline"] == ("fail", ["PROBE-CLIENT-HANG"])
     child = int(pid_file.read_text())
     state = Path(f"/proc/{child}/stat")
     assert not state.exists() or state.read_text().split()[2] == "Z"  # gone, or a zombie awaiting its parent
 
 
 def test_a_client_killed_by_a_signal_is_a_crash_and_one_that_never_connects_says_so():
-    status, data = report("--run", "sh -c 'kill -SEGV $$'", "--cases", "baseline")
+    status, data = report("--run", "sh -c 'kill -SEGV $$'", "--cases", "session.baseline")
     assert status == 1
     rules = {v["rule"]: v["detail"] for v in data["cases"][0]["violations"]}
     assert rules.keys() == {"PROBE-CLIENT-CRASH", "PROBE-CLIENT-NO-CONNECTION"}
@@ -144,9 +144,9 @@ def test_the_client_gets_host_port_case_and_password_in_its_environment_never_on
     seen = tmp_path / "env"
     show = (f"sh -c 'echo \"$0 $1 $WHIZTAP_PROBE_HOST $WHIZTAP_PROBE_PORT $WHIZTAP_PROBE_CASE "
             f"$WHIZTAP_PROBE_PASSWORD\" > {seen}' {{host}} {{port}}")
-    probe("--run", show, "--cases", "baseline", "--password", "pw-1")
+    probe("--run", show, "--cases", "session.baseline", "--password", "pw-1")
     host, port, env_host, env_port, case, password = seen.read_text().split()
-    assert (host, env_host, case, password) == ("127.0.0.1", "127.0.0.1", "baseline", "pw-1")
+    assert (host, env_host, case, password) == ("127.0.0.1", "127.0.0.1", "session.baseline", "pw-1")
     assert port == env_port and int(port) > 0
 
 
@@ -156,10 +156,10 @@ def test_the_password_never_shows_in_the_report_even_when_the_client_prints_it(f
     winsock client does): its last line is quoted in the finding, masked."""
     secret = SECRET.decode()
     tell = "sh -c 'echo \"no luck with $WHIZTAP_PROBE_PASSWORD\" >&2; exit 3'"
-    done = probe("--run", tell, "--cases", "baseline", "--password", secret, "--format", fmt)
+    done = probe("--run", tell, "--cases", "session.baseline", "--password", secret, "--format", fmt)
     assert done.returncode == 1
     assert_no_leak(f"probe client --format {fmt}", done.stdout + done.stderr)
-    sent = probe("--run", buggy("sensor-out-of-range"), "--cases", "baseline", "--password", secret,
+    sent = probe("--run", buggy("sensor-out-of-range"), "--cases", "session.baseline", "--password", secret,
                  "--format", fmt)
     assert_no_leak(f"probe client --format {fmt} (a client that sends it)", sent.stdout + sent.stderr)
 
@@ -292,7 +292,7 @@ async def test_a_client_that_floods_and_never_reads_fills_no_memory():
     """Requests sent as fast as the socket takes them to a slow server, never
     reading an answer: the replies waiting stay within MAX_QUEUED, because the
     server stops reading until they are out (the client's writes then block)."""
-    case = next(c for c in catalogue() if c.id == "slow-answers")
+    case = next(c for c in catalogue() if c.id == "slow.answers")
     server = PlayedServer(ClientProbe("flood", password="pw"), case)
     await server.start()
     reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
@@ -316,5 +316,5 @@ async def test_a_client_that_floods_and_never_reads_fills_no_memory():
 
 def test_every_case_has_a_unique_id_a_spec_section_and_a_title():
     ids = [c.id for c in catalogue()]
-    assert len(set(ids)) == len(ids) and all(re.fullmatch(r"[a-z0-9-]+", i) for i in ids)
+    assert len(set(ids)) == len(ids) and all(re.fullmatch(r"[a-z0-9-]+\.[a-z0-9-]+", i) for i in ids)
     assert all(c.spec and c.title for c in catalogue())

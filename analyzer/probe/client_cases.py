@@ -106,8 +106,8 @@ class ClientCase:
 
 
 _VERDICT_CASES = {
-    READYTOGO: ("baseline", "the simulator as it is: the password accepted, every request answered", True),
-    FAILED_VALIDATION: ("handshake-failed-validation",
+    READYTOGO: ("session.baseline", "the simulator as it is: the password accepted, every request answered", True),
+    FAILED_VALIDATION: ("handshake.failed-validation",
                         "'Failed Validation' to any password: the client sends nothing more and closes", False),
 }
 
@@ -127,20 +127,20 @@ def catalogue() -> list[ClientCase]:
     flow, api = "Functional Flow", "API Definition"
     return [
         *_verdict_cases(),
-        ClientCase("split-bytes", "every server write one byte at a time (handshake words, answers, images)",
+        ClientCase("split.bytes", "every server write one byte at a time (handshake words, answers, images)",
                    api, Schedule(cut=Cut.BYTES), must_succeed=True),
-        ClientCase("split-fields", "answers cut at every field boundary (header, '--' separators, trailer)",
+        ClientCase("split.fields", "answers cut at every field boundary (header, '--' separators, trailer)",
                    api, Schedule(cut=Cut.FIELDS), must_succeed=True, need=Need.ANSWER),
-        ClientCase("slow-answers", f"every server write, the handshake verdict too, {SLOW_DELAY_S:g} s late",
+        ClientCase("slow.answers", f"every server write, the handshake verdict too, {SLOW_DELAY_S:g} s late",
                    api, Schedule(delay_s=SLOW_DELAY_S), must_succeed=True),
-        ClientCase("camera-largest", f"Fetch Camera Image answered with a {LARGEST_IMAGE >> 20} MiB JPEG "
+        ClientCase("camera.largest", f"Fetch Camera Image answered with a {LARGEST_IMAGE >> 20} MiB JPEG "
                    "(the largest the analyzer takes; the spec sets no limit)", "Fetch Camera Image",
                    Schedule(largest_image=True), must_succeed=True, need=Need.IMAGE),
-        ClientCase("garbage-before-answer", "stray bytes that form no item before every answer",
+        ClientCase("garbage.before-answer", "stray bytes that form no item before every answer",
                    api, Schedule(garbage=True), must_succeed=False, need=Need.ANSWER),
-        ClientCase("close-mid-session", "the server closes the connection instead of sending the first answer",
+        ClientCase("close.mid-session", "the server closes the connection instead of sending the first answer",
                    api, Schedule(close_at_answer=1), must_succeed=False, need=Need.ANSWER),
-        ClientCase("idle-server", "the server accepts the connection and never sends a byte",
+        ClientCase("idle.server", "the server accepts the connection and never sends a byte",
                    flow, Schedule(idle=True), must_succeed=False),
     ]
 
