@@ -1,3 +1,2 @@
-"""Active conformance testing (``whiztap probe``) and fuzzing (``whiztap fuzz``):
-the cases, mutations and verdicts, sans-IO; ``whiztap.sniffer.probe`` and
-``whiztap.sniffer.fuzz`` run them over sockets."""
+"""Active conformance testing (``whiztap probe``): the cases, their schedules and
+verdicts, sans-IO; ``whiztap.sniffer.probe`` runs them against a live peer."""
