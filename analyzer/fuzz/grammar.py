@@ -17,6 +17,7 @@ configuration the server announced.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import random
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -64,7 +65,7 @@ class Frame:
         """The writes this frame is sent in."""
         data = self.wire(password)
         edges = [0, *(c for c in self.cuts if 0 < c < len(data)), len(data)]
-        return [data[a:b] for a, b in zip(edges, edges[1:]) if b > a]
+        return [data[a:b] for a, b in itertools.pairwise(edges) if b > a]
 
     def shown(self) -> str:
         """The frame as escaped text, the password by name only."""

@@ -6,13 +6,13 @@ waits for them, up to its deadline) and, at the end, the rules the *server*
 broke.  The fuzzer's own frames break client rules on purpose, so only
 violations on what the server sent count; a request the server must answer is
 one the session awaits for certain and that broke no rule of warning weight
-or more but where it came (first command not Fetch Configuration) (what the spec leaves open, such as the answer to a malformed frame,
-is never owed).  Answers are counted by what answers them (kind and
-channel), not by the session's pairing: a server that answers a malformed
-request it may ignore does not make the clean one after it look unanswered
-(nor does the answer count for a clean request sent after it).
-A password is owed its verdict once its bytes are complete
-or go wrong (the spec gives it no end marker).
+or more, bar where it came (its first command not Fetch Configuration): what
+the spec leaves open, such as the answer to a malformed frame, is never owed.
+Answers are counted by what answers them (kind and channel), not by the
+session's pairing: a server that answers a malformed request it may ignore
+does not make the clean one after it look unanswered (nor does the answer
+count for a clean request sent after it).  A password is owed its verdict
+once its bytes are complete or go wrong (the spec gives it no end marker).
 """
 
 from __future__ import annotations
@@ -26,12 +26,12 @@ from whiztap.analyzer.protocol.messages import ChannelConfig, ChannelResponse
 from whiztap.analyzer.protocol.observations import Direction, Event, Observation
 from whiztap.analyzer.protocol.pairing import answer_spec
 from whiztap.analyzer.protocol.rules import Severity, Violation
-from whiztap.analyzer.protocol.session import Limits, Session
+from whiztap.analyzer.protocol.session import Limits
 
 CRASH, HANG, VIOLATION = "crash", "hang", "violation"
 KINDS = (CRASH, HANG, VIOLATION)
+BEHAVIOUR_ITEMS = 16
 _ANSWERS = frozenset({ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
-BEHAVIOUR_KEPT = 32  # server items remembered per execution for the corpus's behaviour key
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,7 +65,6 @@ class Judge:
         self.password = password
         self.events: list[Event] = []
         self._line = b""  # the client's first bytes, as long as a password may be
-        self._server_kinds: list[str] = []
         self._owed: Counter[tuple[ItemKind, int | None]] = Counter()  # clean requests unanswered, by what answers them
         self._breach: Verdict | None = None
 
@@ -90,8 +89,6 @@ class Judge:
                 if kind is not None and certain and _clean(event):
                     self._owed[kind, channel] += 1
                 continue
-            if len(self._server_kinds) < BEHAVIOUR_KEPT:
-                self._server_kinds.append(event.item.kind.value)
             if event.item.kind in _ANSWERS:
                 channel = event.message.channel if isinstance(event.message, ChannelResponse) else None
                 if self._owed[event.item.kind, channel] > 0:  # else it answers a request that was not owed one
@@ -121,12 +118,16 @@ class Judge:
         return self._breach
 
     def behaviour(self) -> tuple[str, ...]:
-        """What happened, in short: how the handshake ended, the kinds of the
-        server's items and the client rules broken (the corpus keeps a
-        session that shows a new one)."""
-        client = sorted({v.rule_id for e in self.events if isinstance(e, Observation)
-                         and e.direction is Direction.C2S for v in e.violations})
-        return (self.session.handshake_outcome, *self._server_kinds, "|", *client)
+        """What happened, in short: how the handshake ended, the client
+        rules the frames broke and the kinds of the first ``BEHAVIOUR_ITEMS``
+        client items (the corpus keeps a session that shows a new one).
+        Only what the session decides, never how many of the server's bytes
+        had come when it ended (which timing decides): the corpus, and so
+        every later execution, must be the same on every run of a seed."""
+        sent = [e for e in self.events if isinstance(e, Observation) and e.direction is Direction.C2S]
+        rules = sorted({v.rule_id for e in sent for v in e.violations})
+        kinds = [e.item.kind.value for e in sent[:BEHAVIOUR_ITEMS]]
+        return (self.session.handshake_outcome, *rules, "|", *kinds)
 
 
 # Rules a request may break and still be owed its answer: about where it

@@ -63,17 +63,39 @@ def _put(session: Session, i: int, frame: Frame) -> Session:
     return session[:i] + (frame,) + session[i + 1:]
 
 
-def _on_field(rng: random.Random, session: Session, change: Callable[[random.Random, int, bytes], bytes]) -> Session:
-    """``change`` one field of a text frame (its position and digits in, new digits out)."""
-    i = _pick(rng, session, lambda f: _text_fields(f.data) is not None)
-    if i is None:
-        return session
-    frame = session[i]
+def _rewrite(frame: Frame, at: int, digits: bytes) -> Frame:
     fields = _text_fields(frame.data)
     assert fields is not None
+    fields[at] = digits
+    return Frame(frame.data[:4] + SEPARATOR.join(fields) + TRAILER, pipelined=frame.pipelined)
+
+
+def _numeric(frame: Frame) -> bool:
+    fields = _text_fields(frame.data)
+    return fields is not None and all(d.isdigit() for d in fields)
+
+
+def _on_field(rng: random.Random, session: Session, change: Callable[[random.Random, int, bytes], bytes]) -> Session:
+    """``change`` one field of a text frame (its position and digits in, new
+    digits out); half the time the same field of every such frame, as a
+    client that writes that field wrongly would."""
+    i = _pick(rng, session, _numeric)
+    if i is None:
+        return session
     at = rng.randrange(3)
-    fields[at] = change(rng, at, fields[at])
-    return _put(session, i, Frame(frame.data[:4] + SEPARATOR.join(fields) + TRAILER, pipelined=frame.pipelined))
+    fields = _text_fields(session[i].data)
+    assert fields is not None
+    if rng.random() < 0.5:
+        return _put(session, i, _rewrite(session[i], at, change(rng, at, fields[at])))
+    state = rng.getstate()  # each frame's field changed by the same draw
+    out = []
+    for frame in session:
+        if _numeric(frame):
+            rng.setstate(state)
+            digits = _text_fields(frame.data)[at]  # type: ignore[index]  # a numeric frame has its fields
+            frame = _rewrite(frame, at, change(rng, at, digits))
+        out.append(frame)
+    return tuple(out)
 
 
 def field_value(rng: random.Random, session: Session, k: Knowledge, donor: Session) -> Session:
@@ -82,10 +104,11 @@ def field_value(rng: random.Random, session: Session, k: Knowledge, donor: Sessi
 
 
 def digit_count(rng: random.Random, session: Session, k: Knowledge, donor: Session) -> Session:
-    """A field written with another number of digits: zero-padded, or cut
-    (widths around the Layout's, e.g. 3 digits where 1-2 or 4 are expected)."""
+    """A field written with another number of digits: zero-padded by one or
+    two, cut to one, or one past the Layout's width (so 3 digits where 1-2
+    or 4 are expected)."""
     def change(r: random.Random, at: int, digits: bytes) -> bytes:
-        width = r.choice((1, 2, 3, FIELD_WIDTHS[at], FIELD_WIDTHS[at] + 1))
+        width = r.choice((1, len(digits) + 1, len(digits) + 2, FIELD_WIDTHS[at] + 1))
         return digits.rjust(width, b"0") if width >= len(digits) else digits[-width:]
     return _on_field(rng, session, change)
 

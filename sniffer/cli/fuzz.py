@@ -87,7 +87,7 @@ async def _fuzz(options: FuzzOptions, command: str | None, directory: Path, prog
 
 def _print(report: FuzzReport, fmt: str, quiet: bool, verbose: bool) -> None:
     if fmt == "json":
-        say(json.dumps(report.to_json(), indent=2))
+        click.echo(json.dumps(report.to_json(), indent=2))  # JSON escapes every control character itself
         return
     for found in report.findings:
         v = found.verdict

@@ -70,7 +70,7 @@ class _Connection:
             left = end - loop.time()
             try:
                 data = await asyncio.wait_for(self.reader.read(READ_SIZE), max(left, 0))
-            except (TimeoutError, asyncio.TimeoutError):
+            except TimeoutError:
                 return Verdict(HANG, f"{plural(owed, 'answer')} owed, none within {self.deadline:g} s")
             except OSError:
                 data = b""
@@ -138,7 +138,7 @@ async def execute(address: tuple[str, int], session: Session, knowledge: Knowled
     judge = Judge(knowledge.mode, password, knowledge.channels)
     try:
         reader, writer = await _connect(address, deadline)
-    except (OSError, TimeoutError, asyncio.TimeoutError):
+    except (OSError, TimeoutError):
         return Outcome(Verdict(CRASH, "the server stopped accepting connections"), closed=True)
     conn = _Connection(reader, writer, judge, deadline)
     try:
@@ -163,12 +163,12 @@ async def greeting(address: tuple[str, int], deadline: float) -> Mode:
     """The server's handshake: Winsock when it says 'sendchkpass' first."""
     try:
         reader, writer = await _connect(address, deadline)
-    except (OSError, TimeoutError, asyncio.TimeoutError) as e:
+    except (OSError, TimeoutError) as e:
         raise FuzzError(f"cannot connect to {address[0]}:{address[1]} ({e or 'timed out'}): "
                         "is the server running there?") from None
     try:
         first = await asyncio.wait_for(reader.readexactly(len(SENDCHKPASS)), GREETING_WAIT)
-    except (TimeoutError, asyncio.TimeoutError, asyncio.IncompleteReadError, OSError):
+    except (TimeoutError, asyncio.IncompleteReadError, OSError):
         first = b""
     finally:
         writer.transport.abort()

@@ -57,7 +57,7 @@ async def accepts(address: tuple[str, int]) -> bool:
     """Whether a connection to ``address`` is accepted now."""
     try:
         _, writer = await asyncio.wait_for(asyncio.open_connection(*address), 1.0)
-    except (OSError, TimeoutError, asyncio.TimeoutError):
+    except (OSError, TimeoutError):
         return False
     writer.transport.abort()
     return True
