@@ -145,3 +145,12 @@ def test_the_corpus_keeps_new_behaviour_within_its_capacity():
     for n in range(10):
         corpus.consider(rng, (Frame(b"%d" % n),), (str(n),))
     assert len(corpus) == 3 and corpus.entries[0] == (Frame(b"a"),)
+
+
+def test_the_docs_list_every_mutation_as_the_code_has_it():
+    from pathlib import Path
+
+    rows = [f"| `{name}` | {weight} | {' '.join((fn.__doc__ or '').split())} |"
+            for name, (fn, weight) in MUTATIONS.items()]
+    doc = (Path(__file__).parent.parent / "docs" / "fuzz.md").read_text()
+    assert "\n".join(rows) in doc
