@@ -26,7 +26,7 @@ from whiztap.analyzer.fuzz.judge import CRASH, HANG, Judge, Verdict
 from whiztap.analyzer.protocol.handshake import SENDCHKPASS, Mode
 from whiztap.analyzer.protocol.text import plural
 
-SPLIT_PAUSE = 0.01  # seconds between the pieces of a cut frame, so each is a read of its own
+SPLIT_PAUSE = 0.005  # seconds between the pieces of a cut frame, so each is a read of its own
 GREETING_WAIT = 0.5  # how long a server has to say 'sendchkpass' before it is taken for a VPN one
 READ_SIZE = 65536
 
