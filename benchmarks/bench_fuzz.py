@@ -20,7 +20,8 @@ import socket
 import statistics
 import time
 
-from whiztap.analyzer.fuzz.grammar import Frame, Knowledge
+from whiztap.analyzer.fuzz.grammar import Frame, Knowledge, Session
+from whiztap.analyzer.fuzz.judge import Verdict
 from whiztap.sniffer.fuzz.execute import checked, learn
 from whiztap.sniffer.fuzz.run import Found, FuzzOptions, Fuzzer
 from whiztap.sniffer.fuzz.server import InProcess
@@ -54,7 +55,7 @@ class _Timed(Fuzzer):
 
     first: tuple[int, float] | None = None
 
-    async def _found(self, verdict, session, down):  # type: ignore[no-untyped-def]
+    async def _found(self, verdict: Verdict, session: Session, down: bool) -> bool:
         self.first = (self.report.executions, time.monotonic() - self._started)
         await super()._found(verdict, session, down)
         return False
