@@ -167,7 +167,10 @@ NOT_OUTPUTS = {
     "tui": "LIVE_OUTPUTS (live) and FILE_OUTPUTS (a recording)",
     "demo": "the simulator's own demo password through the TUI (LIVE_OUTPUTS)",
     "probe": "every report format, its progress lines and its --record recording are read by "
-             "tests/test_probe_server.py::test_no_output_shows_the_password",
+             "tests/test_probe_server.py::test_no_output_shows_the_password (probe server) and "
+             "tests/test_probe_client.py::test_the_password_never_shows_in_the_report_even_when_the_client_prints_it",
+    "fuzz": "its finding files (finding-N.mcap, test_finding_N.py), report and lines are read for the password "
+            "by tests/test_fuzz.py (each finding written; --run's stdout and stderr)",
 }
 FILE_COMMANDS = {"analyze", "cat", "info", "export", "replay"}
 
