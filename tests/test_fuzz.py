@@ -22,6 +22,7 @@ from whiztap.sniffer.fuzz.findings import write
 from whiztap.sniffer.fuzz.run import FuzzOptions, FuzzReport, Fuzzer
 from whiztap.sniffer.fuzz.server import InProcess
 from whiztap.sniffer.pytest_plugin import BackgroundLoop
+from whiztap.sniffer.sim.bugs import BUGS as PLANTED
 from whiztap.sniffer.sim.simulator import Simulator
 
 PASSWORD = "fuzz-s3cret"
@@ -42,7 +43,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def fuzz(tmp_path: Path, bugs: tuple[str, ...], seed: int, executions: int, deadline: float = 1.0) -> FuzzReport:
+def fuzz(tmp_path: Path, bugs: tuple[str, ...], seed: int, executions: int, deadline: float = 1.0,
+         mode: str = "winsock") -> FuzzReport:
     """A run in this process against the simulator (restarted after a crash), writing into ``tmp_path``."""
     port = free_port()
     address = ("127.0.0.1", port)
@@ -50,7 +52,7 @@ def fuzz(tmp_path: Path, bugs: tuple[str, ...], seed: int, executions: int, dead
     options = FuzzOptions(address, PASSWORD.encode(), seed, budget=300, executions=executions, deadline=deadline)
 
     async def start() -> Simulator:
-        sim = Simulator(port=port, password=PASSWORD, bugs=bugs)
+        sim = Simulator(port=port, password=PASSWORD, bugs=bugs, mode=mode)
         await sim.start()
         return sim
 
@@ -88,6 +90,23 @@ def test_the_clean_simulator_gives_no_finding(simulator, tmp_path):
     assert list((tmp_path / "out").iterdir()) == []
 
 
+# Every planted bug of the simulator's registry: (seed, executions, kind, rule)
+# such that the run finds it (deadline 0.2 s, so hangs are quick to see and to
+# shrink), and by which check: an analyzer rule, the fuzzer's own FUZZ-*
+# rules, a hang or a crash.
+EVERY_BUG = {
+    **BUGS,
+    "bad-config": (0, 2, "violation", "PW-CFG-DIGIT"),
+    "out-of-order": (3, 3, "violation", "FUZZ-ANSWER-ORDER"),
+    "drop-nth": (0, 4, "hang", ""),
+    "any-password": (2, 2, "violation", "FUZZ-WRONG-PASSWORD-ACCEPTED"),
+    "no-sendchkpass": (0, 2, "violation", "PW-HS-ORDER"),
+    "bad-trailer": (3, 6, "hang", ""),
+    "camera-length": (1, 3, "violation", "PW-FRAME-GARBAGE"),
+    "silent-after-garbage": (0, 4, "hang", ""),
+}
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("bug", BUGS)
 def test_a_planted_bug_is_found_shrunk_and_written(bug, tmp_path):
@@ -103,6 +122,23 @@ def test_a_planted_bug_is_found_shrunk_and_written(bug, tmp_path):
     analyzed = run_cli("analyze", recording, "--format", "json")
     assert analyzed.returncode in (0, 1), analyzed.stderr
     assert json.loads(analyzed.stdout)["connections"]
+
+
+def test_every_planted_bug_has_a_case():
+    assert set(EVERY_BUG) == set(PLANTED)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("bug", PLANTED)
+def test_every_planted_bug_is_found(bug, tmp_path):
+    seed, executions, kind, rule = EVERY_BUG[bug]
+    mode = PLANTED[bug].needs or "winsock"
+    report = fuzz(tmp_path, (bug,), seed, executions, deadline=0.2, mode=mode)
+    found = [f for f in report.findings if f.verdict.signature == (kind, rule)]
+    assert found, [f.verdict for f in report.findings]
+    assert found[0].shrunk, [f.shown() for f in found[0].session]
+    for path in (found[0].recording, found[0].test):
+        assert Path(path).is_file() and PASSWORD.encode() not in Path(path).read_bytes()
 
 
 @pytest.mark.slow

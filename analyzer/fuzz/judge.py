@@ -8,16 +8,23 @@ violations on what the server sent count; a request the server must answer is
 one the session awaits for certain and that broke no rule of warning weight
 or more, bar where it came (its first command not Fetch Configuration): what
 the spec leaves open, such as the answer to a malformed frame, is never owed.
-Answers are counted by what answers them (kind and channel), not by the
+Answers are matched by what answers them (kind and channel), not by the
 session's pairing: a server that answers a malformed request it may ignore
 does not make the clean one after it look unanswered (nor does the answer
 count for a clean request sent after it).  A password is owed its verdict
 once its bytes are complete or go wrong (the spec gives it no end marker).
+
+Two checks are the fuzzer's own, as no analyzer rule can make them (the
+analyzer does not know the password, and pairs answers by kind and channel,
+not by order).  ``FUZZ-ANSWER-ORDER``: answers come in the order of their
+requests; an answer that overtakes an owed one is only noted, and the breach
+is the overtaken answer coming after all (one that never comes is a hang, a
+dropped answer rather than a reordered one).  ``FUZZ-WRONG-PASSWORD-ACCEPTED``
+(Winsock): `readytogo` after a first line that is not the password.
 """
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass
 
 from whiztap.analyzer.protocol.framing import ItemKind
@@ -32,6 +39,9 @@ CRASH, HANG, VIOLATION = "crash", "hang", "violation"
 KINDS = (CRASH, HANG, VIOLATION)
 BEHAVIOUR_ITEMS = 16
 _ANSWERS = frozenset({ItemKind.RESPONSE, ItemKind.CONFIG, ItemKind.IMAGE})
+ORDER_RULE = "FUZZ-ANSWER-ORDER"
+PASSWORD_RULE = "FUZZ-WRONG-PASSWORD-ACCEPTED"
+Key = tuple[ItemKind, int | None]  # what answers a request: the answer's kind, its channel
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,7 +75,11 @@ class Judge:
         self.password = password
         self.events: list[Event] = []
         self._line = b""  # the client's first bytes, as long as a password may be
-        self._owed: Counter[tuple[ItemKind, int | None]] = Counter()  # clean requests unanswered, by what answers them
+        # requests unanswered, in the order sent, by what answers them; True: owed
+        # (clean), False: may be answered or not (the spec leaves it open)
+        self._waiting: list[tuple[Key, bool]] = []
+        self._overtaken: list[Key] = []  # owed requests a later request's answer came before
+        self._password_judged = False
         self._breach: Verdict | None = None
 
     def client(self, data: bytes, t_ns: int) -> None:
@@ -86,16 +100,53 @@ class Judge:
                 continue
             if event.direction is Direction.C2S:
                 kind, channel, certain = answer_spec(event.message, event.candidates)
-                if kind is not None and certain and _clean(event):
-                    self._owed[kind, channel] += 1
+                if kind is not None:
+                    self._waiting.append(((kind, channel), certain and _clean(event)))
                 continue
             if event.item.kind in _ANSWERS:
                 channel = event.message.channel if isinstance(event.message, ChannelResponse) else None
-                if self._owed[event.item.kind, channel] > 0:  # else it answers a request that was not owed one
-                    self._owed[event.item.kind, channel] -= 1
+                self._answered((event.item.kind, channel))
+            self._judge_password()  # first: it says more than PW-HS-ORDER on the same readytogo
             if self._breach is None:
                 self._breach = next((Verdict(VIOLATION, _line(v), v.rule_id) for v in event.violations
                                      if v.severity >= Severity.WARNING), None)
+
+    def _answered(self, key: Key) -> None:
+        """An answer came: it answers the oldest owed request it fits, else
+        the oldest it may answer.  Owed requests before the one answered were
+        overtaken, and an answer to one of them later is out of order; but
+        only where no request in between may go unanswered (then the answer
+        may be that one's, and order says nothing)."""
+        if key in self._overtaken:
+            self._overtaken.remove(key)
+            self._breached(Verdict(VIOLATION, f"{ORDER_RULE}: an answer ({key[0].value}"
+                                   f"{'' if key[1] is None else f' on channel {key[1]}'}) came after the "
+                                   "answer to a later request", ORDER_RULE))
+            return
+        fits = [i for i, (k, _) in enumerate(self._waiting) if k == key]
+        owed = [i for i in fits if self._waiting[i][1]]
+        if not owed:
+            if fits:
+                del self._waiting[fits[0]]
+            return  # it answers a request that was not owed one
+        before, self._waiting = self._waiting[:owed[0]], self._waiting[owed[0] + 1:]
+        if all(o for _, o in before):
+            self._overtaken += [k for k, _ in before]
+        else:
+            self._waiting[:0] = [(k, o) for k, o in before if o]
+
+    def _judge_password(self) -> None:
+        """Winsock: `readytogo` must follow the real password only."""
+        if self._password_judged or self.mode is not Mode.WINSOCK or self.session.state is not HandshakeState.READY:
+            return
+        self._password_judged = True
+        if self._line[:len(self.password)] != self.password:
+            self._breached(Verdict(VIOLATION, f"{PASSWORD_RULE}: the server said readytogo after a first "
+                                   "line that is not the password", PASSWORD_RULE))
+
+    def _breached(self, verdict: Verdict) -> None:
+        if self._breach is None:
+            self._breach = verdict
 
     @property
     def ready(self) -> bool:
@@ -111,7 +162,7 @@ class Judge:
             line = self._line
             whole = len(line) >= len(self.password) or not self.password.startswith(line)
             return 1 if line and whole else 0
-        return sum(self._owed.values())
+        return sum(owed for _, owed in self._waiting) + len(self._overtaken)
 
     def breach(self) -> Verdict | None:
         """The first rule the server broke, of warning weight or more."""

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.fuzz.grammar import SYNC_FRAME, Frame, Knowledge, Session, prelude
-from whiztap.analyzer.fuzz.judge import CRASH, HANG, Judge, Verdict
+from whiztap.analyzer.fuzz.judge import CRASH, HANG, VIOLATION, Judge, Verdict
 from whiztap.analyzer.protocol.handshake import SENDCHKPASS, Mode
 from whiztap.analyzer.protocol.text import plural
 
@@ -176,7 +176,16 @@ async def greeting(address: tuple[str, int], deadline: float) -> Mode:
 
 
 async def learn(address: tuple[str, int], password: bytes, deadline: float) -> Knowledge:
-    """The server's handshake and the channels it configures, or a FuzzError saying why not."""
+    """What ``discover`` learns, for a caller that judges the server by its own executions."""
+    return (await discover(address, password, deadline))[0]
+
+
+async def discover(address: tuple[str, int], password: bytes, deadline: float) -> tuple[Knowledge, Verdict | None]:
+    """The server's handshake and the channels it configures, or a FuzzError
+    saying why not.  A rule the server breaks on the way (a malformed
+    Configuration Settings, a handshake out of step) is returned as the
+    run's first finding rather than stopping it: it is a defect like any other,
+    and the fuzzer goes on with what it learned (no channels, perhaps)."""
     mode = await greeting(address, deadline)
     if mode is Mode.WINSOCK and not password:
         raise FuzzError("the server asks for a password (winsock): give --password or set WHIZTAP_PASSWORD")
@@ -185,16 +194,16 @@ async def learn(address: tuple[str, int], password: bytes, deadline: float) -> K
     reader, writer = await _connect(address, deadline)
     conn = _Connection(reader, writer, judge, deadline)
     try:
-        verdict = await conn.play(prelude(knowledge), password, sync=False)
+        verdict = await conn.play(prelude(knowledge), password, sync=False) or judge.breach()
     finally:
         conn.close()
     if mode is Mode.WINSOCK and not judge.ready:
         raise FuzzError("the server did not accept the password: give the right one with --password")
-    if verdict is not None or not judge.session.channel_map:
+    if verdict is not None and verdict.kind != VIOLATION or verdict is None and not judge.session.channel_map:
         detail = verdict.detail if verdict is not None else "no Configuration Settings came"
         raise FuzzError(f"the server did not answer Fetch Configuration Settings ({detail})")
     channels = judge.session.channel_map
-    return Knowledge.of(mode, (channels[ch] for ch in sorted(channels)))
+    return Knowledge.of(mode, (channels[ch] for ch in sorted(channels))), verdict
 
 
 async def checked(address: tuple[str, int], session: Session, knowledge: Knowledge, password: bytes,

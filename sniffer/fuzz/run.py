@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from whiztap.analyzer.fuzz.corpus import Corpus
-from whiztap.analyzer.fuzz.grammar import Knowledge, Session, from_recording, generate
+from whiztap.analyzer.fuzz.grammar import Knowledge, Session, from_recording, generate, prelude
 from whiztap.analyzer.fuzz.judge import Verdict
 from whiztap.analyzer.fuzz.mutate import mutate
 from whiztap.analyzer.fuzz.shrink import shrink
-from whiztap.sniffer.fuzz.execute import Outcome, alive, checked, learn
+from whiztap.sniffer.fuzz.execute import Outcome, alive, checked, discover
 from whiztap.sniffer.fuzz.server import Server
 
 GENERATED_SEEDS = 8  # sessions generated from the tables to start the corpus
@@ -119,13 +119,17 @@ class Fuzzer:
 
     async def _loop(self) -> None:
         o, report = self.options, self.report
-        self.knowledge = await learn(o.address, o.password, o.deadline)
+        self.knowledge, first = await discover(o.address, o.password, o.deadline)
         report.mode = str(self.knowledge.mode)
+        seen: set[tuple[str, str]] = set()
+        if first is not None:  # a breach while learning: the handshake and the configuration show it
+            seen.add(first.signature)
+            if not await self._found(first, prelude(self.knowledge), False):
+                return
         rng = random.Random(o.seed)
         seeds = [generate(rng, self.knowledge) for _ in range(GENERATED_SEEDS)]
         seeds += [from_recording(items, self.knowledge) for items in o.recorded[:MAX_RECORDED_SEEDS]]
         corpus = Corpus(seeds)
-        seen: set[tuple[str, str]] = set()
         while True:
             if o.executions is not None and report.executions >= o.executions:
                 report.stopped = f"{o.executions} executions"
