@@ -199,7 +199,7 @@ async def discover(address: tuple[str, int], password: bytes, deadline: float) -
         conn.close()
     if mode is Mode.WINSOCK and not judge.ready:
         raise FuzzError("the server did not accept the password: give the right one with --password")
-    if verdict is not None and verdict.kind != VIOLATION or verdict is None and not judge.session.channel_map:
+    if (verdict is not None and verdict.kind != VIOLATION) or (verdict is None and not judge.session.channel_map):
         detail = verdict.detail if verdict is not None else "no Configuration Settings came"
         raise FuzzError(f"the server did not answer Fetch Configuration Settings ({detail})")
     channels = judge.session.channel_map
