@@ -129,6 +129,14 @@ def _analyze(fmt: str) -> Callable[[Path], str]:
     return lambda path: run("analyze", str(path), "--format", fmt, "--severity-threshold", "info")
 
 
+def diff_every_format(path: Path) -> str:
+    """``diff`` in each of its formats, the recording as B against a sample of
+    other traffic, so each of its requests and answers shows as a difference."""
+    sample = Path(__file__).resolve().parent.parent / "samples" / "clean-winsock.mcap"
+    return "\n".join(run("diff", str(sample), str(path), "--format", fmt)
+                     for fmt in ("text", "json", "markdown", "html"))
+
+
 def _format(command: str, fmt: str, *more: str) -> Callable[[Path], str]:
     return lambda path: run(command, str(path), "--format", fmt, *more)
 
@@ -144,6 +152,7 @@ FILE_OUTPUTS: dict[str, Callable[[Path], str | bytes]] = {
     "info --format json": _format("info", "json"),
     "export --pcap": export_pcap,
     "replay --dry-run": replay_dry_run,
+    "diff (every format)": diff_every_format,
     "the TUI (a recording)": tui_store_text,
 }
 # The cheap ones, for a property's every example.
@@ -172,7 +181,7 @@ NOT_OUTPUTS = {
     "fuzz": "its finding files (finding-N.mcap, test_finding_N.py), report and lines are read for the password "
             "by tests/test_fuzz.py (each finding written; --run's stdout and stderr)",
 }
-FILE_COMMANDS = {"analyze", "cat", "info", "export", "replay"}
+FILE_COMMANDS = {"analyze", "cat", "info", "export", "replay", "diff"}
 
 
 # -- the control API and ``whiztap ctl`` ------------------------------------------------------------
