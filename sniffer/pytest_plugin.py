@@ -183,7 +183,8 @@ class WhiztapServer:
         if missing:
             from whiztap.analyzer.protocol.text import plural
 
-            lines = "\n".join("  " + m.line() for m in missing)
+            lines = "\n".join("\n".join(["  " + m.line(), *("    " + n for n in m.near_lines())])
+                               for m in missing)
             pytest.fail(f"whiztap: {plural(len(missing), 'request')} not in {self.path} (record mode none):\n{lines}\n"
                         f"re-record with --whiztap-record=all if the client changed on purpose", pytrace=False)
 

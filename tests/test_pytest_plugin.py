@@ -113,7 +113,9 @@ def test_record_once_then_serve_from_the_recording(project, monkeypatch):
     new = run(project, "-k", "test_sensors")
     new.assert_outcomes(failed=1)
     new.stdout.fnmatch_lines([f"*whiztap: 1 request not in {recording} (record mode none):*",
-                              "*#1: no recorded answer for rr1-14--0--0-ss1 (Sensor Request ch 14)*"])
+                              "*#1: no recorded answer for rr1-14--0--0-ss1 (Sensor Request ch 14)*",
+                              "*closest recorded: #1 request 3 Sensor Request ch 13: channel 14 here, 13 recorded; "
+                              "position 4 here, 3 recorded*"])
 
     monkeypatch.delenv("NO_TARGET")
     run(project, "--whiztap-record=all", "-k", "test_sensors").assert_outcomes(passed=1)

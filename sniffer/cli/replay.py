@@ -306,11 +306,21 @@ class _Printer:
 @click.option("--unmatched", default="close", show_default=True, metavar="close|ignore|FRAME",
               help="A request with no recorded answer: close the client's connection, ignore it (send nothing), "
                    "or send FRAME (escaped text, e.g. 'cr1-0--0--0-ss1').")
+@click.option("--match", "match_text", default="kind,channel,order", show_default=True,
+              metavar="kind,channel,value,order",
+              help="The fields a request must share with a recorded one to get its answer: kind (required), "
+                   "channel, value (the whole frame, byte for byte), order (the k-th such request gets the "
+                   "k-th answer; without it, always the first).")
 @click.option("--strict", is_flag=True, help="Exit with status 1 if any request had no recorded answer.")
+@click.option("--fail-unused", is_flag=True, help="Exit with status 1 if a recorded request was never asked for.")
+@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
+              help="json: the closing summary as one JSON object (misses with their closest recorded "
+                   "requests, unused recorded requests), for scripts.")
 @click.option("--once", is_flag=True, help="Exit after the first client disconnects.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the listening line and problems.")
 def stub_command(path: str, listen: tuple[str, int], password: str | None, conn: int | None, pace: str, rate: float,
-                 exhausted: str, unmatched: str, strict: bool, once: bool, quiet: bool) -> None:
+                 exhausted: str, unmatched: str, match_text: str, strict: bool, fail_unused: bool, fmt: str,
+                 once: bool, quiet: bool) -> None:
     """Serve a recording's server side to a client under test.
 
     Each client is answered from one recorded connection: by default the k-th
@@ -319,11 +329,17 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     --conn N answers every client from connection N, a refused login included.
     Each request gets the recorded answer to the same kind of request on the
     same channel, in recorded order; one it cannot answer is met as --unmatched
-    says.  Runs until Ctrl-C or SIGTERM (or, with --once, until the first client
-    leaves).
+    says, with the closest recorded requests and what differs.  At the end the
+    recorded requests no client asked for are listed.  Runs until Ctrl-C or
+    SIGTERM (or, with --once, until the first client leaves).
     """
+    from whiztap.sniffer.replay.near_miss import Match
     from whiztap.sniffer.replay.stub import Stub
 
+    try:
+        match = Match.parse(match_text)
+    except ValueError as e:
+        fail(str(e))
 
     recording = _load(path)
 
@@ -338,16 +354,27 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
         reaction = unescape(unmatched)
     try:
         stub = Stub(recording, *listen, password=_password(password), pace=pace, rate=rate,
-                    exhausted=exhausted, conn=conn, unmatched=reaction, on_log=log)
+                    exhausted=exhausted, conn=conn, unmatched=reaction, match=match, on_log=log)
     except ValueError as e:
         fail(str(e))
     error = run(_serve(stub, once))
     if error:
         fail(error)
-    missing = len(stub.unanswered)
-    _echo(f"served {plural(stub.connections, 'connection')}, {plural(stub.answers, 'answer')}; "
-               f"{plural(missing, 'request')} without a recorded answer")
-    sys.exit(1 if strict and missing else 0)
+    missing, unused = len(stub.unanswered), stub.unused()
+    if fmt == "json":
+        import json
+
+        _echo(json.dumps({"recording": stub.recording.path, "match": match.text(), "connections": stub.connections,
+                          "answers": stub.answers, "unanswered": [u.as_dict() for u in stub.unanswered],
+                          "unused": [r.as_dict() for r in unused]}))
+    else:
+        _echo(f"served {plural(stub.connections, 'connection')}, {plural(stub.answers, 'answer')}; "
+              f"{plural(missing, 'request')} without a recorded answer"
+              + (f"; {plural(len(unused), 'recorded request')} never asked for" if unused else ""))
+        if unused and (fail_unused or not quiet):
+            for r in unused:
+                _echo(f"  unused: #{r.conn} request {r.position} {r.text}")
+    sys.exit(1 if (strict and missing) or (fail_unused and unused) else 0)
 
 
 async def _serve(stub: Stub, once: bool) -> str | None:

@@ -5,14 +5,17 @@ the k-th client from the k-th recorded connection that completed its handshake
 (a VPN one, or a Winsock one the server let in; later clients from the last
 such), or every client from ``conn``: the same handshake, then for each
 request the recorded answer to a request of the same kind and channel, in
-recorded order, byte for byte.  When a kind's answers are used up the last one
-is repeated, or (``exhausted="fail"``) none is sent.
+recorded order, byte for byte (``match`` chooses the fields: near_miss.Match).
+When a kind's answers are used up the last one is repeated, or
+(``exhausted="fail"``) none is sent.
 
 A request the stub cannot answer (the recording has no answer for it, or its
 recorded answer never came) is logged, kept in ``unanswered`` and met at once
 as ``unmatched`` says: ``close`` the connection (the default), ``ignore`` it
 (send nothing, as the recording did), or send a given frame: never a silent
-wait until the client's own timeout.
+wait until the client's own timeout.  Each miss carries the closest recorded
+requests and the fields that differ (``near``), and ``unused()`` lists the
+recorded exchanges no client asked for, so a recording that rots shows.
 
 The client's bytes go through the analyzer's session model, so requests are
 recognised however the client cuts its writes, and the channel map the stub
@@ -38,6 +41,7 @@ from whiztap.analyzer.protocol.handshake import Mode
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.text import escape
+from whiztap.sniffer.replay.near_miss import Match, NearMiss, Recorded, closest
 from whiztap.sniffer.replay.options import Pace
 from whiztap.sniffer.sim.tcp_server import READ_SIZE, TcpServer
 
@@ -64,9 +68,18 @@ class Unanswered:
     request: bytes
     text: str
     why: str = "no recorded answer"
+    near: tuple[NearMiss, ...] = ()  # the closest recorded requests, closest first
 
     def line(self) -> str:
         return f"#{self.conn}: {self.why} for {escape(self.request)} ({self.text})"
+
+    def near_lines(self) -> list[str]:
+        """One line per close recorded request: which, and what differs."""
+        return [f"closest recorded: {n.line()}" for n in self.near]
+
+    def as_dict(self) -> dict:
+        return {"conn": self.conn, "request": escape(self.request), "text": self.text, "why": self.why,
+                "closest": [n.as_dict() for n in self.near]}
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,7 +91,7 @@ class _Answer:
 class _Script:
     """What one recorded connection's server said, arranged for serving."""
 
-    def __init__(self, rec: RecordedConnection) -> None:
+    def __init__(self, rec: RecordedConnection, match: Match) -> None:
         self.conn = rec.conn
         self.winsock = rec.mode is Mode.WINSOCK
         shake = rec.handshake
@@ -89,14 +102,21 @@ class _Script:
         self.verdict = shake[1].item.raw if len(shake) > 1 else ReadyToGo().title.encode()
         after = password.t_ns if password is not None else rec.opened_ns
         self.verdict_delay = max(0, shake[1].item.t_end_ns - after) if len(shake) > 1 else 0
-        self.answers: dict[tuple[str, int | None], list[_Answer | None]] = {}
+        self.requests: list[Recorded] = []  # every request served from, for near misses and unused
+        self.answers: dict[tuple, list[tuple[Recorded, _Answer | None]]] = {}
+        position = 0
         for item in rec.requests:
             key = answer_key(item.obs)
-            if key is None or (item.answer is None and not key[1]):
+            if key is None:
+                continue
+            position += 1
+            if item.answer is None and not key[1]:
                 continue
             answer = item.answer
             entry = None if answer is None else _Answer(answer.item.raw, max(0, answer.item.t_end_ns - item.t_ns))
-            self.answers.setdefault(key[0], []).append(entry)
+            recorded = Recorded(rec.conn, position, *key[0], item.obs.item.raw, meaning(item.obs))
+            self.requests.append(recorded)
+            self.answers.setdefault(match.key(*key[0], recorded.value), []).append((recorded, entry))
 
 
 class Stub(TcpServer):
@@ -108,15 +128,16 @@ class Stub(TcpServer):
     def __init__(self, recording: RecordedSessions, host: str = "127.0.0.1", port: int = 0, *,
                  password: bytes | None = None, pace: Pace | str = Pace.MAX, rate: float = 1.0,
                  exhausted: Exhausted | str = Exhausted.REPEAT, conn: int | None = None,
-                 unmatched: Unmatched | str | bytes = Unmatched.CLOSE,
+                 unmatched: Unmatched | str | bytes = Unmatched.CLOSE, match: Match | None = None,
                  on_log: Callable[[str], None] | None = None) -> None:
         """``unmatched``: ``"close"``, ``"ignore"``, or the bytes of a frame to send."""
+        self.match = match or Match()
         self.pace = Pace(pace)
         if self.pace is Pace.LOCKSTEP:
             raise ValueError("a stub answers at the recorded delay (recorded) or at once (max)")
         if rate <= 0:
             raise ValueError("--rate must be above 0")
-        scripts = [_Script(c) for c in recording.connections]
+        scripts = [_Script(c, self.match) for c in recording.connections]
         if conn is not None:
             scripts = [s for s in scripts if s.conn == conn]
             if not scripts:
@@ -138,6 +159,11 @@ class Stub(TcpServer):
         self.finished = asyncio.Event()  # set each time a client connection ends
         self._scripts = scripts
         self._numbers = itertools.count(1)
+        self._used: set[tuple[int, int]] = set()  # (recorded conn, position) of each answer given
+
+    def unused(self) -> list[Recorded]:
+        """Recorded requests no client's request was answered from, in recorded order."""
+        return [r for s in self._scripts for r in s.requests if (r.conn, r.position) not in self._used]
 
     # -- one client ---------------------------------------------------------------------------
 
@@ -166,7 +192,8 @@ class _Served:
     def __init__(self, stub: Stub, script: _Script, number: int, writer: asyncio.StreamWriter) -> None:
         self.stub, self.script, self.number, self.writer = stub, script, number, writer
         self.session = Session(stub.recording.checksum_rule)
-        self.cursors: Counter[tuple[str, int | None]] = Counter()
+        self.cursors: Counter[tuple] = Counter()
+        self.position = 0  # answerable requests so far, as Recorded.position counts them
         self.recorded_pace = stub.pace is Pace.RECORDED
         self._due = 0.0  # answers leave in order, each no earlier than its delay
         self._queue: asyncio.Queue[tuple[float, bytes] | None] = asyncio.Queue()
@@ -226,17 +253,20 @@ class _Served:
         key = answer_key(request)
         if key is None:
             return True
-        recorded = self.script.answers.get(key[0], [])
-        i = self.cursors[key[0]]
+        self.position += 1
+        group = self.stub.match.key(*key[0], request.item.raw)
+        recorded = self.script.answers.get(group, [])
+        i = self.cursors[group] if self.stub.match.order else 0
         if i < len(recorded):
-            self.cursors[key[0]] += 1
-            answer = recorded[i]
+            self.cursors[group] += 1
+            used, answer = recorded[i]
         elif recorded and self.stub.exhausted is Exhausted.REPEAT:
-            answer = recorded[-1]
+            used, answer = recorded[-1]
         elif key[1] or recorded:  # a frame that only may ask is new only if it never did
             return self._unmatched(request, "no recorded answer")
         else:
             return True
+        self.stub._used.add((used.conn, used.position))
         if answer is None:
             return self._unmatched(request, "no answer in the recording either")
         self.stub.answers += 1
@@ -245,14 +275,21 @@ class _Served:
 
     def _unmatched(self, request: Observation, why: str) -> bool:
         """Log and count a request the stub cannot answer, and meet it at once."""
-        miss = Unanswered(self.number, request.item.raw, meaning(request), why)
+        key = answer_key(request)
+        text = meaning(request)
+        asked = Recorded(self.number, self.position, *(key[0] if key else (text, None)), request.item.raw, text)
+        miss = Unanswered(self.number, request.item.raw, text, why, tuple(closest(asked, self.script.requests)))
         self.stub.unanswered.append(miss)
         reaction = self.stub.unmatched
         if isinstance(reaction, bytes):
             self.stub.on_log(f"! {miss.line()}: sent {escape(reaction)}")
+        else:
+            self.stub.on_log(f"! {miss.line()}" + ("; connection closed" if reaction is Unmatched.CLOSE else ""))
+        for line in miss.near_lines():
+            self.stub.on_log(f"!   {line}")
+        if isinstance(reaction, bytes):
             self.send(reaction, 0)
             return True
-        self.stub.on_log(f"! {miss.line()}" + ("; connection closed" if reaction is Unmatched.CLOSE else ""))
         return reaction is not Unmatched.CLOSE
 
     def send(self, data: bytes, delay_ns: int) -> None:
