@@ -180,6 +180,9 @@ NOT_OUTPUTS = {
              "tests/test_probe_client.py::test_the_password_never_shows_in_the_report_even_when_the_client_prints_it",
     "fuzz": "its finding files (finding-N.mcap, test_finding_N.py), report and lines are read for the password "
             "by tests/test_fuzz.py (each finding written; --run's stdout and stderr)",
+    "cut": "writes a recording of the input's messages byte for byte (masked stays masked: "
+           "tests/test_cut.py::test_every_message_of_the_cut_is_a_message_of_the_original), which FILE_OUTPUTS "
+           "read; its own line names only connection numbers and counts",
 }
 FILE_COMMANDS = {"analyze", "cat", "info", "export", "replay", "diff"}
 

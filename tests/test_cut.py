@@ -1,0 +1,138 @@
+"""``whiztap cut``: a recording cut to some connections is a recording every
+reader opens, and tells each kept connection's story as the original did."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.record.writer import RecordingFile
+
+from tests.cli_support import run_cli
+from tests.record_support import op_event, read_all
+from tests.test_readers_property import MS, T0, traffic
+
+SAMPLE = Path(__file__).parent.parent / "samples" / "violations.mcap"
+
+
+def _record(ops: list, path: Path, split_size: int | None = None) -> None:
+    """Drawn traffic through the real Recorder, as the proxy drives it."""
+    metadata = {"robot": "r1", "session_id": path.stem, "split_size": str(split_size or "")}
+    recorder = Recorder(RecordingFile(str(path), metadata, split_size=split_size))
+    recorder.start(T0)
+    t = T0
+    for op, conn, d, payload in ops:
+        t += MS
+        event = op_event(op, conn, d, t, payload)
+        if event is not None:
+            recorder.receive(event)
+        recorder.tick(t)
+    recorder.stop(t + MS)
+
+
+def _analysis(*paths: Path) -> tuple[dict[int, dict], list[dict]]:
+    """Each connection's row and every violation of ``analyze --format json``,
+    less the file's name and the times counted from the file's first traffic
+    (``t_rel_s``), which a cut moves."""
+    ran = run_cli("analyze", *map(str, paths), "--format", "json", "--allow-empty")
+    assert ran.returncode in (0, 1), ran.stderr
+    report = json.loads(ran.stdout)
+    rows = {c["conn"]: {k: v for k, v in c.items() if k != "file"} for c in report["connections"]}
+    found = [{k: v for k, v in v.items() if k not in ("file", "t_rel_s")} for v in report["violations"]]
+    return rows, found
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(ops=traffic(any_order=False), wanted=st.sets(st.integers(1, 3), min_size=1), split=st.booleans())
+def test_analyze_of_a_cut_is_analyze_of_the_original_restricted_to_its_connections(tmp_path, ops, wanted, split):
+    """Restricted: the kept connections' rows (mode, handshake, frames, rules
+    broken, channel map, who closed) and their violations, unchanged."""
+    original = tmp_path / "in.mcap"
+    out = tmp_path / "out.mcap"
+    for p in tmp_path.iterdir():
+        p.unlink()
+    _record(ops, original, split_size=600 if split else None)
+    inputs = sorted(tmp_path.glob("in*.mcap"))
+    rows, violations = _analysis(*inputs)
+    ran = run_cli("cut", *map(str, inputs), "-o", out, "--conn", ",".join(map(str, sorted(wanted))))
+    kept = wanted & set(rows)
+    if not kept:
+        assert ran.returncode == 1 and not out.exists(), ran.stderr
+        return
+    assert ran.returncode == 0, ran.stderr
+    cut_rows, cut_violations = _analysis(out)
+    assert cut_rows == {c: row for c, row in rows.items() if c in kept}
+    assert cut_violations == [v for v in violations if v["conn"] in kept]
+    read_all(str(out))  # the mcap library's reader, CRCs checked, every message fits its schema
+
+
+def test_a_filter_keeps_the_connections_cat_shows_for_it_whole(tmp_path):
+    """The filter words are cat's: the connections cut keeps are those with a
+    line in ``cat --filter``, and each is kept whole (its handshake and
+    configuration exchange come along, though the filter asked for neither)."""
+    words = "kind:response ch:3"
+    shown = run_cli("cat", SAMPLE, "--format", "jsonl", "--filter", words)
+    conns = {json.loads(line)["conn"] for line in shown.stdout.splitlines()}
+    assert conns and len(conns) < 38
+    out = tmp_path / "out.mcap"
+    ran = run_cli("cut", SAMPLE, "-o", out, "--filter", words)
+    assert ran.returncode == 0, ran.stderr
+    rows, _ = _analysis(out)
+    assert set(rows) == conns
+    original, _ = _analysis(SAMPLE)
+    assert rows == {c: original[c] for c in conns}
+    kinds = {json.loads(line)["kind"] for line in run_cli("cat", out, "--format", "jsonl").stdout.splitlines()}
+    assert "config" in kinds and "command" in kinds
+
+
+def test_the_time_window_counts_from_the_first_traffic_or_takes_an_iso_time(tmp_path):
+    """``--start 10ms`` and the same moment as an ISO time keep the same connections."""
+    from datetime import UTC, datetime
+
+    lines = [json.loads(line) for line in run_cli("cat", SAMPLE, "--format", "jsonl").stdout.splitlines()]
+    first = min(line["t_ns"] for line in lines)
+    iso = datetime.fromtimestamp((first + 10 * MS) / 1e9, UTC).isoformat()
+    later = {line["conn"] for line in lines if line["t_ns"] >= first + 10 * MS}
+    assert later and later != {line["conn"] for line in lines}
+    for start in ("10ms", iso):
+        out = tmp_path / f"out-{len(start)}.mcap"
+        ran = run_cli("cut", SAMPLE, "-o", out, "--start", start)
+        assert ran.returncode == 0, ran.stderr
+        assert set(_analysis(out)[0]) == later
+
+
+def test_every_message_of_the_cut_is_a_message_of_the_original(tmp_path):
+    """Nothing is re-encoded: what was masked stays masked (the secrets
+    invariant), and a reader sees the original's bytes."""
+    out = tmp_path / "out.mcap"
+    assert run_cli("cut", SAMPLE, "-o", out, "--conn", "2,5").returncode == 0
+    original = {t: [json.dumps(m, sort_keys=True) for m in ms] for t, ms in read_all(str(SAMPLE)).items()}
+    for topic, messages in read_all(str(out)).items():
+        for m in messages:
+            assert json.dumps(m, sort_keys=True) in original[topic], topic
+    assert {m["conn"] for m in read_all(str(out))["/tcp/reads"]} == {2, 5}
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (("-o", "-"), "not to standard output"),
+    (("-o", str(SAMPLE)), "is an input"),
+    (("-o", "x.mcap", "--start", "soon"), "--start: wants seconds"),
+    (("-o", "x.mcap", "--conn", "two"), "--conn: wants connection numbers"),
+    (("-o", "x.mcap", "--filter", "kind:nope"), "--filter: kind:"),
+])
+def test_bad_arguments_are_one_line_and_status_2(tmp_path, args, says):
+    ran = run_cli("cut", SAMPLE, *args, cwd=tmp_path)
+    assert ran.returncode == 2 and says in ran.stderr and len(ran.stderr.strip().splitlines()) == 1, ran.stderr
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_nothing_matching_writes_nothing_and_exits_1(tmp_path):
+    out = tmp_path / "out.mcap"
+    ran = run_cli("cut", SAMPLE, "-o", out, "--conn", "99")
+    assert ran.returncode == 1 and "nothing" in ran.stderr and not out.exists()
+    assert not list(tmp_path.iterdir())
