@@ -32,7 +32,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from whiztap.analyzer.analysis.compare import CompareMode, CompareRules, Status, compare
+from whiztap.analyzer.analysis.compare import CompareMode, CompareRules, Status, answer_key, compare
 from whiztap.analyzer.analysis.exchanges import ClientItem, RecordedConnection
 from whiztap.analyzer.analysis.sides import side_of
 from whiztap.analyzer.protocol.framing import ItemKind
@@ -143,6 +143,20 @@ def _breaches(label: str, *observations: Observation | None) -> list[Breach]:
             for o in observations if o is not None for v in o.violations]
 
 
+def _unanswered(label: str, item: ClientItem) -> list[Breach]:
+    """The session's verdict on a request that certainly asked and got no
+    answer (PW-PAIR-UNANSWERED, which it reports after the item, so the item
+    does not carry it)."""
+    key = answer_key(item.obs)
+    if item.answer is None and key is not None and key[1]:
+        return [Breach(label, "server", "PW-PAIR-UNANSWERED", "the request got no answer")]
+    return []
+
+
+def _exchange_breaches(label: str, item: ClientItem) -> list[Breach]:
+    return _breaches(label, item.obs, item.answer) + _unanswered(label, item)
+
+
 def _answer_text(answer: Observation | None) -> str:
     if answer is None:
         return "no answer"
@@ -152,7 +166,7 @@ def _answer_text(answer: Observation | None) -> str:
 def _pair(conn: int, key: tuple[str, int | None, int], a: ClientItem, b: ClientItem,
           tolerance_ns: int) -> list[Difference]:
     name = _name(key)
-    breaches = tuple(_breaches("A", a.obs, a.answer) + _breaches("B", b.obs, b.answer))
+    breaches = tuple(_exchange_breaches("A", a) + _exchange_breaches("B", b))
     out = []
     if a.obs.item.raw != b.obs.item.raw:
         out.append(Difference(Kind.VALUE, conn, name, "the request's bytes",
@@ -209,7 +223,7 @@ def diff_connection(position: int, a: RecordedConnection | None, b: RecordedConn
         if only is None:
             return 0, out
         kind, label = (Kind.MISSING, "A") if b is None else (Kind.EXTRA, "B")
-        breaches = [x for i in only.items for x in _breaches(label, i.obs, i.answer)]
+        breaches = [x for i in only.items for x in _exchange_breaches(label, i)]
         out.append(Difference(kind, position, "connection", f"the whole connection ({len(items_a or items_b)} "
                               "requests)", "present" if a else "", "present" if b else "", tuple(breaches)))
         return len(items_a or items_b), out
@@ -217,13 +231,13 @@ def diff_connection(position: int, a: RecordedConnection | None, b: RecordedConn
         other = items_b.get(key)
         if other is None:
             out.append(Difference(Kind.MISSING, position, _name(key), "the request",
-                                  escape(item.obs.item.raw), "", tuple(_breaches("A", item.obs, item.answer))))
+                                  escape(item.obs.item.raw), "", tuple(_exchange_breaches("A", item))))
         else:
             out += _pair(position, key, item, other, tolerance_ns)
     for key, item in items_b.items():
         if key not in items_a:
             out.append(Difference(Kind.EXTRA, position, _name(key), "the request",
-                                  "", escape(item.obs.item.raw), tuple(_breaches("B", item.obs, item.answer))))
+                                  "", escape(item.obs.item.raw), tuple(_exchange_breaches("B", item))))
     return len(items_a.keys() | items_b.keys()), out
 
 
