@@ -124,6 +124,8 @@ def test_every_message_of_the_cut_is_a_message_of_the_original(tmp_path):
     (("-o", "x.mcap", "--start", "soon"), "--start: wants seconds"),
     (("-o", "x.mcap", "--conn", "two"), "--conn: wants connection numbers"),
     (("-o", "x.mcap", "--filter", "kind:nope"), "--filter: kind:"),
+    (("-o", "x.mcap", "--filter", "since:1e300"), "--filter: wants seconds"),
+    (("-o", "x.mcap", "--end", "1e300s"), "--end: wants seconds"),
 ])
 def test_bad_arguments_are_one_line_and_status_2(tmp_path, args, says):
     ran = run_cli("cut", SAMPLE, *args, cwd=tmp_path)
@@ -136,3 +138,24 @@ def test_nothing_matching_writes_nothing_and_exits_1(tmp_path):
     ran = run_cli("cut", SAMPLE, "-o", out, "--conn", "99")
     assert ran.returncode == 1 and "nothing" in ran.stderr and not out.exists()
     assert not list(tmp_path.iterdir())
+
+
+@given(st.text(max_size=30) | st.floats(allow_nan=True).map(str) | st.datetimes().map(lambda d: d.isoformat()))
+def test_any_time_given_is_a_bound_or_one_clear_refusal(text):
+    """``--start``/``--end`` take text from the user: a bound, or ValueError saying what is wanted."""
+    from whiztap.sniffer.record.cut import parse_bound
+
+    try:
+        bound = parse_bound(text)
+    except ValueError as e:
+        assert "wants seconds" in str(e)
+    else:
+        assert isinstance(bound.at(T0), int)
+
+
+def test_a_time_with_a_unit_is_seconds_after_the_first_traffic():
+    from whiztap.sniffer.record.cut import parse_bound
+
+    assert [parse_bound(t).at(0) for t in ("2.5", "2.5s", "250ms", "1m", "-1s")] == [
+        2_500 * MS, 2_500 * MS, 250 * MS, 60_000 * MS, -1_000 * MS]
+    assert parse_bound("1970-01-01T00:00:01+00:00").at(T0) == 1_000 * MS

@@ -62,12 +62,13 @@ def cut_command(inputs: tuple[str, ...], output: str, force: bool, filter_text: 
         from dataclasses import replace
 
         item_filter = replace(item_filter, conns=wanted & item_filter.conns if item_filter.conns else wanted)
-    bounds = []
-    for option, text in (("--start", start), ("--end", end)):
+    bounds = []  # --start and --end, or else the filter's since: and until:
+    for option, text, word in (("--start", start, item_filter.since_s), ("--end", end, item_filter.until_s)):
+        given = text if text is not None else None if word is None else str(word)
         try:
-            bounds.append(parse_bound(text) if text is not None else None)
+            bounds.append(parse_bound(given) if given is not None else None)
         except ValueError as e:
-            fail(f"{option}: {e}")
+            fail(f"{option if text is not None else '--filter'}: {e}")
     recording = one_recording(inputs)
     parts = list(recording.parts)
     check_output(output, parts, force=force, recording=True)
@@ -85,5 +86,6 @@ def cut_command(inputs: tuple[str, ...], output: str, force: bool, filter_text: 
         fail(str(e))
     except OSError as e:
         fail(f"cannot cut {recording}: {e.strerror or e}")
-    shown = ",".join(map(str, sorted(kept)))
+    numbers = sorted(kept)
+    shown = ",".join(map(str, numbers[:10])) + (f" and {len(numbers) - 10} more" if len(numbers) > 10 else "")
     say(f"{output}: {plural(len(kept), 'connection')} ({shown}), {plural(written, 'message')}")

@@ -20,6 +20,7 @@ leaves it out.
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -41,17 +42,21 @@ _LOG_CONN = re.compile(rb'\(conn (\d+)')  # a /log line names its connection onl
 
 @dataclass(frozen=True)
 class Bound:
-    """One end of the time window: seconds after the first traffic, or an
-    absolute time (ns since the epoch) from an ISO timestamp."""
+    """One end of the time window: ns after the first traffic, or an absolute
+    time (ns since the epoch) from an ISO timestamp."""
 
-    seconds: float | None = None
+    offset_ns: int = 0
     epoch_ns: int | None = None
 
     def at(self, start_ns: int) -> int:
         """The bound in ns since the epoch, for a recording whose traffic begins at ``start_ns``."""
-        if self.epoch_ns is not None:
-            return self.epoch_ns
-        return start_ns + round((self.seconds or 0.0) * NS)
+        return self.epoch_ns if self.epoch_ns is not None else start_ns + self.offset_ns
+
+
+_WANTS = "wants seconds after the recording's first traffic (2.5, 2.5s, 250ms) or an ISO timestamp " \
+         "(2026-11-28T05:12:00)"
+_UNITS = (("ms", 1e-3), ("us", 1e-6), ("s", 1.0), ("m", 60.0), ("h", 3600.0))
+_LONGEST_S = 100 * 365 * 86400  # a century: past it a time is a typing slip, not a recording's length
 
 
 def parse_bound(text: str) -> Bound:
@@ -61,26 +66,25 @@ def parse_bound(text: str) -> Bound:
     from datetime import datetime
 
     value = text.strip()
-    units = (("ms", 1e-3), ("us", 1e-6), ("s", 1.0), ("m", 60.0), ("h", 3600.0))
-    for suffix, scale in units:
-        if value.endswith(suffix) and _is_number(value[: -len(suffix)]):
-            return Bound(seconds=float(value[: -len(suffix)]) * scale)
-    if _is_number(value):
-        return Bound(seconds=float(value))
+    for suffix, scale in (*_UNITS, ("", 1.0)):
+        number = value[: len(value) - len(suffix)]
+        if value.endswith(suffix) and _is_number(number):
+            seconds = float(number) * scale
+            if not -_LONGEST_S <= seconds <= _LONGEST_S:
+                raise ValueError(f"{_WANTS}; {text!r} is more than a century")
+            return Bound(offset_ns=round(seconds * NS))
     try:
-        moment = datetime.fromisoformat(value)
-    except ValueError:
-        raise ValueError(f"wants seconds after the recording's first traffic (2.5, 2.5s, 250ms) "
-                         f"or an ISO timestamp (2026-11-28T05:12:00), got {text!r}") from None
-    return Bound(epoch_ns=round(moment.timestamp() * NS))
+        return Bound(epoch_ns=round(datetime.fromisoformat(value).timestamp() * NS))
+    except (ValueError, OverflowError, OSError):  # not ISO, or a date the clock cannot count
+        raise ValueError(f"{_WANTS}, got {text!r}") from None
 
 
 def _is_number(text: str) -> bool:
+    """A finite decimal number (not ``nan``, ``inf``, nor empty)."""
     try:
-        float(text)
+        return math.isfinite(float(text))
     except ValueError:
         return False
-    return text.strip() != "" and text.strip().lower() not in ("nan", "inf", "-inf", "+inf", "infinity")
 
 
 def chosen_connections(events: Iterable[TrafficEvent], item_filter: ItemFilter, start: Bound | None,
@@ -95,13 +99,8 @@ def chosen_connections(events: Iterable[TrafficEvent], item_filter: ItemFilter, 
     from whiztap.analyzer.protocol.observations import LateViolation
     from whiztap.analyzer.traffic import Data
 
-    # the window is checked here, in ns: the filter's own since/until are made part of it
-    words = item_filter
-    if words.since_s is not None and start is None:
-        start = Bound(seconds=words.since_s)
-    if words.until_s is not None and end is None:
-        end = Bound(seconds=words.until_s)
-    words = replace(words, since_s=None, until_s=None)
+    # the window is checked here, in ns (the caller made the filter's since:/until: part of it)
+    words = replace(item_filter, since_s=None, until_s=None)
     # nothing but connections asked for: a connection without a single item (opened, then closed) is kept too
     every = start is None and end is None and words == type(words)(conns=words.conns)
     analyzer = Analyzer(name, checksum_rule, limits)
