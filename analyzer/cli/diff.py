@@ -45,8 +45,7 @@ def _load(path: str) -> RecordedSessions:
 def _fault(d: Difference) -> str:
     if not d.breaches:
         return "neither"
-    rules = "; ".join(f"{b.recording} ({b.side}): {b.rule_id}" for b in d.breaches)
-    return f"{d.at_fault}: {rules}"
+    return "; ".join(f"{b.recording}'s {b.side or 'side'}: {b.rule_id}" for b in d.breaches)
 
 
 def _rows(result: DiffResult) -> list[tuple[str, ...]]:
@@ -54,10 +53,12 @@ def _rows(result: DiffResult) -> list[tuple[str, ...]]:
 
 
 def _summary(result: DiffResult) -> str:
+    from whiztap.analyzer.protocol.text import plural
+
     if result.equal:
-        return f"equal: {result.exchanges} exchanges, no difference"
+        return f"equal: {plural(result.exchanges, 'exchange')}, no difference"
     counts = ", ".join(f"{n} {kind}" for kind, n in sorted(result.counts().items()))
-    return f"{len(result.differences)} differences in {result.exchanges} exchanges ({counts})"
+    return f"{plural(len(result.differences), 'difference')} in {plural(result.exchanges, 'exchange')} ({counts})"
 
 
 def render_text(result: DiffResult) -> str:
