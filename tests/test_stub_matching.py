@@ -131,7 +131,7 @@ requests = st.builds(Recorded, st.integers(1, 3), st.integers(1, 20),
 @given(requests, st.lists(requests, max_size=12))
 def test_closest_is_ranked_and_names_only_real_differences(asked, recorded):
     near = closest(asked, recorded)
-    assert len(near) == min(3, len(recorded))
+    assert len(near) == min(3, len({(r.kind, r.channel, r.value) for r in recorded}))
     for n in near:
         for field, (here, there) in n.differs.items():
             assert here != there and field in ("kind", "channel", "value", "position")

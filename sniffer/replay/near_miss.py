@@ -99,13 +99,18 @@ def closest(asked: Recorded, recorded: list[Recorded], limit: int = NEAR_MISSES)
     """Up to ``limit`` recorded requests nearest ``asked``: a differing kind
     weighs most, then channel, then value, then distance in position.  A
     value difference is named only between requests of one kind and channel:
-    across those, the frames differ as a matter of course."""
+    across those, the frames differ as a matter of course.  A request
+    recorded many times is shown once, at its nearest position."""
     def rank(r: Recorded) -> tuple:
         return (r.kind != asked.kind, r.channel != asked.channel, r.value != asked.value,
                 abs(r.position - asked.position), r.conn)
 
-    misses = []
-    for r in sorted(recorded, key=rank)[:limit]:
+    misses: list[NearMiss] = []
+    shown: set[tuple] = set()
+    for r in sorted(recorded, key=rank):
+        if len(misses) == limit or (r.kind, r.channel, r.value) in shown:
+            continue  # the same request again says nothing new: the nearest stands for it
+        shown.add((r.kind, r.channel, r.value))
         differs: dict[str, tuple[object, object]] = {}
         same_place = r.kind == asked.kind and r.channel == asked.channel  # else the frames differ anyway
         for name, here, there in (("kind", asked.kind, r.kind), ("channel", asked.channel, r.channel),
