@@ -50,9 +50,6 @@ class Kind(StrEnum):
     HANDSHAKE = "handshake"  # the connection's outcome differs
 
 
-_SWAPPED = {Kind.MISSING: Kind.EXTRA, Kind.EXTRA: Kind.MISSING}
-
-
 @dataclass(frozen=True, slots=True)
 class Breach:
     """A rule one recording broke in the exchange a difference is about."""
@@ -78,13 +75,6 @@ class Difference:
         """Which recording breaks the spec here: "A", "B", "both" or "neither"."""
         who = {b.recording for b in self.breaches}
         return "both" if len(who) == 2 else (who.pop() if who else "neither")
-
-    def swapped(self) -> Difference:
-        """The same difference seen from the other recording."""
-        breaches = tuple(Breach("B" if b.recording == "A" else "A", b.side, b.rule_id, b.detail)
-                         for b in self.breaches)
-        return Difference(_SWAPPED.get(self.kind, self.kind), self.connection, self.exchange, self.what,
-                          self.b, self.a, breaches)
 
 
 @dataclass(slots=True)
