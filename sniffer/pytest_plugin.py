@@ -57,6 +57,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                     help="The live server to record from and to replay against.")
     group.addoption("--whiztap-password", default=None, metavar="PASSWORD",
                     help="Winsock password for replays (default: the marker's, or $WHIZTAP_PASSWORD).")
+    group.addoption("--whiztap-fail-unused", action="store_true", default=False,
+                    help="Fail a test whose stub served a recording with requests the test never made.")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -75,7 +77,7 @@ def pytest_runtest_call(item: pytest.Item) -> Iterator[None]:
     finally:
         server = getattr(item, "funcargs", {}).get("whiztap_server")
         if isinstance(server, WhiztapServer):
-            server.check()
+            server.check(unused=item.config.getoption("--whiztap-fail-unused"))
 
 
 # -- running servers beside the test ---------------------------------------------------------
@@ -178,8 +180,23 @@ class WhiztapServer:
         """Requests the stub had no recorded answer for (``whiztap.sniffer.replay.stub.Unanswered``)."""
         return list(self._stub.unanswered) if self._stub is not None else []
 
-    def check(self) -> None:
+    @property
+    def unused(self) -> list:
+        """Recorded requests no request of the test was answered from
+        (``whiztap.sniffer.replay.near_miss.Recorded``), so far."""
+        return self._stub.unused() if self._stub is not None else []
+
+    def check(self, unused: bool = False) -> None:
+        """Fail the test on a request the recording has no answer for, and
+        (``unused``: --whiztap-fail-unused) on a recorded one never made."""
         missing = self.unanswered
+        if unused and not missing and (left := self.unused):
+            from whiztap.analyzer.protocol.text import plural
+
+            lines = "\n".join(f"  #{r.conn} request {r.position} {r.text}" for r in left)
+            pytest.fail(f"whiztap: {plural(len(left), 'recorded request')} never asked for in {self.path} "
+                        f"(--whiztap-fail-unused):\n{lines}\nre-record with --whiztap-record=all if the client "
+                        f"changed on purpose", pytrace=False)
         if missing:
             from whiztap.analyzer.protocol.text import plural
 

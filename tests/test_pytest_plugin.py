@@ -123,6 +123,14 @@ def test_record_once_then_serve_from_the_recording(project, monkeypatch):
     monkeypatch.setenv("NO_TARGET", "1")
     run(project, "-k", "test_sensors").assert_outcomes(passed=1)  # and it has the new request
 
+    monkeypatch.delenv("NEW_REQUEST")  # the client no longer asks for channel 14: the recording has rotted
+    run(project, "-k", "test_sensors").assert_outcomes(passed=1)
+    rotten = run(project, "-k", "test_sensors", "--whiztap-fail-unused")
+    rotten.assert_outcomes(failed=1)
+    rotten.stdout.fnmatch_lines([
+        f"*whiztap: 1 recorded request never asked for in {recording} (--whiztap-fail-unused):*",
+        "*#1 request 4 Sensor Request ch 14*"])
+
 
 @pytest.mark.slow
 def test_replay_fixture_passes_on_the_same_server_and_fails_with_the_diff(project, monkeypatch):
