@@ -69,6 +69,22 @@ def test_analyze_of_a_cut_is_analyze_of_the_original_restricted_to_its_connectio
     assert cut_rows == {c: row for c, row in rows.items() if c in kept}
     assert cut_violations == [v for v in violations if v["conn"] in kept]
     read_all(str(out))  # the mcap library's reader, CRCs checked, every message fits its schema
+    assert _tui_items(out) == sum(row["frames"] for row in cut_rows.values())
+
+
+def _tui_items(path: Path) -> int:
+    """The items the TUI's file source shows for a recording."""
+    import threading
+
+    from whiztap.analyzer.recording.sets import find_one
+    from whiztap.tui.data.model import TrafficModel
+    from whiztap.tui.data.sources import FileSource
+
+    model = TrafficModel(str(path))
+    source = FileSource(find_one([str(path)]))
+    source.feed(model, threading.Event())
+    assert not source.note, source.note
+    return model.store.count
 
 
 def test_a_filter_keeps_the_connections_cat_shows_for_it_whole(tmp_path):
@@ -131,6 +147,14 @@ def test_bad_arguments_are_one_line_and_status_2(tmp_path, args, says):
     ran = run_cli("cut", SAMPLE, *args, cwd=tmp_path)
     assert ran.returncode == 2 and says in ran.stderr and len(ran.stderr.strip().splitlines()) == 1, ran.stderr
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_an_output_that_cannot_be_written_is_one_line_and_leaves_nothing(tmp_path):
+    """A folder that is a file: the writer's own error, as one line."""
+    (tmp_path / "file").write_bytes(b"")
+    ran = run_cli("cut", SAMPLE, "-o", tmp_path / "file" / "out.mcap")
+    assert ran.returncode == 2 and "cannot write" in ran.stderr and len(ran.stderr.splitlines()) == 1, ran.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
 
 
 def test_nothing_matching_writes_nothing_and_exits_1(tmp_path):
