@@ -190,3 +190,17 @@ def test_a_recording_equals_itself_and_swapping_swaps_missing_and_extra(connecti
     forth, back = diff_sessions(a, b).differences, diff_sessions(b, a).differences
     assert _unordered(back) == _unordered([_swapped(d) for d in forth])
     assert Counter(d.kind for d in back) == Counter(SWAPPED.get(d.kind, d.kind) for d in forth)
+
+
+@settings(max_examples=30, deadline=None)
+@given(cut=st.floats(0, 1), tail=st.binary(max_size=64))
+def test_any_damaged_file_is_one_line_never_a_traceback(made, tmp_path_factory, cut, tail):
+    """Bytes from outside: a recording cut anywhere and followed by anything."""
+    data = made["clean"].read_bytes()
+    damaged = tmp_path_factory.mktemp("damaged") / "b.mcap"
+    damaged.write_bytes(data[: int(len(data) * cut)] + tail)
+    ran = run_cli("diff", made["clean"], damaged)
+    if ran.returncode == 2:
+        assert ran.stdout == "" and ran.stderr.count("\n") == 1, ran.stderr
+    else:  # a tail that leaves the file whole (cut at 1, nothing added) compares as usual
+        assert ran.returncode in (0, 1), ran.stderr
