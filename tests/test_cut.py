@@ -47,11 +47,15 @@ def _analysis(*paths: Path) -> tuple[dict[int, dict], list[dict]]:
     return rows, found
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(ops=traffic(any_order=False), wanted=st.sets(st.integers(1, 3), min_size=1), split=st.booleans())
-def test_analyze_of_a_cut_is_analyze_of_the_original_restricted_to_its_connections(tmp_path, ops, wanted, split):
+@pytest.mark.slow
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(ops=traffic(any_order=False), wanted=st.sets(st.integers(1, 3), min_size=1), split=st.booleans(),
+       words=st.sampled_from(["", "kind:response", "violations", "ch:12", "dir:s2c kind:config", "readytogo"]))
+def test_analyze_of_a_cut_is_analyze_of_the_original_restricted_to_its_connections(tmp_path, ops, wanted, split,
+                                                                                   words):
     """Restricted: the kept connections' rows (mode, handshake, frames, rules
-    broken, channel map, who closed) and their violations, unchanged."""
+    broken, channel map, who closed) and their violations, unchanged; kept:
+    those of --conn with a line in ``cat --filter WORDS`` (all of them for no words)."""
     original = tmp_path / "in.mcap"
     out = tmp_path / "out.mcap"
     for p in tmp_path.iterdir():
@@ -59,8 +63,10 @@ def test_analyze_of_a_cut_is_analyze_of_the_original_restricted_to_its_connectio
     _record(ops, original, split_size=600 if split else None)
     inputs = sorted(tmp_path.glob("in*.mcap"))
     rows, violations = _analysis(*inputs)
-    ran = run_cli("cut", *map(str, inputs), "-o", out, "--conn", ",".join(map(str, sorted(wanted))))
-    kept = wanted & set(rows)
+    ran = run_cli("cut", *map(str, inputs), "-o", out, "--conn", ",".join(map(str, sorted(wanted))),
+                  "--filter", words)
+    shown = run_cli("cat", *map(str, inputs), "--format", "jsonl", "--filter", words).stdout.splitlines()
+    kept = wanted & ({json.loads(line)["conn"] for line in shown} if words else set(rows))
     if not kept:
         assert ran.returncode == 1 and not out.exists(), ran.stderr
         return
