@@ -28,6 +28,7 @@ from whiztap.analyzer.analysis.facts import (
 )
 from whiztap.analyzer.analysis.sides import CLIENT, SERVER, Settled, Sides, Verdict, side_of
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule, satisfied_rules
+from whiztap.analyzer.protocol.channels import format_channels
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ChannelResponse, ServoPositionRequest, SetConfiguration
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
@@ -52,6 +53,7 @@ from whiztap.analyzer.traffic import (
 )
 
 ENDS = frozenset({HalfClosed, UpstreamFailed, Closed, Gap})  # the connection events sessions take
+ASSUMED_NOTE = "channel map assumed (--channels {}): the server never announced one"
 MIDDLE_NOTE = "the proxy stood in the middle: each side judged by what it sent and what it received"
 
 
@@ -72,6 +74,7 @@ class Analyzer:
         self.file = file
         self._rule = get_rule(checksum_rule)
         self.traffic = Traffic(partial(limits.session, self._rule.name, every_event), self._ended)
+        self._assumed = format_channels(limits.assumed_channels) if limits.assumed_channels else ""
         self.sessions = self.traffic.sessions
         self.summaries: dict[int, ConnectionSummary] = {}
         # connections whose close came; the others are open, whether or not a session has
@@ -215,6 +218,8 @@ class Analyzer:
             summary.handshake = session.handshake_outcome
         summary.frames.update({(str(d), str(k)): n for (d, k), n in session.counts.items()})
         summary.channel_map.update(session.channel_map)
+        if session.assumed and ASSUMED_NOTE.format(self._assumed) not in summary.notes:
+            summary.notes.append(ASSUMED_NOTE.format(self._assumed))
         result = self.result
         sides = self._sides
         if sides is None:

@@ -18,7 +18,8 @@ import click
 from whiztap.analyzer.analysis.report.formats import FORMATS
 from whiztap.analyzer.cli.errors import EXIT_USAGE, CommandFailed, fail, warn
 from whiztap.analyzer.cli.output import check_output, output_stream
-from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
+from whiztap.analyzer.cli.params import (
+    assumed_map_options, checksum_rule_option, force_option, limits_assuming, limits_from, limits_options)
 from whiztap.analyzer.cli.progress import ByteProgress
 from whiztap.analyzer.cli.reading import recordings, scan_recording
 
@@ -110,10 +111,12 @@ def _analyse_in_worker(args: tuple[Any, ...]) -> Analysis | str:
                    "frame, and what follows from it) fail the report like violations; by default they are "
                    "listed and fail nothing.")
 @limits_options
+@assumed_map_options
 def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, list_rules: bool,
                     ignore: tuple[str, ...], severity_threshold: str, checksum_rule: str,
                     jobs: int | None, dask: str | None, group_by: tuple[str, ...], quiet: bool, allow_empty: bool,
-                    fail_on_interventions: bool, answer_timeout: float, max_frame: int, max_image: int) -> None:
+                    fail_on_interventions: bool, answer_timeout: float, max_frame: int, max_image: int,
+                    channel_map: str | None = None, assume_config: str | None = None) -> None:
     """Check recordings against the spec and report how the sessions behaved.
 
     PATH_OR_URL: .mcap files, folders, globs, or URLs that fsspec reads
@@ -144,7 +147,7 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
     keys = _group_keys(group_by)
     if dask is not None and dask != "local" and jobs is not None:
         fail(f"-j sets the processes of this machine; with --dask {dask} the cluster's workers do the work")
-    limits = limits_from(answer_timeout, max_frame, max_image)
+    limits = limits_assuming(limits_from(answer_timeout, max_frame, max_image), channel_map, assume_config)
     found = recordings(inputs, urls=True)
     parts = [p for r in found for p in r.parts]
     check_output(output, parts, force=force)

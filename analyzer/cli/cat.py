@@ -11,7 +11,8 @@ import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output, output_stream
-from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
+from whiztap.analyzer.cli.params import (
+    assumed_map_options, checksum_rule_option, force_option, limits_assuming, limits_from, limits_options)
 from whiztap.analyzer.cli.reading import one_recording, scan_recording
 
 if TYPE_CHECKING:
@@ -56,10 +57,12 @@ TEXT_SHOWN = 200  # characters of an item's escaped bytes on a line of 'cat'; lo
               help="Tail a recording being written (its .mcap.part, then each later part) until it is finished.")
 @checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
 @limits_options
+@assumed_map_options
 def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bool, filter_text: str,
                 conns: tuple[int, ...], direction: str | None, kinds: tuple[str, ...], channels: tuple[int, ...],
                 since: float | None, until: float | None, violations_only: bool, changes: str, follow: bool,
-                checksum_rule: str, answer_timeout: float, max_frame: int, max_image: int) -> None:
+                checksum_rule: str, answer_timeout: float, max_frame: int, max_image: int,
+                channel_map: str | None = None, assume_config: str | None = None) -> None:
     """Print every item of a recording in time order, decoded and checked.
 
     RECORDING is a file, a split recording (its first part, its folder or a
@@ -67,7 +70,7 @@ def cat_command(inputs: tuple[str, ...], fmt: str, output: str | None, force: bo
     lines appear at once, and memory stays flat however long the recording is.
     """
     item_filter = _cat_filter(filter_text, conns, direction, kinds, channels, since, until, violations_only)
-    limits = limits_from(answer_timeout, max_frame, max_image)
+    limits = limits_assuming(limits_from(answer_timeout, max_frame, max_image), channel_map, assume_config)
     first: str | Path | RemotePart
     if follow:
         if len(inputs) != 1 or not os.path.isfile(inputs[0]):

@@ -16,6 +16,7 @@ from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE
 
 if TYPE_CHECKING:
+    from whiztap.analyzer.protocol.messages import ChannelConfig
     from whiztap.analyzer.protocol.session import Limits
 
 
@@ -80,3 +81,67 @@ def limits_from(answer_timeout: float, max_frame: int, max_image: int) -> Limits
     if max_frame < MIN_MAX_ITEM:
         fail(f"--max-frame must be at least {MIN_MAX_ITEM} bytes")
     return Limits(round(answer_timeout * 1e9), max_frame, max(max_image, max_frame))
+
+
+def assumed_map_options(f: Callable) -> Callable:
+    """``--channels MAP`` and ``--assume-config FRAME|FILE``: a channel map
+    stated for clients that never fetch the configuration (docs/analyze.md);
+    read with ``limits_assuming``."""
+    f = click.option("--assume-config", default=None, metavar="FRAME|FILE",
+                     help="Like --channels, as a Configuration Settings frame in escaped text "
+                          "(sr1-\\x18000...-ss1) or a file holding one.")(f)
+    return click.option("--channels", "channel_map", default=None, metavar="MAP",
+                        help="The channel map to assume until the server announces one "
+                             "(servo:0-5,switch:6-8,switch1:9-11,sensor:12-23): resolves ambiguous "
+                             "requests, so unanswered ones are reported.")(f)
+
+
+def limits_assuming(limits: Limits, channel_map: str | None, assume_config: str | None) -> Limits:
+    """``limits`` with the map ``--channels`` or ``--assume-config`` states."""
+    import dataclasses
+
+    if channel_map is not None and assume_config is not None:
+        fail("--channels and --assume-config both state the channel map: give one")
+    if channel_map is not None:
+        from whiztap.analyzer.protocol.channels import ChannelSpecError, parse_channels
+
+        try:
+            return dataclasses.replace(limits, assumed_channels=parse_channels(channel_map))
+        except ChannelSpecError as e:
+            fail(f"--channels: {e} (e.g. servo:0-5,switch:6-8,switch1:9-11,sensor:12-23)")
+    if assume_config is not None:
+        return dataclasses.replace(limits, assumed_channels=_config_channels(assume_config))
+    return limits
+
+
+def _config_channels(text: str) -> tuple[ChannelConfig, ...]:
+    """The channels of a Configuration Settings frame, given as escaped text or
+    in a file; one line and exit 2 when it is none."""
+    from pathlib import Path
+
+    from whiztap.analyzer.protocol.frame_text import frame_alone
+    from whiztap.analyzer.protocol.messages import ConfigurationSettings
+    from whiztap.analyzer.protocol.observations import Direction
+    from whiztap.analyzer.protocol.text import unescape
+
+    path = Path(text)
+    try:
+        is_file = path.is_file()
+    except (OSError, ValueError):  # a frame's text too long or odd for a file name
+        is_file = False
+    try:
+        if is_file:  # the frame's own bytes, or its escaped text (a backslash: no config holds one)
+            data = path.read_bytes().strip()
+            data = unescape(data.decode("latin-1")) if b"\\" in data else data
+        else:
+            data = unescape(text.strip())
+    except (OSError, UnicodeEncodeError) as e:
+        fail(f"--assume-config: cannot read {text!r}: {e}")
+    observations, whole = frame_alone(data, Direction.S2C)
+    message = observations[0].message if observations else None
+    broken = [v for o in observations for v in o.violations] + whole
+    if not isinstance(message, ConfigurationSettings) or broken or not message.channels:
+        why = broken[0].detail if broken else "it is no Configuration Settings frame"
+        fail(f"--assume-config: {text[:60]!r} is not a usable configuration ({why}); "
+             "give the frame as the server sends it (sr1-\\x18000...-ss1), or a file holding one")
+    return message.channels

@@ -47,9 +47,13 @@ class Limits:
     answer_timeout_ns: int = 5_000_000_000
     max_frame: int = DEFAULT_MAX_ITEM
     max_image: int = DEFAULT_MAX_IMAGE
+    # ``--channels``/``--assume-config``: the map a session starts with, for
+    # clients that never fetch the configuration (docs/analyze.md)
+    assumed_channels: tuple[ChannelConfig, ...] = ()
 
     def session(self, checksum_rule: str = DEFAULT_CHECKSUM_RULE, clean_commands: bool = True) -> Session:
-        return Session(checksum_rule, self.answer_timeout_ns, self.max_frame, clean_commands, self.max_image)
+        return Session(checksum_rule, self.answer_timeout_ns, self.max_frame, clean_commands, self.max_image,
+                       self.assumed_channels)
 
     def as_dict(self) -> dict[str, int]:
         """For the writer process's configuration."""
@@ -90,19 +94,23 @@ class Session:
         max_item: int = DEFAULT_MAX_ITEM,
         clean_commands: bool = True,
         max_image: int = DEFAULT_MAX_IMAGE,
+        assumed_channels: tuple[ChannelConfig, ...] = (),
     ) -> None:
         """``clean_commands=False`` leaves out of the events the commands of
         established traffic that broke no rule: they are counted and paired all
         the same (a response's ``answers`` still names them).  For consumers
         that only aggregate, like ``whiztap analyze``: most frames are such
-        commands, and not handing them over saves a pass over them."""
+        commands, and not handing them over saves a pass over them.
+        ``assumed_channels``: the map stated by the user, used until the server
+        announces its own (``assumed`` says whether it still stands)."""
         self.checksum_rule = get_rule(checksum_rule)
         self.clean_commands = clean_commands
         self.framers = {Direction.C2S: Framer(max_item, max_image), Direction.S2C: Framer(max_item, max_image)}
         self.framers[Direction.C2S].expect_password()  # the client's first line may be its password
         self.state = HandshakeState.START
         self.mode = Mode.UNKNOWN
-        self.channel_map: ChannelMap = {}
+        self.channel_map: ChannelMap = dict(enumerate(assumed_channels))
+        self.assumed = bool(assumed_channels)
         self.counts: Counter[tuple[Direction, ItemKind]] = Counter()
         self.violation_counts: Counter[str] = Counter()
         self.latencies: defaultdict[str, LatencyStats] = defaultdict(LatencyStats)  # by request title
@@ -436,6 +444,7 @@ class Session:
             violations.append(Violation("PW-PAIR-UNSOLICITED", f"no outstanding request is answered by {kind.words}"))
         if isinstance(message, ConfigurationSettings):
             self.channel_map = dict(enumerate(message.channels))
+            self.assumed = False
             self._plans.clear()
         if isinstance(message, ChannelResponse):
             broken = data_violation(message, request, self.channel_map)
