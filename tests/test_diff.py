@@ -204,3 +204,10 @@ def test_any_damaged_file_is_one_line_never_a_traceback(made, tmp_path_factory, 
         assert ran.stdout == "" and ran.stderr.count("\n") == 1, ran.stderr
     else:  # a tail that leaves the file whole (cut at 1, nothing added) compares as usual
         assert ran.returncode in (0, 1), ran.stderr
+
+
+def test_past_the_cap_differences_are_counted_not_kept(made):
+    a, b = (load_exchanges(made[name]).connections for name in ("clean", "out-of-range"))
+    result = diff_sessions(a, b, max_kept=2)
+    assert len(result.differences) == 2 and result.total == 6 and result.counts() == {"value": 6}
+    assert not result.equal

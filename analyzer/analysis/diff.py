@@ -27,7 +27,7 @@ connections as they finish.
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -40,6 +40,8 @@ from whiztap.analyzer.protocol.observations import Observation
 from whiztap.analyzer.protocol.text import escape
 
 _EXACT = CompareRules(CompareMode.EXACT)
+MAX_KEPT = 10_000  # differences kept in full; past that they are only counted
+LATENCY_TOLERANCE_MS = 100.0  # two real runs never answer in the same microsecond
 
 
 class Kind(StrEnum):
@@ -79,21 +81,34 @@ class Difference:
 
 @dataclass(slots=True)
 class DiffResult:
+    """The differences found: the first ``max_kept`` in full, every one
+    counted by kind (two long recordings that differ everywhere must not
+    hold a second copy of themselves as differences)."""
+
     a: str
     b: str
     latency_tolerance_ms: float
+    max_kept: int = MAX_KEPT
     exchanges: int = 0  # exchanges compared (pairs, and one-sided ones)
     differences: list[Difference] = field(default_factory=list)
+    by_kind: Counter[str] = field(default_factory=Counter)
 
     @property
     def equal(self) -> bool:
-        return not self.differences
+        return not self.by_kind
+
+    @property
+    def total(self) -> int:
+        return sum(self.by_kind.values())
 
     def counts(self) -> dict[str, int]:
-        counts: dict[str, int] = defaultdict(int)
-        for d in self.differences:
-            counts[d.kind.value] += 1
-        return dict(counts)
+        return dict(sorted(self.by_kind.items()))
+
+    def add(self, differences: Iterable[Difference]) -> None:
+        for d in differences:
+            self.by_kind[d.kind.value] += 1
+            if len(self.differences) < self.max_kept:
+                self.differences.append(d)
 
 
 # -- pairing ------------------------------------------------------------------------------------
@@ -232,14 +247,15 @@ def diff_connection(position: int, a: RecordedConnection | None, b: RecordedConn
 
 
 def diff_sessions(a: Sequence[RecordedConnection], b: Sequence[RecordedConnection], name_a: str = "A",
-                  name_b: str = "B", latency_tolerance_ms: float = 0.0) -> DiffResult:
+                  name_b: str = "B", latency_tolerance_ms: float = LATENCY_TOLERANCE_MS,
+                  max_kept: int = MAX_KEPT) -> DiffResult:
     """Every connection of ``a`` against ``b``'s in the same position (their
     recorded order)."""
-    result = DiffResult(name_a, name_b, latency_tolerance_ms)
+    result = DiffResult(name_a, name_b, latency_tolerance_ms, max_kept)
     tolerance_ns = int(latency_tolerance_ms * 1e6)
     for i in range(max(len(a), len(b))):
         count, differences = diff_connection(i + 1, a[i] if i < len(a) else None,
                                              b[i] if i < len(b) else None, tolerance_ns)
         result.exchanges += count
-        result.differences += differences
+        result.add(differences)
     return result

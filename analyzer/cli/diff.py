@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import click
 
+from whiztap.analyzer.analysis.diff import LATENCY_TOLERANCE_MS, diff_sessions
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output, output_stream
 from whiztap.analyzer.cli.reading import one_recording, scan_recording
@@ -22,7 +23,6 @@ if TYPE_CHECKING:
     from whiztap.analyzer.analysis.diff import Difference, DiffResult
     from whiztap.analyzer.analysis.exchanges import RecordedSessions
 
-DEFAULT_TOLERANCE_MS = 100.0  # two real runs never answer in the same microsecond
 COLUMNS = ("connection", "exchange", "kind", "what", "A", "B", "breaks the spec")
 
 
@@ -57,8 +57,9 @@ def _summary(result: DiffResult) -> str:
 
     if result.equal:
         return f"equal: {plural(result.exchanges, 'exchange')}, no difference"
-    counts = ", ".join(f"{n} {kind}" for kind, n in sorted(result.counts().items()))
-    return f"{plural(len(result.differences), 'difference')} in {plural(result.exchanges, 'exchange')} ({counts})"
+    counts = ", ".join(f"{n} {kind}" for kind, n in result.counts().items())
+    shown = f"; the first {len(result.differences):,} shown" if result.total > len(result.differences) else ""
+    return f"{plural(result.total, 'difference')} in {plural(result.exchanges, 'exchange')} ({counts}{shown})"
 
 
 def render_text(result: DiffResult) -> str:
@@ -78,6 +79,7 @@ def render_json(result: DiffResult) -> str:
     return json.dumps({
         "a": result.a, "b": result.b, "latency_tolerance_ms": result.latency_tolerance_ms,
         "equal": result.equal, "exchanges": result.exchanges, "counts": result.counts(),
+        "differences_total": result.total,
         "differences": [{
             "connection": d.connection, "exchange": d.exchange, "kind": d.kind.value, "what": d.what,
             "a": d.a, "b": d.b, "at_fault": d.at_fault,
@@ -116,7 +118,7 @@ RENDER = {"text": render_text, "json": render_json, "markdown": render_markdown,
 @click.command("diff")
 @click.argument("a", metavar="A.mcap")
 @click.argument("b", metavar="B.mcap")
-@click.option("--latency-tolerance", type=click.FloatRange(min=0), default=DEFAULT_TOLERANCE_MS,
+@click.option("--latency-tolerance", type=click.FloatRange(min=0), default=LATENCY_TOLERANCE_MS,
               show_default=True, metavar="MS", help="Latency differences up to this many milliseconds are equal.")
 @click.option("--format", "fmt", type=click.Choice(list(RENDER)), default="text", show_default=True)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, allow_dash=True), default=None,
@@ -128,7 +130,6 @@ def diff_command(a: str, b: str, latency_tolerance: float, fmt: str, output: str
     by bytes: what differs (a value, the timing beyond --latency-tolerance,
     missing in B, extra in B, a handshake's outcome) and which recording, if
     either, breaks the spec there.  Exit status 0 when equal, 1 when not."""
-    from whiztap.analyzer.analysis.diff import diff_sessions
     from whiztap.analyzer.protocol.text import printable
 
     check_output(output, (a, b), force=force)
