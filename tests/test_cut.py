@@ -189,3 +189,16 @@ def test_a_time_with_a_unit_is_seconds_after_the_first_traffic():
     assert [parse_bound(t).at(0) for t in ("2.5", "2.5s", "250ms", "1m", "-1s")] == [
         2_500 * MS, 2_500 * MS, 250 * MS, 60_000 * MS, -1_000 * MS]
     assert parse_bound("1970-01-01T00:00:01+00:00").at(T0) == 1_000 * MS
+
+
+def test_a_log_line_goes_with_its_connection_whatever_its_text_quotes(tmp_path):
+    """A /log line's text quotes the peer's bytes: a frame saying ``(conn 1``
+    on connection 2 does not make its line connection 1's."""
+    original, out = tmp_path / "in.mcap", tmp_path / "out.mcap"
+    _record([("opened", 1, "", b""), ("data", 1, "c2s", b"rr1-24--0--0-ss1"), ("closed", 1, "", b""),
+             ("opened", 2, "", b""), ("data", 2, "c2s", b"rr1-(conn 1)--0-ss1"), ("closed", 2, "", b"")], original)
+    logs = read_all(str(original))["/log"]
+    assert any("(conn 1" in m["message"] and m["file"].startswith("conn-2") for m in logs)
+    assert run_cli("cut", original, "-o", out, "--conn", "1").returncode == 0
+    kept = read_all(str(out)).get("/log", [])
+    assert kept == [m for m in logs if m["file"].split()[0] == "conn-1"]

@@ -37,7 +37,8 @@ if TYPE_CHECKING:
 
 NS = 1_000_000_000
 ALL_TOPICS = (*TOPICS, *LATE_TOPICS)
-_LOG_CONN = re.compile(rb'\(conn (\d+)')  # a /log line names its connection only in its text
+_LOG_FILE = re.compile(r"conn-(\d{1,19})")  # a /log line names its connection in its "file" field
+_FIRST_CONN = re.compile(rb'\{"conn":(\d{1,19})[,}]')  # how whiztap's writer begins a message: no JSON parse
 
 
 @dataclass(frozen=True)
@@ -203,7 +204,11 @@ def _kept_messages(parts: Iterable[Path | RemotePart], kept: set[int],
 def _conn_of(topic: str, data: bytes) -> int:
     """The connection a message is about (0: the recording's own)."""
     if topic == TOPIC_LOG:
-        found = _LOG_CONN.search(data)
-        return int(found.group(1)) if found else 0
-    conn = json.loads(data).get("conn", 0)
+        # not in its text, which quotes what peers sent ("(conn 1" in a frame)
+        named = _LOG_FILE.match(str(json.loads(data).get("file", "")))
+        return int(named.group(1)) if named else 0
+    found = _FIRST_CONN.match(data)
+    if found:
+        return int(found.group(1))
+    conn = json.loads(data).get("conn", 0)  # another writer's layout
     return conn if isinstance(conn, int) else 0
