@@ -13,9 +13,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import jsonschema
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.recording.format import metadata_record
@@ -62,6 +64,7 @@ def test_without_a_map_the_ambiguous_requests_go_unreported(tmp_path: Path) -> N
     status, report = _report(_blackholed(tmp_path / "s.mcap"))
     assert "PW-PAIR-UNANSWERED" not in json.dumps(report)
     assert not any("assumed" in n for c in report["connections"] for n in c["notes"])
+    assert "assumed_channels" not in report
     assert status == 0
 
 
@@ -78,13 +81,18 @@ def test_a_stated_map_reports_the_unanswered_requests(tmp_path: Path, option: tu
     notes = [n for c in report["connections"] for n in c["notes"]]
     assert any(f"channel map assumed (--channels {MAP})" in n for n in notes), notes
     assert "PW-AMBIGUOUS" not in json.dumps(report["violations"])
-    text = run_cli("analyze", "-q", tmp_path / "s.mcap", name, value).stdout
-    assert f"channel map assumed (--channels {MAP})" in text
+    assert report["assumed_channels"] == MAP
+    jsonschema.validate(report, REPORT_SCHEMA)
+    for fmt in ("text", "markdown", "html", "junit"):
+        rendered = run_cli("analyze", "-q", "--format", fmt, tmp_path / "s.mcap", name, value).stdout
+        assert f"Channel map assumed where the server never announced one: --channels {MAP}" in rendered \
+            or f'name="assumed_channels" value="{MAP}"' in rendered, (fmt, rendered)
 
 
 def test_the_servers_own_map_wins_and_the_note_goes(tmp_path: Path) -> None:
     status, report = _report(_blackholed(tmp_path / "s.mcap", fetch_config=True), "--channels", "servo:0-23")
     assert not any("assumed" in n for c in report["connections"] for n in c["notes"])
+    assert "assumed_channels" not in report
     assert "PW-UNIT-MISMATCH" not in json.dumps(report["violations"])
     assert status == 1  # the two unanswered requests, resolved by the server's own map
 

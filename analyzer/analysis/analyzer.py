@@ -220,6 +220,7 @@ class Analyzer:
         summary.channel_map.update(session.channel_map)
         if session.assumed and ASSUMED_NOTE.format(self._assumed) not in summary.notes:
             summary.notes.append(ASSUMED_NOTE.format(self._assumed))
+            self.result.assumed_channels = self._assumed
         result = self.result
         sides = self._sides
         if sides is None:

@@ -120,6 +120,9 @@ class Analysis:
     effect_counts: Counter = field(default_factory=Counter)  # rule id -> count
     # file -> its "whiztap" metadata record: what a fleet report groups by (robot, firmware, start time)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    # the channel map stated by --channels/--assume-config, when a connection judged by it
+    # never heard the server's own ('' otherwise): the report says so
+    assumed_channels: str = ""
 
     @property
     def duration_s(self) -> float:
@@ -160,3 +163,4 @@ class Analysis:
         self.effects += other.effects[:max(room, 0)]
         self.effect_counts.update(other.effect_counts)
         self.metadata.update(other.metadata)
+        self.assumed_channels = self.assumed_channels or other.assumed_channels

@@ -55,6 +55,8 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
         } for c in analysis.set_configs],
         "per_file": _per_file(analysis, ignore),
     }
+    if analysis.assumed_channels:
+        report["assumed_channels"] = analysis.assumed_channels
     if unreadable:
         report["unreadable"] = list(unreadable)
     if nothing is not None:

@@ -17,6 +17,7 @@ from whiztap.analyzer.analysis.facts import NS, Analysis
 from whiztap.analyzer.analysis.report.text import duration, headline, verdict
 from whiztap.analyzer.analysis.report.text import FLEET_COLUMNS, FLEET_DAY_COLUMNS, fleet_rows
 from whiztap.analyzer.analysis.report.words import (
+    assumed_words,
     CLIENT_LATENCY,
     EFFECTS_HEADING,
     SERVER_LATENCY,
@@ -269,6 +270,9 @@ def render_html(report: dict[str, Any], analysis: Analysis) -> str:
         f"<code>{e(rule['name'])}</code> ({e(rule['description'])}).</p>",
         f"<p class='{'pass' if report['passed'] else 'fail'}'><b>{e(verdict(report))}</b></p>",
     ]
+    assumed = assumed_words(report)
+    if assumed:
+        parts.append(f"<p>{e(assumed)}.</p>")
     plotted = plots_missing() is None
     if not plotted:
         parts.append(f"<p class='warning'>{e(NO_PLOTS)}.</p>")

@@ -49,6 +49,8 @@ def render_junit(report: dict[str, Any]) -> str:
     for name, value in (("files", " ".join(report["files"])), ("checksum_rule", report["checksum_rule"]["name"]),
                         ("severity_threshold", report["severity_threshold"])):
         ET.SubElement(props, "property", name=name, value=_x(value))
+    if "assumed_channels" in report:
+        ET.SubElement(props, "property", name="assumed_channels", value=_x(report["assumed_channels"]))
     if "interventions" in report:
         ET.SubElement(props, "property", name="interventions", value=str(report["interventions"]["count"]))
     tally: Counter[str] = Counter()  # tests, failures, errors, skipped

@@ -88,6 +88,7 @@ REPORT_SCHEMA = {
                           "properties": {"name": _STR, "description": _STR}},
         "severity_threshold": _SEVERITY,
         "ignored_rules": {"type": "array", "items": _STR},
+        "assumed_channels": _STR,
         "passed": {"type": "boolean"},
         "summary": {
             "type": "object",

@@ -11,6 +11,7 @@ from rich.table import Table
 from rich.text import Text
 
 from whiztap.analyzer.analysis.report.words import (
+    assumed_words,
     EFFECTS_HEADING,
     conn_words,
     fleet_headings,
@@ -98,6 +99,9 @@ def render_text(report: dict[str, Any], console: Console) -> None:
                                   f"({rule['description']})"))
     if report["ignored_rules"]:
         console.print(_plain(console, f"Ignored rules: {', '.join(report['ignored_rules'])}"))
+    assumed = assumed_words(report)
+    if assumed:
+        console.print(_plain(console, assumed))
     for table in report.get("fleet", ()):
         _text_fleet(table, console)
     _text_traffic(report, console)
@@ -294,6 +298,9 @@ def render_markdown(report: dict[str, Any]) -> str:
         f"**{t(verdict(report))}**",
         "",
     ]
+    assumed = assumed_words(report)
+    if assumed:
+        out += [f"{t(assumed)}.", ""]
     for table in report.get("fleet", ()):
         out += _md_fleet(table)
     out += [

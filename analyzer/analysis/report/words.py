@@ -10,6 +10,15 @@ from whiztap.analyzer.analysis.verdict import counts_words
 from whiztap.analyzer.protocol.text import plural
 
 
+def assumed_words(report: dict[str, Any]) -> str | None:
+    """The sentence every format gives when a stated channel map judged a
+    connection that never heard the server's own (docs/analyze.md)."""
+    spec = report.get("assumed_channels")
+    if not spec:
+        return None
+    return f"Channel map assumed where the server never announced one: --channels {spec}"
+
+
 def side_words(report: dict[str, Any], v: dict[str, Any]) -> str:
     """Whose conduct a violation is about, in words, when the report has
     sides to tell apart (the proxy stood in the middle); else nothing."""
