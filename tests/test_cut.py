@@ -75,6 +75,7 @@ def test_analyze_of_a_cut_is_analyze_of_the_original_restricted_to_its_connectio
     assert cut_rows == {c: row for c, row in rows.items() if c in kept}
     assert cut_violations == [v for v in violations if v["conn"] in kept]
     read_all(str(out))  # the mcap library's reader, CRCs checked, every message fits its schema
+    assert run_cli("info", out, "--format", "json").returncode == 0
     assert _tui_items(out) == sum(row["frames"] for row in cut_rows.values())
 
 
@@ -202,3 +203,16 @@ def test_a_log_line_goes_with_its_connection_whatever_its_text_quotes(tmp_path):
     assert run_cli("cut", original, "-o", out, "--conn", "1").returncode == 0
     kept = read_all(str(out)).get("/log", [])
     assert kept == [m for m in logs if m["file"].split()[0] == "conn-1"]
+
+
+def test_a_cut_of_a_split_recording_is_one_file_never_taken_for_one_of_its_parts(tmp_path):
+    """Written beside the parts under a part's name, the cut is its own recording."""
+    ops = [("opened", 1, "", b""), *[("data", 1, "c2s", b"rr1-24--0--0-ss1" * 8)] * 40, ("closed", 1, "", b"")]
+    _record(ops, tmp_path / "in.mcap", split_size=600)
+    parts = sorted(tmp_path.glob("in-*.mcap"))
+    assert len(parts) > 1
+    before = _analysis(parts[0])
+    out = tmp_path / f"in-{len(parts) + 1:04d}.mcap"
+    assert run_cli("cut", *parts, "-o", out).returncode == 0
+    assert _analysis(parts[0]) == before
+    assert _analysis(out) == before

@@ -159,9 +159,11 @@ def copy_connections(parts: Iterable[Path | RemotePart], output: str, kept: set[
 
 
 def _metadata(original: dict[str, str]) -> dict[str, str]:
-    """The cut's metadata: the original's (robot, firmware, when, the format),
-    less its part number, which the writer sets."""
-    return {k: v for k, v in original.items() if k != "part"}
+    """The cut's metadata: the original's (robot, firmware, when, the format,
+    its session id), less what made it a part of a split recording: the cut
+    is one file, which no reader may take for a sibling of the original's parts."""
+    single = {"split_size": "", "split_duration": ""}
+    return {k: single.get(k, v) for k, v in original.items() if k != "part"}
 
 
 def _abandon(out: object) -> None:
