@@ -10,7 +10,10 @@ report says the map was assumed.
 
 from __future__ import annotations
 
+import asyncio
 import json
+import threading
+from concurrent.futures import Future
 from pathlib import Path
 
 import jsonschema
@@ -24,8 +27,10 @@ from whiztap.analyzer.recording.format import metadata_record
 from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
+from whiztap.sniffer.sim.simulator import Simulator
 
-from tests.cli_support import run_cli
+from tests.cli_support import Ran, run_cli
+from tests.record_support import recording
 
 T0 = 1_700_000_000_000_000_000
 MAP = "servo:0-5,switch:6-8,switch1:9-11,sensor:12-23"
@@ -131,3 +136,43 @@ def test_any_stated_map_is_taken_or_refused_in_one_line(tmp_path: Path, value: s
     assert ran.returncode in (0, 1, 2), ran
     if ran.returncode == 2:
         assert len(ran.stderr.strip().splitlines()) == 1 and "Traceback" not in ran.stderr, ran.stderr
+
+
+# -- whiztap client fetches the configuration first ----------------------------------------------
+
+
+def _client_through_the_proxy(path: Path, *client_args: str) -> Ran:
+    """``whiztap client`` (in this process) against the real simulator behind
+    the recording proxy, both on an event loop of their own in a thread."""
+    port: Future[int] = Future()
+    loop = asyncio.new_event_loop()
+    stop = asyncio.Event()
+
+    async def serve() -> None:
+        async with Simulator(port=0, mode="winsock", password="hunter2", seed=3) as sim, \
+                recording(sim.port, str(path)) as rec:
+            port.set_result(rec.proxy.port)
+            await stop.wait()
+
+    thread = threading.Thread(target=loop.run_until_complete, args=(serve(),))
+    thread.start()
+    try:
+        ran = run_cli("client", f"127.0.0.1:{port.result(20)}", "-p", "hunter2", *client_args)
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        thread.join(20)
+        loop.close()
+    return ran
+
+
+@pytest.mark.parametrize(("args", "config_first"), [((), True), (("--no-config",), False)])
+def test_client_fetches_the_configuration_first(tmp_path: Path, args: tuple[str, ...], config_first: bool) -> None:
+    path = tmp_path / "client.mcap"
+    ran = _client_through_the_proxy(path, "sensor", "12", *args)
+    assert ran.returncode == 0, ran
+    assert ran.stdout.startswith("sensor 12 = "), ran.stdout
+    report = _report(path)[1]
+    rules = {v["rule_id"] for v in report["violations"]}
+    assert ("PW-WINSOCK-CONFIG-FIRST" not in rules) is config_first, rules
+    assert ("PW-AMBIGUOUS" not in rules) is config_first, rules
+    assert report["summary"]["frames_by_kind"]["s2c"].get("config", 0) == int(config_first), report["summary"]

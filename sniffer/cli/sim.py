@@ -129,8 +129,10 @@ async def _run_sim(sim: Simulator) -> bool:
               help="Seconds to wait for a connection, the handshake and each answer.")
 @click.option("--raw", is_flag=True,
               help="Send commands even when their frame breaks the spec (a channel or value out of range).")
+@click.option("--no-config", is_flag=True,
+              help="Do not fetch the configuration before the first command (as the spec asks a client to).")
 def client_command(address: tuple[str, int], words: tuple[str, ...], password: str | None, timeout: float,
-                   raw: bool) -> None:
+                   raw: bool, no_config: bool) -> None:
     """Send commands to a Progwhiz server (or a proxy in front of one).
 
     One COMMAND on the command line (e.g. 'sensor 12', 'servo 3 1500',
@@ -143,15 +145,17 @@ def client_command(address: tuple[str, int], words: tuple[str, ...], password: s
     refused before anything is sent, naming the rule; --raw sends it anyway,
     and a frame typed as escaped text (raw TEXT, rr1-...) is always sent as is.
     The password may also come from WHIZTAP_PASSWORD (not shown by ps).
+    The configuration is fetched first, as the spec asks of a client (so the
+    server's channel map resolves every later frame); --no-config skips it.
     """
     host, port = address
     if password is None:
         password = os.environ.get("WHIZTAP_PASSWORD") or None
-    sys.exit(run(_run_client(host, port, password, timeout, list(words), not raw)))
+    sys.exit(run(_run_client(host, port, password, timeout, list(words), not raw, not no_config)))
 
 
 async def _run_client(host: str, port: int, password: str | None, timeout: float, words: list[str],
-                      validate: bool) -> int:
+                      validate: bool, fetch_config: bool = True) -> int:
     from whiztap.sniffer.sim.client import Client, ClientError
     from whiztap.sniffer.sim.console import CommandError, run, split_line
 
@@ -164,6 +168,12 @@ async def _run_client(host: str, port: int, password: str | None, timeout: float
         fail(f"cannot connect to {show_address(host, port)}: {reason(e)}")
     client.validate = validate
     async with client:
+        if fetch_config and [w.lower() for w in words[:1]] != ["config"]:  # ('config' itself is that fetch)
+            try:
+                await client.fetch_configuration()
+            except ClientError as e:
+                fail(f"{show_address(host, port)}: fetching the configuration first: {e} "
+                     "(--no-config skips it)")
         if words:
             try:
                 click.echo(await run(client, words))
