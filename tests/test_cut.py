@@ -216,3 +216,24 @@ def test_a_cut_of_a_split_recording_is_one_file_never_taken_for_one_of_its_parts
     assert run_cli("cut", *parts, "-o", out).returncode == 0
     assert _analysis(parts[0]) == before
     assert _analysis(out) == before
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.integers(0, SAMPLE.stat().st_size - 1), st.integers(1, 255)),
+                      min_size=1, max_size=4), cut_at=st.none() | st.integers(0, SAMPLE.stat().st_size))
+def test_a_damaged_recording_is_cut_or_refused_in_one_line(tmp_path, flips, cut_at):
+    """Recordings come from outside: bytes changed or the file cut short give
+    a cut every reader opens, or one line and status 2, never a traceback."""
+    data = bytearray(SAMPLE.read_bytes())
+    for at, xor in flips:
+        data[at] ^= xor
+    damaged, out = tmp_path / "damaged.mcap", tmp_path / "out.mcap"
+    out.unlink(missing_ok=True)
+    damaged.write_bytes(bytes(data[:cut_at]))
+    ran = run_cli("cut", damaged, "-o", out)
+    assert ran.returncode in (0, 1, 2), ran.stderr
+    if ran.returncode == 0:
+        read_all(str(out))
+    else:
+        assert len(ran.stderr.strip().splitlines()) == 1 and "unexpected" not in ran.stderr, ran.stderr
+        assert not out.exists() and not (tmp_path / "out.mcap.part").exists()
