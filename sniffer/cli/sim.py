@@ -130,7 +130,7 @@ async def _run_sim(sim: Simulator) -> bool:
 @click.option("--raw", is_flag=True,
               help="Send commands even when their frame breaks the spec (a channel or value out of range).")
 @click.option("--no-config", is_flag=True,
-              help="Do not fetch the configuration before the first command (as the spec asks a client to).")
+              help="With a COMMAND: do not fetch the configuration before it (the spec asks a client to).")
 def client_command(address: tuple[str, int], words: tuple[str, ...], password: str | None, timeout: float,
                    raw: bool, no_config: bool) -> None:
     """Send commands to a Progwhiz server (or a proxy in front of one).
@@ -145,8 +145,9 @@ def client_command(address: tuple[str, int], words: tuple[str, ...], password: s
     refused before anything is sent, naming the rule; --raw sends it anyway,
     and a frame typed as escaped text (raw TEXT, rr1-...) is always sent as is.
     The password may also come from WHIZTAP_PASSWORD (not shown by ps).
-    The configuration is fetched first, as the spec asks of a client (so the
-    server's channel map resolves every later frame); --no-config skips it.
+    With a COMMAND, the configuration is fetched first, as the spec asks of a
+    client (the server's channel map then resolves every later frame);
+    --no-config skips it.  At the prompt, what is typed is sent.
     """
     host, port = address
     if password is None:
@@ -168,7 +169,8 @@ async def _run_client(host: str, port: int, password: str | None, timeout: float
         fail(f"cannot connect to {show_address(host, port)}: {reason(e)}")
     client.validate = validate
     async with client:
-        if fetch_config and [w.lower() for w in words[:1]] != ["config"]:  # ('config' itself is that fetch)
+        # one command: fetched first, as the spec asks ('config' is that fetch); at the prompt the user says
+        if fetch_config and words and words[0].lower() != "config":
             try:
                 await client.fetch_configuration()
             except ClientError as e:
