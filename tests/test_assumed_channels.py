@@ -176,3 +176,9 @@ def test_client_fetches_the_configuration_first(tmp_path: Path, args: tuple[str,
     assert ("PW-WINSOCK-CONFIG-FIRST" not in rules) is config_first, rules
     assert ("PW-AMBIGUOUS" not in rules) is config_first, rules
     assert report["summary"]["frames_by_kind"]["s2c"].get("config", 0) == int(config_first), report["summary"]
+
+
+def test_tui_refuses_a_bad_map_in_one_line(tmp_path: Path) -> None:
+    ran = run_cli("tui", _blackholed(tmp_path / "s.mcap"), "--channels", "motor:0-3")
+    assert ran.returncode == 2 and "bad channel group" in ran.stderr, ran
+    assert len(ran.stderr.strip().splitlines()) == 1

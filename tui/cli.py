@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING, Any
 import click
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output
-from whiztap.analyzer.cli.params import checksum_rule_option, force_option, limits_from, limits_options
+from whiztap.analyzer.cli.params import (
+    assumed_map_options, checksum_rule_option, force_option, limits_assuming, limits_from, limits_options)
 from whiztap.analyzer.cli.reading import one_recording
 from whiztap.sniffer.cli.params import (
     Address,
@@ -150,10 +151,11 @@ def _command_name() -> str:
 @foxglove_option
 @middle_options
 @limits_options
+@assumed_map_options
 def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] | None, listen: tuple[str, int],
                 output: str | None, keep_secrets: bool, force: bool, checksum_rule: str,
                 foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
-                **middle: Any) -> None:
+                channel_map: str | None, assume_config: str | None, **middle: Any) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
     recording being written.
 
@@ -177,7 +179,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
         fail("--fault, --faults, --control, --script, --seed and --hold-timeout drive the live proxy: "
              "they go with --upstream HOST:PORT")
     rule = checksum_rule
-    limits = limits_from(answer_timeout, max_frame, max_image)
+    limits = limits_assuming(limits_from(answer_timeout, max_frame, max_image), channel_map, assume_config)
     from whiztap.tui.data.sources import FileSource, FollowSource, LiveSource, ProxyRig, default_output, follow_path
 
     source: Source
