@@ -21,12 +21,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
+from whiztap.analyzer.analysis.exchanges import load_exchanges
+from whiztap.analyzer.protocol.channels import parse_channels
+from whiztap.analyzer.protocol.messages import ChannelConfig
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.recording.format import metadata_record
 from whiztap.analyzer.traffic import Closed, Data, Opened
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
+from whiztap.sniffer.replay.stub import Stub
+from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
 
 from tests.cli_support import Ran, run_cli
@@ -118,7 +123,7 @@ def test_cat_reads_with_the_stated_map(tmp_path: Path) -> None:
     (("--channels", MAP, "--assume-config", CONFIG), "give one"),
 ])
 def test_a_bad_map_is_one_line(tmp_path: Path, args: tuple[str, ...], words: str) -> None:
-    for command in ("analyze", "cat"):
+    for command in ("analyze", "cat", "stub"):
         ran = run_cli(command, _blackholed(tmp_path / f"{command}.mcap"), *args)
         assert ran.returncode == 2, ran
         assert words in ran.stderr and len(ran.stderr.strip().splitlines()) == 1, ran.stderr
@@ -182,3 +187,20 @@ def test_tui_refuses_a_bad_map_in_one_line(tmp_path: Path) -> None:
     ran = run_cli("tui", _blackholed(tmp_path / "s.mcap"), "--channels", "motor:0-3")
     assert ran.returncode == 2 and "bad channel group" in ran.stderr, ran
     assert len(ran.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(("assumed", "missing"), [((), 0), (parse_channels(MAP), 2)])
+async def test_stub_with_a_stated_map_counts_the_requests_it_cannot_answer(
+        tmp_path: Path, assumed: tuple[ChannelConfig, ...], missing: int) -> None:
+    """The recorded server never answered rr1-14 and rr1-15: without a map they
+    only may have asked (no miss); with one they are Sensor Requests without
+    a recorded answer, as ``stub --strict`` needs to know."""
+    recorded = load_exchanges(_blackholed(tmp_path / "s.mcap"), assumed_channels=assumed)
+    async with Stub(recorded, unmatched="ignore", assumed_channels=assumed) as stub:
+        async with await Client.connect("127.0.0.1", stub.port, password="secret") as client:
+            assert await client.sensor(12) == 512
+            await client.send_raw(b"rr1-14--0--0-ss1")
+            await client.send_raw(b"rr1-15--0--0-ss1")
+            assert await client.sensor(13) == 600  # both requests were read before this answer came
+        await asyncio.wait_for(stub.finished.wait(), 20)
+    assert len(stub.unanswered) == missing, stub.unanswered

@@ -24,7 +24,7 @@ from pathlib import Path
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, get_rule
 from whiztap.analyzer.analysis.compare import ServoMotion
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.messages import FailedValidation
+from whiztap.analyzer.protocol.messages import ChannelConfig, FailedValidation
 from typing import NamedTuple
 
 from whiztap.analyzer.protocol.handshake import Mode
@@ -187,18 +187,20 @@ def _checksum_rule(metadata: dict[str, dict[str, str]]) -> str:
         return DEFAULT_CHECKSUM_RULE
 
 
-def load_exchanges(recording: RecordingSet | Path | str,
-                   answer_timeout_ns: int = DEFAULT_ANSWER_TIMEOUT_NS) -> RecordedSessions:
+def load_exchanges(recording: RecordingSet | Path | str, answer_timeout_ns: int = DEFAULT_ANSWER_TIMEOUT_NS,
+                   assumed_channels: tuple[ChannelConfig, ...] = ()) -> RecordedSessions:
     """Read a recording (a ``RecordingSet`` or a path; all parts of a split
     one, as one); raises OSError, or RecordingError for a file that is no
     complete recording (one line).  ``answer_timeout_ns``: how long the
     client waited for an answer, for pairing what it received (in the
     middle, where an answer it never got leaves its request unanswered; a
-    replay passes its ``--timeout``, so both pair alike)."""
+    replay passes its ``--timeout``, so both pair alike).  ``assumed_channels``:
+    the map ``--channels`` states (``Limits``), for a client that never fetched it."""
     if not isinstance(recording, RecordingSet):
         recording = RecordingSet((Path(recording),))
     metadata = read_metadata(str(recording.name))
-    reader = _Reader(_checksum_rule({METADATA_NAME: metadata}), metadata.get("middle") == "yes", answer_timeout_ns)
+    reader = _Reader(_checksum_rule({METADATA_NAME: metadata}), metadata.get("middle") == "yes", answer_timeout_ns,
+                     assumed_channels)
     for event in scan_set(recording):
         reader.receive(event)
     connections = sorted((c for c in reader.finish() if c.reads or c.handshake), key=lambda c: c.conn)
@@ -210,12 +212,14 @@ class _Reader:
     session over what each side sent, and, in the middle, one over what the
     client sent and what it received (``/tcp/delivered`` toward it)."""
 
-    def __init__(self, rule: str, middle: bool, answer_timeout_ns: int) -> None:
+    def __init__(self, rule: str, middle: bool, answer_timeout_ns: int,
+                 assumed: tuple[ChannelConfig, ...] = ()) -> None:
         self.middle = middle
         self.builders: dict[int, _Builder] = {}
         self.modes: dict[int, Mode] = {}  # each connection's mode, when its session ends
-        self.traffic = Traffic(lambda: Session(rule), lambda conn, session: self.modes.__setitem__(conn, session.mode))
-        self.received = Traffic(lambda: Session(rule, answer_timeout_ns)) if middle else None
+        self.traffic = Traffic(lambda: Session(rule, assumed_channels=assumed),
+                               lambda conn, session: self.modes.__setitem__(conn, session.mode))
+        self.received = Traffic(lambda: Session(rule, answer_timeout_ns, assumed_channels=assumed)) if middle else None
         self.done: list[RecordedConnection] = []
         self.clients: dict[int, str] = {}
         self.start_ns: int | None = None

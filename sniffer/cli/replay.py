@@ -14,7 +14,7 @@ import click
 
 from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.output import check_output, recording_output, say
-from whiztap.analyzer.cli.params import force_option
+from whiztap.analyzer.cli.params import assumed_map_options, force_option, limits_assuming
 from whiztap.analyzer.cli.reading import one_recording
 from whiztap.analyzer.protocol.text import plural
 from whiztap.sniffer.cli.params import Address, FaultSpecParam
@@ -22,6 +22,7 @@ from whiztap.sniffer.cli.run import run, stop_signals
 
 if TYPE_CHECKING:
     from whiztap.analyzer.analysis.exchanges import RecordedSessions
+    from whiztap.analyzer.protocol.messages import ChannelConfig
     from whiztap.analyzer.recording.sets import RecordingSet
     from whiztap.sniffer.replay.events import Event, ReplayResult
     from whiztap.sniffer.replay.options import ReplayOptions
@@ -35,7 +36,8 @@ def _find(path: str) -> RecordingSet:
     return one_recording((path,))
 
 
-def _load(path: str, recording: RecordingSet | None = None, timeout: float = 5.0) -> RecordedSessions:
+def _load(path: str, recording: RecordingSet | None = None, timeout: float = 5.0,
+          assumed: tuple[ChannelConfig, ...] = ()) -> RecordedSessions:
     """The recording's exchanges (``recording``: what ``_find`` found for
     ``path``; ``timeout``: how long its client waited for an answer), or a
     one-line error (exit status 2)."""
@@ -43,7 +45,7 @@ def _load(path: str, recording: RecordingSet | None = None, timeout: float = 5.0
     from whiztap.analyzer.recording.scan import RecordingError
 
     try:
-        return load_exchanges(recording or _find(path), int(timeout * 1e9))
+        return load_exchanges(recording or _find(path), int(timeout * 1e9), assumed)
     except OSError as e:
         fail(f"{path}: cannot read ({e.strerror or e})")
     except (RecordingError, KeyError) as e:  # KeyError: a message without a field the format requires
@@ -318,9 +320,10 @@ class _Printer:
                    "requests, unused recorded requests), for scripts.")
 @click.option("--once", is_flag=True, help="Exit after the first client disconnects.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the listening line and problems.")
+@assumed_map_options
 def stub_command(path: str, listen: tuple[str, int], password: str | None, conn: int | None, pace: str, rate: float,
                  exhausted: str, unmatched: str, match_text: str, strict: bool, fail_unused: bool, fmt: str,
-                 once: bool, quiet: bool) -> None:
+                 once: bool, quiet: bool, channel_map: str | None, assume_config: str | None) -> None:
     """Serve a recording's server side to a client under test.
 
     Each client is answered from one recorded connection: by default the k-th
@@ -341,7 +344,10 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     except ValueError as e:
         fail(str(e))
 
-    recording = _load(path)
+    from whiztap.analyzer.protocol.session import Limits
+
+    assumed = limits_assuming(Limits(), channel_map, assume_config).assumed_channels
+    recording = _load(path, assumed=assumed)
 
     def log(line: str) -> None:
         if not quiet or line.startswith("!"):
@@ -354,7 +360,8 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
         reaction = unescape(unmatched)
     try:
         stub = Stub(recording, *listen, password=_password(password), pace=pace, rate=rate,
-                    exhausted=exhausted, conn=conn, unmatched=reaction, match=match, on_log=log)
+                    exhausted=exhausted, conn=conn, unmatched=reaction, match=match, on_log=log,
+                    assumed_channels=assumed)
     except ValueError as e:
         fail(str(e))
     error = run(_serve(stub, once))

@@ -36,7 +36,7 @@ from whiztap.analyzer.analysis.compare import answer_key
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.analysis.exchanges import RecordedConnection, RecordedSessions
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.messages import FailedValidation, ReadyToGo
+from whiztap.analyzer.protocol.messages import ChannelConfig, FailedValidation, ReadyToGo
 from whiztap.analyzer.protocol.handshake import Mode
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.session import Session
@@ -129,8 +129,11 @@ class Stub(TcpServer):
                  password: bytes | None = None, pace: Pace | str = Pace.MAX, rate: float = 1.0,
                  exhausted: Exhausted | str = Exhausted.REPEAT, conn: int | None = None,
                  unmatched: Unmatched | str | bytes = Unmatched.CLOSE, match: Match | None = None,
-                 on_log: Callable[[str], None] | None = None) -> None:
-        """``unmatched``: ``"close"``, ``"ignore"``, or the bytes of a frame to send."""
+                 on_log: Callable[[str], None] | None = None,
+                 assumed_channels: tuple[ChannelConfig, ...] = ()) -> None:
+        """``unmatched``: ``"close"``, ``"ignore"``, or the bytes of a frame to send.
+        ``assumed_channels``: the map ``--channels`` states, for clients that never fetch it."""
+        self.assumed_channels = assumed_channels
         self.match = match or Match()
         self.pace = Pace(pace)
         if self.pace is Pace.LOCKSTEP:
@@ -191,7 +194,7 @@ class _Served:
 
     def __init__(self, stub: Stub, script: _Script, number: int, writer: asyncio.StreamWriter) -> None:
         self.stub, self.script, self.number, self.writer = stub, script, number, writer
-        self.session = Session(stub.recording.checksum_rule)
+        self.session = Session(stub.recording.checksum_rule, assumed_channels=stub.assumed_channels)
         self.cursors: Counter[tuple] = Counter()
         self.position = 0  # answerable requests so far, as Recorded.position counts them
         self.recorded_pace = stub.pace is Pace.RECORDED
