@@ -123,7 +123,7 @@ def test_cat_reads_with_the_stated_map(tmp_path: Path) -> None:
     (("--channels", MAP, "--assume-config", CONFIG), "give one"),
 ])
 def test_a_bad_map_is_one_line(tmp_path: Path, args: tuple[str, ...], words: str) -> None:
-    for command in ("analyze", "cat", "stub"):
+    for command in ("analyze", "cat", "stub", "replay"):
         ran = run_cli(command, _blackholed(tmp_path / f"{command}.mcap"), *args)
         assert ran.returncode == 2, ran
         assert words in ran.stderr and len(ran.stderr.strip().splitlines()) == 1, ran.stderr

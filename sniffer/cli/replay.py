@@ -120,12 +120,13 @@ def _password(text: str | None) -> bytes | None:
 @click.option("-q", "--quiet", is_flag=True, help="Print only the summary.")
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
               help="json: one object at the end (counts, differences, drift), for scripts.")
+@assumed_map_options
 def replay_command(path: str, target: tuple[str, int] | None, password: str | None, conns: tuple[int, ...], pace: str,
                    rate: float, segments: str, mode: str, tolerances: tuple[str, ...], ignore_fields: tuple[str, ...],
                    ignore_kinds: tuple[str, ...], timeout: float, connect_timeout: float, loop: int,
                    start_s: float | None, end_s: float | None, kinds: tuple[str, ...], from_recording: bool,
                    faults: tuple, seed: int | None, dry_run: bool, output: str | None, force: bool, verbose: bool,
-                   quiet: bool, fmt: str) -> None:
+                   quiet: bool, fmt: str, channel_map: str | None, assume_config: str | None) -> None:
     """Replay a recording's client side against a server and compare its answers.
 
     Exit status 0 when every answer matched, 1 on any difference, 2 when the
@@ -154,7 +155,10 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     selection = Selection(frozenset(conns), start_s, end_s, frozenset(kinds))
     found = _find(path)
     check_output(output, found.parts, force=force, recording=True)
-    recording = _load(path, found, timeout)
+    from whiztap.analyzer.protocol.session import Limits
+
+    assumed = limits_assuming(Limits(), channel_map, assume_config).assumed_channels
+    recording = _load(path, found, timeout, assumed)
     faults, seed = _faults(found, recording.metadata, faults, from_recording, seed)
     if dry_run:
         plans = plan(recording, selection, segments == "exact")
@@ -169,7 +173,7 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
                             rate=rate, segments=segments == "exact", rules=rules, timeout=timeout,
                             connect_timeout=connect_timeout, loop=loop, selection=selection, output=output,
                             checksum_rule=recording.checksum_rule, faults=faults, fault_seed=seed,
-                            reproduce=from_recording)
+                            reproduce=from_recording, assumed_channels=assumed)
     try:
         result = run(_replay(recording, options, verbose, quiet, fmt == "json"))
     except ReplayError as e:

@@ -107,7 +107,8 @@ class Replay:
         self._pacer = Pacer(options.rate)
         self._tally = Tally(recording.start_ns, options.rules, on_event)
         timeout_ns = int(options.timeout * NS)
-        self._sessions = Traffic(lambda: Session(options.checksum_rule, answer_timeout_ns=timeout_ns))
+        self._sessions = Traffic(lambda: Session(options.checksum_rule, answer_timeout_ns=timeout_ns,
+                                                 assumed_channels=options.assumed_channels))
         self._output = OutputRecording(options, recording.path, on_error=self.stop)
         self._next_conn = 1
         self._tasks: set[asyncio.Task] = set()

@@ -17,6 +17,7 @@ from whiztap.sniffer.replay.plan import Selection
 
 if TYPE_CHECKING:
     from whiztap.analyzer.mitm.spec import FaultSpec
+    from whiztap.analyzer.protocol.messages import ChannelConfig
 
 
 class Pace(StrEnum):
@@ -66,6 +67,8 @@ class ReplayOptions:
     # its /tcp/delivered), not what the recorded server sent: a replay under the recording's own
     # faults (--faults-from-recording) then passes when it reproduces what the recorded client went through
     reproduce: bool = False
+    # --channels/--assume-config: the map the replayed sessions start from, for a client that never fetched it
+    assumed_channels: tuple[ChannelConfig, ...] = ()
 
     @property
     def address(self) -> tuple[str, int]:
