@@ -15,6 +15,7 @@ import json
 import threading
 from concurrent.futures import Future
 from pathlib import Path
+from typing import Any
 
 import jsonschema
 import pytest
@@ -25,6 +26,7 @@ from whiztap.analyzer.analysis.exchanges import load_exchanges
 from whiztap.analyzer.protocol.channels import parse_channels
 from whiztap.analyzer.protocol.messages import ChannelConfig
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.text import escape
 from whiztap.analyzer.recording.format import metadata_record
 from whiztap.analyzer.traffic import Closed, Data, Opened
@@ -35,7 +37,7 @@ from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
 
 from tests.cli_support import Ran, run_cli
-from tests.record_support import recording
+from tests.record_support import read_all, recording
 
 T0 = 1_700_000_000_000_000_000
 MAP = "servo:0-5,switch:6-8,switch1:9-11,sensor:12-23"
@@ -146,18 +148,20 @@ def test_any_stated_map_is_taken_or_refused_in_one_line(tmp_path: Path, value: s
 # -- whiztap client fetches the configuration first ----------------------------------------------
 
 
-def _client_through_the_proxy(path: Path, *client_args: str) -> Ran:
+def _client_through_the_proxy(path: Path, *client_args: str, **options: Any) -> Ran:
     """``whiztap client`` (in this process) against the real simulator behind
-    the recording proxy, both on an event loop of their own in a thread."""
+    the recording proxy (``options``: its settings), both on an event loop of
+    their own in a thread."""
     port: Future[int] = Future()
     loop = asyncio.new_event_loop()
     stop = asyncio.Event()
 
     async def serve() -> None:
         async with Simulator(port=0, mode="winsock", password="hunter2", seed=3) as sim, \
-                recording(sim.port, str(path)) as rec:
+                recording(sim.port, str(path), **options) as rec:
             port.set_result(rec.proxy.port)
             await stop.wait()
+            await rec.stop()
 
     thread = threading.Thread(target=loop.run_until_complete, args=(serve(),))
     thread.start()
@@ -204,3 +208,22 @@ async def test_stub_with_a_stated_map_counts_the_requests_it_cannot_answer(
             assert await client.sensor(13) == 600  # both requests were read before this answer came
         await asyncio.wait_for(stub.finished.wait(), 20)
     assert len(stub.unanswered) == missing, stub.unanswered
+
+
+@pytest.mark.parametrize(("limits", "meaning"), [
+    (Limits(), "Sensor Request ch 12 / Switch ch 12 off / Normal Send ch 12 = 0 (ambiguous)"),
+    (Limits(assumed_channels=parse_channels(MAP)), "Sensor Request ch 12")])
+def test_record_decodes_live_with_the_stated_map(tmp_path: Path, limits: Limits, meaning: str) -> None:
+    """The recorder's writer process (which decodes /frames) gets the map
+    through its configuration (``Limits.as_dict``)."""
+    path = tmp_path / "r.mcap"
+    ran = _client_through_the_proxy(path, "sensor", "12", "--no-config", limits=limits)
+    assert ran.returncode == 0, ran
+    frames = read_all(str(path))["/frames"]
+    assert [f["meaning"] for f in frames if f["dir"] == "c2s" and f["kind"] == "command"] == [meaning]
+
+
+def test_record_refuses_a_bad_map_in_one_line(tmp_path: Path) -> None:
+    ran = run_cli("record", "--upstream", "127.0.0.1:1", "-o", tmp_path / "r.mcap", "--channels", "motor:0")
+    assert ran.returncode == 2 and "bad channel group" in ran.stderr, ran
+    assert len(ran.stderr.strip().splitlines()) == 1

@@ -114,6 +114,14 @@ def limits_assuming(limits: Limits, channel_map: str | None, assume_config: str 
     return limits
 
 
+def assumed_channels(channel_map: str | None, assume_config: str | None) -> tuple[ChannelConfig, ...]:
+    """The map ``--channels`` or ``--assume-config`` states, for commands that
+    build sessions without ``Limits`` (replay, stub); () when neither is given."""
+    from whiztap.analyzer.protocol.session import Limits
+
+    return limits_assuming(Limits(), channel_map, assume_config).assumed_channels
+
+
 def _config_channels(text: str) -> tuple[ChannelConfig, ...]:
     """The channels of a Configuration Settings frame, given as escaped text or
     in a file; one line and exit 2 when it is none."""

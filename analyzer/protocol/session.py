@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import Counter, defaultdict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from whiztap.analyzer.protocol.channels import ChannelMap, command_meaning, data_violation
 from whiztap.analyzer.protocol.checksum import DEFAULT_CHECKSUM_RULE, checksum_violation, get_rule
@@ -55,10 +55,16 @@ class Limits:
         return Session(checksum_rule, self.answer_timeout_ns, self.max_frame, clean_commands, self.max_image,
                        self.assumed_channels)
 
-    def as_dict(self) -> dict[str, int]:
-        """For the writer process's configuration."""
+    def as_dict(self) -> dict[str, int | list[list[int]]]:
+        """For the writer process's configuration (JSON); ``from_dict`` reads it back."""
         return {"answer_timeout_ns": self.answer_timeout_ns, "max_frame": self.max_frame,
-                "max_image": self.max_image}
+                "max_image": self.max_image,
+                "assumed_channels": [[c.unit_type, c.unused, c.switch_type] for c in self.assumed_channels]}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> Limits:
+        channels = tuple(ChannelConfig(*c) for c in values.get("assumed_channels", ()))
+        return cls(**{k: v for k, v in values.items() if k != "assumed_channels"}, assumed_channels=channels)
 
 
 EARLY_KEPT = 64  # client items held while they may be a password sent before 'sendchkpass'

@@ -14,7 +14,7 @@ import click
 
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import recording_output, say
-from whiztap.analyzer.cli.params import force_option, limits_from, limits_options
+from whiztap.analyzer.cli.params import assumed_map_options, force_option, limits_assuming, limits_from, limits_options
 from whiztap.analyzer.protocol.text import printable
 from whiztap.sniffer.cli.params import (
     Address,
@@ -52,11 +52,12 @@ if TYPE_CHECKING:
 @foxglove_option
 @middle_options
 @limits_options
+@assumed_map_options
 def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: str, split_size: int | None,
                    split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool,
                    analyze: bool, connect_timeout: float, when_behind: str, meta: tuple[str, ...],
                    foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
-                   **middle: Any) -> None:
+                   channel_map: str | None, assume_config: str | None, **middle: Any) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -80,7 +81,9 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
     from whiztap.sniffer.record.record_run import RecordSettings
 
     settings = RecordSettings(listen, upstream, output, split_size, split_duration, keep_secrets, checksum_rule,
-                              quiet, analyze, connect_timeout, limits_from(answer_timeout, max_frame, max_image),
+                              quiet, analyze, connect_timeout,
+                              limits_assuming(limits_from(answer_timeout, max_frame, max_image), channel_map,
+                                              assume_config),
                               overwrite=force, when_behind=when_behind, foxglove=foxglove,
                               middle=middle_settings(**middle), meta=tuple(keys.items()))
     error = run(_record(settings))

@@ -14,7 +14,7 @@ import click
 
 from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.output import check_output, recording_output, say
-from whiztap.analyzer.cli.params import assumed_map_options, force_option, limits_assuming
+from whiztap.analyzer.cli.params import assumed_channels, assumed_map_options, force_option
 from whiztap.analyzer.cli.reading import one_recording
 from whiztap.analyzer.protocol.text import plural
 from whiztap.sniffer.cli.params import Address, FaultSpecParam
@@ -155,9 +155,7 @@ def replay_command(path: str, target: tuple[str, int] | None, password: str | No
     selection = Selection(frozenset(conns), start_s, end_s, frozenset(kinds))
     found = _find(path)
     check_output(output, found.parts, force=force, recording=True)
-    from whiztap.analyzer.protocol.session import Limits
-
-    assumed = limits_assuming(Limits(), channel_map, assume_config).assumed_channels
+    assumed = assumed_channels(channel_map, assume_config)
     recording = _load(path, found, timeout, assumed)
     faults, seed = _faults(found, recording.metadata, faults, from_recording, seed)
     if dry_run:
@@ -348,9 +346,7 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     except ValueError as e:
         fail(str(e))
 
-    from whiztap.analyzer.protocol.session import Limits
-
-    assumed = limits_assuming(Limits(), channel_map, assume_config).assumed_channels
+    assumed = assumed_channels(channel_map, assume_config)
     recording = _load(path, assumed=assumed)
 
     def log(line: str) -> None:

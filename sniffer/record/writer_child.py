@@ -190,7 +190,7 @@ def _run(config: dict[str, Any]) -> int:
         _say({"type": "error", "message": str(e)})
         return EXIT_WRITE_ERROR
     recorder = Recorder(file, keep_secrets=config.get("keep_secrets", False),
-                        checksum_rule=config["checksum_rule"], limits=Limits(**config.get("limits", {})),
+                        checksum_rule=config["checksum_rule"], limits=Limits.from_dict(config.get("limits", {})),
                         on_violation=_violation_report if config.get("analyze") else None,
                         middle=config["metadata"].get("middle") == "yes")
     reported = 0
