@@ -205,7 +205,7 @@ class Replay:
         output = self._output
         options = self.options
         self._server = ServerSide(Tally(self.recording.start_ns, options.rules, None), options.checksum_rule,
-                                  int(options.timeout * NS))
+                                  int(options.timeout * NS), options.assumed_channels)
         self._middle = FaultProxy(options, output.record if options.output is not None else None,
                                   self._server.receive)
         output.clock = self._middle.clock

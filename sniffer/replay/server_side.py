@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 from whiztap.analyzer.analysis.compare import answer_key
 from whiztap.analyzer.protocol.framing import ItemKind
+from whiztap.analyzer.protocol.messages import ChannelConfig
 from whiztap.analyzer.protocol.observations import Direction, Event, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, Traffic, TrafficEvent, UpstreamFailed
@@ -46,9 +47,11 @@ class _Proxied:
 class ServerSide:
     """The proxy's reads of a replay, judged against the recorded server's answers."""
 
-    def __init__(self, tally: Tally, checksum_rule: str, timeout_ns: int) -> None:
+    def __init__(self, tally: Tally, checksum_rule: str, timeout_ns: int,
+                 assumed_channels: tuple[ChannelConfig, ...] = ()) -> None:
         self.tally = tally
-        self._traffic = Traffic(lambda: Session(checksum_rule, answer_timeout_ns=timeout_ns))
+        self._traffic = Traffic(lambda: Session(checksum_rule, answer_timeout_ns=timeout_ns,
+                                                assumed_channels=assumed_channels))
         self._conns: dict[int, _Proxied] = {}
         self._replayed: dict[str, ReplayedConnection] = {}
 
