@@ -69,6 +69,7 @@ VARYING: dict[str, tuple[float, float | None]] = {
     "data": (0, MAX_SERVO_DATA),  # a response whose request is unknown
     "size": (1, None),  # an image's byte count
 }
+LATENCY_TOLERANCE_MS = 100.0  # two real runs never answer in the same microsecond
 FIELDS = ("kind", "message", "channel", "sensor_value", "servo_position", "data",
           "channels", "units", "format", "size", "text")
 # What --ignore-kind accepts: answer item kinds, and responses by what they answer.

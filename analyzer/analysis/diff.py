@@ -31,17 +31,26 @@ from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
-from whiztap.analyzer.analysis.compare import CompareMode, CompareRules, Status, answer_key, compare
-from whiztap.analyzer.analysis.exchanges import ClientItem, RecordedConnection
+from whiztap.analyzer.analysis.compare import (
+    LATENCY_TOLERANCE_MS,
+    CompareMode,
+    CompareRules,
+    Status,
+    answer_key,
+    compare,
+)
 from whiztap.analyzer.analysis.sides import side_of
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Observation
 from whiztap.analyzer.protocol.text import escape
 
+if TYPE_CHECKING:
+    from whiztap.analyzer.analysis.exchanges import ClientItem, RecordedConnection
+
 _EXACT = CompareRules(CompareMode.EXACT)
 MAX_KEPT = 10_000  # differences kept in full; past that they are only counted
-LATENCY_TOLERANCE_MS = 100.0  # two real runs never answer in the same microsecond
 
 
 class Kind(StrEnum):

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from whiztap.analyzer.analysis.diff import LATENCY_TOLERANCE_MS, diff_sessions
+from whiztap.analyzer.analysis.compare import LATENCY_TOLERANCE_MS
 from whiztap.analyzer.cli.errors import fail
 from whiztap.analyzer.cli.output import check_output, output_stream
 from whiztap.analyzer.cli.reading import one_recording, scan_recording
@@ -130,6 +130,7 @@ def diff_command(a: str, b: str, latency_tolerance: float, fmt: str, output: str
     by bytes: what differs (a value, the timing beyond --latency-tolerance,
     missing in B, extra in B, a handshake's outcome) and which recording, if
     either, breaks the spec there.  Exit status 0 when equal, 1 when not."""
+    from whiztap.analyzer.analysis.diff import diff_sessions
     from whiztap.analyzer.protocol.text import printable
 
     check_output(output, (a, b), force=force)
