@@ -12,12 +12,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import time
 import random
 import re
 import shlex
 import socket
 import sys
+import time
 from pathlib import Path
 
 import pytest
