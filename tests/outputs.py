@@ -172,7 +172,9 @@ NOT_OUTPUTS = {
     "ctl": "API_OUTPUTS: every subcommand",
     "sim": "the simulator: it is the server, and knows its own password",
     "client": "the client: it types the password",
-    "stub": "serves a recording's server side (no client bytes)",
+    "stub": "serves a recording's server side; its miss lines and JSON show the requests a client asked "
+            "after its password, never the password: "
+            "tests/test_stub.py::test_no_miss_line_or_summary_shows_a_client_password",
     "tui": "LIVE_OUTPUTS (live) and FILE_OUTPUTS (a recording)",
     "demo": "the simulator's own demo password through the TUI (LIVE_OUTPUTS)",
     "probe": "every report format, its progress lines and its --record recording are read by "

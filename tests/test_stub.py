@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import re
 import signal
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from whiztap.analyzer.analysis.exchanges import load_exchanges
 from whiztap.analyzer.protocol.observations import Direction
+from whiztap.analyzer.protocol.text import escape
 from whiztap.sniffer.sim.client import Client, ConnectionClosed, HandshakeError, ResponseTimeout
 from whiztap.sniffer.sim.dialogue import Dialogue
 from whiztap.sniffer.replay.stub import Stub
@@ -217,3 +222,46 @@ async def test_the_default_connection_is_one_that_got_in(tmp_path):
     async with Stub(load_exchanges(str(path)), conn=1) as stub:  # asked for by number: served as recorded
         with pytest.raises(HandshakeError):
             await Client.connect(LOCAL, stub.port, password="any", timeout=WAIT)
+
+
+# -- the password never shows in what the stub says ---------------------------------------------------
+
+_PW_TAIL = st.text(alphabet="abcdefghijkmnopqrstuvwxyz0123456789-", min_size=5, max_size=16)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(tail=_PW_TAIL, end=st.sampled_from([b"", b"\r\n", b"\n"]), right=st.booleans(),
+       check=st.booleans(), split=st.integers(min_value=0, max_value=40),
+       after=st.lists(st.sampled_from([b"rr1-99--0--0-ss1", b"rr1-12--0--0-ss1", b"sr1-2--1500-ss1",
+                                       b"garbage", b"Zq7"]), max_size=4))
+def test_no_miss_line_or_summary_shows_a_client_password(recorded, tail, end, right, check, split, after):
+    """Miss lines print what a client asked; a client's password (right or
+    wrong, with or without a line break, split anywhere, with requests right
+    behind it) is never one of them, nor in the JSON summary."""
+    path, _ = recorded
+    secret = ("Zq7" + tail).encode()
+    expected = secret if right else b"Zq7-the-right-one"
+    stream = secret + end + b"".join(after)
+    lines: list[str] = []
+
+    async def run() -> str:
+        async with Stub(load_exchanges(str(path)), password=expected if check else None,
+                        unmatched="ignore", on_log=lines.append) as stub:
+            reader, writer = await asyncio.open_connection(LOCAL, stub.port)
+            await reader.readexactly(len(b"sendchkpass"))
+            cut = min(split, len(stream))
+            with contextlib.suppress(ConnectionError, OSError):  # a wrong password is shut out
+                for part in (stream[:cut], stream[cut:]):
+                    writer.write(part)
+                    await writer.drain()
+                    await asyncio.sleep(0.01)
+                writer.write_eof()
+                await asyncio.wait_for(reader.read(-1), WAIT)
+            writer.close()
+            await asyncio.wait_for(stub.finished.wait(), WAIT)
+            return json.dumps({"unanswered": [u.as_dict() for u in stub.unanswered],
+                               "unused": [r.as_dict() for r in stub.unused()]})
+
+    summary = asyncio.run(run())
+    said = "\n".join(lines) + summary
+    assert tail not in said and escape(secret) not in said, said
