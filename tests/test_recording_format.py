@@ -41,6 +41,7 @@ from whiztap.analyzer.recording.format import (
     CHANNEL_TOPICS,
     FORMAT_VERSION,
     KNOWN_TOPICS,
+    MIRROR_TOPICS,
     MITM_TOPICS,
     PLOT_TOPICS,
     SCHEMAS,
@@ -129,7 +130,7 @@ def test_every_schema_is_valid_json_schema_and_every_topic_is_foxglove_friendly(
         assert "$ref" not in json.dumps(schema)  # Foxglove does not follow references
     for topic, schema in KNOWN_TOPICS.items():
         assert FOXGLOVE_TOPIC.fullmatch(topic) and schema in SCHEMAS, topic
-    assert set(KNOWN_TOPICS) == set(TOPICS) | set(MITM_TOPICS) | set(CHANNEL_TOPICS) | set(PLOT_TOPICS)
+    assert set(KNOWN_TOPICS) == {*TOPICS, *MITM_TOPICS, *MIRROR_TOPICS, *CHANNEL_TOPICS, *PLOT_TOPICS}
     assert len(CHANNEL_TOPICS) == 4 * 25 and "/sensors/12" in CHANNEL_TOPICS and "/sends/other" in CHANNEL_TOPICS
     image = SCHEMAS["foxglove.CompressedImage"]["properties"]
     assert set(image) == {"timestamp", "frame_id", "data", "format"}

@@ -42,6 +42,9 @@ TOPIC_FRAMES = "/frames"
 TOPIC_VIOLATIONS = "/violations"
 TOPIC_LOG = "/log"
 TOPIC_CAMERA = "/camera"
+TOPIC_MIRROR_S2C = "/mirror/tcp/s2c"  # record --mirror: the mirror server's answers
+TOPIC_MIRROR_EVENTS = "/mirror/tcp/events"  # ... its connection's life (connected, failed, dropped, closed)
+TOPIC_MIRROR_DIFFERENCES = "/mirror/differences"  # ... where its answers differ from the primary's
 # The plot topics' bases: channel N's values are on BASE/N (BASE/other for a
 # channel number past the spec's 0-23); version 1 files had them all on BASE.
 TOPIC_SENSORS = "/sensors"
@@ -131,6 +134,27 @@ SCHEMAS: dict[str, dict] = {
          "kind": _STR, "before": _STR, "after": _STR,
          "before_size": _INT, "after_size": _INT, "detail": _STR, "redacted": {"type": "boolean"}},
         ("conn", "t_ns", "dir", "action", "cause", "before", "after")),
+    "whiztap.MirrorEvent": _object(
+        "whiztap.MirrorEvent", "record --mirror: the life of a connection's mirror connection, which gets the "
+                               "client's bytes too and whose answers never reach the client.",
+        {"conn": _CONN, "t_ns": _NS,
+         "event": {"type": "string", "enum": ["connected", "failed", "dropped", "closed"],
+                   "description": "failed: never connected; dropped: by the proxy (its buffer was full, or the "
+                                  "recording fell behind), so the primary is never held up"},
+         "detail": _STR, "c2s_bytes": {"type": "integer", "description": "client bytes handed to the mirror"},
+         "s2c_bytes": {"type": "integer", "description": "bytes the mirror sent"}},
+        ("conn", "t_ns", "event", "detail")),
+    "whiztap.MirrorDifference": _object(
+        "whiztap.MirrorDifference", "record --mirror: an exchange the primary and the mirror answered differently, "
+                                    "paired as 'whiztap diff' pairs two recordings.",
+        {"conn": _CONN, "t_ns": _NS,
+         "kind": {"type": "string", "enum": ["value", "timing", "missing", "extra", "handshake"],
+                  "description": "missing: the primary has it and the mirror not; extra: the other way"},
+         "exchange": _STR, "what": _STR, "primary": _STR, "mirror": _STR,
+         "at_fault": {"type": "string", "enum": ["primary", "mirror", "both", "neither"],
+                      "description": "which side's conversation breaks the spec here"},
+         "rules": {"type": "array", "items": _STR, "description": "SIDE RULE: the rules broken, and by whom"}},
+        ("conn", "t_ns", "kind", "exchange", "what", "primary", "mirror", "at_fault")),
     "whiztap.SensorValue": _object(
         "whiztap.SensorValue", "A Sensor/Servo Response that answers a Sensor Request.",
         {"conn": _CONN, "channel": _INT, "value": _INT, "latency_ns": _INT_OR_NULL},
@@ -191,6 +215,13 @@ MITM_TOPICS: dict[str, str] = {
     TOPIC_INTERVENTIONS: "whiztap.Intervention",
 }
 
+# Topics only a recording made with --mirror has (registered on their first message).
+MIRROR_TOPICS: dict[str, str] = {
+    TOPIC_MIRROR_S2C: "whiztap.TcpRead",
+    TOPIC_MIRROR_EVENTS: "whiztap.MirrorEvent",
+    TOPIC_MIRROR_DIFFERENCES: "whiztap.MirrorDifference",
+}
+
 # The plottable values: base topic -> schema.  A file has a topic per channel
 # that occurred (registered on its first message in each file), not the base.
 PLOT_TOPICS: dict[str, str] = {
@@ -219,10 +250,10 @@ CHANNEL_TOPICS: dict[str, str] = {topic: PLOT_TOPICS[base] for base, topics in P
 
 # Every topic whiztap has written: this version's, and the aggregated plot
 # topics of version 1 files (read and checked alike; no reader needs them).
-KNOWN_TOPICS: dict[str, str] = {**TOPICS, **MITM_TOPICS, **CHANNEL_TOPICS, **PLOT_TOPICS}
+KNOWN_TOPICS: dict[str, str] = {**TOPICS, **MITM_TOPICS, **MIRROR_TOPICS, **CHANNEL_TOPICS, **PLOT_TOPICS}
 
 # The topics a file defines on their first message rather than at its start.
-LATE_TOPICS: dict[str, str] = {**MITM_TOPICS, **CHANNEL_TOPICS}
+LATE_TOPICS: dict[str, str] = {**MITM_TOPICS, **MIRROR_TOPICS, **CHANNEL_TOPICS}
 
 
 def channel_topic(base: str, channel: int) -> str:

@@ -43,17 +43,8 @@ from whiztap.analyzer.recording.encode import (
     intervention_message,
     run_message,
 )
-from whiztap.analyzer.recording.format import (
-    MASK_BYTE,
-    MITM_TOPICS,
-    TOPIC_DELIVERED,
-    TOPIC_EVENTS,
-    TOPIC_FRAMES,
-    TOPIC_INTERVENTIONS,
-    TOPIC_LOG,
-    TOPIC_READS,
-    TOPIC_VIOLATIONS,
-)
+from whiztap.analyzer.recording.format import (MASK_BYTE, MITM_TOPICS, TOPIC_DELIVERED, TOPIC_EVENTS, TOPIC_FRAMES,
+                                                TOPIC_INTERVENTIONS, TOPIC_LOG, TOPIC_READS, TOPIC_VIOLATIONS)
 from whiztap.analyzer.recording.notice import Notice
 from whiztap.analyzer.recording.redaction import HOLD_LIMIT_S, Redactor
 from whiztap.analyzer.protocol.rules import Violation
@@ -149,14 +140,14 @@ class Recorder:
             file.channel_id(topic)  # first message), so a live viewer has them before it
         self._conns: dict[int, _Conn] = {}  # open, as far as the input goes
         self._live: dict[int, _Conn] = {}  # open, as far as the file goes
-        # None with --keep-secrets; a queued record is a _ReadNote, or the work
-        # of a connection event
+        # None with --keep-secrets; a queued record is a _ReadNote, or the work of a connection event
         self._redactor: Redactor[_ReadNote | Work] | None = None if keep_secrets else Redactor(HOLD_LIMIT_S)
         self._inputs: dict[type, Callable[[Any], Work]] = {
             Opened: self._input_opened, UpstreamConnected: self._input_upstream_connected,
             UpstreamFailed: self._input_upstream_failed, HalfClosed: self._input_half_closed,
             Gap: self._input_gap, Closed: self._input_closed, Delivered: self._input_delivered,
             Intervention: self._input_intervention, Notice: self._input_notice}
+        self._watch: Callable[[TrafficEvent], None] | None = None  # see extend()
         self._frames = FrameEncoder()
         self._frame_counts = {C2S: 0, S2C: 0}
         self._bytes = {C2S: 0, S2C: 0}  # of closed connections
@@ -228,6 +219,11 @@ class Recorder:
         self.summary.bytes.update({d.value: n for d, n in self._bytes.items()})
         self.summary.files = self.file.finish()
         return self.summary
+
+    def extend(self, inputs: dict[type, Callable[[Any], Work]], watch: Callable[[TrafficEvent], None]) -> None:
+        """More event types for ``receive``, each done in turn; ``watch`` sees what the file gets (--mirror)."""
+        self._inputs.update(inputs)
+        self._watch = watch
 
     # -- connection events as they come: the bookkeeping, and the work for their turn ----------
 
@@ -340,6 +336,8 @@ class Recorder:
         self._observe_all(conn, c, self._traffic.receive(read))
         if self.judge is not None:
             self.judge.receive(read)
+        if self._watch is not None:
+            self._watch(read)
 
     def _write_event(self, event: ConnectionEvent) -> None:
         t = self._now = event.t_ns
@@ -354,9 +352,11 @@ class Recorder:
         return verdict_dict(judge.verdict(), analyzer.open_connections, sum(analyzer.result.interventions.values()))
 
     def _judged(self, e: TrafficEvent) -> None:
-        """An event written: the judge (in the middle) takes it in the same place."""
+        """An event written: the judge (in the middle) and the watcher (``extend``) take it in the same place."""
         if self.judge is not None:
             self.judge.receive(e)
+        if self._watch is not None:
+            self._watch(e)
 
     def _opened(self, c: _Conn, e: Opened) -> None:
         self._at(e.t_ns)
