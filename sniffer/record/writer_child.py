@@ -157,6 +157,13 @@ def _recording_file(config: dict[str, Any]) -> tuple[RecordingFile, dict[str, st
     from whiztap.sniffer.record.writer import RecordingFile
 
     args = (config["path"], config["metadata"])
+    if config.get("ring"):  # --ring: a window, and an incident file per trigger (ring.py)
+        from whiztap.sniffer.record.ring import RingFile
+        from whiztap.sniffer.record.trigger import Ring
+
+        ring = config["ring"]
+        return RingFile(*args, Ring(ring["duration_ns"], ring["max_bytes"]), ring["triggers"], ring["after_ns"],
+                        overwrite=config.get("overwrite", True), warn=_warning), {}
     options = {"split_size": config.get("split_size"), "split_duration_ns": config.get("split_duration_ns"),
                "overwrite": config.get("overwrite", True), "warn": _warning}
     if not config.get("foxglove"):
@@ -218,7 +225,10 @@ def _run(config: dict[str, Any]) -> int:
     except RecordingWriteError as e:
         _say({"type": "error", "message": str(e)})
         return EXIT_WRITE_ERROR
-    _say({"type": "summary", **summary.as_dict(), "size": sum(os.path.getsize(p) for p in summary.files)})
+    from whiztap.sniffer.record.ring import RingFile
+
+    ring = {"ring": file.report()} if isinstance(file, RingFile) else {}  # --ring: the incidents, said at the end
+    _say({"type": "summary", **summary.as_dict(), "size": sum(os.path.getsize(p) for p in summary.files), **ring})
     return 0
 
 
