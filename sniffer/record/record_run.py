@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from whiztap.sniffer.mitm.control_endpoint import Endpoint
     from whiztap.sniffer.mitm.control_server import ControlServer
     from whiztap.sniffer.mitm.controller import Controller
+    from whiztap.sniffer.record.trigger import RingSettings
 
 
 class StartError(WhiztapError):
@@ -73,6 +74,7 @@ class RecordSettings:
     middle: MiddleSettings = MiddleSettings()
     # the user's own metadata keys (--meta KEY=VALUE, already checked by user_metadata), for fleet reports
     meta: tuple[tuple[str, str], ...] = ()
+    ring: RingSettings | None = None  # --ring: a window and an incident file per trigger (sniffer/record/ring.py)
 
 
 class Recording:
@@ -150,6 +152,8 @@ class Recording:
                   "split_size": s.split_size, "overwrite": s.overwrite,
                   "split_duration_ns": int(s.split_duration * 1e9) if s.split_duration else None,
                   "started": {"detail": f"proxy {listen} -> {proxy.upstream_text}"}, "foxglove": s.foxglove}
+        if s.ring is not None:
+            config["ring"] = s.ring.config()
         self.writer = writer = WriterProcess(config, s.when_behind)
         writer.on_hold = proxy.hold
         writer.on_violation = self._violation
