@@ -31,6 +31,42 @@ if TYPE_CHECKING:
     from whiztap.sniffer.record.record_run import RecordSettings, Recording
 
 
+class _Checked(click.ParamType):
+    """A --ring, --trigger or --after value read by its parser (sniffer/record/trigger.py);
+    one line when it is not one."""
+
+    def __init__(self, name: str, parse: str) -> None:
+        self.name, self.parse = name, parse
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if not isinstance(value, str):
+            return value
+        from whiztap.sniffer.record import trigger
+
+        try:
+            return getattr(trigger, self.parse)(value)
+        except ValueError as e:
+            fail(f"--{param.name if param else self.name} {e}")
+
+
+def _ring_settings(output: str, ring: Any, triggers: tuple[str, ...], after: float | None, split: bool,
+                   foxglove: bool) -> Any:
+    """--ring's settings (None without it), checked together: one line for what does not go."""
+    if ring is None:
+        if triggers or after is not None:
+            fail("--trigger and --after go with --ring DURATION|SIZE (the flight recorder)")
+        return None
+    if not triggers:
+        fail("--ring needs at least one --trigger RULE|severity:LEVEL|latency>MS|fault: what begins an incident")
+    if split or foxglove:
+        fail("--ring writes incident files only: it does not go with --split-size, --split-duration or --foxglove")
+    from whiztap.sniffer.record.ring import incident_path
+    from whiztap.sniffer.record.trigger import DEFAULT_AFTER_S, RingSettings
+
+    check_recording_output(incident_path(output, 1), False, True)  # the folder; a name taken is skipped
+    return RingSettings(ring, tuple(dict.fromkeys(triggers)), DEFAULT_AFTER_S if after is None else after)
+
+
 @click.command("record")
 @click.option("--listen", type=Address("127.0.0.1"), default="127.0.0.1:6000", show_default=True,
               metavar="[HOST:]PORT", help="Where clients connect (port 0 picks a free one).")
@@ -49,6 +85,15 @@ if TYPE_CHECKING:
 @click.option("--meta", "meta", multiple=True, metavar="KEY=VALUE",
               help="Write this key into the recording's metadata (robot=r7, firmware=2.3), for "
                    "'whiztap analyze --group-by KEY'; repeatable.")
+@click.option("--ring", type=_Checked("ring", "parse_ring"), default=None, metavar="DURATION|SIZE",
+              help="Flight recorder: keep only this much (30s, 64MB) and write NAME-incident-N.mcap around each "
+                   "--trigger (docs/recorder.md).")
+@click.option("--trigger", "triggers", type=_Checked("trigger", "parse_trigger"), multiple=True,
+              metavar="RULE|severity:LEVEL|latency>MS|fault",
+              help="With --ring, what begins an incident: a rule id, a violation at or above LEVEL, an answer "
+                   "slower than MS ms (or none within it), any fault of the proxy in the middle; repeatable.")
+@click.option("--after", type=_Checked("after", "parse_duration"), default=None, metavar="DURATION",
+              help="With --ring, how long an incident goes on after its last trigger (default 5s).")
 @foxglove_option
 @middle_options
 @limits_options
@@ -57,7 +102,8 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
                    split_duration: float | None, keep_secrets: bool, checksum_rule: str, quiet: bool, force: bool,
                    analyze: bool, connect_timeout: float, when_behind: str, meta: tuple[str, ...],
                    foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
-                   channel_map: str | None, assume_config: str | None, **middle: Any) -> None:
+                   channel_map: str | None, assume_config: str | None, ring: Any, triggers: tuple[str, ...],
+                   after: float | None, **middle: Any) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -77,7 +123,10 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
         keys = user_metadata(meta)
     except MetadataError as e:
         fail(str(e))
-    check_recording_output(output, split_size is not None or split_duration is not None, force)
+    split = split_size is not None or split_duration is not None
+    flight = _ring_settings(output, ring, triggers, after, split, foxglove is not None)
+    if flight is None:
+        check_recording_output(output, split, force)
     from whiztap.sniffer.record.record_run import RecordSettings
 
     settings = RecordSettings(listen, upstream, output, split_size, split_duration, keep_secrets, checksum_rule,
@@ -85,7 +134,7 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
                               limits_assuming(limits_from(answer_timeout, max_frame, max_image), channel_map,
                                               assume_config),
                               overwrite=force, when_behind=when_behind, foxglove=foxglove,
-                              middle=middle_settings(**middle), meta=tuple(keys.items()))
+                              middle=middle_settings(**middle), meta=tuple(keys.items()), ring=flight)
     error = run(_record(settings))
     if error:
         fail(error)
@@ -98,6 +147,7 @@ async def _record(settings: RecordSettings) -> str | None:
     from whiztap.sniffer.nettext import show_address
     from whiztap.sniffer.record.feed import WriterError
     from whiztap.sniffer.record.record_run import Recording, StartError
+    from whiztap.sniffer.record.ring import incident_path
 
     from whiztap.analyzer.mitm.spec import FaultSpecError
     from whiztap.sniffer.mitm.scripts import ScriptError
@@ -119,7 +169,9 @@ async def _record(settings: RecordSettings) -> str | None:
         # even with -q: with port 0 this line is the only way to learn the port
         live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""
         live += f", control: {recording.control_text}" if recording.control_text else ""
-        say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {settings.output}{live} (Ctrl-C to stop)")
+        into = settings.output if settings.ring is None else \
+            f"a {settings.ring.ring.describe()} ring, incidents into {incident_path(settings.output, 'N')}"
+        say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {into}{live} (Ctrl-C to stop)")
         probe = asyncio.ensure_future(_try_upstream(recording))
         await recording.stopped.wait()
         probe.cancel()
