@@ -54,6 +54,8 @@ def summary_lines(summary: dict, what: str) -> list[str]:
              f"{plural(summary['messages'], 'message')})",
              f"  {per_dir}",
              f"  violations: {counts}"]
+    if summary.get("ring") is not None:  # --ring: incident files only
+        lines[0:1] = ring_lines(summary, what)
     verdict = summary.get("verdict")
     if verdict is not None:  # in the middle: the counts are analyze's verdict, each side judged on its own
         effects = sum(verdict["effects"].values())
@@ -62,6 +64,23 @@ def summary_lines(summary: dict, what: str) -> list[str]:
                      + f"; {'PASS' if verdict['passed'] else 'FAIL'}, as whiztap analyze judges the file")
     if summary.get("quiet_faults"):  # the proxy in the middle's faults that chose no frame (Recording.stop)
         lines.append(f"  faults that chose no frame: {', '.join(summary['quiet_faults'])}")
+    return lines
+
+
+def ring_lines(summary: dict, what: str) -> list[str]:
+    """``record --ring``'s first lines: the window kept, how many incidents and
+    where, each with the trigger that began it (and how many more it took in)."""
+    ring = summary["ring"]
+    incidents = ring["incidents"]
+    head = f"{what} {plural(summary['connections'], 'connection')} through a {ring['window']} ring: "
+    if not incidents:
+        return [head + "no incident, so no file written"]
+    lines = [head + f"{plural(len(incidents), 'incident')} ({human_bytes(summary['size'])}, "
+             f"{plural(summary['messages'], 'message')})"]
+    for incident in incidents:
+        more = incident["triggers"] - 1
+        lines.append(f"  {incident['path']}: {incident['trigger']}"
+                     + (f" (and {plural(more, 'trigger')} more while it was written)" if more else ""))
     return lines
 
 
