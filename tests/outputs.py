@@ -174,7 +174,11 @@ NOT_OUTPUTS = {
     "client": "the client: it types the password",
     "stub": "serves a recording's server side; its miss lines and JSON show the requests a client asked "
             "after its password, never the password: "
-            "tests/test_stub.py::test_no_miss_line_or_summary_shows_a_client_password",
+            "tests/test_stub.py::test_no_miss_line_or_summary_shows_a_client_password; with --upstream "
+            "it appends the new episodes to the recording (the password masked, every topic, cat and analyze "
+            "of it read) and says how many it forwarded: "
+            "tests/test_stub_episodes.py::test_a_missing_exchange_is_appended_and_then_served_without_the_server, "
+            "tests/test_stub_episodes.py::test_the_command_appends_on_sigint_and_a_failed_or_killed_one_changes_nothing",
     "tui": "LIVE_OUTPUTS (live) and FILE_OUTPUTS (a recording)",
     "demo": "the simulator's own demo password through the TUI (LIVE_OUTPUTS)",
     "probe": "every report format, its progress lines and its --record recording are read by "

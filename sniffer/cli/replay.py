@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from whiztap.analyzer.protocol.messages import ChannelConfig
     from whiztap.analyzer.recording.sets import RecordingSet
     from whiztap.sniffer.replay.events import Event, ReplayResult
+    from whiztap.sniffer.replay.episodes import Episodes
     from whiztap.sniffer.replay.options import ReplayOptions
     from whiztap.sniffer.replay.stub import Stub
 
@@ -320,11 +321,18 @@ class _Printer:
 @click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True,
               help="json: the closing summary as one JSON object (misses with their closest recorded "
                    "requests, unused recorded requests), for scripts.")
+@click.option("--upstream", type=Address("127.0.0.1"), default=None, metavar="HOST:PORT",
+              help="The real server: a request the recording has no answer for is forwarded to it, on one "
+                   "upstream connection per client (logged in with the client's own password), and the new "
+                   "exchanges are appended to RECORDING when the stub stops, all at once (nothing on a failure).")
+@click.option("--upstream-timeout", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True,
+              metavar="SECONDS", help="How long to wait for the upstream's connection, handshake and each answer.")
 @click.option("--once", is_flag=True, help="Exit after the first client disconnects.")
 @click.option("-q", "--quiet", is_flag=True, help="Print only the listening line and problems.")
 @assumed_map_options
 def stub_command(path: str, listen: tuple[str, int], password: str | None, conn: int | None, pace: str, rate: float,
                  exhausted: str, unmatched: str, match_text: str, strict: bool, fail_unused: bool, fmt: str,
+                 upstream: tuple[str, int] | None, upstream_timeout: float,
                  once: bool, quiet: bool, channel_map: str | None, assume_config: str | None) -> None:
     """Serve a recording's server side to a client under test.
 
@@ -336,7 +344,9 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     same channel, in recorded order; one it cannot answer is met as --unmatched
     says, with the closest recorded requests and what differs.  At the end the
     recorded requests no client asked for are listed.  Runs until Ctrl-C or
-    SIGTERM (or, with --once, until the first client leaves).
+    SIGTERM (or, with --once, until the first client leaves).  With
+    --upstream, misses are asked of the real server instead and appended to
+    RECORDING at the end (exit status 2, RECORDING unchanged, if it failed).
     """
     from whiztap.sniffer.replay.near_miss import Match
     from whiztap.sniffer.replay.stub import Stub
@@ -347,7 +357,9 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
         fail(str(e))
 
     assumed = assumed_channels(channel_map, assume_config)
-    recording = _load(path, assumed=assumed)
+    found = _find(path)
+    recording = _load(path, found, assumed=assumed)
+    episodes = _episodes(found, recording, upstream, upstream_timeout)
 
     def log(line: str) -> None:
         if not quiet or line.startswith("!"):
@@ -361,19 +373,23 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     try:
         stub = Stub(recording, *listen, password=_password(password), pace=pace, rate=rate,
                     exhausted=exhausted, conn=conn, unmatched=reaction, match=match, on_log=log,
-                    assumed_channels=assumed)
+                    assumed_channels=assumed, episodes=episodes)
     except ValueError as e:
         fail(str(e))
+    _begin(episodes)
     error = run(_serve(stub, once))
+    appended = _append(episodes)
     if error:
         fail(error)
     missing, unused = len(stub.unanswered), stub.unused()
     if fmt == "json":
         import json
 
+        more = {} if episodes is None else {"upstream": episodes.upstream_text, "forwarded": stub.forwarded,
+                                            "appended": appended, "upstream_error": episodes.failure}
         _echo(json.dumps({"recording": stub.recording.path, "match": match.text(), "connections": stub.connections,
                           "answers": stub.answers, "unanswered": [u.as_dict() for u in stub.unanswered],
-                          "unused": [r.as_dict() for r in unused]}))
+                          "unused": [r.as_dict() for r in unused], **more}))
     else:
         _echo(f"served {plural(stub.connections, 'connection')}, {plural(stub.answers, 'answer')}; "
               f"{plural(missing, 'request')} without a recorded answer"
@@ -381,7 +397,54 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
         if unused and (fail_unused or not quiet):
             for r in unused:
                 _echo(f"  unused: #{r.conn} request {r.position} {r.text}")
+        if episodes is not None and episodes.failure is None:
+            _echo(f"{plural(stub.forwarded, 'request')} forwarded to {episodes.upstream_text}; "
+                  + (f"appended to {stub.recording.path} on {plural(episodes.connections, 'new connection')}"
+                     if appended
+                     else f"nothing new: {stub.recording.path} unchanged"))
+    if episodes is not None and episodes.failure is not None:
+        fail(f"upstream {episodes.upstream_text}: {episodes.failure}; nothing appended, {stub.recording.path} "
+             "is unchanged: run again once the server answers")
     sys.exit(1 if (strict and missing) or (fail_unused and unused) else 0)
+
+
+def _episodes(found: RecordingSet, recording: RecordedSessions, upstream: tuple[str, int] | None,
+              timeout: float) -> Episodes | None:
+    """What records the new episodes for --upstream, or a one-line error."""
+    if upstream is None:
+        return None
+    from whiztap.sniffer.replay.episodes import Episodes
+
+    if len(found.parts) != 1 or not isinstance(found.name, Path):
+        fail(f"--upstream appends to RECORDING, so it must be one local file, not {found}: make one with "
+             "'whiztap cut PARTS... -o ONE.mcap'")
+    return Episodes(found.name, upstream, recording.checksum_rule, timeout)
+
+
+def _begin(episodes: Episodes | None) -> None:
+    """Begin recording new episodes, or a one-line error."""
+    if episodes is None:
+        return
+    from whiztap.sniffer.record.writer import RecordingWriteError
+
+    try:
+        episodes.open()
+    except (OSError, RecordingWriteError) as e:
+        fail(f"--upstream: cannot record new episodes ({getattr(e, 'strerror', None) or e})")
+
+
+def _append(episodes: Episodes | None) -> bool:
+    """Append the new episodes, if any (a failed append leaves RECORDING as it was)."""
+    if episodes is None:
+        return False
+    from whiztap.analyzer.recording.scan import RecordingError
+    from whiztap.sniffer.record.writer import RecordingWriteError
+
+    try:
+        return episodes.finish()
+    except (OSError, RecordingError, RecordingWriteError) as e:
+        fail(f"cannot append the new episodes to {episodes.path} ({getattr(e, 'strerror', None) or e}); "
+             "it is unchanged")
 
 
 async def _serve(stub: Stub, once: bool) -> str | None:

@@ -20,6 +20,13 @@ recorded exchanges no client asked for, so a recording that rots shows.
 The client's bytes go through the analyzer's session model, so requests are
 recognised however the client cuts its writes, and the channel map the stub
 itself sent resolves ambiguous frames as it did in the recording.
+
+With ``episodes`` (``--upstream``, the plugin's ``new_episodes``) a miss is
+not met but forwarded to the real server on the client's own upstream
+connection (``upstream.UpstreamLink``), its answer sent back and recorded,
+to be appended to the recording when the run ends (``episodes.Episodes``).
+Connections appended so serve the recorded connection they were made for:
+their exchanges come after its own (``_Script.extend``).
 """
 
 from __future__ import annotations
@@ -36,13 +43,15 @@ from whiztap.analyzer.analysis.compare import answer_key
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.analysis.exchanges import RecordedConnection, RecordedSessions
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.messages import ChannelConfig, FailedValidation, ReadyToGo
+from whiztap.analyzer.protocol.messages import ChannelConfig, FailedValidation, FetchConfiguration, ReadyToGo
 from whiztap.analyzer.protocol.handshake import Mode
 from whiztap.analyzer.protocol.observations import Direction, Observation
 from whiztap.analyzer.protocol.session import Session
 from whiztap.analyzer.protocol.text import escape
+from whiztap.sniffer.replay.episodes import Episodes, episodes_of
 from whiztap.sniffer.replay.near_miss import Match, NearMiss, Recorded, closest
 from whiztap.sniffer.replay.options import Pace
+from whiztap.sniffer.replay.upstream import UpstreamError, UpstreamLink
 from whiztap.sniffer.sim.tcp_server import READ_SIZE, TcpServer
 
 NS = 1_000_000_000
@@ -104,7 +113,16 @@ class _Script:
         self.verdict_delay = max(0, shake[1].item.t_end_ns - after) if len(shake) > 1 else 0
         self.requests: list[Recorded] = []  # every request served from, for near misses and unused
         self.answers: dict[tuple, list[tuple[Recorded, _Answer | None]]] = {}
+        self.match = match
+        self.extend(rec)
+
+    def extend(self, rec: RecordedConnection, appended: bool = False) -> None:
+        """Serve ``rec``'s exchanges too, after those already here: its own at
+        first, then those of each connection appended with new episodes of it
+        (``appended``; the channel map such a connection fetched first for a
+        client that had it already is no episode, and is not served)."""
         position = 0
+        match = self.match
         for item in rec.requests:
             key = answer_key(item.obs)
             if key is None:
@@ -115,8 +133,25 @@ class _Script:
             answer = item.answer
             entry = None if answer is None else _Answer(answer.item.raw, max(0, answer.item.t_end_ns - item.t_ns))
             recorded = Recorded(rec.conn, position, *key[0], item.obs.item.raw, meaning(item.obs))
+            group = match.key(*key[0], recorded.value)
+            if appended and position == 1 and isinstance(item.obs.message, FetchConfiguration) \
+                    and group in self.answers:
+                continue
             self.requests.append(recorded)
-            self.answers.setdefault(match.key(*key[0], recorded.value), []).append((recorded, entry))
+            self.answers.setdefault(group, []).append((recorded, entry))
+
+
+def _scripts(recording: RecordedSessions, match: Match) -> list[_Script]:
+    """A script per recorded connection; one appended with new episodes of
+    another extends that one's script instead."""
+    scripts: dict[int, _Script] = {}
+    for rec in recording.connections:
+        base = episodes_of(rec.client)
+        if base in scripts:
+            scripts[base].extend(rec, appended=True)
+        else:
+            scripts[rec.conn] = _Script(rec, match)
+    return list(scripts.values())
 
 
 class Stub(TcpServer):
@@ -130,9 +165,13 @@ class Stub(TcpServer):
                  exhausted: Exhausted | str = Exhausted.REPEAT, conn: int | None = None,
                  unmatched: Unmatched | str | bytes = Unmatched.CLOSE, match: Match | None = None,
                  on_log: Callable[[str], None] | None = None,
-                 assumed_channels: tuple[ChannelConfig, ...] = ()) -> None:
+                 assumed_channels: tuple[ChannelConfig, ...] = (), episodes: Episodes | None = None) -> None:
         """``unmatched``: ``"close"``, ``"ignore"``, or the bytes of a frame to send.
-        ``assumed_channels``: the map ``--channels`` states, for clients that never fetch it."""
+        ``assumed_channels``: the map ``--channels`` states, for clients that never fetch it.
+        ``episodes``: forward misses to the real server and record them (opened
+        and finished by the caller)."""
+        self.episodes = episodes
+        self.forwarded = 0  # misses the upstream answered
         self.assumed_channels = assumed_channels
         self.match = match or Match()
         self.pace = Pace(pace)
@@ -140,7 +179,7 @@ class Stub(TcpServer):
             raise ValueError("a stub answers at the recorded delay (recorded) or at once (max)")
         if rate <= 0:
             raise ValueError("--rate must be above 0")
-        scripts = [_Script(c, self.match) for c in recording.connections]
+        scripts = _scripts(recording, self.match)
         if conn is not None:
             scripts = [s for s in scripts if s.conn == conn]
             if not scripts:
@@ -196,6 +235,9 @@ class _Served:
         self.stub, self.script, self.number, self.writer = stub, script, number, writer
         self.session = Session(stub.recording.checksum_rule, assumed_channels=stub.assumed_channels)
         self.cursors: Counter[tuple] = Counter()
+        self.login: bytes | None = None  # the password the client gave, for its upstream connection
+        self.link: UpstreamLink | None = None
+        self.config: bytes | None = None  # the client's Fetch Configuration, once answered
         self.position = 0  # answerable requests so far, as Recorded.position counts them
         self.recorded_pace = stub.pace is Pace.RECORDED
         self._due = 0.0  # answers leave in order, each no earlier than its delay
@@ -209,10 +251,10 @@ class _Served:
             pending = await self._password(reader)
             if pending is None:
                 return
-        if pending and not self._receive(pending):
+        if pending and not await self._receive(pending):
             return
         while data := await reader.read(READ_SIZE):
-            if not self._receive(data):
+            if not await self._receive(data):
                 return  # an unmatched request closes the connection
         self.session.end(Direction.C2S, time.perf_counter_ns())
 
@@ -238,21 +280,25 @@ class _Served:
                 ends = [i for i in (got.find(t) for t in _PASSWORD_END) if i > 0]
                 cut = min(ends, default=len(got))
             self._feed(got[:cut])
+            self.login = got[:cut]
             self.send(self.script.verdict, self.script.verdict_delay)
             return None if self.script.verdict == _FAILED else got[cut:]
 
     def _feed(self, data: bytes) -> list:
         return self.session.receive(Direction.C2S, data, time.perf_counter_ns())
 
-    def _receive(self, data: bytes) -> bool:
+    async def _receive(self, data: bytes) -> bool:
         """Answer the requests in ``data``; False once the connection is to close."""
         for obs in self._feed(data):
             if (isinstance(obs, Observation) and obs.direction is Direction.C2S
-                    and obs.item.kind is ItemKind.COMMAND and not self._answer(obs)):
-                return False
+                    and obs.item.kind is ItemKind.COMMAND):
+                if not await self._answer(obs):
+                    return False
+                if isinstance(obs.message, FetchConfiguration):
+                    self.config = obs.item.raw
         return True
 
-    def _answer(self, request: Observation) -> bool:
+    async def _answer(self, request: Observation) -> bool:
         key = answer_key(request)
         if key is None:
             return True
@@ -266,6 +312,8 @@ class _Served:
         elif recorded and self.stub.exhausted is Exhausted.REPEAT:
             used, answer = recorded[-1]
         elif key[1] or recorded:  # a frame that only may ask is new only if it never did
+            if self.stub.episodes is not None:
+                return await self._forward(request)
             return self._unmatched(request, "no recorded answer")
         else:
             return True
@@ -274,6 +322,30 @@ class _Served:
             return self._unmatched(request, "no answer in the recording either")
         self.stub.answers += 1
         self.send(answer.raw, answer.delay_ns)
+        return True
+
+    async def _forward(self, request: Observation) -> bool:
+        """Ask the real server what the recording cannot answer; a failed
+        upstream leaves the request unmatched, and the run appends nothing."""
+        episodes = self.stub.episodes
+        assert episodes is not None
+        raw = request.item.raw
+        if episodes.failure is not None:
+            return self._unmatched(request, "no recorded answer (the upstream failed earlier)")
+        if self.link is None:
+            self.link = UpstreamLink(episodes, self.script.conn, self.login if self.script.winsock else None,
+                                     self.config)
+        try:
+            answer = await self.link.ask(raw)
+        except UpstreamError as e:
+            episodes.fail(str(e))
+            self.stub.on_log(f"! upstream failed: {e}; nothing will be appended to {episodes.path}")
+            return self._unmatched(request, "no recorded answer (the upstream failed)")
+        episodes.exchanges += 1
+        self.stub.forwarded += 1
+        self.stub.on_log(f"#{self.number}: no recorded answer for {escape(raw)} ({meaning(request)}): "
+                         f"forwarded to {episodes.upstream_text}, new episode")
+        self.send(answer, 0)
         return True
 
     def _unmatched(self, request: Observation, why: str) -> bool:
@@ -318,7 +390,11 @@ class _Served:
         self._queue.put_nowait(None)
         await self._sender
         self.writer.close()
+        if self.link is not None:
+            await self.link.close()
 
     def abort(self) -> None:
         self._sender.cancel()
         self.writer.transport.abort()
+        if self.link is not None:
+            self.link.abort()
