@@ -10,7 +10,10 @@ whiztap has it.  docs/pytest-plugin.md has the full guide; in short:
   ``--whiztap-record=none`` (the default) it is a stub serving the recording,
   and a request the recording has no answer for fails the test; with ``once``
   a missing recording is first made by recording through whiztap's proxy to
-  the target; with ``all`` it is always re-recorded.
+  the target; with ``all`` it is always re-recorded; with ``new_episodes`` the
+  stub answers what the recording has and asks the target the rest, which is
+  appended to the recording when the test ends (atomically: a test whose
+  target failed leaves it as it was).
 - ``whiztap_replay``: replays the recording's client side against the target
   and fails the test with the readable diff when an answer differs.
 - ``whiztap_target``: the live server for recording and replaying ("HOST:PORT"
@@ -44,15 +47,17 @@ import pytest
 if TYPE_CHECKING:
     from whiztap.sniffer.pytest_proxy import WhiztapProxy
 
-MODES = ("none", "once", "all")
+MODES = ("none", "once", "new_episodes", "all")
 T = TypeVar("T")
+UPSTREAM_TIMEOUT_S = 5.0  # new_episodes: how long the target may take to connect, log in and answer
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     group = parser.getgroup("whiztap", "whiztap recordings as regression tests")
     group.addoption("--whiztap-record", choices=MODES, default="none",
                     help="none (default): serve recordings, fail on anything new; once: record the "
-                         "missing ones through whiztap's proxy; all: re-record every one.")
+                         "missing ones through whiztap's proxy; new_episodes: serve what is recorded, ask the "
+                         "target the rest and append it; all: re-record every one.")
     group.addoption("--whiztap-target", default=None, metavar="HOST:PORT",
                     help="The live server to record from and to replay against.")
     group.addoption("--whiztap-password", default=None, metavar="PASSWORD",
@@ -170,6 +175,7 @@ class WhiztapServer:
     def __init__(self, host: str, port: int, path: Path, recording: bool, stub: Any = None) -> None:
         self.host, self.port, self.path, self.recording = host, port, path, recording
         self._stub = stub
+        self.mode = "none" if stub is None or stub.episodes is None else "new_episodes"
 
     @property
     def address(self) -> str:
@@ -186,9 +192,18 @@ class WhiztapServer:
         (``whiztap.sniffer.replay.near_miss.Recorded``), so far."""
         return self._stub.unused() if self._stub is not None else []
 
+    @property
+    def forwarded(self) -> int:
+        """Requests asked of the target and recorded (``new_episodes``), so far."""
+        return self._stub.forwarded if self._stub is not None else 0
+
     def check(self, unused: bool = False) -> None:
         """Fail the test on a request the recording has no answer for, and
         (``unused``: --whiztap-fail-unused) on a recorded one never made."""
+        episodes = self._stub.episodes if self._stub is not None else None
+        if episodes is not None and episodes.failure is not None:
+            pytest.fail(f"whiztap: new_episodes: the target {episodes.upstream_text} failed: {episodes.failure}; "
+                        f"nothing will be appended to {self.path}", pytrace=False)
         missing = self.unanswered
         if unused and not missing and (left := self.unused):
             from whiztap.analyzer.protocol.text import plural
@@ -202,7 +217,8 @@ class WhiztapServer:
 
             lines = "\n".join("\n".join(["  " + m.line(), *("    " + n for n in m.near_lines())])
                                for m in missing)
-            pytest.fail(f"whiztap: {plural(len(missing), 'request')} not in {self.path} (record mode none):\n{lines}\n"
+            pytest.fail(f"whiztap: {plural(len(missing), 'request')} not in {self.path} (record mode {self.mode}):\n"
+                        f"{lines}\n"
                         f"re-record with --whiztap-record=all if the client changed on purpose", pytrace=False)
 
 
@@ -213,19 +229,19 @@ def whiztap_server(request: pytest.FixtureRequest) -> Iterator[WhiztapServer]:
     mode = request.config.getoption("--whiztap-record")
     settings = _settings(request)
     path = settings.recording
-    record = mode == "all" or (mode == "once" and not path.exists())
+    record = mode == "all" or (mode in ("once", "new_episodes") and not path.exists())
     if not record and not path.exists():
         pytest.fail(f"whiztap: no recording {path}; run pytest with --whiztap-record=once to make it",
                     pytrace=False)
     with BackgroundLoop() as background:
+        target = request.getfixturevalue("whiztap_target") if record or mode == "new_episodes" else None
+        if (record or mode == "new_episodes") and target is None:
+            pytest.fail("whiztap: recording needs a live server: give the marker target=HOST:PORT, "
+                        "--whiztap-target, or a whiztap_target fixture", pytrace=False)
         if record:
-            target = request.getfixturevalue("whiztap_target")
-            if target is None:
-                pytest.fail("whiztap: recording needs a live server: give the marker target=HOST:PORT, "
-                            "--whiztap-target, or a whiztap_target fixture", pytrace=False)
             yield from _recorded(background, path, _address(target))
         else:
-            yield from _stubbed(background, path)
+            yield from _stubbed(background, path, _address(target) if target is not None else None)
 
 
 def _load(path: Path) -> Any:
@@ -239,13 +255,16 @@ def _load(path: Path) -> Any:
         pytest.fail(f"whiztap: cannot read {path}: {e}", pytrace=False)
 
 
-def _stubbed(background: BackgroundLoop, path: Path) -> Iterator[WhiztapServer]:
+def _stubbed(background: BackgroundLoop, path: Path, target: tuple[str, int] | None) -> Iterator[WhiztapServer]:
+    """A stub serving ``path``; with ``target`` (new_episodes) it asks the
+    target what the recording lacks, appended when the test is over."""
     from whiztap.sniffer.replay.stub import Stub
 
     recording = _load(path)
+    episodes = None if target is None else _episodes(path, target, recording.checksum_rule)
 
     async def start() -> Any:
-        stub = Stub(recording, "127.0.0.1", 0)
+        stub = Stub(recording, "127.0.0.1", 0, episodes=episodes)
         await stub.start()
         return stub
 
@@ -254,6 +273,32 @@ def _stubbed(background: BackgroundLoop, path: Path) -> Iterator[WhiztapServer]:
         yield WhiztapServer("127.0.0.1", stub.port, path, False, stub)
     finally:
         background.run(stub.close())
+        if episodes is not None:
+            _append(episodes)
+
+
+def _episodes(path: Path, target: tuple[str, int], checksum_rule: str) -> Any:
+    """The new episodes of a new_episodes test, begun."""
+    from whiztap.sniffer.record.writer import RecordingWriteError
+    from whiztap.sniffer.replay.episodes import Episodes
+
+    episodes = Episodes(path, target, checksum_rule, UPSTREAM_TIMEOUT_S)
+    try:
+        episodes.open()
+    except (OSError, RecordingWriteError) as e:
+        pytest.fail(f"whiztap: new_episodes: cannot record new episodes ({e})", pytrace=False)
+    return episodes
+
+
+def _append(episodes: Any) -> None:
+    """Append a test's new episodes to its recording, or fail saying it is unchanged."""
+    from whiztap.analyzer.recording.scan import RecordingError
+    from whiztap.sniffer.record.writer import RecordingWriteError
+
+    try:
+        episodes.finish()
+    except (OSError, RecordingError, RecordingWriteError) as e:
+        pytest.fail(f"whiztap: new_episodes: cannot append to {episodes.path} ({e}); it is unchanged", pytrace=False)
 
 
 def _recorded(background: BackgroundLoop, path: Path, target: tuple[str, int]) -> Iterator[WhiztapServer]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from whiztap.analyzer.analysis.exchanges import load_exchanges
 from whiztap.analyzer.recording.scan import read_metadata
 
 pytest_plugins = ["pytester"]
@@ -25,6 +26,9 @@ def whiztap_target():
     """The live server: a frozen-clock simulator, so a seed fixes every answer."""
     if os.environ.get("NO_TARGET"):
         pytest.fail("the live server was used")
+    if os.environ.get("DEAD_TARGET"):  # nothing listens on port 1
+        yield "127.0.0.1:1"
+        return
     with BackgroundLoop() as background:
         sim = Simulator(password="pw", seed=int(os.environ.get("SIM_SEED", "1")), clock=lambda: 5_000_000_000)
         background.run(sim.start())
@@ -130,6 +134,33 @@ def test_record_once_then_serve_from_the_recording(project, monkeypatch):
     rotten.stdout.fnmatch_lines([
         f"*whiztap: 1 recorded request never asked for in {recording} (--whiztap-fail-unused):*",
         "*#1 request 4 Sensor Request ch 14*"])
+
+
+@pytest.mark.slow
+def test_new_episodes_records_only_what_is_missing(project, monkeypatch):
+    """vcrpy's new_episodes: what is recorded is served, the one new request is
+    asked of the target and appended; a target that fails appends nothing."""
+    recording = project.path / "recordings" / "sensors.mcap"
+    run(project, "--whiztap-record=new_episodes", "-k", "test_sensors").assert_outcomes(passed=1)  # made whole
+    session, before = read_metadata(str(recording))["session_id"], recording.read_bytes()
+
+    monkeypatch.setenv("NEW_REQUEST", "1")  # the client now also asks for channel 14
+    monkeypatch.setenv("DEAD_TARGET", "1")
+    dead = run(project, "--whiztap-record=new_episodes", "-k", "test_sensors")
+    dead.assert_outcomes(failed=1)
+    dead.stdout.fnmatch_lines(["*whiztap: new_episodes: the target 127.0.0.1:1 failed: cannot connect to "
+                               f"127.0.0.1:1 (*); nothing will be appended to {recording}*"])
+    assert recording.read_bytes() == before
+
+    monkeypatch.delenv("DEAD_TARGET")
+    run(project, "--whiztap-record=new_episodes", "-k", "test_sensors").assert_outcomes(passed=1)
+    assert read_metadata(str(recording))["session_id"] == session  # appended to, not made again
+    first, new = load_exchanges(str(recording)).connections
+    assert [i.obs.item.raw for i in new.requests] == [b"rr1-24--0--0-ss1", b"rr1-14--0--0-ss1"]
+    assert recording.read_bytes() != before and len(first.requests) == 3
+
+    monkeypatch.setenv("NO_TARGET", "1")  # the recording now answers everything the client asks
+    run(project, "-k", "test_sensors", "--whiztap-fail-unused").assert_outcomes(passed=1)
 
 
 @pytest.mark.slow
