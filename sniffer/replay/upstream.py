@@ -135,7 +135,8 @@ class UpstreamLink:
                     if not isinstance(obs, Observation):
                         continue
                     if obs.item.kind is ItemKind.HANDSHAKE:
-                        self._handshake.append(obs)
+                        if len(self._handshake) < 2:  # greeting and verdict: a server's repeats are not kept
+                            self._handshake.append(obs)
                     elif obs.answers is not None and obs.answers.index == self._waiting:
                         self._answer = obs.item.raw
                 self._wake.set()
@@ -164,7 +165,10 @@ class UpstreamLink:
         self._tell(Closed(self.conn, self.episodes.clock(), "client", "the stub's client left"))
 
     def abort(self) -> None:
-        """Close at once (the stub is closing)."""
+        """Close at once (the stub is closing).  A request still waiting for
+        its answer would be appended without one: the run appends nothing."""
+        if self._waiting >= 0:
+            self.episodes.fail("the stub stopped while a forwarded request waited for its answer")
         if self._writer is not None:
             self._writer.transport.abort()
             self._writer = None
