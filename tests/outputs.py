@@ -33,7 +33,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from whiztap.analyzer.analysis.report.formats import FORMATS
-from whiztap.analyzer.recording.format import MITM_TOPICS, TOPICS
+from whiztap.analyzer.recording.format import MIRROR_TOPICS, MITM_TOPICS, TOPICS
 from whiztap.analyzer.protocol.text import plural
 from whiztap.analyzer.recording.sets import find_one
 from whiztap.sniffer.mitm import http_api
@@ -158,7 +158,10 @@ FILE_OUTPUTS: dict[str, Callable[[Path], str | bytes]] = {
 # The cheap ones, for a property's every example.
 QUICK_FILE_OUTPUTS = ("every topic", "cat --format text", "cat --format jsonl")
 # Topics whose messages carry the traffic's bytes or meaning: the format's own lists.
-TRAFFIC_TOPICS = tuple(t for t in (*TOPICS, *MITM_TOPICS) if t != "/camera")
+TRAFFIC_TOPICS = tuple(t for t in (*TOPICS, *MITM_TOPICS, *MIRROR_TOPICS) if t != "/camera")
+# ... of which only a recording made with --mirror has these: tests/test_mirror.py and
+# tests/test_mirror_pairing.py reach and read them (the middle's cases cannot)
+MIRROR_ONLY = tuple(MIRROR_TOPICS)
 
 # Commands of the ``whiztap.commands`` entry points that show no recorded or proxied bytes, or
 # whose output is read elsewhere, and why.

@@ -94,6 +94,9 @@ def _ring_settings(output: str, ring: Any, triggers: tuple[str, ...], after: flo
                    "slower than MS ms (or none within it), any fault of the proxy in the middle; repeatable.")
 @click.option("--after", type=_Checked("after", "parse_duration"), default=None, metavar="DURATION",
               help="With --ring, how long an incident goes on after its last trigger (default 5s).")
+@click.option("--mirror", type=Address(), default=None, metavar="HOST:PORT",
+              help="Shadow traffic: also send each client's bytes to this server, record its answers (never "
+                   "sent to the client) and what differs from the primary's (docs/recorder.md).")
 @foxglove_option
 @middle_options
 @limits_options
@@ -103,7 +106,7 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
                    analyze: bool, connect_timeout: float, when_behind: str, meta: tuple[str, ...],
                    foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
                    channel_map: str | None, assume_config: str | None, ring: Any, triggers: tuple[str, ...],
-                   after: float | None, **middle: Any) -> None:
+                   after: float | None, mirror: tuple[str, int] | None, **middle: Any) -> None:
     """Proxy clients to the server and record every byte into an MCAP file.
 
     Point the client at --listen instead of the robot: every byte is forwarded
@@ -134,7 +137,8 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
                               limits_assuming(limits_from(answer_timeout, max_frame, max_image), channel_map,
                                               assume_config),
                               overwrite=force, when_behind=when_behind, foxglove=foxglove,
-                              middle=middle_settings(**middle), meta=tuple(keys.items()), ring=flight)
+                              middle=middle_settings(**middle), meta=tuple(keys.items()), ring=flight,
+                              mirror=mirror)
     error = run(_record(settings))
     if error:
         fail(error)
@@ -169,6 +173,7 @@ async def _record(settings: RecordSettings) -> str | None:
         # even with -q: with port 0 this line is the only way to learn the port
         live = f", foxglove: {recording.foxglove_url}" if recording.foxglove_url else ""
         live += f", control: {recording.control_text}" if recording.control_text else ""
+        live += f", mirror: {recording.mirror.text}" if recording.mirror is not None else ""
         into = settings.output if settings.ring is None else \
             f"a {settings.ring.ring.describe()} ring, incidents into {incident_path(settings.output, 'N')}"
         say(f"recording {proxy.listen_text} -> {proxy.upstream_text} into {into}{live} (Ctrl-C to stop)")
@@ -179,6 +184,11 @@ async def _record(settings: RecordSettings) -> str | None:
     if summary is not None:
         for line in summary_lines(summary, "recorded"):
             echo(line)
+        if summary.get("mirror"):
+            from whiztap.sniffer.record.mirror import mirror_lines
+
+            for line in mirror_lines(summary["mirror"]):
+                echo(printable(line))
     return recording.error
 
 

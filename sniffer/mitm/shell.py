@@ -37,6 +37,12 @@ class Leg(Protocol):
     def sync(self) -> None: ...
 
 
+class Mirrored(Protocol):
+    """A mirror server's connection (sniffer/record/mirror.py's ``MirrorLeg``)."""
+
+    def feed(self, data: bytes) -> None: ...
+
+
 class ProxiedConnection(Protocol):
     """What the shell needs of the proxy's ``Connection`` (sniffer/record/proxy.py),
     which builds on this package, so this package does not import it."""
@@ -46,6 +52,8 @@ class ProxiedConnection(Protocol):
     closed_by: str | None
     detail: str
 
+    @property
+    def mirror(self) -> Mirrored | None: ...  # record --mirror: what the server gets also goes there
     @property
     def client(self) -> Leg: ...
     @property
@@ -124,6 +132,8 @@ class MiddleShell:
                     transport = leg.transport
                     if transport is not None and not transport.is_closing():
                         transport.write(command.data)
+                        if command.direction is C2S and connection.mirror is not None:  # record --mirror
+                            connection.mirror.feed(command.data)
                 case WakeAt():
                     self._schedule(command.t_ns)
                 case PassEof():

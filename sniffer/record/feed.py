@@ -36,6 +36,8 @@ read; for bytes the proxy in the middle delivered (``REC_DELIVERED``) those
 bytes (direction plus ``SECRET`` for a password's); for an intervention
 (``REC_INTERVENTION``) its fields as JSON, bytes in base64; for a line of
 the proxy's own for /log (``REC_NOTICE``, connection 0) its fields as JSON;
+for ``record --mirror`` (``REC_MIRROR``: direction 1) the mirror's answer, or
+(direction 0) its connection's event as JSON (``mirror.py``);
 for any other event (``REC_EVENT``) its ``/tcp/events`` message
 (``traffic.to_json``).  The recording's stop is its ``RecordingStopped`` event.
 """
@@ -72,7 +74,7 @@ from whiztap.analyzer.traffic import (
     to_json,
 )
 
-REC_DATA, REC_EVENT, REC_DELIVERED, REC_INTERVENTION, REC_NOTICE = 1, 2, 3, 4, 5
+REC_DATA, REC_EVENT, REC_DELIVERED, REC_INTERVENTION, REC_NOTICE, REC_MIRROR = 1, 2, 3, 4, 5, 6
 SECRET = 2  # added to a delivery's direction byte: the bytes are a password's
 _HEAD = struct.Struct("<BIBQI")
 C2S, S2C = Direction.C2S, Direction.S2C
@@ -146,6 +148,7 @@ class WriterProcess:
         self.on_file: Callable[[str], None] | None = None
         self.on_error: Callable[[str], None] | None = None
         self.on_warning: Callable[[str], None] | None = None  # something the writer worked around
+        self.on_mirror: Callable[[dict], None] | None = None  # --mirror: what the pairing found (mirror_record.py)
         self._behind = False
         self.error: str | None = None
         self.summary: dict | None = None
@@ -233,6 +236,19 @@ class WriterProcess:
         body = json.dumps(notice.as_dict()).encode()
         self._batch += _HEAD.pack(REC_NOTICE, 0, 0, notice.t_ns, len(body)) + body
         self._queued()
+
+    def mirror(self, conn: int, t_ns: int, read: bool, payload: bytes) -> None:
+        """The mirror's answer (``read``) or its connection's event (JSON), from ``mirror.py``: in
+        order with the primary's traffic, and counted in no connection's share (the mirror
+        drops itself rather than hold anyone up: see ``backlog``)."""
+        self._batch += _HEAD.pack(REC_MIRROR, conn, 1 if read else 0, t_ns, len(payload)) + payload
+        self._queued()
+
+    @property
+    def backlog(self) -> int:
+        """What the proxy holds for the writer: the batch and the pipe transport's buffer."""
+        pipe = self._pipe
+        return len(self._batch) + (pipe.get_write_buffer_size() if pipe is not None else 0)
 
     def fail(self, message: str) -> None:
         """The recording cannot go on (the first reason is the one kept)."""
@@ -364,6 +380,8 @@ class WriterProcess:
             self.on_warning(message["message"])
         elif kind == "summary":
             self.summary = message
+        elif kind == "mirror" and self.on_mirror is not None:
+            self.on_mirror(message)
         elif kind == "verdict":
             self.verdict = {k: v for k, v in message.items() if k != "type"}
 

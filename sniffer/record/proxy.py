@@ -49,6 +49,7 @@ from whiztap.sniffer.record.consumers import Consumer
 if TYPE_CHECKING:
     from whiztap.sniffer.mitm.controller import Controller
     from whiztap.sniffer.mitm.shell import MiddleShell
+    from whiztap.sniffer.record.mirror import MirrorLeg
 
 C2S, S2C = Direction.C2S, Direction.S2C
 TRANSPORT_HIGH_WATER = 256 << 10
@@ -135,6 +136,8 @@ class _Leg(asyncio.Protocol):
             self.early.append(data)  # the upstream is not connected yet
         self.received += len(data)
         proxy.receive(Data(conn.id, self.direction, t, data))
+        if conn.mirror is not None and self.direction is C2S:  # --mirror: the same bytes, never awaited
+            conn.mirror.feed(data)
         if not self.may_read():  # whatever pause was missed, this read is the last
             self._pause()
 
@@ -173,6 +176,7 @@ class Connection:
         self.client_addr = "?"
         self.held = False  # by the recorder: see RecordingProxy.hold
         self.middle: MiddleShell | None = None  # when the proxy stands in the middle (sniffer/mitm)
+        self.mirror: MirrorLeg | None = None  # record --mirror: the client's bytes also go there (mirror.py)
         self.closed_by: str | None = None
         self.detail = ""
         self.upstream_failed = False  # the upstream could not be reached: the client was reset
@@ -254,6 +258,8 @@ class Connection:
     def pass_eof(self, leg: _Leg) -> None:
         """Pass ``leg``'s FIN on to the other side (both done sending: close)."""
         peer = leg.peer
+        if leg is self.client and self.mirror is not None:  # as the primary gets it, or will once connected
+            self.mirror.client_eof()
         if peer.lost or peer.transport is None:
             return  # gone, or still connecting (which passes the FIN on)
         middle = self.middle

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from whiztap.sniffer.mitm.control_endpoint import Endpoint
     from whiztap.sniffer.mitm.control_server import ControlServer
     from whiztap.sniffer.mitm.controller import Controller
+    from whiztap.sniffer.record.mirror import Mirror
     from whiztap.sniffer.record.trigger import RingSettings
 
 
@@ -74,6 +75,7 @@ class RecordSettings:
     middle: MiddleSettings = MiddleSettings()
     # the user's own metadata keys (--meta KEY=VALUE, already checked by user_metadata), for fleet reports
     meta: tuple[tuple[str, str], ...] = ()
+    mirror: tuple[str, int] | None = None  # --mirror HOST:PORT: shadow traffic (sniffer/record/mirror.py)
     ring: RingSettings | None = None  # --ring: a window and an incident file per trigger (sniffer/record/ring.py)
 
 
@@ -102,6 +104,7 @@ class Recording:
         self.writer: WriterProcess | None = None
         self.proxy: RecordingProxy | None = None
         self.summary: dict | None = None
+        self.mirror: Mirror | None = None  # with settings.mirror, once started
 
     @property
     def port(self) -> int:
@@ -163,6 +166,8 @@ class Recording:
         if self.controller is not None:  # GET /state's verdict: the writer's, as analyze will judge the file
             self.controller.verdict = lambda: writer.verdict
             self.controller.log = lambda name, line, t_ns: writer.notice(Notice(t_ns, name, line))  # on /log
+        if s.mirror is not None:
+            self._start_mirror(config, writer)
         self.consumers.add(writer)
         for consumer in self._extra:
             self.consumers.add(consumer)
@@ -175,6 +180,17 @@ class Recording:
             raise
         await proxy.serve()
 
+    def _start_mirror(self, config: dict, writer: WriterProcess) -> None:
+        """--mirror: the writer pairs (``config["mirror"]``), the proxy feeds the mirror."""
+        from whiztap.sniffer.nettext import show_address
+        from whiztap.sniffer.record.mirror import Mirror
+
+        s, proxy = self.settings, self.proxy
+        assert s.mirror is not None and proxy is not None  # asked, and started
+        config["mirror"] = config["metadata"]["mirror"] = show_address(*s.mirror)
+        self.mirror = Mirror(*s.mirror, s.connect_timeout, proxy.clock, writer, self.warn)
+        writer.on_mirror = self.mirror.view.update
+
     async def stop(self, detail: str = "recording stopped") -> dict | None:
         """Close every connection, finish the file; the writer's summary."""
         if self._control is not None:
@@ -183,8 +199,12 @@ class Recording:
         if proxy is None or writer is None:  # it never started: no file
             return None
         await proxy.close(detail)
+        if self.mirror is not None:
+            self.mirror.close()
         quiet = self.controller.end() if self.controller is not None else []  # faults that chose no frame: said
         self.summary = await writer.stop(proxy.clock(), detail)
+        if self.summary is not None and self.mirror is not None:  # what the pairing found, in the end
+            self.summary["mirror"] = self.mirror.view.final
         if self.summary is not None and quiet:
             self.summary["quiet_faults"] = [f"{fault.name} ({fault.spec.text})" for fault in quiet]
         return self.summary
@@ -233,8 +253,12 @@ class Recording:
 
     def _opened(self, conn: Connection) -> None:
         self.echo(f"#{conn.id} opened from {conn.client_addr}")
+        if self.mirror is not None:
+            conn.mirror = self.mirror.open(conn.id)
 
     def _closed(self, conn: Connection) -> None:
+        if self.mirror is not None:
+            self.mirror.client_closed(conn.id)
         seconds = (conn.proxy.clock() - conn.opened_ns) / 1e9
         if conn.upstream_failed:
             self.echo(f"#{conn.id} reset after {seconds:.2f} s: {conn.detail}; the client's connection was reset "

@@ -39,6 +39,7 @@ from whiztap.sniffer.record.feed import (
     REC_DATA,
     REC_DELIVERED,
     REC_INTERVENTION,
+    REC_MIRROR,
     REC_NOTICE,
     SECRET,
     TICK_S,
@@ -50,6 +51,7 @@ if TYPE_CHECKING:
     from whiztap.analyzer.protocol.observations import Observation
     from whiztap.analyzer.protocol.rules import Violation
     from whiztap.sniffer.record.recorder import Recorder
+    from whiztap.sniffer.record.mirror_record import MirrorRecorder
     from whiztap.sniffer.record.writer import RecordingFile
 
 VERDICT_S = 0.25  # the verdict is reported at most this often
@@ -83,7 +85,7 @@ def _violation_report(conn: int, t_ns: int, violation: Violation, about: Observa
     _say({"type": "violation", **message})
 
 
-def _apply(recorder: Recorder, buf: bytearray) -> RecordingStopped | None:
+def _apply(recorder: Recorder, buf: bytearray, mirror: MirrorRecorder | None = None) -> RecordingStopped | None:
     """Hot loop (once per read recorded): turn each whole record at the start of
     ``buf`` back into its traffic event for the recorder, and remove it; the
     stop event, if one came (nothing after it is read)."""
@@ -110,6 +112,10 @@ def _apply(recorder: Recorder, buf: bytearray) -> RecordingStopped | None:
                 continue
             if kind == REC_NOTICE:
                 receive(Notice(**json.loads(payload)))
+                continue
+            if kind == REC_MIRROR:  # record --mirror (mirror_record.py)
+                if mirror is not None:
+                    mirror.receive(conn, bool(direction), t, payload)
                 continue
             event = from_json(json.loads(payload))
             if type(event) is RecordingStopped:
@@ -179,6 +185,7 @@ def _recording_file(config: dict[str, Any]) -> tuple[RecordingFile, dict[str, st
 
 def _run(config: dict[str, Any]) -> int:
     from whiztap.analyzer.analysis.throughput import tune_gc
+    from whiztap.sniffer.record.mirror_record import mirror_recorder
     from whiztap.sniffer.record.recorder import Recorder
     from whiztap.sniffer.record.writer import RecordingWriteError
 
@@ -200,6 +207,7 @@ def _run(config: dict[str, Any]) -> int:
                         checksum_rule=config["checksum_rule"], limits=Limits.from_dict(config.get("limits", {})),
                         on_violation=_violation_report if config.get("analyze") else None,
                         middle=config["metadata"].get("middle") == "yes")
+    mirror = mirror_recorder(recorder, file, config, _say)  # --mirror: None without
     reported = 0
     verdict = _VerdictReports(recorder)
     try:
@@ -213,7 +221,7 @@ def _run(config: dict[str, Any]) -> int:
                 if not chunk:
                     break
                 buf += chunk
-                stop = _apply(recorder, buf)
+                stop = _apply(recorder, buf, mirror)
             recorder.tick(time.time_ns())
             verdict.report(time.monotonic())
             for path in file.finished[reported:]:
@@ -221,6 +229,8 @@ def _run(config: dict[str, Any]) -> int:
             reported = len(file.finished)
         if stop is None:  # no stop record: the proxy is gone, or SIGTERM came
             stop = RecordingStopped(time.time_ns(), detail="writer terminated" if stop_requested else "proxy gone")
+        if mirror is not None:  # every comparison ends before the file does
+            mirror.finish(stop.t_ns)
         summary = recorder.stop(stop.t_ns, stop.detail)
     except RecordingWriteError as e:
         _say({"type": "error", "message": str(e)})
