@@ -22,7 +22,7 @@ from whiztap.sniffer.sim.simulator import Simulator
 
 from tests.outputs import FILE_OUTPUTS, MIRROR_ONLY, QUICK_FILE_OUTPUTS, SECRET, assert_no_leak
 from tests.record_support import LOCAL, WAIT, EchoServer, closed_port, read_all, recording
-from tests.replay_support import FROZEN_NS, client_session, simulator, until_closed
+from tests.replay_support import FROZEN_NS, PASSWORD, client_session, simulator, until_closed
 
 
 async def _recorded(path, primary_seed: int, mirror_port_or_seed, session=client_session, **options):
@@ -206,3 +206,37 @@ async def test_the_password_sent_to_both_servers_shows_nowhere(tmp_path):
     for name in QUICK_FILE_OUTPUTS:
         assert_no_leak(name, FILE_OUTPUTS[name](path))
     assert_no_leak("record's lines", "\n".join(rec.lines + mirror_lines(final)))
+
+
+# -- the live TUI ------------------------------------------------------------------------------------
+
+
+async def test_the_live_tui_shows_how_many_differences_and_the_latest(tmp_path):
+    """``whiztap tui --upstream --mirror``: the status line counts the lying mirror's
+    differences as the client's exchanges are judged, and names the latest."""
+    from whiztap.sniffer.record.record_run import RecordSettings
+    from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.data.sources import LiveSource, ProxyRig
+
+    from tests.tui_support import SIZE, until
+
+    async with simulator(1) as primary, simulator(2) as shadow:
+        settings = RecordSettings((LOCAL, 0), (LOCAL, primary.port), str(tmp_path / "live.mcap"), quiet=True,
+                                  mirror=(LOCAL, shadow.port))
+        app = WhiztapApp(LiveSource(ProxyRig(settings), "live"))
+        async with app.run_test(size=SIZE) as pilot:
+            source = app.source
+            await until(pilot, lambda: source.recording is not None and source.recording.proxy is not None, "proxy")
+            async with await Client.connect(LOCAL, source.recording.proxy.port, password=PASSWORD) as client:
+                await client.fetch_configuration()
+                await client.sensor(12)
+                await client.sensor(13)
+            view = source.recording.mirror.view
+            await until(pilot, lambda: view.differences >= 2, "the mirror's differences")
+            app.refresh_summaries()
+            await pilot.pause()
+            status = str(app.status.content)
+            assert f"mirror: {view.differences} differences" in status, status
+            assert "latest #1 Sensor Request #" in status, status
+            await pilot.press("q")  # finishes the recording first
+            await until(pilot, lambda: not app.is_running, "the app to quit")

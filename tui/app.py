@@ -259,6 +259,9 @@ class WhiztapApp(App):
             parts.append(f"loading {progress:.0%}")
         if isinstance(self.source, LiveSource) and self.lags:
             parts.append(f"frames shown within {self.lags[-1] / 1e6:.0f} ms of arrival")
+        mirror = self.source.recording.mirror if isinstance(self.source, LiveSource) and self.source.recording else None
+        if mirror is not None:  # record --mirror: how the mirror's answers compare, and the latest difference
+            parts.append(mirror.view.text() + (f"; latest {mirror.view.latest[-1]}" if mirror.view.latest else ""))
         view = frames.view
         if not view.all:
             where = "" if view.complete else f" (filtering {view.judged / max(store.count, 1):.0%})"

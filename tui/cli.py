@@ -147,13 +147,15 @@ def _command_name() -> str:
               help="Live: the recording to write [default: whiztap-DATE-TIME.mcap].")
 @click.option("--keep-secrets", is_flag=True, help="Live: record and show the password as sent.")
 @click.option("--force", is_flag=True, help="Live: write over a recording of the same name (never over an input).")
+@click.option("--mirror", type=Address(), metavar="HOST:PORT", default=None,
+              help="Live: also send each client's bytes to this server and show where its answers differ.")
 @checksum_rule_option("Set Configuration checksum rule (see 'whiztap rules').")
 @foxglove_option
 @middle_options
 @limits_options
 @assumed_map_options
 def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] | None, listen: tuple[str, int],
-                output: str | None, keep_secrets: bool, force: bool, checksum_rule: str,
+                output: str | None, keep_secrets: bool, force: bool, mirror: tuple[str, int] | None, checksum_rule: str,
                 foxglove: tuple[str, int] | None, answer_timeout: float, max_frame: int, max_image: int,
                 channel_map: str | None, assume_config: str | None, **middle: Any) -> None:
     """Frames decoded and checked as they pass: a recording, live traffic, or a
@@ -173,8 +175,8 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
     """
     if sum(x is not None for x in (path, follow, upstream)) != 1:
         fail("give one of: a recording FILE.mcap, --follow FILE.mcap.part, or --upstream HOST:PORT")
-    if foxglove is not None and upstream is None:
-        fail("--foxglove serves live traffic: it goes with --upstream HOST:PORT")
+    if (foxglove is not None or mirror is not None) and upstream is None:
+        fail("--foxglove and --mirror are for live traffic: they go with --upstream HOST:PORT")
     if middle_given(**middle) and upstream is None:
         fail("--fault, --faults, --control, --script, --seed and --hold-timeout drive the live proxy: "
              "they go with --upstream HOST:PORT")
@@ -197,7 +199,7 @@ def tui_command(path: str | None, follow: str | None, upstream: tuple[str, int] 
         check_recording_output(output, split=False, force=force)
         settings = RecordSettings(listen, upstream, output,
                                   keep_secrets=keep_secrets, checksum_rule=rule, quiet=True, limits=limits,
-                                  foxglove=foxglove, middle=middle_settings(**middle, always=True))
+                                  foxglove=foxglove, middle=middle_settings(**middle, always=True), mirror=mirror)
         _announce_faults(settings.middle)
         source = LiveSource(ProxyRig(settings), "live", redact_passwords=not keep_secrets)
     _need_terminal("whiztap tui")

@@ -78,7 +78,7 @@ class MirrorView:
         head = f"mirror: {self.differences:,} difference{'s' if self.differences != 1 else ''}"
         if self.by_kind:
             head += " (" + ", ".join(f"{n:,} {kind}" for kind, n in sorted(self.by_kind.items())) + ")"
-        return head + (f"; connections {ended}" if ended else "")
+        return head + (f"; its connections: {ended}" if ended else "")
 
 
 class MirrorLeg(asyncio.Protocol):

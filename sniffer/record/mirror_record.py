@@ -60,7 +60,7 @@ class MirrorEvent:
 def difference_line(d: Difference) -> str:
     """A difference in one line, for the terminal and the TUI."""
     fault = SIDES.get(d.at_fault, d.at_fault)
-    blame = "" if fault == "neither" else f" [{fault} breaks the spec]"
+    blame = "" if fault == "neither" else f" [{fault} {'break' if fault == 'both' else 'breaks'} the spec]"
     return f"#{d.connection} {d.exchange}: {d.what}: primary {d.a or '-'} | mirror {d.b or '-'}{blame}"
 
 
