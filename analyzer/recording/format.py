@@ -152,7 +152,8 @@ SCHEMAS: dict[str, dict] = {
                   "description": "missing: the primary has it and the mirror not; extra: the other way"},
          "exchange": _STR, "what": _STR, "primary": _STR, "mirror": _STR,
          "at_fault": {"type": "string", "enum": ["primary", "mirror", "both", "neither"],
-                      "description": "which side's conversation breaks the spec here"},
+                      "description": "which server's conversation breaks the spec here (the client's "
+                                     "own breaches are in both alike)"},
          "rules": {"type": "array", "items": _STR, "description": "SIDE RULE: the rules broken, and by whom"}},
         ("conn", "t_ns", "kind", "exchange", "what", "primary", "mirror", "at_fault")),
     "whiztap.SensorValue": _object(

@@ -35,6 +35,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import Protocol, cast
 
+from whiztap.analyzer.protocol.text import plural
 from whiztap.sniffer.nettext import reason, show_address
 
 MIRROR_BUFFER = 1 << 20  # client bytes a mirror connection may have waiting for the mirror (1 MiB)
@@ -75,7 +76,7 @@ class MirrorView:
     def text(self) -> str:
         """One line: how the mirror compares so far."""
         ended = ", ".join(f"{n} {what}" for what, n in sorted(self.events.items()) if what != "connected")
-        head = f"mirror: {self.differences:,} difference{'s' if self.differences != 1 else ''}"
+        head = f"mirror: {plural(self.differences, 'difference')}"
         if self.by_kind:
             head += " (" + ", ".join(f"{n:,} {kind}" for kind, n in sorted(self.by_kind.items())) + ")"
         return head + (f"; its connections: {ended}" if ended else "")
@@ -254,15 +255,14 @@ def mirror_lines(final: dict) -> list[str]:
     kinds = ", ".join(f"{n:,} {kind}" for kind, n in sorted(final.get("by_kind", {}).items()))
     events = final.get("events", {})
     ended = ", ".join(f"{events[what]:,} {what}" for what in ("failed", "dropped") if events.get(what))
-    lines = [f"mirror {final.get('server', '?')}: {final.get('exchanges', 0):,} exchanges compared over "
-             f"{final.get('connections', 0):,} connections: "
-             + (f"{total:,} differences ({kinds})" if total else "no differences")
+    lines = [f"mirror {final.get('server', '?')}: {plural(final.get('exchanges', 0), 'exchange')} compared over "
+             f"{plural(final.get('connections', 0), 'connection')}: "
+             + (f"{plural(total, 'difference')} ({kinds})" if total else "no differences")
              + (f"; {final['not_compared']:,} requests not compared (the mirror had ended)"
                 if final.get("not_compared") else "")
              + (f"; mirror connections {ended}" if ended else "")]
     first = final.get("first", [])
     lines += [f"  {line}" for line in first]
     if total > len(first):
-        lines.append(f"  ... and {total - len(first):,} more on /mirror/differences ('whiztap cat' does not show them; "
-                     "the mcap tools do)")
+        lines.append(f"  ... and {total - len(first):,} more on /mirror/differences")
     return lines

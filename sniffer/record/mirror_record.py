@@ -57,9 +57,16 @@ class MirrorEvent:
     fields: dict[str, Any]
 
 
+def at_fault(d: Difference) -> str:
+    """Which server's conversation breaks the spec here: "primary", "mirror", "both" or "neither".
+    The client's own breaches are in both conversations alike: they tell the servers apart in nothing."""
+    who = {SIDES[b.recording] for b in d.breaches if b.side == "server"}
+    return "both" if len(who) == 2 else (who.pop() if who else "neither")
+
+
 def difference_line(d: Difference) -> str:
     """A difference in one line, for the terminal and the TUI."""
-    fault = SIDES.get(d.at_fault, d.at_fault)
+    fault = at_fault(d)
     blame = "" if fault == "neither" else f" [{fault} {'break' if fault == 'both' else 'breaks'} the spec]"
     return f"#{d.connection} {d.exchange}: {d.what}: primary {d.a or '-'} | mirror {d.b or '-'}{blame}"
 
@@ -67,7 +74,7 @@ def difference_line(d: Difference) -> str:
 def difference_message(d: Difference, t_ns: int) -> dict[str, Any]:
     """A difference as its ``/mirror/differences`` message."""
     return {"conn": d.connection, "t_ns": t_ns, "kind": d.kind.value, "exchange": d.exchange, "what": d.what,
-            "primary": d.a, "mirror": d.b, "at_fault": SIDES.get(d.at_fault, d.at_fault),
+            "primary": d.a, "mirror": d.b, "at_fault": at_fault(d),
             "rules": [f"{SIDES[b.recording]} {b.side} {b.rule_id}".replace("  ", " ") for b in d.breaches]}
 
 
