@@ -152,3 +152,34 @@ def test_every_buffer_of_the_mirror_is_registered_and_bounded(tmp_path):
     for side in (pair.primary, pair.mirror):
         assert len(side.waiting) <= MAX_WAITING and len(side.asked) <= MAX_WAITING + 1
     assert pairing.tally.result.exchanges >= 100
+
+
+def test_the_mirrors_answers_waiting_behind_a_password_are_bounded(tmp_path, monkeypatch):
+    """While the client's first line is undecided everything waits behind it, the mirror's
+    answers too; past ``MIRROR_QUEUE_CAP`` its connection is dropped, recorded, and the rest
+    of its answers left out (here the cap is 150 bytes, and the mirror sends three 100)."""
+    import whiztap.sniffer.record.mirror_record as mirror_record
+
+    monkeypatch.setattr(mirror_record, "MIRROR_QUEUE_CAP", 150)
+    path = tmp_path / "m.mcap"
+    file = RecordingFile(str(path), metadata_record(source="test", listen="", upstream="", mirror="m:1"))
+    recorder = Recorder(file)
+    mirror = mirror_recorder(recorder, file, {"mirror": "m:1", "checksum_rule": "dev-sum"}, lambda said: None)
+    assert mirror is not None
+    recorder.start(T0)
+    recorder.receive(Opened(1, T0 + 1, "127.0.0.1:40000", "127.0.0.1:5000"))
+    mirror.receive(1, False, T0 + 2, json.dumps({"event": "connected", "detail": ""}).encode())
+    recorder.receive(Data(1, C2S, T0 + 3, SECRET))  # undecided: the server has not spoken
+    for n in range(3):
+        mirror.receive(1, True, T0 + 4 + n, b"x" * 100)
+    recorder.receive(Data(1, S2C, T0 + 10, b"sendchkpass"))
+    recorder.receive(Closed(1, T0 + 11, "client"))
+    mirror.receive(1, False, T0 + 12, json.dumps({"event": "closed", "detail": "closed by the mirror"}).encode())
+    mirror.finish(T0 + 13)
+    recorder.stop(T0 + 14)
+    topics = read_all(str(path))
+    assert [len(base64.b64decode(m["data"])) for m in topics["/mirror/tcp/s2c"]] == [100]
+    events = topics["/mirror/tcp/events"]
+    assert [e["event"] for e in events] == ["connected", "dropped", "closed"], events
+    assert "waited to be recorded" in events[1]["detail"] and mirror.waiting == 0 and not mirror.offsets
+    assert_no_leak("the mirror's topics", json.dumps(topics))

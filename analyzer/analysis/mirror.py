@@ -109,9 +109,11 @@ class _Side:
         """The oldest request, named as ``diff`` names it."""
         request = self.waiting.popleft()
         self.asked.pop(request.item.obs.index, request)
-        title, channel = exchange_key(request.item)
-        self.seen[(title, channel)] += 1
-        return (title, channel, self.seen[(title, channel)]), request.item
+        key = exchange_key(request.item)
+        if key not in self.seen and len(self.seen) >= MAX_WAITING:  # a client's endless channel numbers:
+            return (*key, 0), request.item  # past the bound, named without a position (both sides alike)
+        self.seen[key] += 1
+        return (*key, self.seen[key]), request.item
 
     def close(self, t_ns: int) -> None:
         self.take(self.session.close(max(t_ns, self.now)))

@@ -98,7 +98,10 @@ class MirrorRecorder:
     def receive(self, conn: int, read: bool, t_ns: int, payload: bytes) -> None:
         """One record of the pipe's ``REC_MIRROR`` kind: an answer (``read``) or an event (JSON)."""
         if not read:
-            self.receive_event(MirrorEvent(conn, t_ns, json.loads(payload)))
+            event = MirrorEvent(conn, t_ns, json.loads(payload))
+            if event.fields.get("event") != "connected":  # the proxy's last word on this connection
+                self.cut_off.discard(conn)
+            self.receive_event(event)
         elif conn not in self.cut_off:
             if self.waiting + len(payload) > MIRROR_QUEUE_CAP:
                 self.cut_off.add(conn)
@@ -136,6 +139,7 @@ class MirrorRecorder:
             if event == "connected":
                 self.pairing.mirror_started(e.conn)
             else:
+                self.offsets.pop(e.conn, None)
                 self._found(self.pairing.mirror_ended(e.conn, e.t_ns), e.t_ns)
         return work
 
