@@ -18,6 +18,7 @@ connection are left out, and that is recorded as the mirror being dropped.
 from __future__ import annotations
 
 import json
+import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,6 +36,7 @@ if TYPE_CHECKING:
     from whiztap.sniffer.record.writer import RecordingFile
 
 MIRROR_QUEUE_CAP = 8 << 20  # the mirror's bytes waiting to be written (behind an undecided password)
+STATUS_S = 0.2  # the proxy hears of new differences at most this often (a JSON line it parses, off its path)
 FIRST = 5  # differences the closing summary shows in full
 SIDES = {"A": "primary", "B": "mirror"}
 
@@ -93,6 +95,8 @@ class MirrorRecorder:
         self.cut_off: set[int] = set()  # connections whose mirror answers are left out (the queue was full)
         self.events: Counter[str] = Counter()
         self.first: list[str] = []
+        self.latest: list[str] = []  # differences not yet told to the proxy (the last FIRST of them)
+        self.told_at = 0.0
         recorder.extend({MirrorRead: self._input_read, MirrorEvent: self._input_event}, self._primary)
 
     def receive(self, conn: int, read: bool, t_ns: int, payload: bytes) -> None:
@@ -167,8 +171,17 @@ class MirrorRecorder:
         room = FIRST - len(self.first)
         if room > 0:
             self.first += lines[:room]
-        result = self.pairing.tally.result
-        self.say({"type": "mirror", "total": result.total, "by_kind": result.counts(), "latest": lines[-5:]})
+        self.latest = (self.latest + lines)[-FIRST:]
+        self.tick(time.monotonic())
+
+    def tick(self, now: float) -> None:
+        """Tell the proxy what the pairing found since it last heard, at most every ``STATUS_S``
+        (called often by the writer's loop, and on each new difference)."""
+        if self.latest and now - self.told_at >= STATUS_S:
+            self.told_at = now
+            result = self.pairing.tally.result
+            self.say({"type": "mirror", "total": result.total, "by_kind": result.counts(), "latest": self.latest})
+            self.latest = []
 
 
 def mirror_recorder(recorder: Recorder, file: RecordingFile, config: dict[str, Any],

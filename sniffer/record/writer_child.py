@@ -224,6 +224,8 @@ def _run(config: dict[str, Any]) -> int:
                 stop = _apply(recorder, buf, mirror)
             recorder.tick(time.time_ns())
             verdict.report(time.monotonic())
+            if mirror is not None:  # what the pairing found, told to the proxy now and then
+                mirror.tick(time.monotonic())
             for path in file.finished[reported:]:
                 _say({"type": "file", "path": path})
             reported = len(file.finished)
