@@ -1,0 +1,223 @@
+"""``record --ring``: the flight recorder (issue 29, item 5).
+
+Most tests drive the real ``Recorder`` into the real ``RingFile`` with traffic
+events at times of their own (no clock, no sleep), and read the incident
+files back with the real readers (the mcap library, ``analyze``, ``replay
+--dry-run``, the TUI's file source); those that need the proxy (a fault of
+the proxy in the middle, the summary the command prints) run it in this
+process in front of a scripted server.  The memory tests and the registry of
+the ring's buffers are in ``test_ring_memory.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from whiztap.analyzer.mitm.spec import parse_fault
+from whiztap.analyzer.protocol.examples import CONFIG, VPN_OPEN, C, S
+from whiztap.analyzer.protocol.handshake import READYTOGO, SENDCHKPASS
+from whiztap.analyzer.traffic import Data, Opened, TrafficEvent
+from whiztap.sniffer.record.record_run import MiddleSettings
+from whiztap.sniffer.record.recorder import Recorder
+from whiztap.sniffer.record.ring import RingFile
+from whiztap.sniffer.record.summary import summary_lines
+from whiztap.sniffer.record.trigger import Ring, RingSettings, parse_duration, parse_ring, parse_trigger
+
+from tests.cli_support import run_cli
+from tests.outputs import SECRET, assert_no_leak, replay_dry_run, topics_text, tui_store_text
+from tests.record_support import StepServer, play_client, read_all, record_dialogue, recording
+
+T0 = 1_700_000_000_000_000_000
+MS = 1_000_000
+ASK, ANSWER = b"rr1-3--0--0-ss1", b"cr1-3--10--0-ss1"  # a Sensor Request on channel 3 (a sensor in CONFIG), its answer
+BAD = b"rr1-31--5--0-ss1"  # channel 31: PW-RANGE-CHANNEL, an error
+Step = TrafficEvent | int  # an event, or a time the recorder is ticked at
+SMALL = Ring(200 * MS, 1 << 20)
+
+
+def winsock_opening(conn: int, t: int) -> list[Step]:
+    """A connection's opening, a ms apart: handshake with the password, then the configuration."""
+    steps = [(S, SENDCHKPASS + b"\r\n"), (C, SECRET + b"\r\n"), (S, READYTOGO + b"\r\n"), *VPN_OPEN]
+    return [Opened(conn, t, "127.0.0.1:40000", "127.0.0.1:5000"),
+            *(Data(conn, d, t + i * MS, data) for i, (d, data) in enumerate(steps, start=1))]
+
+
+def asked_and_answered(conn: int, start: int, ms: int) -> list[Step]:
+    """A request and its answer every ms for ``ms`` ms from ``start``."""
+    out: list[Step] = []
+    for i in range(ms):
+        t = start + i * MS
+        out += [Data(conn, C, t, ASK), Data(conn, S, t, ANSWER)]
+    return out
+
+
+def flight(path: Path, steps: list[Step], triggers: list[str], ring: Ring = SMALL,
+           after_ms: int = 100) -> tuple[dict, RingFile]:
+    """The steps through the real Recorder into a RingFile, ticked after each; the summary."""
+    file = RingFile(str(path), {"session_id": "ring"}, ring, triggers, after_ms * MS)
+    recorder = Recorder(file)
+    recorder.start(T0)
+    t = T0
+    for step in steps:
+        if isinstance(step, int):
+            t = step
+        else:
+            recorder.receive(step)
+            t = step.t_ns
+        recorder.tick(t)
+    summary = recorder.stop(t + MS).as_dict()
+    return {**summary, "size": sum(Path(p).stat().st_size for p in summary["files"]), "ring": file.report()}, file
+
+
+def reads(path: Path) -> list[dict]:
+    return read_all(str(path))["/tcp/reads"]
+
+
+def analysed(path: Path) -> dict:
+    ran = run_cli("analyze", str(path), "--format", "json", "--allow-empty")
+    assert ran.returncode in (0, 1), ran.stderr
+    return json.loads(ran.stdout)
+
+
+def test_an_incident_by_rule_holds_the_window_around_it_and_the_opening_before_it(tmp_path):
+    """A 200 ms ring, 100 ms after: the incident holds the connection's
+    opening (handshake and configuration, long out of the window), then only
+    the 200 ms before the unsolicited answer and the 100 ms after; every
+    reader opens it, the only violation in it is the trigger's, and the
+    password shows in none of them."""
+    trigger_t = T0 + 600 * MS
+    steps = [*winsock_opening(1, T0), *asked_and_answered(1, T0 + 10 * MS, 1000)]
+    at = next(i for i, s in enumerate(steps) if isinstance(s, Data) and s.t_ns == trigger_t)
+    steps.insert(at, Data(1, S, trigger_t, ANSWER))  # answers nothing
+    summary, _ = flight(tmp_path / "rec.mcap", steps, ["PW-PAIR-UNSOLICITED"])
+    incident = tmp_path / "rec-incident-1.mcap"
+    assert summary["files"] == [str(incident)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [incident.name]
+    times = [r["t_ns"] for r in reads(incident)]
+    opening = [t for t in times if t < T0 + 10 * MS]
+    window = [t for t in times if t >= T0 + 10 * MS]
+    assert len(opening) == 5 and reads(incident)[0]["offset"] == 0  # from the server's first word on
+    assert min(window) >= trigger_t - 200 * MS and max(window) <= trigger_t + 101 * MS
+    assert len(window) > 500  # the window and what came after, whole
+    report = analysed(incident)
+    assert [v["rule_id"] for v in report["violations"]] == ["PW-PAIR-UNSOLICITED"]
+    (conn,) = report["connections"]
+    assert conn["handshake"] == "readytogo" and conn["channel_map"]
+    metadata = read_all(str(incident))
+    assert metadata["/tcp/events"][-1]["event"] == "recording_stopped"
+    assert replay_dry_run(incident)
+    for name, read in {"every topic": topics_text, "the TUI": tui_store_text, "replay --dry-run": replay_dry_run,
+                       "analyze": lambda p: json.dumps(analysed(p))}.items():
+        assert_no_leak(f"{name} of an incident", read(incident))
+    assert "1 incident" in summary_lines(summary, "recorded")[0]
+
+
+def test_a_slow_answer_and_no_answer_each_begin_an_incident(tmp_path):
+    """latency>250: an answer 390 ms after its request, and later a request
+    never answered (the incident begins once 250 ms have passed without one,
+    and a 500 ms ring still holds the request)."""
+    steps: list[Step] = [Opened(1, T0, "c", "u"), Data(1, C, T0 + MS, VPN_OPEN[0][1]), Data(1, S, T0 + 2 * MS, CONFIG),
+                         Data(1, C, T0 + 10 * MS, ASK), Data(1, S, T0 + 400 * MS, ANSWER),
+                         Data(1, C, T0 + 2000 * MS, ASK), *range(T0 + 2000 * MS, T0 + 2600 * MS, 50 * MS)]
+    summary, _ = flight(tmp_path / "rec.mcap", steps, ["latency>250"], Ring(500 * MS, 1 << 20))
+    why = [i["trigger"] for i in summary["ring"]["incidents"]]
+    assert why == ["an answer after 390 ms on conn #1", "no answer within 250 ms on conn #1"]
+    assert [Path(p).name for p in summary["files"]] == ["rec-incident-1.mcap", "rec-incident-2.mcap"]
+    assert [r["t_ns"] for r in reads(tmp_path / "rec-incident-2.mcap")][-1] == T0 + 2000 * MS
+
+
+def test_triggers_while_an_incident_is_written_merge_into_it(tmp_path):
+    """Two errors 50 ms apart (100 ms after each): one file, which says it
+    took in a second trigger; an error 2 s later is an incident of its own,
+    and holds nothing the first one holds."""
+    steps = [*winsock_opening(1, T0), *asked_and_answered(1, T0 + 10 * MS, 3000)]
+    for ms in (2900, 1050, 1000):
+        at = next(i for i, s in enumerate(steps) if isinstance(s, Data) and s.t_ns == T0 + ms * MS)
+        steps.insert(at, Data(1, C, T0 + ms * MS, BAD))
+    summary, _ = flight(tmp_path / "rec.mcap", steps, ["severity:error"])
+    first, second = summary["ring"]["incidents"]
+    assert first["triggers"] == 2 and second["triggers"] == 1
+    assert "(and 1 trigger more while it was written)" in summary_lines(summary, "recorded")[1]
+    one, two = (reads(Path(p)) for p in summary["files"])
+    window_one = {(r["dir"], r["offset"]) for r in one if r["t_ns"] > T0 + 10 * MS}
+    assert not window_one & {(r["dir"], r["offset"]) for r in two if r["t_ns"] > T0 + 10 * MS}
+    assert max(r["t_ns"] for r in one) <= T0 + 1151 * MS
+    found = [v["rule_id"] for v in analysed(Path(summary["files"][0]))["violations"]]
+    assert sorted(found) == ["PW-CHANNEL-UNCONFIGURED"] * 2 + ["PW-RANGE-CHANNEL"] * 2  # each error, nothing else
+
+
+async def test_a_fault_begins_an_incident_and_a_stop_while_it_is_written_finishes_it(tmp_path):
+    """Through the real proxy in the middle: a dropped answer is an
+    intervention, which begins an incident; the recording stops long before
+    its 60 s after, and the file is complete (every reader opens it)."""
+    path = tmp_path / "rec.mcap"
+    ring = RingSettings(Ring(30_000 * MS, 1 << 20), ("fault",), 60.0)
+    ask = b"rr1-24--0--0-ss1"
+    await record_dialogue(path, [("recv", len(ask)), ("send", CONFIG), ("recv", len(ASK)), ("send", ANSWER)],
+                          [("send", ask), ("send", ASK), ("sleep", 0.1)], ring=ring,
+                          middle=MiddleSettings(faults=(parse_fault("drop dir:s2c kind:response"),)))
+    incident = tmp_path / "rec-incident-1.mcap"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [incident.name]
+    by_topic = read_all(str(incident))
+    assert [i["action"] for i in by_topic["/interventions"]] == ["drop"]
+    assert by_topic["/tcp/events"][0]["event"] == "recording_started"
+    assert analysed(incident)["connections"]
+    assert replay_dry_run(incident)
+
+
+async def test_no_trigger_no_file_and_the_summary_says_so(tmp_path):
+    path = tmp_path / "rec.mcap"
+    ring = RingSettings(Ring(30_000 * MS, 1 << 20), ("PW-PAIR-UNSOLICITED", "fault"), 5.0)
+    ask = b"rr1-24--0--0-ss1"
+    async with StepServer([("recv", len(ask)), ("send", CONFIG)]) as server:
+        async with recording(server.port, str(path), ring=ring) as rec:
+            await play_client(rec.proxy.port, [("send", ask), ("recv", len(CONFIG))])
+        summary = rec.summary
+    assert list(tmp_path.iterdir()) == []
+    assert summary is not None and summary["files"] == []
+    assert summary_lines(summary, "recorded")[0] == \
+        "recorded 1 connection through a 30 s (at most 1 MiB) ring: no incident, so no file written"
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (("--ring", "64M", "--trigger", "fault"), "--ring wants a duration (30s, 2m, 500ms) or a size in bytes"),
+    (("--ring", "30", "--trigger", "fault"), "--ring wants a duration"),
+    (("--ring", "1kB", "--trigger", "fault"), "too small a ring"),
+    (("--ring", "30s",), "--ring needs at least one --trigger"),
+    (("--ring", "30s", "--trigger", "PW-PAIR-UNSOLICTED"), "did you mean PW-PAIR-UNSOLICITED?"),
+    (("--ring", "30s", "--trigger", "severity:fatal"), "unknown severity 'fatal'"),
+    (("--ring", "30s", "--trigger", "latency>-3"), "--trigger wants a rule id"),
+    (("--ring", "30s", "--trigger", "fault", "--after", "5"), "--after wants a duration such as 30s"),
+    (("--trigger", "fault",), "--trigger and --after go with --ring"),
+    (("--ring", "30s", "--trigger", "fault", "--split-size", "10M"), "does not go with --split-size"),
+])
+def test_bad_ring_words_are_one_line_and_status_2(tmp_path, args, says):
+    """Refused before the proxy listens (a word taken by mistake would meet a port in use, and end too)."""
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        ran = run_cli("record", "--listen", taken.getsockname()[1], "--upstream", "127.0.0.1:1",
+                      "-o", tmp_path / "r.mcap", *args)
+    assert ran.returncode == 2 and says in ran.stderr and ran.stderr.count("\n") == 1, ran.stderr
+    assert "unexpected" not in ran.stderr and list(tmp_path.iterdir()) == []
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.text(max_size=24) | st.from_regex(r"\s*(latency\s*>\s*)?-?\d{0,4}(\.\d*)?\s*(ms|s|m|h|[kKmMgG]i?[bB]|B)?",
+                                            fullmatch=True))
+def test_any_ring_trigger_or_after_word_is_a_value_or_a_one_line_refusal(text):
+    """Words from outside: each parser gives a value, or a ValueError with what it wants."""
+    for parse in (parse_ring, parse_trigger, parse_duration):
+        try:
+            value = parse(text)
+        except ValueError as e:
+            assert "\n" not in str(e) and str(e)
+            continue
+        if parse is parse_ring:
+            assert value.max_bytes >= 64 << 10 and (value.duration_ns is None or value.duration_ns > 0)
+        if parse is parse_trigger:
+            assert parse_trigger(value) == value  # canonical
