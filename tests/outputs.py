@@ -168,7 +168,9 @@ MIRROR_ONLY = tuple(MIRROR_TOPICS)
 NOT_OUTPUTS = {
     "rules": "the rule table: no traffic",
     "decode": "decodes what the user types",
-    "record": "its terminal, file and Foxglove are LIVE_OUTPUTS; its file is read by FILE_OUTPUTS",
+    "record": "its terminal, file and Foxglove are LIVE_OUTPUTS; its file is read by FILE_OUTPUTS; --ring's "
+              "incident files are the recorder's own masked messages, read by FILE_OUTPUTS' readers in "
+              "tests/test_ring.py::test_an_incident_by_rule_holds_the_window_around_it_and_the_opening_before_it",
     "recover": "writes a recording, which FILE_OUTPUTS read",
     "capture": "writes a recording, which FILE_OUTPUTS read",
     "wireshark-dissector": "a Lua file: no traffic",
