@@ -46,7 +46,7 @@ class _Checked(click.ParamType):
         try:
             return getattr(trigger, self.parse)(value)
         except ValueError as e:
-            fail(f"--{param.name if param else self.name} {e}")
+            fail(f"--{self.name} {e}")
 
 
 def _ring_settings(output: str, ring: Any, triggers: tuple[str, ...], after: float | None, split: bool,

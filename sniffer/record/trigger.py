@@ -29,7 +29,7 @@ DURATION_RING_BYTES = 256 << 20  # what a ring given as a duration may hold at m
 MIN_RING_BYTES = 64 << 10  # below it, one connection's opening would not fit
 DEFAULT_AFTER_S = 5.0
 PENDING_KEPT = 100_000  # requests watched for latency> at once; past it the oldest is no longer watched
-_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(ms|s|m|h)\s*$", re.IGNORECASE)
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(ms|s|m|h)\s*$")  # lower case: 64M is no duration
 _DURATION_UNITS = {"ms": 1e-3, "s": 1.0, "m": 60.0, "h": 3600.0}
 _SIZE_WORD = re.compile(r"^\s*\d+(?:\.\d+)?\s*[kmgt]?i?b\s*$", re.IGNORECASE)  # a size says B: 64MB, 512kB, 1GiB
 _LATENCY = re.compile(r"^latency\s*>\s*(\d+(?:\.\d+)?)\s*(?:ms)?$", re.IGNORECASE)
@@ -75,7 +75,7 @@ def parse_duration(text: str) -> float:
     m = _DURATION.match(text)
     if m is None or float(m.group(1)) <= 0:
         raise ValueError(f"wants a duration such as 30s, 2m or 500ms, got {text!r}")
-    return float(m.group(1)) * _DURATION_UNITS[m.group(2).lower()]
+    return float(m.group(1)) * _DURATION_UNITS[m.group(2)]
 
 
 def parse_ring(text: str) -> Ring:
