@@ -17,30 +17,54 @@ import os
 import platform
 import statistics
 import tempfile
+import time
 from pathlib import Path
 
 from benchmarks.bench_proxy import RT_S, WHIZTAP, _free_port, _round_trips, _spawn, _stop, _wait_port
 
-ROUNDS = 3
+ROUNDS = 5
 TARGET_RATIO = 0.9
+TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def _through_record(sim_port: int, out: Path, *more: str) -> tuple[float, str]:
-    """Round trips/s through one ``whiztap record`` run, and what it said at the end."""
+def _cpu_s(pid: int) -> tuple[float, float]:
+    """CPU seconds (user + system) the proxy and its writer process have used."""
+    def one(p: int) -> float:
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return 0.0
+        return (int(fields[11]) + int(fields[12])) / TICKS
+
+    children = Path(f"/proc/{pid}/task/{pid}/children")
+    kids = [int(c) for c in children.read_text().split()] if children.exists() else []
+    return one(pid), sum(one(k) for k in kids)
+
+
+def _through_record(sim_port: int, out: Path, *more: str) -> tuple[float, float, float]:
+    """Round trips/s through one ``whiztap record`` run, and the CPU microseconds its proxy
+    and its writer spent per round trip meanwhile."""
     port = _free_port()
     rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
                   "-o", str(out), "--force", *more])
     _wait_port(port, rec)
+    before = _cpu_s(rec.pid)
+    start = time.perf_counter()
     rate = _round_trips(port, RT_S)
-    return rate, _stop(rec)
+    trips = rate * (time.perf_counter() - start)
+    after = _cpu_s(rec.pid)
+    _stop(rec)
+    return rate, (after[0] - before[0]) / trips * 1e6, (after[1] - before[1]) / trips * 1e6
 
 
-def comparison(primary: int, mirror: int, tmp: Path) -> dict[str, float]:
-    rates: dict[str, list[float]] = {"without": [], "with": []}
+def comparison(primary: int, mirror: int, tmp: Path) -> dict[str, tuple[float, float, float]]:
+    """Per run: the median round trips/s, and the proxy's and the writer's CPU µs per round trip."""
+    runs: dict[str, list[tuple[float, float, float]]] = {"without": [], "with": []}
     for _ in range(ROUNDS):
-        rates["without"].append(_through_record(primary, tmp / "plain.mcap")[0])
-        rates["with"].append(_through_record(primary, tmp / "mirror.mcap", "--mirror", f"127.0.0.1:{mirror}")[0])
-    return {name: statistics.median(values) for name, values in rates.items()}
+        runs["without"].append(_through_record(primary, tmp / "plain.mcap"))
+        runs["with"].append(_through_record(primary, tmp / "mirror.mcap", "--mirror", f"127.0.0.1:{mirror}"))
+    return {name: tuple(statistics.median(r[i] for r in values) for i in range(3))  # type: ignore[misc]
+            for name, values in runs.items()}
 
 
 def _mirror_summary(path: Path) -> str:
@@ -71,10 +95,12 @@ def main() -> None:
         finally:
             for server in servers:
                 _stop(server)
-        print(f"round trips/s through whiztap record, no mirror:   {rates['without']:9,.0f}")
-        print(f"round trips/s through whiztap record, with mirror: {rates['with']:9,.0f}   "
-              f"({_mirror_summary(tmp / 'mirror.mcap')})")
-        print(f"RATIO round trips with --mirror / without: {rates['with'] / rates['without']:.2f} "
+        for name, label in (("without", "no mirror:  "), ("with", "with mirror:")):
+            rate, proxy_us, writer_us = rates[name]
+            print(f"round trips/s through whiztap record, {label} {rate:9,.0f}   CPU per round trip: proxy "
+                  f"{proxy_us:5.1f} µs, writer {writer_us:5.1f} µs")
+        print(f"  ({_mirror_summary(tmp / 'mirror.mcap')})")
+        print(f"RATIO round trips with --mirror / without: {rates['with'][0] / rates['without'][0]:.2f} "
               f"(target >= {TARGET_RATIO})")
 
 
