@@ -240,3 +240,17 @@ async def test_the_live_tui_shows_how_many_differences_and_the_latest(tmp_path):
             assert "latest #1 Sensor Request #" in status, status
             await pilot.press("q")  # finishes the recording first
             await until(pilot, lambda: not app.is_running, "the app to quit")
+
+
+def test_a_mirror_that_cannot_be_is_refused_in_one_line(tmp_path):
+    from tests.cli_support import run_cli
+
+    out = tmp_path / "x.mcap"
+    base = ("record", "--listen", "127.0.0.1:6123", "--upstream", "127.0.0.1:5000", "-o", out)
+    for args, words in [((*base, "--mirror", "127.0.0.1:6123"), "is where the proxy listens"),
+                        ((*base, "--mirror", "nonsense"), "--mirror must be HOST:PORT"),
+                        (("tui", str(out), "--mirror", "127.0.0.1:5001"), "go with --upstream")]:
+        done = run_cli(*args)
+        assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+        assert done.stderr.startswith("whiztap: ") and words in done.stderr, done.stderr
+    assert not out.exists()

@@ -126,6 +126,9 @@ def record_command(listen: tuple[str, int], upstream: tuple[str, int], output: s
         keys = user_metadata(meta)
     except MetadataError as e:
         fail(str(e))
+    if mirror is not None and mirror == listen and listen[1] != 0:
+        fail(f"--mirror {':'.join(map(str, mirror))} is where the proxy listens: each connection would open "
+             "another through itself; name the second server")
     split = split_size is not None or split_duration is not None
     flight = _ring_settings(output, ring, triggers, after, split, foxglove is not None)
     if flight is None:
