@@ -140,18 +140,20 @@ class RingFile(RecordingFile):
         self._t = messages[-1][1]
         for message in messages:
             ch, _, data = message
+            found = None
             if ch == self._frames:
                 if triggers.latency_ns is not None:
-                    why = triggers.frame(data) or why
+                    found = triggers.frame(data)
             elif ch == self._violations:
-                why = triggers.violation(data) or why
+                found = triggers.violation(data)
             elif ch == self._interventions:
-                why = triggers.intervention(data) or why
+                found = triggers.intervention(data)
             elif ch == self._events:
                 self._event(message)
             if self._filling:
                 self._note_opening(message)
             self._seq += 1
+            why = why or found  # the first trigger names the incident
         if self._incident is not None:
             self._copy(messages)
         else:
