@@ -110,21 +110,21 @@ class UpstreamLink:
             raise UpstreamError(f"{self.episodes.upstream_text} closed the connection ({e})") from None
 
     async def _until(self, done: Callable[[], bool], what: str) -> None:
-        """Wait for ``done()``; UpstreamError on the server's close or the timeout."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + self.episodes.timeout_s
-        while not done():
-            if self._eof:
-                raise UpstreamError(f"{self.episodes.upstream_text} closed the connection ({what})")
-            if self._handshake and self.login is None:
-                raise UpstreamError(f"{self.episodes.upstream_text} asks for a password (Winsock), "
-                                    "but the recorded connection had none (VPN)")
-            self._wake.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), max(0.0, deadline - loop.time()))
-            if loop.time() >= deadline and not done():
-                raise UpstreamError(f"{what} from {self.episodes.upstream_text} within "
-                                    f"{self.episodes.timeout_s:g} s")
+        """Wait for ``done()``; UpstreamError on the server's close or the timeout.
+        (``asyncio.timeout``, not ``wait_for``: no task per wait on the forwarding path.)"""
+        upstream = self.episodes.upstream_text
+        try:
+            async with asyncio.timeout(self.episodes.timeout_s):
+                while not done():
+                    if self._eof:
+                        raise UpstreamError(f"{upstream} closed the connection ({what})")
+                    if self._handshake and self.login is None:
+                        raise UpstreamError(f"{upstream} asks for a password (Winsock), but the recorded "
+                                            "connection had none (VPN)")
+                    self._wake.clear()
+                    await self._wake.wait()
+        except TimeoutError:
+            raise UpstreamError(f"{what} from {upstream} within {self.episodes.timeout_s:g} s") from None
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         try:
