@@ -236,3 +236,58 @@ def test_whatever_the_upstream_answers_the_old_file_stays_or_a_readable_one_repl
         assert episodes.failure is not None and path.read_bytes() == before and got == config
     assert run_cli("analyze", path).returncode in (0, 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["vpn.mcap"]
+
+
+# -- memory, whatever the upstream does -------------------------------------------------------------
+
+FLOOD = 12 << 20  # bytes of garbage an upstream sends instead of an answer
+FLOOD_BOUND = 6 << 20  # the most the stub may hold while it does (the recorder's open chunk and its compression)
+
+
+def test_an_upstream_flooding_garbage_instead_of_an_answer_costs_bounded_memory(vpn, tmp_path):
+    """The upstream answers the channel map, then meets the forwarded request
+    with megabytes that never make an answer, and closes: the run fails, the
+    recording stays, and what the stub held meanwhile (traced allocations)
+    stays within a bound far below what was sent: the bytes go to the
+    temporary recording's file, not to memory."""
+    import tracemalloc
+
+    original, config = vpn
+    path = tmp_path / "vpn.mcap"
+    path.write_bytes(original.read_bytes())
+    piece = b"x" * (64 << 10)
+
+    async def upstream(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.readexactly(len(b"rr1-24--0--0-ss1"))
+        writer.write(config)
+        await reader.readexactly(len(b"rr1-14--0--0-ss1"))
+        for _ in range(FLOOD // len(piece)):
+            writer.write(piece)
+            await writer.drain()
+        writer.close()
+
+    async def run() -> Episodes:
+        server = await asyncio.start_server(upstream, LOCAL, 0)
+        async with server:
+            exchanges = load_exchanges(str(path))
+            episodes = Episodes(path, (LOCAL, server.sockets[0].getsockname()[1]), exchanges.checksum_rule, WAIT)
+            episodes.open()
+            async with Stub(exchanges, episodes=episodes) as stub:
+                reader, writer = await asyncio.open_connection(LOCAL, stub.port)
+                writer.write(b"rr1-24--0--0-ss1")
+                await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
+                tracemalloc.start()
+                writer.write(b"rr1-14--0--0-ss1")
+                writer.write_eof()
+                await asyncio.wait_for(reader.read(-1), WAIT)
+                writer.close()
+            return episodes
+
+    try:
+        episodes = asyncio.run(run())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert episodes.finish() is False and episodes.failure is not None
+    assert peak < FLOOD_BOUND, f"{peak:,} bytes held while {FLOOD:,} were sent"
+    assert path.read_bytes() == original.read_bytes()
