@@ -132,6 +132,22 @@ def test_a_slow_answer_and_no_answer_each_begin_an_incident(tmp_path):
     assert [r["t_ns"] for r in reads(tmp_path / "rec-incident-2.mcap")][-1] == T0 + 2000 * MS
 
 
+def test_a_writer_behind_the_traffic_takes_the_traffic_s_time_not_the_clock_s(tmp_path):
+    """The writer ticked 10 s late, the answer still in its pipe: no
+    latency> incident (the clock counts only once nothing more came)."""
+    file = RingFile(str(tmp_path / "rec.mcap"), {}, SMALL, ["latency>250"], 100 * MS)
+    recorder = Recorder(file)
+    recorder.start(T0)
+    for event in (Opened(1, T0, "c", "u"), Data(1, C, T0 + MS, VPN_OPEN[0][1]), Data(1, S, T0 + 2 * MS, CONFIG),
+                  Data(1, C, T0 + 10 * MS, ASK)):
+        recorder.receive(event)
+    recorder.tick(T0 + 10_000 * MS)  # after a batch, as the writer ticks: the batch's time counts
+    recorder.receive(Data(1, S, T0 + 11 * MS, ANSWER))
+    recorder.tick(T0 + 10_001 * MS)
+    recorder.tick(T0 + 10_002 * MS)  # nothing came since: the clock's time
+    assert recorder.stop(T0 + 10_003 * MS).files == []
+
+
 def test_triggers_while_an_incident_is_written_merge_into_it(tmp_path):
     """Two errors 50 ms apart (100 ms after each): one file, which says it
     took in a second trigger; an error 2 s later is an incident of its own,

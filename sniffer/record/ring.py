@@ -95,6 +95,7 @@ class RingFile(RecordingFile):
         self._until = 0
         self._number = 0
         self._t = 0  # the latest log time taken in
+        self._busy = False  # messages came since the last tick
 
     # -- what the recorder calls --------------------------------------------------------------
 
@@ -109,6 +110,13 @@ class RingFile(RecordingFile):
         """A ring is never split."""
 
     def tick(self, t_ns: int) -> None:
+        """Time passes: a request unanswered too long fires ``latency>``, an
+        incident's ``--after`` ends.  While messages come, time is theirs (a
+        writer behind the traffic must not take answers waiting in its pipe
+        for answers never sent); once none came since the last tick, the clock's."""
+        if self._busy:
+            self._busy = False
+            t_ns = self._t
         why = self.triggers.due(t_ns)
         if why is not None:
             self._trigger(t_ns, why)
@@ -138,6 +146,7 @@ class RingFile(RecordingFile):
         triggers = self.triggers
         why = None
         self._t = messages[-1][1]
+        self._busy = True
         for message in messages:
             ch, _, data = message
             found = None
