@@ -119,8 +119,8 @@ BUFFERS: dict[type, dict[str, int]] = {
     MirrorView: {"by_kind": 5, "latest": 5, "events": 4},
     MirrorRecorder: {"offsets": 1 << 16, "cut_off": 1 << 16, "events": 4, "first": 5, "latest": 5},  # per open conn
     MirrorPairing: {"pairs": 1 << 16},  # one per open connection
-    _Pair: {},
-    _Side: {"waiting": MAX_WAITING, "asked": MAX_WAITING, "handshake": MAX_HANDSHAKE, "seen": MAX_WAITING},
+    _Pair: {"seen": MAX_WAITING},
+    _Side: {"waiting": MAX_WAITING, "asked": MAX_WAITING, "handshake": MAX_HANDSHAKE},
 }
 CONTAINERS = (bytes, bytearray, list, deque, dict, set)
 

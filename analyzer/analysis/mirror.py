@@ -32,12 +32,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from whiztap.analyzer.analysis.compare import LATENCY_TOLERANCE_MS, answer_key
-from whiztap.analyzer.analysis.diff import DiffResult, Difference, Kind, _handshake, _pair, exchange_key
+from whiztap.analyzer.analysis.diff import DiffResult, Difference, _handshake, _pair, exchange_key
 from whiztap.analyzer.analysis.exchanges import ClientItem, RecordedConnection
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation
 from whiztap.analyzer.protocol.session import Session
-from whiztap.analyzer.protocol.text import escape
 
 C2S, S2C = Direction.C2S, Direction.S2C
 MAX_WAITING = 4096  # requests waiting for their answer, per side of a connection
@@ -64,7 +63,6 @@ class _Side:
         self.asked: dict[int, _Request] = {}  # the session's request index -> its request, until answered
         self.handshake: list = []
         self.password: ClientItem | None = None
-        self.seen: dict[tuple[str, int | None], int] = defaultdict(int)  # requests by (title, channel) so far
 
     def feed(self, direction: Direction, data: bytes, t_ns: int) -> None:
         self.now = max(self.now, t_ns)
@@ -105,15 +103,11 @@ class _Side:
         front = self.waiting[0]
         return front.done or self.now - front.item.t_ns > self.timeout_ns
 
-    def pop(self) -> tuple[tuple[str, int | None, int], ClientItem]:
-        """The oldest request, named as ``diff`` names it."""
+    def pop(self) -> ClientItem:
+        """The oldest request, out of the comparison's waiting."""
         request = self.waiting.popleft()
         self.asked.pop(request.item.obs.index, request)
-        key = exchange_key(request.item)
-        if key not in self.seen and len(self.seen) >= MAX_WAITING:  # a client's endless channel numbers:
-            return (*key, 0), request.item  # past the bound, named without a position (both sides alike)
-        self.seen[key] += 1
-        return (*key, self.seen[key]), request.item
+        return request.item
 
     def close(self, t_ns: int) -> None:
         self.take(self.session.close(max(t_ns, self.now)))
@@ -130,6 +124,7 @@ class _Side:
 class _Pair:
     primary: _Side
     mirror: _Side
+    seen: dict[tuple[str, int | None], int] = field(default_factory=lambda: defaultdict(int))  # requests by kind
     cut: int | None = None  # the mirror ended: client bytes past this offset are not compared
     mirror_started: bool = False  # the mirror's connection was made
     primary_closed: bool = False
@@ -240,7 +235,7 @@ class MirrorPairing:
             over = len(a.waiting) > MAX_WAITING or len(b.waiting) > MAX_WAITING  # judged as they stand
             if not (over or (a.ready() and b.ready())):
                 break
-            out += self._compare(conn, *a.pop(), *b.pop())
+            out += self._compare(conn, pair, a.pop(), b.pop())
         for side in (a, b):  # one side far ahead of an empty other: its oldest go uncompared
             while len(side.waiting) > MAX_WAITING:
                 side.pop()
@@ -249,14 +244,15 @@ class MirrorPairing:
             out += self._end(conn, pair)
         return self._count(out)
 
-    def _compare(self, conn: int, key_a: tuple[str, int | None, int], item_a: ClientItem,
-                 key_b: tuple[str, int | None, int], item_b: ClientItem) -> list[Difference]:
+    def _compare(self, conn: int, pair: _Pair, item_a: ClientItem, item_b: ClientItem) -> list[Difference]:
+        """The same request (the same bytes, at the same place in the client's stream) and each
+        server's answer, named as the primary's session reads it: the mirror's may read it
+        otherwise until its configuration answer has come, which says nothing of the request."""
         self.tally.result.exchanges += 1
-        if key_a == key_b:
-            return _pair(conn, key_a, item_a, item_b, self.tolerance_ns)
-        # the two servers' channel maps made different requests of the same bytes
-        return [Difference(Kind.MISSING, conn, _named(key_a), "the request", escape(item_a.obs.item.raw), ""),
-                Difference(Kind.EXTRA, conn, _named(key_b), "the request", "", escape(item_b.obs.item.raw))]
+        key = exchange_key(item_a)
+        if key in pair.seen or len(pair.seen) < MAX_WAITING:  # a client's endless channel numbers: past the
+            pair.seen[key] += 1  # bound, named without a position
+        return _pair(conn, (*key, pair.seen.get(key, 0)), item_a, item_b, self.tolerance_ns)
 
     def _past_cut(self, pair: _Pair) -> None:
         """Requests the mirror never got (sent after it ended) leave the comparison, counted."""
@@ -283,7 +279,3 @@ class MirrorPairing:
             self.tally.latest.extend(differences)
         return differences
 
-
-def _named(key: tuple[str, int | None, int]) -> str:
-    title, channel, n = key
-    return f"{title} #{n}" + (f" on channel {channel}" if channel is not None else "")

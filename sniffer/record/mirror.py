@@ -22,6 +22,10 @@ proxy never waits for it:
   said once per kind of failure; the client's connection is not touched.
 - After the client's connection ends the mirror may answer for
   ``MIRROR_GRACE_S`` more; then its connection is closed.
+- The mirror's answers are read at most every ``MIRROR_READ_S`` (5 ms),
+  all that came meanwhile in one read: a busy connection costs the proxy a
+  wakeup per 5 ms for its mirror, not one per answer.  The times recorded for
+  them are the reads' (at most 5 ms late), well inside what ``diff`` forgives.
 
 ``MirrorView`` is what the writer found, for the TUI and the closing lines.
 """
@@ -41,6 +45,7 @@ from whiztap.sniffer.nettext import reason, show_address
 MIRROR_BUFFER = 1 << 20  # client bytes a mirror connection may have waiting for the mirror (1 MiB)
 MIRROR_WRITER_ROOM = 2 << 20  # the recording's backlog past which a mirror's answers drop it (feed.CAUGHT_UP)
 MIRROR_SOCKET_BUFFER = 256 << 10  # the kernel's send buffer toward the mirror, fixed (no autotuning to MBs)
+MIRROR_READ_S = 0.005  # the mirror's answers are read at most this often (in one read each time: cheap)
 MIRROR_GRACE_S = 2.0  # how long the mirror may go on answering after the client's connection ended
 LATEST = 5  # differences the live view keeps
 
@@ -96,6 +101,7 @@ class MirrorLeg(asyncio.Protocol):
         self.client_done = False  # the client sent its FIN
         self._connect: asyncio.Task | None = None
         self._grace: asyncio.TimerHandle | None = None
+        self._resume: asyncio.TimerHandle | None = None  # reading again, MIRROR_READ_S after the last read
 
     def start(self) -> None:
         self._connect = asyncio.get_running_loop().create_task(self._open())
@@ -178,6 +184,14 @@ class MirrorLeg(asyncio.Protocol):
             self.drop("the recording fell behind: the mirror is dropped so that the primary's traffic is not held up")
             return
         mirror.sink.mirror(self.conn, mirror.clock(), True, data)
+        if self._resume is None and self.transport is not None:  # what else it says, in one read, later:
+            self.transport.pause_reading()  # its answers never reach the client, so a few ms do not matter,
+            self._resume = asyncio.get_running_loop().call_later(MIRROR_READ_S, self._read_again)  # wakeups do
+
+    def _read_again(self) -> None:
+        self._resume = None
+        if not self.ended and self.transport is not None:
+            self.transport.resume_reading()
 
     def eof_received(self) -> bool:
         return False  # the mirror is done sending: close
@@ -196,7 +210,7 @@ class MirrorLeg(asyncio.Protocol):
             return
         self.ended = True
         self.early.clear()
-        for pending in (self._connect, self._grace):
+        for pending in (self._connect, self._grace, self._resume):
             if pending is not None:
                 pending.cancel()
         if self.transport is not None:
