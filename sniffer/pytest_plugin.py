@@ -234,14 +234,17 @@ def whiztap_server(request: pytest.FixtureRequest) -> Iterator[WhiztapServer]:
         pytest.fail(f"whiztap: no recording {path}; run pytest with --whiztap-record=once to make it",
                     pytrace=False)
     with BackgroundLoop() as background:
-        target = request.getfixturevalue("whiztap_target") if record or mode == "new_episodes" else None
-        if (record or mode == "new_episodes") and target is None:
+        needs_target = record or mode == "new_episodes"
+        target = request.getfixturevalue("whiztap_target") if needs_target else None
+        if needs_target and target is None:
             pytest.fail("whiztap: recording needs a live server: give the marker target=HOST:PORT, "
                         "--whiztap-target, or a whiztap_target fixture", pytrace=False)
+        address = _address(target) if target is not None else None
         if record:
-            yield from _recorded(background, path, _address(target))
+            assert address is not None
+            yield from _recorded(background, path, address)
         else:
-            yield from _stubbed(background, path, _address(target) if target is not None else None)
+            yield from _stubbed(background, path, address)
 
 
 def _load(path: Path) -> Any:

@@ -382,12 +382,23 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
     if error:
         fail(error)
     missing, unused = len(stub.unanswered), stub.unused()
-    if fmt == "json":
+    _summary(stub, match.text(), appended, fmt == "json", quiet, fail_unused)
+    if episodes is not None and episodes.failure is not None:
+        fail(f"upstream {episodes.upstream_text}: {episodes.failure}; nothing appended, {stub.recording.path} "
+             "is unchanged: run again once the server answers")
+    sys.exit(1 if (strict and missing) or (fail_unused and unused) else 0)
+
+
+def _summary(stub: Stub, match: str, appended: bool, as_json: bool, quiet: bool, fail_unused: bool) -> None:
+    """The stub's closing summary: one JSON object, or text lines."""
+    episodes = stub.episodes
+    missing, unused = len(stub.unanswered), stub.unused()
+    if as_json:
         import json
 
         more = {} if episodes is None else {"upstream": episodes.upstream_text, "forwarded": stub.forwarded,
                                             "appended": appended, "upstream_error": episodes.failure}
-        _echo(json.dumps({"recording": stub.recording.path, "match": match.text(), "connections": stub.connections,
+        _echo(json.dumps({"recording": stub.recording.path, "match": match, "connections": stub.connections,
                           "answers": stub.answers, "unanswered": [u.as_dict() for u in stub.unanswered],
                           "unused": [r.as_dict() for r in unused], **more}))
     else:
@@ -402,10 +413,6 @@ def stub_command(path: str, listen: tuple[str, int], password: str | None, conn:
                   + (f"appended to {stub.recording.path} on {plural(episodes.connections, 'new connection')}"
                      if appended
                      else f"nothing new: {stub.recording.path} unchanged"))
-    if episodes is not None and episodes.failure is not None:
-        fail(f"upstream {episodes.upstream_text}: {episodes.failure}; nothing appended, {stub.recording.path} "
-             "is unchanged: run again once the server answers")
-    sys.exit(1 if (strict and missing) or (fail_unused and unused) else 0)
 
 
 def _episodes(found: RecordingSet, recording: RecordedSessions, upstream: tuple[str, int] | None,

@@ -130,7 +130,7 @@ class Episodes:
             beside = self.path.with_name(f".{self.path.name}.{os.getpid()}.appending.mcap")
             try:
                 copy_connections([self.path, *map(Path, files)], str(beside), kept, force=True,
-                                 open_file=lambda p: open(p, "rb"))
+                                 open_file=lambda p: open(str(p), "rb"))
                 os.replace(beside, self.path)
             finally:
                 with contextlib.suppress(FileNotFoundError):
