@@ -238,12 +238,50 @@ def test_whatever_the_upstream_answers_the_old_file_stays_or_a_readable_one_repl
     assert sorted(p.name for p in tmp_path.iterdir()) == ["vpn.mcap"]
 
 
+def test_a_stub_stopped_while_a_forwarded_request_waits_appends_nothing(vpn, tmp_path):
+    """Stopped mid-forward, the new connection would hold a request without
+    its answer, which a later run would serve as "no answer": nothing is appended."""
+    original, config = vpn
+    path = tmp_path / "vpn.mcap"
+    path.write_bytes(original.read_bytes())
+
+    async def run() -> Episodes:
+        asked = asyncio.Event()
+
+        async def upstream(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            await reader.readexactly(len(b"rr1-24--0--0-ss1"))
+            writer.write(config)
+            await reader.readexactly(len(b"rr1-14--0--0-ss1"))
+            asked.set()  # and never answers
+            await reader.read(-1)
+
+        server = await asyncio.start_server(upstream, LOCAL, 0)
+        async with server:
+            exchanges = load_exchanges(str(path))
+            episodes = Episodes(path, (LOCAL, server.sockets[0].getsockname()[1]), exchanges.checksum_rule, WAIT)
+            episodes.open()
+            async with Stub(exchanges, episodes=episodes) as stub:
+                reader, writer = await asyncio.open_connection(LOCAL, stub.port)
+                writer.write(b"rr1-24--0--0-ss1")
+                await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
+                writer.write(b"rr1-14--0--0-ss1")
+                await asyncio.wait_for(asked.wait(), WAIT)
+            writer.close()
+            return episodes
+
+    episodes = asyncio.run(run())
+    assert episodes.finish() is False
+    assert episodes.failure == "the stub stopped while a forwarded request waited for its answer"
+    assert path.read_bytes() == original.read_bytes()
+
+
 # -- memory, whatever the upstream does -------------------------------------------------------------
 
 FLOOD = 12 << 20  # bytes of garbage an upstream sends instead of an answer
 FLOOD_BOUND = 6 << 20  # the most the stub may hold while it does (the recorder's open chunk and its compression)
 
 
+@pytest.mark.slow
 def test_an_upstream_flooding_garbage_instead_of_an_answer_costs_bounded_memory(vpn, tmp_path):
     """The upstream answers the channel map, then meets the forwarded request
     with megabytes that never make an answer, and closes: the run fails, the
