@@ -16,7 +16,7 @@ import socket
 from pathlib import Path
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from whiztap.analyzer.mitm.spec import parse_fault
@@ -28,10 +28,12 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.ring import RingFile
 from whiztap.sniffer.record.summary import summary_lines
 from whiztap.sniffer.record.trigger import Ring, RingSettings, parse_duration, parse_ring, parse_trigger
+from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.cli_support import run_cli
 from tests.outputs import SECRET, assert_no_leak, replay_dry_run, topics_text, tui_store_text
-from tests.record_support import StepServer, play_client, read_all, record_dialogue, recording
+from tests.record_support import StepServer, op_event, play_client, read_all, record_dialogue, recording
+from tests.test_readers_property import traffic
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000
@@ -199,6 +201,44 @@ async def test_no_trigger_no_file_and_the_summary_says_so(tmp_path):
     assert summary is not None and summary["files"] == []
     assert summary_lines(summary, "recorded")[0] == \
         "recorded 1 connection through a 30 s (at most 1 MiB) ring: no incident, so no file written"
+
+
+def _through(file, ops: list) -> list[str]:
+    """Drawn traffic (test_readers_property's) through the real Recorder into ``file``, a ms apart; its files."""
+    recorder = Recorder(file)
+    recorder.start(T0)
+    t = T0
+    for op, conn, d, payload in ops:
+        t += MS
+        event = op_event(op, conn, d, t, payload)
+        if event is not None:
+            recorder.receive(event)
+        recorder.tick(t)
+    return recorder.stop(t + MS).files
+
+
+def _messages(path: str) -> list[str]:
+    return [f"{topic} {json.dumps(m, sort_keys=True)}" for topic, ms in read_all(path).items() for m in ms]
+
+
+@pytest.mark.slow
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(ops=traffic(any_order=False), size=st.sampled_from([64 << 10, 1 << 20]), after_ms=st.integers(1, 20))
+def test_an_incident_holds_only_messages_the_whole_recording_holds_and_every_reader_opens_it(tmp_path, ops, size,
+                                                                                              after_ms):
+    """Whatever the peers send: each incident's messages (but its closing
+    event) are messages of the whole recording of the same traffic, byte for
+    byte (masked stays masked, nothing is invented), and analyze and cat
+    read every incident."""
+    for p in tmp_path.iterdir():
+        p.unlink()
+    whole = _messages(_through(RecordingFile(str(tmp_path / "whole.mcap"), {}), ops)[0])
+    ring = RingFile(str(tmp_path / "r.mcap"), {}, Ring(None, size), ["severity:info"], after_ms * MS)
+    for path in _through(ring, ops):
+        kept = [m for m in _messages(path) if '"recording_stopped"' not in m]
+        assert set(kept) <= set(whole), path
+        analysed(Path(path))
+        assert run_cli("cat", path).returncode == 0
 
 
 @pytest.mark.parametrize(("args", "says"), [
