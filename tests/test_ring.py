@@ -120,6 +120,26 @@ def test_an_incident_by_rule_holds_the_window_around_it_and_the_opening_before_i
     assert "1 incident" in summary_lines(summary, "recorded")[0]
 
 
+async def test_the_tui_opens_an_incident_and_n_goes_to_what_began_it(tmp_path):
+    """The real app, driven by keys: an incident opens on its first frame
+    (the opening's), and ``n`` lands on the violation that began it."""
+    from whiztap.tui.app import WhiztapApp
+    from whiztap.tui.data.sources import FileSource
+
+    from tests.tui_support import SIZE, loaded
+
+    steps = [*winsock_opening(1, T0), *asked_and_answered(1, T0 + 10 * MS, 300)]
+    steps.insert(len(steps) - 100, Data(1, S, steps[-100].t_ns, ANSWER))  # answers nothing
+    summary, _ = flight(tmp_path / "rec.mcap", steps, ["PW-PAIR-UNSOLICITED"])
+    app = WhiztapApp(FileSource(summary["files"][0]))
+    async with app.run_test(size=SIZE) as pilot:
+        await loaded(pilot)
+        store = app.model.store
+        assert app.frames.rows == store.count > 200 and app.frames.cursor == 0
+        await pilot.press("n")
+        assert app.frames.frame == store.violating[0] and len(store.violating) == 1
+
+
 def test_a_slow_answer_and_no_answer_each_begin_an_incident(tmp_path):
     """latency>250: an answer 390 ms after its request, and later a request
     never answered (the incident begins once 250 ms have passed without one,
