@@ -163,6 +163,21 @@ async def test_the_command_appends_on_sigint_and_a_failed_or_killed_one_changes_
         b"rr1-16--0--0-ss1", b"rr1-17--0--0-ss1"]
 
 
+def test_upstream_needs_one_local_file(tmp_path):
+    """A split recording is refused before anything listens: one line saying
+    how to make it one file, and the parts stay as they were."""
+    from tests.test_split_recordings import split_vpn_session
+
+    files = split_vpn_session(tmp_path / "s.mcap")
+    before = [Path(f).read_bytes() for f in files]
+    ran = run_cli("stub", files[0], "--listen", "127.0.0.1:0", "--upstream", "127.0.0.1:1")
+    assert ran.returncode == 2 and ran.stdout == ""
+    assert ran.stderr.startswith("whiztap: --upstream appends to RECORDING, so it must be one local file, "
+                                 f"not {files[0]} (+")
+    assert ran.stderr.endswith("make one with 'whiztap cut PARTS... -o ONE.mcap'\n") and ran.stderr.count("\n") == 1
+    assert [Path(f).read_bytes() for f in files] == before
+
+
 # -- whatever the upstream sends --------------------------------------------------------------------
 
 _ANSWERS = st.sampled_from([b"cr1-14--500--0-ss1", b"cr1-99--1--0-ss1", b"garbage", b"sr1-", b"\r\n",
