@@ -4,6 +4,7 @@ appends it to the recording, atomically; a failed or killed run leaves the old f
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 import signal
 from pathlib import Path
@@ -123,9 +124,9 @@ async def test_an_upstream_that_dies_midway_leaves_the_recording_untouched(recor
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sensors.mcap"]
 
 
-async def stub_process(path: Path, upstream: int, asked: tuple[int, ...]) -> asyncio.subprocess.Process:
+async def stub_process(path: Path, upstream: int, asked: tuple[int, ...], *more: str) -> asyncio.subprocess.Process:
     """``whiztap stub --upstream`` serving one client that asks ``asked``."""
-    proc = await start_process("stub", path, "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{upstream}")
+    proc = await start_process("stub", path, "--listen", "127.0.0.1:0", "--upstream", f"{LOCAL}:{upstream}", *more)
     port = int(re.search(rb":(\d+) \(", await asyncio.wait_for(proc.stdout.readline(), WAIT)).group(1))
     try:
         await sensors(port, asked)
@@ -141,9 +142,14 @@ async def test_the_command_appends_on_sigint_and_a_failed_or_killed_one_changes_
     leave the recording byte for byte as it was, and nothing beside it."""
     path = copy(recorded, tmp_path)
     dead = closed_port()
-    proc = await stub_process(path, dead, (12, 16))
+    proc = await stub_process(path, dead, (12, 16), "--format", "json")
     proc.send_signal(signal.SIGINT)
     out, err = await asyncio.wait_for(proc.communicate(), WAIT)
+    summary = json.loads(out.decode().splitlines()[-1])
+    assert {k: summary[k] for k in ("upstream", "forwarded", "appended")} == {
+        "upstream": f"{LOCAL}:{dead}", "forwarded": 0, "appended": False}
+    assert summary["upstream_error"].startswith(f"cannot connect to {LOCAL}:{dead}")
+    assert [u["why"] for u in summary["unanswered"]] == ["no recorded answer (the upstream failed)"]
     assert proc.returncode == 2 and err.decode().startswith(f"whiztap: upstream {LOCAL}:{dead}: cannot connect to ")
     assert err.decode().endswith(f"; nothing appended, {path} is unchanged: run again once the server answers\n")
     assert err.count(b"\n") == 1
