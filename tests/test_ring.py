@@ -204,6 +204,7 @@ async def test_a_fault_begins_an_incident_and_a_stop_while_it_is_written_finishe
     assert sorted(p.name for p in tmp_path.iterdir()) == [incident.name]
     by_topic = read_all(str(incident))
     assert [i["action"] for i in by_topic["/interventions"]] == ["drop"]
+    assert [e["event"] for e in by_topic["/tcp/events"]].count("recording_started") == 1  # in the window: once
     assert by_topic["/tcp/events"][0]["event"] == "recording_started"
     assert analysed(incident)["connections"]
     assert replay_dry_run(incident)

@@ -86,7 +86,7 @@ class RingFile(RecordingFile):
         self._held = 0  # the window's cost (bytes + ENTRY_COST each)
         self._seq = 0  # the next message's sequence number
         self._first = 0  # the window's first message's
-        self._start: list[Message] = []  # the recording's start event
+        self._start: list[tuple[int, Message]] = []  # the recording's start event, with its sequence number
         self._openings: dict[int, _Opening] = {}
         self._opening_bytes = 0
         self._filling = 0  # openings not done
@@ -181,7 +181,7 @@ class RingFile(RecordingFile):
             self._openings[conn_of(data)] = _Opening()
             self._filling += 1
         elif b'"event":"recording_started"' in data:
-            self._start = [message]
+            self._start = [(self._seq, message)]
 
     def _note_opening(self, message: Message) -> None:
         """Keep a message of a connection still in its opening; the opening is
@@ -246,9 +246,8 @@ class RingFile(RecordingFile):
         metadata = {k: v for k, v in self.metadata.items() if k != "part"}
         metadata.update(incident=str(self._number), incident_trigger=why)
         incident = RecordingFile(path, metadata, overwrite=self.overwrite, warn=self.warn)
-        before = sorted(entry for opening in self._openings.values() for entry in opening.messages
-                        if entry[0] < self._first)
-        head = [*self._start, *(m for _, m in before)]
+        kept = (*self._start, *(entry for opening in self._openings.values() for entry in opening.messages))
+        head = [m for seq, m in sorted(kept) if seq < self._first]  # what the window no longer holds
         incident.open(head[0][1] if head else t_ns)
         self._incident, self._ids = incident, {}
         self.incidents.append({"path": path, "trigger": why, "triggers": 1})
