@@ -115,7 +115,7 @@ def test_the_mirror_topics_are_registered_traffic_topics():
 
 # class -> attribute -> its bound (bytes or items), as the module constants say
 BUFFERS: dict[type, dict[str, int]] = {
-    MirrorLeg: {"early": MIRROR_BUFFER},  # (and its transport's buffer: MIRROR_BUFFER past which it is dropped)
+    MirrorLeg: {"waiting": MIRROR_BUFFER},  # (and its transport's buffer: MIRROR_BUFFER past which it is dropped)
     MirrorView: {"by_kind": 5, "latest": 5, "events": 4},
     MirrorRecorder: {"offsets": 1 << 16, "cut_off": 1 << 16, "events": 4, "first": 5, "latest": 5},  # per open conn
     MirrorPairing: {"pairs": 1 << 16},  # one per open connection

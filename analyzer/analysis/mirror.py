@@ -207,14 +207,15 @@ class MirrorPairing:
         pair.mirror.feed(S2C, data, t_ns)
         return self._judge(conn, pair)
 
-    def mirror_ended(self, conn: int, t_ns: int) -> list[Difference]:
-        """The mirror's connection is over (it closed, or was dropped or never made):
-        what the client sends from now on is not compared."""
+    def mirror_ended(self, conn: int, t_ns: int, sent: int | None = None) -> list[Difference]:
+        """The mirror's connection is over (it closed, or was dropped or never made), having
+        been sent ``sent`` bytes of the client's (None: all so far): requests past them are
+        not compared."""
         pair = self.pairs.get(conn)
         if pair is None or pair.mirror_ended:
             return []
         pair.mirror_ended = True
-        pair.cut = pair.mirror.fed
+        pair.cut = pair.mirror.fed if sent is None else min(sent, pair.mirror.fed)
         pair.mirror.close(t_ns)
         return self._judge(conn, pair)
 
@@ -258,11 +259,12 @@ class MirrorPairing:
         """Requests the mirror never got (sent after it ended) leave the comparison, counted."""
         if pair.cut is None:
             return
-        waiting = pair.primary.waiting
-        while waiting and waiting[-1].item.end > pair.cut:
-            request = waiting.pop()
-            pair.primary.asked.pop(request.item.obs.index, request)
-            self.tally.not_compared += 1
+        for side in (pair.primary, pair.mirror):
+            waiting = side.waiting
+            while waiting and waiting[-1].item.end > pair.cut:
+                request = waiting.pop()
+                side.asked.pop(request.item.obs.index, request)
+                self.tally.not_compared += side is pair.primary  # counted once, as the client's request
 
     def _end(self, conn: int, pair: _Pair) -> list[Difference]:
         del self.pairs[conn]

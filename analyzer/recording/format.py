@@ -141,7 +141,8 @@ SCHEMAS: dict[str, dict] = {
          "event": {"type": "string", "enum": ["connected", "failed", "dropped", "closed"],
                    "description": "failed: never connected; dropped: by the proxy (its buffer was full, or the "
                                   "recording fell behind), so the primary is never held up"},
-         "detail": _STR, "c2s_bytes": {"type": "integer", "description": "client bytes handed to the mirror"},
+         "detail": _STR, "c2s_bytes": {"type": "integer", "description": "client bytes the kernel took toward the "
+                                                                        "mirror (0 before it ended)"},
          "s2c_bytes": {"type": "integer", "description": "bytes the mirror sent"}},
         ("conn", "t_ns", "event", "detail")),
     "whiztap.MirrorDifference": _object(

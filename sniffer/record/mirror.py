@@ -22,10 +22,11 @@ proxy never waits for it:
   said once per kind of failure; the client's connection is not touched.
 - After the client's connection ends the mirror may answer for
   ``MIRROR_GRACE_S`` more; then its connection is closed.
-- The mirror's answers are read at most every ``MIRROR_READ_S`` (5 ms),
-  all that came meanwhile in one read: a busy connection costs the proxy a
-  wakeup per 5 ms for its mirror, not one per answer.  The times recorded for
-  them are the reads' (at most 5 ms late), well inside what ``diff`` forgives.
+- The mirror is written to and read from at most every ``MIRROR_BATCH_S``
+  (5 ms), all that came meanwhile at once: a busy connection costs the proxy
+  a wakeup or two per 5 ms for its mirror, not a write and a read per
+  request.  So the mirror's answers are up to 10 ms later than it sent them
+  as the pairing sees them, well inside what ``diff`` forgives (100 ms).
 
 ``MirrorView`` is what the writer found, for the TUI and the closing lines.
 """
@@ -45,7 +46,7 @@ from whiztap.sniffer.nettext import reason, show_address
 MIRROR_BUFFER = 1 << 20  # client bytes a mirror connection may have waiting for the mirror (1 MiB)
 MIRROR_WRITER_ROOM = 2 << 20  # the recording's backlog past which a mirror's answers drop it (feed.CAUGHT_UP)
 MIRROR_SOCKET_BUFFER = 256 << 10  # the kernel's send buffer toward the mirror, fixed (no autotuning to MBs)
-MIRROR_READ_S = 0.005  # the mirror's answers are read at most this often (in one read each time: cheap)
+MIRROR_BATCH_S = 0.005  # the mirror is written to and read from at most this often: a wakeup per 5 ms, not per read
 MIRROR_GRACE_S = 2.0  # how long the mirror may go on answering after the client's connection ended
 LATEST = 5  # differences the live view keeps
 
@@ -94,14 +95,16 @@ class MirrorLeg(asyncio.Protocol):
         self.mirror = mirror
         self.conn = conn
         self.transport: asyncio.Transport | None = None
-        self.early = bytearray()  # the client's bytes before the mirror connected
-        self.fed = 0  # client bytes handed over (written or waiting in ``early``)
+        self.waiting = bytearray()  # the client's bytes not yet written to the mirror (connecting, or batched)
+        self.fed = 0  # client bytes handed over (written or waiting)
+        self.sent = 0  # ... of which the kernel took, as far as the end knows (for the comparison's cut)
         self.received = 0  # bytes the mirror sent
         self.ended = False
         self.client_done = False  # the client sent its FIN
         self._connect: asyncio.Task | None = None
         self._grace: asyncio.TimerHandle | None = None
-        self._resume: asyncio.TimerHandle | None = None  # reading again, MIRROR_READ_S after the last read
+        self._resume: asyncio.TimerHandle | None = None  # reading again, MIRROR_BATCH_S after the last read
+        self._write: asyncio.TimerHandle | None = None  # writing what waits, MIRROR_BATCH_S after it began to
 
     def start(self) -> None:
         self._connect = asyncio.get_running_loop().create_task(self._open())
@@ -118,20 +121,28 @@ class MirrorLeg(asyncio.Protocol):
             self.end("failed", f"cannot connect to the mirror {m.text}: {why}")
 
     def feed(self, data: bytes) -> None:
-        """The client's bytes, as the primary got them: handed over at once, never awaited."""
+        """The client's bytes, as the primary got them: written within ``MIRROR_BATCH_S``, never awaited."""
         if self.ended:
             return
         self.fed += len(data)
+        waiting = self.waiting
+        waiting += data
         transport = self.transport
-        if transport is None:
-            self.early += data
-            if len(self.early) > MIRROR_BUFFER:
-                self.drop(f"the mirror did not connect before {MIRROR_BUFFER >> 10} KiB of the client's bytes came")
-            return
-        transport.write(data)
-        if transport.get_write_buffer_size() > MIRROR_BUFFER:
+        if len(waiting) + (transport.get_write_buffer_size() if transport is not None else 0) > MIRROR_BUFFER:
             self.drop(f"the mirror took too little: more than {MIRROR_BUFFER >> 10} KiB of the client's bytes "
-                      "waited for it")
+                      "waited for it" if transport is not None else
+                      f"the mirror did not connect before {MIRROR_BUFFER >> 10} KiB of the client's bytes came")
+        elif transport is not None and self._write is None:
+            self._write = asyncio.get_running_loop().call_later(MIRROR_BATCH_S, self._flush)
+
+    def _flush(self) -> None:
+        """Write what waits (the drop check is ``feed``'s: what waits here counts as the transport's)."""
+        if self._write is not None:
+            self._write.cancel()
+            self._write = None
+        if self.waiting and self.transport is not None and not self.ended:
+            self.transport.write(bytes(self.waiting))
+            self.waiting.clear()
 
     def client_eof(self) -> None:
         """The client's FIN, passed on when the primary gets it."""
@@ -139,6 +150,7 @@ class MirrorLeg(asyncio.Protocol):
             return
         self.client_done = True
         if self.transport is not None and not self.ended and self.transport.can_write_eof():
+            self._flush()
             self.transport.write_eof()
 
     def client_closed(self) -> None:
@@ -169,9 +181,7 @@ class MirrorLeg(asyncio.Protocol):
             except OSError:
                 pass
         self.mirror.event(self, "connected", "")
-        if self.early:
-            transport.write(bytes(self.early))
-            self.early.clear()
+        self._flush()
         if self.client_done and transport.can_write_eof():
             transport.write_eof()
 
@@ -186,7 +196,7 @@ class MirrorLeg(asyncio.Protocol):
         mirror.sink.mirror(self.conn, mirror.clock(), True, data)
         if self._resume is None and self.transport is not None:  # what else it says, in one read, later:
             self.transport.pause_reading()  # its answers never reach the client, so a few ms do not matter,
-            self._resume = asyncio.get_running_loop().call_later(MIRROR_READ_S, self._read_again)  # wakeups do
+            self._resume = asyncio.get_running_loop().call_later(MIRROR_BATCH_S, self._read_again)  # wakeups do
 
     def _read_again(self) -> None:
         self._resume = None
@@ -209,8 +219,9 @@ class MirrorLeg(asyncio.Protocol):
         if self.ended:
             return
         self.ended = True
-        self.early.clear()
-        for pending in (self._connect, self._grace, self._resume):
+        self.sent = self.fed - len(self.waiting) - (self.transport.get_write_buffer_size() if self.transport else 0)
+        self.waiting.clear()
+        for pending in (self._connect, self._grace, self._resume, self._write):
             if pending is not None:
                 pending.cancel()
         if self.transport is not None:
@@ -247,7 +258,7 @@ class Mirror:
 
     def event(self, leg: MirrorLeg, event: str, detail: str) -> None:
         self.view.events[event] += 1
-        body = {"event": event, "detail": detail, "c2s_bytes": leg.fed, "s2c_bytes": leg.received}
+        body = {"event": event, "detail": detail, "c2s_bytes": leg.sent, "s2c_bytes": leg.received}
         self.sink.mirror(leg.conn, self.clock(), False, json.dumps(body).encode())
         if event in ("failed", "dropped") and event not in self._said:
             self._said.add(event)

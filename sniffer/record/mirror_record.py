@@ -95,7 +95,7 @@ class MirrorRecorder:
         self.cut_off: set[int] = set()  # connections whose mirror answers are left out (the queue was full)
         self.events: Counter[str] = Counter()
         self.first: list[str] = []
-        self.latest: list[str] = []  # differences not yet told to the proxy (the last FIRST of them)
+        self.latest: list[Difference] = []  # differences not yet told to the proxy (the last FIRST of them)
         self.told_at = 0.0
         recorder.extend({MirrorRead: self._input_read, MirrorEvent: self._input_event}, self._primary)
 
@@ -144,7 +144,9 @@ class MirrorRecorder:
                 self.pairing.mirror_started(e.conn)
             else:
                 self.offsets.pop(e.conn, None)
-                self._found(self.pairing.mirror_ended(e.conn, e.t_ns), e.t_ns)
+                sent = e.fields.get("c2s_bytes")  # what the proxy got to send it (the writer's own drop: none)
+                self._found(self.pairing.mirror_ended(e.conn, e.t_ns, sent if isinstance(sent, int) else None),
+                            e.t_ns)
         return work
 
     def _primary(self, e: TrafficEvent) -> None:
@@ -164,14 +166,14 @@ class MirrorRecorder:
     def _found(self, differences: list[Difference], t_ns: int) -> None:
         if not differences:
             return
-        lines = []
-        for d in differences:
-            self.file.write_late(TOPIC_MIRROR_DIFFERENCES, t_ns, encode(difference_message(d, t_ns)))
-            lines.append(difference_line(d))
+        channel = self.file.channel_ids.get(TOPIC_MIRROR_DIFFERENCES)
+        if channel is None:
+            channel = self.file.channel_id(TOPIC_MIRROR_DIFFERENCES)  # its first message: a late topic
+        self.file.write_all([(channel, t_ns, encode(difference_message(d, t_ns))) for d in differences])
         room = FIRST - len(self.first)
         if room > 0:
-            self.first += lines[:room]
-        self.latest = (self.latest + lines)[-FIRST:]
+            self.first += [difference_line(d) for d in differences[:room]]
+        self.latest = (self.latest + differences)[-FIRST:]  # in words when told: most never are
         self.tick(time.monotonic())
 
     def tick(self, now: float) -> None:
@@ -180,9 +182,9 @@ class MirrorRecorder:
         if self.latest and now - self.told_at >= STATUS_S:
             self.told_at = now
             result = self.pairing.tally.result
-            self.say({"type": "mirror", "total": result.total, "by_kind": result.counts(), "latest": self.latest})
+            self.say({"type": "mirror", "total": result.total, "by_kind": result.counts(),
+                      "latest": [difference_line(d) for d in self.latest]})
             self.latest = []
-
 
 def mirror_recorder(recorder: Recorder, file: RecordingFile, config: dict[str, Any],
                     say: Callable[[dict], None]) -> MirrorRecorder | None:
