@@ -35,16 +35,17 @@ class _Checked(click.ParamType):
     """A --ring, --trigger or --after value read by its parser (sniffer/record/trigger.py);
     one line when it is not one."""
 
-    def __init__(self, name: str, parse: str) -> None:
-        self.name, self.parse = name, parse
+    def __init__(self, name: str) -> None:
+        self.name = name
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
         if not isinstance(value, str):
             return value
-        from whiztap.sniffer.record import trigger
+        from whiztap.sniffer.record.trigger import parse_duration, parse_ring, parse_trigger
 
+        parse = {"ring": parse_ring, "trigger": parse_trigger, "after": parse_duration}[self.name]
         try:
-            return getattr(trigger, self.parse)(value)
+            return parse(value)
         except ValueError as e:
             fail(f"--{self.name} {e}")
 
@@ -85,14 +86,14 @@ def _ring_settings(output: str, ring: Any, triggers: tuple[str, ...], after: flo
 @click.option("--meta", "meta", multiple=True, metavar="KEY=VALUE",
               help="Write this key into the recording's metadata (robot=r7, firmware=2.3), for "
                    "'whiztap analyze --group-by KEY'; repeatable.")
-@click.option("--ring", type=_Checked("ring", "parse_ring"), default=None, metavar="DURATION|SIZE",
+@click.option("--ring", type=_Checked("ring"), default=None, metavar="DURATION|SIZE",
               help="Flight recorder: keep only this much (30s, 64MB) and write NAME-incident-N.mcap around each "
                    "--trigger (docs/recorder.md).")
-@click.option("--trigger", "triggers", type=_Checked("trigger", "parse_trigger"), multiple=True,
+@click.option("--trigger", "triggers", type=_Checked("trigger"), multiple=True,
               metavar="RULE|severity:LEVEL|latency>MS|fault",
               help="With --ring, what begins an incident: a rule id, a violation at or above LEVEL, an answer "
                    "slower than MS ms (or none within it), any fault of the proxy in the middle; repeatable.")
-@click.option("--after", type=_Checked("after", "parse_duration"), default=None, metavar="DURATION",
+@click.option("--after", type=_Checked("after"), default=None, metavar="DURATION",
               help="With --ring, how long an incident goes on after its last trigger (default 5s).")
 @click.option("--mirror", type=Address(), default=None, metavar="HOST:PORT",
               help="Shadow traffic: also send each client's bytes to this server, record its answers (never "
