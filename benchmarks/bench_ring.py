@@ -15,7 +15,9 @@ Two configurations take turns ``ROUNDS`` times and the median counts:
   trigger this load never fires, so the window is all that is kept: the
   flight recorder's steady state.  ``RING`` is ``WHIZTAP_BENCH_RING``
   (default 64MB, less than the load's messages, so the ring fills and
-  evicts).
+  evicts);
+* tiny: the same with the smallest ring (64kB): the writer's working memory
+  without a ring to speak of, so ring - tiny is what the ring itself holds.
 
 For each: frames/s (the target: ring / plain >= 0.95), and the most resident
 memory of the proxy and of its writer process, sampled every 50 ms.  Then
@@ -54,7 +56,8 @@ RING = os.environ.get("WHIZTAP_BENCH_RING", "64MB")
 ROUNDS = 3
 TARGET_RATIO = 0.95
 SAMPLE_S = 0.05
-CONFIGS = {"plain": (), "ring": ("--ring", RING, "--trigger", "PW-PAIR-UNSOLICITED")}
+CONFIGS = {"plain": (), "ring": ("--ring", RING, "--trigger", "PW-PAIR-UNSOLICITED"),
+           "tiny": ("--ring", "64kB", "--trigger", "PW-PAIR-UNSOLICITED")}
 FIRING = ("--ring", RING, "--trigger", "severity:error", "--after", "1s")
 
 
@@ -128,6 +131,8 @@ def main() -> None:
                       f"{r['seen']:,.0f} of {r['frames']:,.0f} frames seen by the recorder; "
                       f"{r['files']:.0f} file(s), {r['size'] / 1e6:.1f} MB; "
                       f"{'every answer forwarded' if r['forwarded'] else 'ANSWERS LOST'}")
+            held = med["ring"]["writer_kib"] - med["tiny"]["writer_kib"]
+            print(f"MEMORY the ring itself (writer with {RING} - writer with 64kB): {held:,.0f} KiB")
             ratio = med["ring"]["fps"] / med["plain"]["fps"]
             print(f"RATIO frames/s ring / plain: {ratio:.2f} (target >= {TARGET_RATIO}); medians of {ROUNDS} rounds")
             f = _run(tmp, upstream_port, "firing", FIRING)
