@@ -1,33 +1,53 @@
 """Shadow traffic: round trips through ``whiztap record`` with ``--mirror`` and without, side by side.
 
-Processes as a user runs them: the primary (``whiztap sim --mode vpn``),
-``whiztap record -q`` with and without ``--mirror``, and a blocking-socket
-client in this process doing one Sensor Request, waiting for its answer, and
-again, for ``WHIZTAP_BENCH_RT_S`` seconds (default 3) per run.  The mirror is
-bench_proxy's responder (every request answered at once, reading 0): a
-second simulator would take a good part of one of this machine's two cores
-for itself, which is the mirror's cost, not whiztap's; and its answers all
-differ from the simulator's, so every exchange is a difference to pair, write
-and report: the pairing's worst case.  The two runs take turns ``ROUNDS``
-times against the same servers (the mirror runs in both, idle in the run
-without it) and the medians count, with the CPU time the proxy and its writer
-process spent per round trip.  The target is the ratio in the same run: with
-a mirror at least 0.9 of without.
+Processes as a user runs them: the primary (``whiztap sim --mode vpn``), two
+``whiztap record -q`` in front of it, one with ``--mirror`` and one without,
+and a blocking-socket client in this process doing one Sensor Request,
+waiting for its answer, and again.  The mirror is bench_proxy's responder
+(every request answered at once, reading 0): a second simulator would take a
+good part of one of this machine's two cores for itself, which is the
+mirror's cost, not whiztap's; and its answers all differ from the
+simulator's, so every exchange is a difference to pair, write and report:
+the pairing's worst case.
+
+Both recorders run at once, and the client takes turns between them in
+``SLICE_S`` slices (whichever goes first alternates; ``SETTLE_S`` between
+slices, untimed, so that what a slice left its writer process to do is not
+done in the other recorder's slice), ``WHIZTAP_BENCH_RT_S`` (default 3) times
+``ROUNDS`` seconds each: on a machine others share, both see the same load
+(runs one after the other each saw its own share of it, and gave ratios from
+0.6 to 1.5).  Per recorder: round trips/s over its
+slices, and the CPU time its proxy and its writer process spent per round
+trip.  The target is the ratio: with a mirror at least 0.9 of without.
 """
 
 from __future__ import annotations
 
 import os
 import platform
-import statistics
+import socket
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.bench_proxy import RESPONDER, RT_S, WHIZTAP, _free_port, _round_trips, _spawn, _stop, _wait_port
+from benchmarks.bench_proxy import (
+    FETCH_CONFIG,
+    REQUEST,
+    RESPONDER,
+    RT_S,
+    WHIZTAP,
+    _free_port,
+    _recv_frame,
+    _spawn,
+    _stop,
+    _wait_port,
+)
 
-ROUNDS = 5
+ROUNDS = 5  # RT_S seconds of round trips per recorder, this many times over
+SLICE_S = 0.5
+SETTLE_S = 0.1
 TARGET_RATIO = 0.9
 TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -46,30 +66,53 @@ def _cpu_s(pid: int) -> tuple[float, float]:
     return one(pid), sum(one(k) for k in kids)
 
 
-def _through_record(sim_port: int, out: Path, *more: str) -> tuple[float, float, float]:
-    """Round trips/s through one ``whiztap record`` run, and the CPU microseconds its proxy
-    and its writer spent per round trip meanwhile."""
+def _start_record(sim_port: int, out: Path, *more: str) -> tuple[subprocess.Popen, socket.socket]:
+    """A ``whiztap record`` run, and a client connection through it past its Fetch Configuration."""
     port = _free_port()
     rec = _spawn([WHIZTAP, "record", "-q", "--listen", str(port), "--upstream", f"127.0.0.1:{sim_port}",
                   "-o", str(out), "--force", *more])
     _wait_port(port, rec)
-    before = _cpu_s(rec.pid)
-    start = time.perf_counter()
-    rate = _round_trips(port, RT_S)
-    trips = rate * (time.perf_counter() - start)
-    after = _cpu_s(rec.pid)
-    _stop(rec)
-    return rate, (after[0] - before[0]) / trips * 1e6, (after[1] - before[1]) / trips * 1e6
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.sendall(FETCH_CONFIG)
+    _recv_frame(sock)
+    return rec, sock
+
+
+def _slice(sock: socket.socket, seconds: float) -> int:
+    """Round trips for ``seconds`` on one connection: how many."""
+    n = 0
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        for _ in range(20):
+            sock.sendall(REQUEST)
+            _recv_frame(sock)
+        n += 20
+    return n
 
 
 def comparison(primary: int, mirror: int, tmp: Path) -> dict[str, tuple[float, float, float]]:
-    """Per run: the median round trips/s, and the proxy's and the writer's CPU µs per round trip."""
-    runs: dict[str, list[tuple[float, float, float]]] = {"without": [], "with": []}
-    for _ in range(ROUNDS):
-        runs["without"].append(_through_record(primary, tmp / "plain.mcap"))
-        runs["with"].append(_through_record(primary, tmp / "mirror.mcap", "--mirror", f"127.0.0.1:{mirror}"))
-    return {name: tuple(statistics.median(r[i] for r in values) for i in range(3))  # type: ignore[misc]
-            for name, values in runs.items()}
+    """Both recorders run at once, the client taking turns between them in slices of ``SLICE_S``
+    (whichever goes first alternates), so both see the same load from the rest of the machine;
+    per recorder, round trips/s over its slices, and its proxy's and writer's CPU µs per round trip."""
+    runs = {"without": _start_record(primary, tmp / "plain.mcap"),
+            "with": _start_record(primary, tmp / "mirror.mcap", "--mirror", f"127.0.0.1:{mirror}")}
+    trips = dict.fromkeys(runs, 0)
+    spent = dict.fromkeys(runs, 0.0)
+    before = {name: _cpu_s(rec.pid) for name, (rec, _) in runs.items()}
+    order = list(runs)
+    for i in range(int(RT_S * ROUNDS / SLICE_S)):
+        for name in order if i % 2 else order[::-1]:
+            start = time.perf_counter()
+            trips[name] += _slice(runs[name][1], SLICE_S)
+            spent[name] += time.perf_counter() - start
+            time.sleep(SETTLE_S)  # what the slice left its writer to do is done in no other's slice
+    after = {name: _cpu_s(rec.pid) for name, (rec, _) in runs.items()}
+    for rec, sock in runs.values():
+        sock.close()
+        _stop(rec)
+    return {name: (trips[name] / spent[name], (after[name][0] - before[name][0]) / trips[name] * 1e6,
+                   (after[name][1] - before[name][1]) / trips[name] * 1e6) for name in runs}
 
 
 def _mirror_summary(path: Path) -> str:
