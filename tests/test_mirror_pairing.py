@@ -21,7 +21,8 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from whiztap.analyzer.analysis.mirror import MAX_HANDSHAKE, MAX_WAITING, MirrorPairing, _Pair, _Side
+from whiztap.analyzer.analysis.diff import DiffResult
+from whiztap.analyzer.analysis.mirror import MAX_HANDSHAKE, MAX_WAITING, MirrorPairing, MirrorTally, _Pair, _Side
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.format import MIRROR_TOPICS, metadata_record
@@ -119,6 +120,8 @@ BUFFERS: dict[type, dict[str, int]] = {
     MirrorView: {"by_kind": 5, "latest": 5, "events": 4},
     MirrorRecorder: {"offsets": 1 << 16, "cut_off": 1 << 16, "events": 4, "first": 5, "latest": 5},  # per open conn
     MirrorPairing: {"pairs": 1 << 16},  # one per open connection
+    MirrorTally: {},
+    DiffResult: {"differences": 0, "by_kind": 5},  # counts only
     _Pair: {"seen": MAX_WAITING},
     _Side: {"waiting": MAX_WAITING, "asked": MAX_WAITING, "handshake": MAX_HANDSHAKE},
 }
@@ -140,7 +143,8 @@ def test_every_buffer_of_the_mirror_is_registered_and_bounded(tmp_path):
     pairing = MirrorPairing(Limits().session, 5_000_000_000)
     pairing.opened(1)
     pair = pairing.pairs[1]
-    owners = [recorder, pairing, pair, pair.primary, pair.mirror, MirrorView(), MirrorLeg(None, 1)]  # type: ignore[arg-type]
+    owners = [recorder, pairing, pairing.tally, pairing.tally.result, pair, pair.primary, pair.mirror, MirrorView(),
+              MirrorLeg(None, 1)]  # type: ignore[arg-type]
     for owner in owners:
         for name, value in _containers(owner):
             bound = BUFFERS[type(owner)].get(name)

@@ -35,13 +35,12 @@ from whiztap.analyzer.analysis.compare import LATENCY_TOLERANCE_MS, answer_key
 from whiztap.analyzer.analysis.diff import DiffResult, Difference, _handshake, _pair, exchange_key
 from whiztap.analyzer.analysis.exchanges import ClientItem, RecordedConnection
 from whiztap.analyzer.protocol.framing import ItemKind
-from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation
+from whiztap.analyzer.protocol.observations import Direction, Event, LateViolation, Observation
 from whiztap.analyzer.protocol.session import Session
 
 C2S, S2C = Direction.C2S, Direction.S2C
 MAX_WAITING = 4096  # requests waiting for their answer, per side of a connection
 MAX_HANDSHAKE = 16  # handshake items kept per side (a Winsock handshake has three)
-LATEST = 5  # differences kept for the live view
 
 
 @dataclass(slots=True)
@@ -61,7 +60,7 @@ class _Side:
         self.now = 0  # the latest time this side has seen
         self.waiting: deque[_Request] = deque()
         self.asked: dict[int, _Request] = {}  # the session's request index -> its request, until answered
-        self.handshake: list = []
+        self.handshake: list[Observation] = []
         self.password: ClientItem | None = None
 
     def feed(self, direction: Direction, data: bytes, t_ns: int) -> None:
@@ -124,7 +123,8 @@ class _Side:
 class _Pair:
     primary: _Side
     mirror: _Side
-    seen: dict[tuple[str, int | None], int] = field(default_factory=lambda: defaultdict(int))  # requests by kind
+    # (title, channel) -> requests so far: the positions diff names them by
+    seen: dict[tuple[str, int | None], int] = field(default_factory=lambda: defaultdict(int))
     cut: int | None = None  # the mirror ended: client bytes past this offset are not compared
     mirror_started: bool = False  # the mirror's connection was made
     primary_closed: bool = False
@@ -133,11 +133,10 @@ class _Pair:
 
 @dataclass(slots=True)
 class MirrorTally:
-    """What the pairing found so far: ``result`` counts the differences by
-    kind (and keeps the first ``diff.MAX_KEPT``), ``latest`` the last few."""
+    """What the pairing found so far: ``result`` counts the exchanges compared and the
+    differences by kind (it keeps none: each is handed back as it is found)."""
 
-    result: DiffResult = field(default_factory=lambda: DiffResult("primary", "mirror", LATENCY_TOLERANCE_MS))
-    latest: deque[Difference] = field(default_factory=lambda: deque(maxlen=LATEST))
+    result: DiffResult = field(default_factory=lambda: DiffResult("primary", "mirror", LATENCY_TOLERANCE_MS, 0))
     connections: int = 0  # connections whose comparison is over
     not_compared: int = 0  # requests the mirror never got (it ended first)
 
@@ -156,7 +155,7 @@ class MirrorPairing:
         self.new_session = new_session
         self.timeout_ns = answer_timeout_ns
         self.tolerance_ns = int(latency_tolerance_ms * 1e6)
-        self.tally = MirrorTally(DiffResult("primary", "mirror", latency_tolerance_ms))  # the primary is A
+        self.tally = MirrorTally(DiffResult("primary", "mirror", latency_tolerance_ms, 0))  # the primary is A
         self.pairs: dict[int, _Pair] = {}
 
     def opened(self, conn: int) -> None:
@@ -278,6 +277,5 @@ class MirrorPairing:
     def _count(self, differences: list[Difference]) -> list[Difference]:
         if differences:
             self.tally.result.add(differences)
-            self.tally.latest.extend(differences)
         return differences
 
