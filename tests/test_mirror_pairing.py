@@ -144,7 +144,7 @@ def test_every_buffer_of_the_mirror_is_registered_and_bounded(tmp_path):
     pairing.opened(1)
     pair = pairing.pairs[1]
     owners = [recorder, pairing, pairing.tally, pairing.tally.result, pair, pair.primary, pair.mirror, MirrorView(),
-              MirrorLeg(None, 1)]  # type: ignore[arg-type]
+              MirrorLeg(None, 1)]  # its attributes only: no mirror behind it
     for owner in owners:
         for name, value in _containers(owner):
             bound = BUFFERS[type(owner)].get(name)
