@@ -257,3 +257,23 @@ def test_a_mirror_that_cannot_be_is_refused_in_one_line(tmp_path):
         assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
         assert done.stderr.startswith("whiztap: ") and words in done.stderr, done.stderr
     assert not out.exists()
+
+
+@pytest.mark.slow  # whiztap record as a process of its own: its terminal is the point
+async def test_whiztap_record_says_what_the_mirror_did_when_it_closes(tmp_path):
+    from tests.record_support import running_record
+
+    async with simulator(1) as primary, simulator(2) as shadow, \
+            running_record(primary.port, tmp_path / "m.mcap", "--mirror", f"{LOCAL}:{shadow.port}") as rec:
+        mirror = f"{LOCAL}:{shadow.port}"
+        assert f"mirror: {mirror}" in rec.first
+        async with await Client.connect(LOCAL, rec.port, password=PASSWORD) as client:
+            await client.fetch_configuration()
+            await client.sensor(12)
+        await until_closed(primary)
+        code, out, err = await rec.finish()
+    assert code == 0 and err == "", err
+    [line] = [line for line in out.splitlines() if line.startswith("mirror ")]
+    assert line == f"mirror {mirror}: 2 exchanges compared over 1 connection: 1 difference (1 value)"
+    assert "  #1 Sensor Request #1 on channel 12: the answer (sensor_value " in out
+    assert PASSWORD not in out
