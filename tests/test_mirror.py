@@ -277,3 +277,21 @@ async def test_whiztap_record_says_what_the_mirror_did_when_it_closes(tmp_path):
     assert line == f"mirror {mirror}: 2 exchanges compared over 1 connection: 1 difference (1 value)"
     assert "  #1 Sensor Request #1 on channel 12: the answer (sensor_value " in out
     assert PASSWORD not in out
+
+
+@pytest.mark.slow  # whiztap record as a process of its own: its terminal is the point
+async def test_whiztap_record_says_at_start_that_the_mirror_refuses_and_no_more(tmp_path):
+    from tests.record_support import running_record
+
+    port = closed_port()
+    async with simulator(1) as primary, \
+            running_record(primary.port, tmp_path / "m.mcap", "--mirror", f"{LOCAL}:{port}") as rec:
+        line = (await asyncio.wait_for(rec.proc.stderr.readline(), WAIT)).decode()
+        assert line == (f"warning: the mirror {LOCAL}:{port} does not accept connections (Connection refused); "
+                        "recording anyway: the clients' traffic goes on, and the mirror's answers are not compared\n")
+        async with await Client.connect(LOCAL, rec.port, password=PASSWORD) as client:
+            await client.sensor(12)  # the client's exchanges go on
+        await until_closed(primary)
+        code, out, err = await rec.finish()
+    assert code == 0 and err == "", err  # the connection's failure is recorded, not said again
+    assert "1 failed" in out and "1 connection: no differences" in out, out

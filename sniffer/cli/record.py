@@ -197,8 +197,8 @@ async def _record(settings: RecordSettings) -> str | None:
 
 
 async def _try_upstream(recording: Recording) -> None:
-    """Connect to the upstream once at start (and close at once): one that
-    refuses is said now, rather than by each client's reset."""
+    """Connect to the upstream (and the mirror) once at start (and close at once): one that
+    refuses is said now, rather than by each client's reset (the mirror's: by its first failure)."""
     from whiztap.sniffer.nettext import show_address
     from whiztap.sniffer.record.proxy import try_upstream
 
@@ -207,6 +207,11 @@ async def _try_upstream(recording: Recording) -> None:
     if why is not None:
         recording.warn(f"warning: the upstream {show_address(*settings.upstream)} does not accept connections ({why}); "
                        "recording anyway: each client is reset until it does")
+    mirror = recording.mirror
+    why = await try_upstream(mirror.host, mirror.port, settings.connect_timeout) if mirror is not None else None
+    if mirror is not None and why is not None:  # said once: the first client's failure is not said again
+        mirror.say_once("failed", f"warning: the mirror {mirror.text} does not accept connections ({why}); recording "
+                                  "anyway: the clients' traffic goes on, and the mirror's answers are not compared")
 
 
 @click.command("recover")

@@ -260,13 +260,18 @@ class Mirror:
         self.view.events[event] += 1
         body = {"event": event, "detail": detail, "c2s_bytes": leg.sent, "s2c_bytes": leg.received}
         self.sink.mirror(leg.conn, self.clock(), False, json.dumps(body).encode())
-        if event in ("failed", "dropped") and event not in self._said:
-            self._said.add(event)
-            self.say(f"mirror: #{leg.conn} {event}: {detail} (said once; the closing summary counts them all)")
-        elif event == "closed" and leg.fed and not leg.client_done and "died" not in self._said:
-            self._said.add("died")  # the mirror closed while the client was still talking
-            self.say(f"mirror: #{leg.conn} {detail} while the client was still connected "
-                     "(said once; the closing summary counts them all)")
+        if event in ("failed", "dropped"):
+            self.say_once(event, f"mirror: #{leg.conn} {event}: {detail} (said once; the closing summary counts "
+                                 "them all)")
+        elif event == "closed" and leg.fed and not leg.client_done:  # while the client was still talking
+            self.say_once("died", f"mirror: #{leg.conn} {detail} while the client was still connected "
+                                  "(said once; the closing summary counts them all)")
+
+    def say_once(self, kind: str, line: str) -> None:
+        """Say ``line`` if nothing of its ``kind`` was said yet in this run."""
+        if kind not in self._said:
+            self._said.add(kind)
+            self.say(line)
 
     def close(self) -> None:
         """The recording stops: every mirror connection ends now."""
