@@ -22,6 +22,7 @@ from whiztap.analyzer.traffic import Data, Opened
 from whiztap.sniffer.record import trigger
 from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.ring import ENTRY_COST, OPENING_BYTES, RingFile
+from whiztap.sniffer.record.seam import ServerSeek
 from whiztap.sniffer.record.trigger import MIN_RING_BYTES, Ring, Triggers
 from whiztap.sniffer.record.writer import RecordingFile
 
@@ -49,6 +50,11 @@ RING_BUFFERS: dict[type, dict[str, tuple[Callable[[object], int], Bound]]] = {
         "incidents": (len, lambda f: len(f.finished) + 1),  # one per file written, and the one being written
         "_ids": (len, lambda f: len(f.channel_ids)),  # channel ids, into the incident being written
     },
+    ServerSeek: {
+        "seeking": (len, lambda f: len(f._openings)),  # connections whose opening the incident holds
+        "held": (len, lambda f: len(f._openings)),  # one read each, at most
+        "topics": (len, lambda f: len(f.channel_ids)),  # the ring's own channel map
+    },
     Triggers: {
         "pending": (len, lambda f: trigger.PENDING_KEPT),
         "rules": (len, lambda f: len(f.triggers.rules)),  # the --trigger words: fixed at start
@@ -61,7 +67,8 @@ def buffers_of(f: RingFile) -> list[tuple[object, str, object]]:
     """(owner, attribute, value) of every container the ring keeps beyond a RecordingFile's own."""
     own = set(vars(RecordingFile("x.mcap", {})))
     found = [(f, name, value) for name, value in vars(f).items() if name not in own and isinstance(value, CONTAINERS)]
-    found += [(f.triggers, name, value) for name, value in vars(f.triggers).items() if isinstance(value, CONTAINERS)]
+    for part in (f.triggers, f._seek):
+        found += [(part, name, value) for name, value in vars(part).items() if isinstance(value, CONTAINERS)]
     return found
 
 
@@ -91,6 +98,7 @@ def test_every_buffer_of_the_ring_is_registered(tmp_path):
     assert registered <= present, f"RING_BUFFERS names what the ring no longer has: {registered - present}"
 
 
+@pytest.mark.slow
 def test_a_long_stream_through_a_small_ring_holds_no_more_than_the_ring(tmp_path):
     """20,000 requests and answers (about 5 MB of messages) through a 64 kB
     ring, and 500 connections that open, say their opening and never close:
@@ -129,6 +137,7 @@ def test_requests_never_answered_are_watched_up_to_the_cap(tmp_path, monkeypatch
     assert len(f.triggers.pending) == 300
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("after_ms", [1, 1000])
 def test_a_ring_that_keeps_writing_incidents_holds_no_more_than_the_ring(tmp_path, after_ms):
     """An error in every read: incident after incident (or one long one);

@@ -38,9 +38,16 @@ import os
 from collections import deque
 from collections.abc import Callable
 
-from whiztap.analyzer.recording.format import TOPIC_EVENTS, TOPIC_FRAMES, TOPIC_INTERVENTIONS, TOPIC_VIOLATIONS
+from whiztap.analyzer.recording.format import (
+    TOPIC_EVENTS,
+    TOPIC_FRAMES,
+    TOPIC_INTERVENTIONS,
+    TOPIC_READS,
+    TOPIC_VIOLATIONS,
+)
 from whiztap.analyzer.recording.encode import encode
 from whiztap.analyzer.traffic import RecordingStopped, to_json
+from whiztap.sniffer.record.seam import ServerSeek, stream_ends, trim
 from whiztap.sniffer.record.trigger import Ring, Triggers, conn_of
 from whiztap.sniffer.record.writer import RecordingFile, _warn_on_stderr
 
@@ -82,7 +89,7 @@ class RingFile(RecordingFile):
         self.triggers = Triggers(triggers)
         self.incidents: list[dict] = []  # path, the trigger that began it, how many fired while it was written
         ids = self.channel_ids
-        self._events, self._frames = ids[TOPIC_EVENTS], ids[TOPIC_FRAMES]
+        self._events, self._frames, self._reads = ids[TOPIC_EVENTS], ids[TOPIC_FRAMES], ids[TOPIC_READS]
         self._violations, self._interventions = ids[TOPIC_VIOLATIONS], self.channel_id(TOPIC_INTERVENTIONS)
         self._window: deque[Message] = deque()  # in write order
         self._held = 0  # the window's cost (bytes + ENTRY_COST each)
@@ -93,6 +100,7 @@ class RingFile(RecordingFile):
         self._opening_bytes = 0
         self._filling = 0  # openings not done
         self._incident: RecordingFile | None = None
+        self._seek = ServerSeek({}, self._topics)  # after the window, server streams still looking for where to begin
         self._ids: dict[int, int] = {}  # channel id here -> in the incident
         self._until = 0
         self._number = 0
@@ -248,13 +256,16 @@ class RingFile(RecordingFile):
         metadata = {k: v for k, v in self.metadata.items() if k != "part"}
         metadata.update(incident=str(self._number), incident_trigger=why)
         incident = RecordingFile(path, metadata, overwrite=self.overwrite, warn=self.warn)
+        first = self._first  # what the window no longer holds of the start and the openings goes first
         kept = (*self._start, *(entry for opening in self._openings.values() for entry in opening.messages))
-        head = [m for seq, m in sorted(kept) if seq < self._first]  # what the window no longer holds
+        head = [m for seq, m in sorted(kept) if seq < first]
+        ends = {conn: stream_ends((m for seq, m in o.messages if seq < first), self._reads)
+                for conn, o in self._openings.items() if o.messages and o.messages[0][0] < first}
         incident.open(head[0][1] if head else t_ns)
         self._incident, self._ids = incident, {}
         self.incidents.append({"path": path, "trigger": why, "triggers": 1})
         self._copy(head)
-        window = list(self._window)
+        window, self._seek = trim(list(self._window), ends, self._topics)  # each seam where its streams read on
         self._window.clear()
         self._held = 0
         self._first = self._seq
@@ -268,7 +279,7 @@ class RingFile(RecordingFile):
         assert incident is not None  # being written
         ids = self._ids
         out = []
-        for ch, t, data in messages:
+        for ch, t, data in self._seek.messages(messages):
             mapped = ids.get(ch)
             if mapped is None:
                 topic = self._topics[ch]
