@@ -214,6 +214,7 @@ async def test_the_password_sent_to_both_servers_shows_nowhere(tmp_path):
 # -- the live TUI ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # about a second: the app under Pilot with its proxy, writer and two simulators
 async def test_the_live_tui_shows_how_many_differences_and_the_latest(tmp_path):
     """``whiztap tui --upstream --mirror``: the status line counts the lying mirror's
     differences as the client's exchanges are judged, and names the latest."""
