@@ -16,7 +16,8 @@ with, in order:
   its ``opened`` event up to the server's configuration answer (or
   ``OPENING_BYTES`` of them), so the handshake and the channel map that decide
   what every later frame means are in the file;
-- the window;
+- the window, each connection opened before it begun where its streams
+  can be read on (``seam.py``);
 - everything that follows until ``--after`` has passed since the last
   trigger: a trigger within that time extends the same file (overlapping
   incidents merge), and then a ``recording_stopped`` event ends it.
