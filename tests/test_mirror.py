@@ -62,6 +62,9 @@ async def test_a_mirror_equal_to_the_primary_shows_no_difference_and_the_client_
     assert mirror == primary  # the same seed, the same clock: the same answers
     assert "/mirror/differences" not in topics
     assert "no differences" in mirror_lines(final)[0]
+    from whiztap.analyzer.recording.scan import read_metadata
+
+    assert read_metadata(str(tmp_path / "m.mcap"))["mirror"] == final["server"]
 
 
 async def test_a_lying_mirror_differs_in_its_readings_and_each_difference_says_which_side(tmp_path):

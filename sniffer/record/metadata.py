@@ -22,7 +22,7 @@ RESERVED_KEYS = frozenset((
     "format_version", "whiztap_version", "spec_revision", "source", "replay_of", "target", "pace", "rate",
     "listen", "upstream", "pcap", "iface", "server_port", "start_time", "start_time_ns", "checksum_rule", "host",
     "secrets", "session_id", "split_size", "split_duration", "part", "middle", "faults", "seed",
-    "incident", "incident_trigger",
+    "incident", "incident_trigger", "mirror",
 ))
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,63}$")
 MAX_VALUE = 1024  # characters of one value: a name or a version, not a document

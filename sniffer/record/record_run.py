@@ -17,6 +17,7 @@ from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.recording.notice import Notice
 from whiztap.sniffer.record.consumers import Consumer, Consumers
 from whiztap.sniffer.record.feed import WriterError, WriterProcess
+from whiztap.sniffer.nettext import show_address
 from whiztap.sniffer.record.metadata import base_metadata
 from whiztap.sniffer.record.proxy import Connection, RecordingProxy
 from whiztap.sniffer.record.summary import clock_text
@@ -146,6 +147,8 @@ class Recording:
         start_ns = proxy.clock()
         listen = proxy.listen_text
         middle = self.controller.metadata() if self.controller is not None else {}
+        if s.mirror is not None:  # --mirror: the second server, among whiztap's keys
+            middle = {**middle, "mirror": show_address(*s.mirror)}
         metadata = base_metadata("proxy", s.keep_secrets, s.checksum_rule, start_ns, listen=listen,
                                  upstream=proxy.upstream_text, split_size=s.split_size,
                                  split_duration=s.split_duration, user=dict(s.meta), **middle)
@@ -182,12 +185,11 @@ class Recording:
 
     def _start_mirror(self, config: dict, writer: WriterProcess) -> None:
         """--mirror: the writer pairs (``config["mirror"]``), the proxy feeds the mirror."""
-        from whiztap.sniffer.nettext import show_address
         from whiztap.sniffer.record.mirror import Mirror
 
         s, proxy = self.settings, self.proxy
         assert s.mirror is not None and proxy is not None  # asked, and started
-        config["mirror"] = config["metadata"]["mirror"] = show_address(*s.mirror)
+        config["mirror"] = config["metadata"]["mirror"]
         self.mirror = Mirror(*s.mirror, s.connect_timeout, proxy.clock, writer, self.warn)
         writer.on_mirror = self.mirror.view.update
 
