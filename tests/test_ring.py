@@ -11,6 +11,7 @@ the ring's buffers are in ``test_ring_memory.py``.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import random
 import socket
@@ -33,7 +34,16 @@ from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.cli_support import run_cli
 from tests.outputs import SECRET, assert_no_leak, replay_dry_run, topics_text, tui_store_text
-from tests.record_support import StepServer, op_event, play_client, read_all, record_dialogue, recording
+from tests.record_support import (
+    WAIT,
+    StepServer,
+    op_event,
+    play_client,
+    read_all,
+    record_dialogue,
+    recording,
+    running_record,
+)
 from tests.test_readers_property import traffic
 
 T0 = 1_700_000_000_000_000_000
@@ -243,6 +253,32 @@ async def test_a_fault_begins_an_incident_and_a_stop_while_it_is_written_finishe
     assert by_topic["/tcp/events"][0]["event"] == "recording_started"
     assert analysed(incident)["connections"]
     assert replay_dry_run(incident)
+
+
+@pytest.mark.slow
+async def test_ctrl_c_while_an_incident_is_written_leaves_it_complete(tmp_path):
+    """The command as a user runs it: an error begins an incident with 60 s
+    still to go; Ctrl-C then finishes it, indexed, and says where it is."""
+    ask = b"rr1-24--0--0-ss1"
+    async with StepServer([("recv", len(ask)), ("send", CONFIG)]) as server:
+        async with running_record(server.port, tmp_path / "rec.mcap", "--ring", "30s", "--trigger",
+                                  "severity:error", "--after", "60s") as rec:
+            reader, writer = await rec.connect()
+            writer.write(ask)
+            await reader.readexactly(len(CONFIG))
+            writer.write(BAD)
+            await writer.drain()
+            part = tmp_path / "rec-incident-1.mcap.part"
+            for _ in range(int(WAIT * 100)):  # until the writer has begun the incident
+                if part.exists():
+                    break
+                await asyncio.sleep(0.01)
+            status, out, err = await rec.finish()
+            writer.close()
+    incident = tmp_path / "rec-incident-1.mcap"
+    assert status == 0 and not part.exists(), err
+    assert f"{incident}: PW-RANGE-CHANNEL (error) on conn #" in out
+    assert "PW-RANGE-CHANNEL" in [v["rule_id"] for v in analysed(incident)["violations"]]
 
 
 async def test_no_trigger_no_file_and_the_summary_says_so(tmp_path):
