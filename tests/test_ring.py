@@ -185,6 +185,25 @@ def test_a_window_that_begins_mid_stream_reads_on_without_answers_to_nothing(tmp
     assert sorted(found) == ["PW-CHANNEL-UNCONFIGURED", "PW-RANGE-CHANNEL"]
 
 
+def test_what_fires_is_in_the_incident_even_where_no_seam_reads_on(tmp_path):
+    """Every server read begins mid-frame, so the seam finds no place in the
+    window where the server's stream reads on; the answer out of range that
+    fired is in the incident all the same (it was left out with the rest)."""
+    asks, answers = ASK * 3000, ANSWER * 2999 + b"cr1-3--1500--0-ss1"
+    steps: list[Step] = [Opened(1, T0, "c", "u"), Data(1, C, T0, VPN_OPEN[0][1]), Data(1, S, T0, CONFIG)]
+    told = 0
+    for i in range(3000):
+        t = T0 + (i + 1) * 10_000
+        steps.append(Data(1, C, t, asks[i * len(ASK):(i + 1) * len(ASK)]))
+        n = 8 if told == 0 else 16 if i < 2999 else len(answers) - told  # reads that begin mid-frame
+        steps.append(Data(1, S, t, answers[told:told + n]))
+        told += n
+    summary, _ = flight(tmp_path / "rec.mcap", steps, ["PW-RANGE-SENSOR"], Ring(None, 64 << 10), after_ms=1)
+    (incident,) = summary["files"]
+    assert reads(Path(incident))[2]["offset"] > 0  # the window began mid-stream
+    assert "PW-RANGE-SENSOR" in [v["rule_id"] for v in analysed(Path(incident))["violations"]]
+
+
 def test_a_slow_answer_and_no_answer_each_begin_an_incident(tmp_path):
     """latency>250: an answer 390 ms after its request, and later a request
     never answered (the incident begins once 250 ms have passed without one,

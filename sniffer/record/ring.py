@@ -181,7 +181,7 @@ class RingFile(RecordingFile):
             self._held += sum(len(m[2]) for m in messages) + ENTRY_COST * len(messages)
             self._evict(messages[-1][1])
         if why is not None:
-            self._trigger(messages[-1][1], why)
+            self._trigger(messages[-1][1], why, len(messages))
 
     # -- the window and the openings ----------------------------------------------------------
 
@@ -239,15 +239,18 @@ class RingFile(RecordingFile):
 
     # -- incidents ----------------------------------------------------------------------------
 
-    def _trigger(self, t_ns: int, why: str) -> None:
-        """A trigger fired at ``t_ns``: begin an incident, or extend the one being written."""
+    def _trigger(self, t_ns: int, why: str, kept: int = 0) -> None:
+        """A trigger fired at ``t_ns``: begin an incident, or extend the one
+        being written.  ``kept``: the window's last messages, which made it
+        fire; they and the read before them (the one they are about) are in
+        the incident whatever the seams."""
         if self._incident is not None:
             self.incidents[-1]["triggers"] += 1
         else:
-            self._begin(t_ns, why)
+            self._begin(t_ns, why, kept)
         self._until = max(self._until, t_ns + self.after_ns)
 
-    def _begin(self, t_ns: int, why: str) -> None:
+    def _begin(self, t_ns: int, why: str, kept: int) -> None:
         self._evict(t_ns)
         self._number += 1
         path = incident_path(self.path, self._number)
@@ -258,15 +261,16 @@ class RingFile(RecordingFile):
         metadata.update(incident=str(self._number), incident_trigger=why)
         incident = RecordingFile(path, metadata, overwrite=self.overwrite, warn=self.warn)
         first = self._first  # what the window no longer holds of the start and the openings goes first
-        kept = (*self._start, *(entry for opening in self._openings.values() for entry in opening.messages))
-        head = [m for seq, m in sorted(kept) if seq < first]
+        saved = (*self._start, *(entry for opening in self._openings.values() for entry in opening.messages))
+        head = [m for seq, m in sorted(saved) if seq < first]
         ends = {conn: stream_ends((m for seq, m in o.messages if seq < first), self._reads)
                 for conn, o in self._openings.items() if o.messages and o.messages[0][0] < first}
         incident.open(head[0][1] if head else t_ns)
         self._incident, self._ids = incident, {}
         self.incidents.append({"path": path, "trigger": why, "triggers": 1})
         self._copy(head)
-        window, self._seek = trim(list(self._window), ends, self._topics)  # each seam where its streams read on
+        # each seam where its streams read on, never past what fired
+        window, self._seek = trim(list(self._window), ends, self._topics, len(self._window) - kept - 1)
         self._window.clear()
         self._held = 0
         self._first = self._seq

@@ -44,12 +44,13 @@ def stream_ends(opening: Iterable[Message], reads: int) -> dict[bytes, int]:
     return ends
 
 
-def trim(window: list[Message], ends: dict[int, dict[bytes, int]], topics: dict[int, str]
+def trim(window: list[Message], ends: dict[int, dict[bytes, int]], topics: dict[int, str], keep: int
          ) -> tuple[list[Message], ServerSeek]:
     """The window, each connection of ``ends`` (its streams' ends after its
-    opening, which the incident holds) begun where its streams can be read on;
-    and what goes on looking, after the window, for the server streams that
-    found no such place in it."""
+    opening, which the incident holds) begun where its streams can be read on,
+    but never later than position ``keep`` (what made the trigger fire is
+    kept, seam or not); and what goes on looking, after the window, for the
+    server streams that found no such place in it."""
     ids = {topic: ch for ch, topic in topics.items()}
     reads, frames = ids[TOPIC_READS], ids[TOPIC_FRAMES]
     first_read: dict[tuple[int, bytes], tuple[int, int]] = {}  # (conn, dir) -> (position, offset)
@@ -80,7 +81,10 @@ def trim(window: list[Message], ends: dict[int, dict[bytes, int]], topics: dict[
         found = _cut(read_at.get((conn, b"c2s"), []), read_at.get((conn, b"s2c"), []),
                      starts.get((conn, b"c2s"), {}), starts.get((conn, b"s2c"), {}))
         if found is not None:
-            cuts[conn], first_index = found
+            where, first_index = found
+            if max(where.values()) > keep:  # it would leave out what fired: begin there, as it is
+                where, first_index = {d: min(p, keep) for d, p in where.items()}, None
+            cuts[conn] = where
             if first_index is not None:
                 seeking[conn] = first_index
     seek = ServerSeek(seeking, topics)
