@@ -373,6 +373,14 @@ def test_bad_ring_words_are_one_line_and_status_2(tmp_path, args, says):
     assert "unexpected" not in ran.stderr and list(tmp_path.iterdir()) == []
 
 
+def test_a_folder_that_cannot_take_incidents_is_said_at_start(tmp_path):
+    """Not at the first incident, hours later: one line, status 2, no file."""
+    ran = run_cli("record", "--listen", "0", "--upstream", "127.0.0.1:1", "-o", tmp_path / "gone" / "r.mcap",
+                  "--ring", "30s", "--trigger", "fault")
+    assert ran.returncode == 2 and ran.stderr.count("\n") == 1, ran.stderr
+    assert f"cannot write incidents into {tmp_path / 'gone'}: no such folder" in ran.stderr
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=24) | st.from_regex(r"\s*(latency\s*>\s*)?-?\d{0,4}(\.\d*)?\s*(ms|s|m|h|[kKmMgG]i?[bB]|B)?",
                                             fullmatch=True))

@@ -50,7 +50,7 @@ from whiztap.analyzer.recording.encode import encode
 from whiztap.analyzer.traffic import RecordingStopped, to_json
 from whiztap.sniffer.record.seam import ServerSeek, stream_ends, trim
 from whiztap.sniffer.record.trigger import Ring, Triggers, conn_of
-from whiztap.sniffer.record.writer import RecordingFile, _warn_on_stderr
+from whiztap.sniffer.record.writer import RecordingFile, RecordingWriteError, _warn_on_stderr
 
 # What a message kept costs beside its bytes: its tuple, the bytes object and a deque slot take about
 # 105; the rest is the allocator's slack, so the resident size stays within the ring (docs/benchmarks.md).
@@ -111,7 +111,13 @@ class RingFile(RecordingFile):
     # -- what the recorder calls --------------------------------------------------------------
 
     def open(self, t_ns: int) -> None:
-        """Nothing is written until a trigger fires."""
+        """Nothing is written until a trigger fires; but a folder that cannot
+        take the incidents is said now, not at the first incident, hours on."""
+        folder = os.path.dirname(os.path.abspath(self.path))
+        if not os.path.isdir(folder):
+            raise RecordingWriteError(f"cannot write incidents into {folder}: no such folder")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise RecordingWriteError(f"cannot write incidents into {folder}: permission denied")
 
     def flush(self) -> None:
         if self._incident is not None:
