@@ -373,6 +373,13 @@ def test_bad_ring_words_are_one_line_and_status_2(tmp_path, args, says):
     assert "unexpected" not in ran.stderr and list(tmp_path.iterdir()) == []
 
 
+def test_a_ring_no_longer_than_latency_is_warned_of(tmp_path):
+    with socket.create_server(("127.0.0.1", 0)) as taken:  # so that it ends after the warning
+        ran = run_cli("record", "--listen", taken.getsockname()[1], "--upstream", "127.0.0.1:1",
+                      "-o", tmp_path / "r.mcap", "--ring", "200ms", "--trigger", "latency>250")
+    assert "warning: --ring 0.2 s (at most 256 MiB) is not longer than latency>250" in ran.stderr, ran.stderr
+
+
 def test_a_folder_that_cannot_take_incidents_is_said_at_start(tmp_path):
     """Not at the first incident, hours later: one line, status 2, no file."""
     ran = run_cli("record", "--listen", "0", "--upstream", "127.0.0.1:1", "-o", tmp_path / "gone" / "r.mcap",

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from whiztap.analyzer.cli.errors import fail
+from whiztap.analyzer.cli.errors import fail, warn
 from whiztap.analyzer.cli.output import recording_output, say
 from whiztap.analyzer.cli.params import assumed_map_options, force_option, limits_assuming, limits_from, limits_options
 from whiztap.analyzer.protocol.text import printable
@@ -65,6 +65,10 @@ def _ring_settings(output: str, ring: Any, triggers: tuple[str, ...], after: flo
     from whiztap.sniffer.record.trigger import DEFAULT_AFTER_S, RingSettings
 
     check_recording_output(incident_path(output, 1), False, True)  # the folder; a name taken is skipped
+    slowest = max((float(w.partition(">")[2]) for w in triggers if w.startswith("latency>")), default=0.0)
+    if ring.duration_ns is not None and slowest * 1e6 >= ring.duration_ns:
+        warn(f"warning: --ring {ring.describe()} is not longer than latency>{slowest:g}: a request never "
+             f"answered is out of the window when its incident begins")
     return RingSettings(ring, tuple(dict.fromkeys(triggers)), DEFAULT_AFTER_S if after is None else after)
 
 
