@@ -23,6 +23,7 @@ import asyncio
 import contextlib
 from collections.abc import Callable
 
+from whiztap.analyzer.errors import WhiztapError
 from whiztap.analyzer.protocol.framing import ItemKind
 from whiztap.analyzer.protocol.messages import ReadyToGo, SendCheckPassword
 from whiztap.analyzer.protocol.observations import Direction, Observation
@@ -35,7 +36,7 @@ from whiztap.sniffer.sim.tcp_server import READ_SIZE
 C2S, S2C = Direction.C2S, Direction.S2C
 
 
-class UpstreamError(Exception):
+class UpstreamError(WhiztapError):
     """The upstream let a forwarded request down; the message says how, in one line."""
 
 
