@@ -198,10 +198,13 @@ class _Side(asyncio.Protocol):
 class _Client(_Side):
     """The viewer's socket: first its request head, judged, then spliced."""
 
+    def __init__(self, conn: _Conn) -> None:
+        super().__init__(conn)
+        self.head = bytearray()  # from the start: the gate lists the connection before it is made
+
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
         tcp = cast(asyncio.Transport, transport)
-        self.head = bytearray()
         peer = tcp.get_extra_info("peername")
         self.conn.peer = show_address(*peer[:2]) if peer else "?"
         self.timer = asyncio.get_running_loop().call_later(HEAD_TIMEOUT_S, tcp.abort)
