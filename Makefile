@@ -23,19 +23,27 @@ demo: $(STAMP)
 
 # Tests run in JOBS processes at once (pytest-xdist): two a core, as many tests
 # wait on sockets, servers and other processes (on 2 cores, 4 took 2m55-3m16 for
-# the whole suite where 2 took 4m00; docs/benchmarks.md).  --dist loadgroup keeps
-# the tests of one xdist_group in one process.
+# the whole suite where 2 took 4m00; docs/benchmarks.md).  --dist worksteal lets
+# an idle process take tests queued for a busy one, so they all end together
+# (211 s where --dist load took 230 s, the same fresh clone).
 JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 2 )))
+DIST := -n $(JOBS) --dist worksteal
+
+# Bytecode caches on for the tests, whatever the environment says: with
+# PYTHONDONTWRITEBYTECODE set, each test process rewrites every test module's
+# asserts again (7 s of collection each, 2.5 s with the cache) and each whiztap
+# process a test starts compiles whiztap anew (docs/benchmarks.md, the test loop).
+TEST_ENV := PYTHONDONTWRITEBYTECODE=
 
 # Every test; each line of dots ends with how many have run, and the slowest
 # are listed at the end.
 test: $(STAMP) test-deps
-	$(BIN)/pytest -q -n $(JOBS) --dist loadgroup --durations=15
+	$(TEST_ENV) $(BIN)/pytest -q $(DIST) --durations=15
 
 # The fast subset to run while you work: every test not marked slow (processes
 # under load, Dask, tshark, soaks, memory bounds), in under a minute.
 check: $(STAMP)
-	$(BIN)/pytest -q -n $(JOBS) --dist loadgroup -m "not slow"
+	$(TEST_ENV) $(BIN)/pytest -q $(DIST) -m "not slow"
 
 # Debian and npm packages some tests use (tcpdump, socat, tshark, @mcap/core); idempotent.
 test-deps:
