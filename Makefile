@@ -10,8 +10,7 @@ $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "make: $(PYTHON) is older than Python 3.11"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
 	@touch $(STAMP)
 
 # The whole tool on an embedded robot: simulator, recording proxy and a scripted
@@ -21,12 +20,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/whiztap demo --force
 
-# Tests run in JOBS processes at once (pytest-xdist): two a core, as many tests
-# wait on sockets, servers and other processes (on 2 cores, 4 took 2m55-3m16 for
-# the whole suite where 2 took 4m00; docs/benchmarks.md).  --dist worksteal lets
-# an idle process take tests queued for a busy one, so they all end together
-# (211 s where --dist load took 230 s, the same fresh clone).
-JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 2 )))
+# Tests run in JOBS processes at once (pytest-xdist): three a core, as many tests
+# wait on sockets, servers and other processes (on 2 cores: 6 took 203 s, 4 took
+# 211 s, 2 took 4 minutes; docs/benchmarks.md).  --dist worksteal lets an idle
+# process take tests queued for a busy one, so they all end together (211 s
+# where --dist load took 230 s, 4 processes, the same fresh clone).
+JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 3 )))
 DIST := -n $(JOBS) --dist worksteal
 
 # Bytecode caches on for the tests, whatever the environment says: with
