@@ -20,12 +20,13 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/whiztap demo --force
 
-# Tests run in JOBS processes at once (pytest-xdist): three a core, as many tests
-# wait on sockets, servers and other processes (on 2 cores: 6 took 203 s, 4 took
-# 211 s, 2 took 4 minutes; docs/benchmarks.md).  --dist worksteal lets an idle
-# process take tests queued for a busy one, so they all end together (211 s
-# where --dist load took 230 s, 4 processes, the same fresh clone).
-JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 3 )))
+# Tests run in JOBS processes at once (pytest-xdist): two a core, as many tests
+# wait on sockets, servers and other processes (on 2 cores 2 took 4 minutes; 6
+# were no faster than 4: 203-242 s against 210 s, as each also collects every
+# test and polls; docs/benchmarks.md).  --dist worksteal lets an idle process
+# take tests queued for a busy one, so they all end together (211 s where
+# --dist load took 230 s, 4 processes, the same fresh clone).
+JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 2 )))
 DIST := -n $(JOBS) --dist worksteal
 
 # Bytecode caches on for the tests, whatever the environment says: with
