@@ -4,9 +4,11 @@ appends it to the recording, atomically; a failed or killed run leaves the old f
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import signal
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
 import pytest
@@ -276,19 +278,10 @@ def test_a_stub_stopped_while_a_forwarded_request_waits_appends_nothing(vpn, tmp
             asked.set()  # and never answers
             await reader.read(-1)
 
-        server = await asyncio.start_server(upstream, LOCAL, 0)
-        async with server:
-            exchanges = load_exchanges(str(path))
-            episodes = Episodes(path, (LOCAL, server.sockets[0].getsockname()[1]), exchanges.checksum_rule, WAIT)
-            episodes.open()
-            async with Stub(exchanges, episodes=episodes) as stub:
-                reader, writer = await asyncio.open_connection(LOCAL, stub.port)
-                writer.write(b"rr1-24--0--0-ss1")
-                await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
-                writer.write(b"rr1-14--0--0-ss1")
-                await asyncio.wait_for(asked.wait(), WAIT)
-            writer.close()
-            return episodes
+        async with _past_the_map(upstream, path, config) as (episodes, _reader, writer):
+            writer.write(b"rr1-14--0--0-ss1")
+            await asyncio.wait_for(asked.wait(), WAIT)
+        return episodes
 
     episodes = asyncio.run(run())
     assert episodes.finish() is False
@@ -326,21 +319,12 @@ def test_an_upstream_flooding_garbage_instead_of_an_answer_costs_bounded_memory(
         writer.close()
 
     async def run() -> Episodes:
-        server = await asyncio.start_server(upstream, LOCAL, 0)
-        async with server:
-            exchanges = load_exchanges(str(path))
-            episodes = Episodes(path, (LOCAL, server.sockets[0].getsockname()[1]), exchanges.checksum_rule, WAIT)
-            episodes.open()
-            async with Stub(exchanges, episodes=episodes) as stub:
-                reader, writer = await asyncio.open_connection(LOCAL, stub.port)
-                writer.write(b"rr1-24--0--0-ss1")
-                await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
-                tracemalloc.start()
-                writer.write(b"rr1-14--0--0-ss1")
-                writer.write_eof()
-                await asyncio.wait_for(reader.read(-1), WAIT)
-                writer.close()
-            return episodes
+        async with _past_the_map(upstream, path, config) as (episodes, reader, writer):
+            tracemalloc.start()
+            writer.write(b"rr1-14--0--0-ss1")
+            writer.write_eof()
+            await asyncio.wait_for(reader.read(-1), WAIT)
+        return episodes
 
     try:
         episodes = asyncio.run(run())
@@ -350,3 +334,23 @@ def test_an_upstream_flooding_garbage_instead_of_an_answer_costs_bounded_memory(
     assert episodes.finish() is False and episodes.failure is not None
     assert peak < FLOOD_BOUND, f"{peak:,} bytes held while {FLOOD:,} were sent"
     assert path.read_bytes() == original.read_bytes()
+
+
+@contextlib.asynccontextmanager
+async def _past_the_map(upstream: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]],
+                        path: Path, config: bytes) -> AsyncIterator[tuple[Episodes, asyncio.StreamReader,
+                                                                          asyncio.StreamWriter]]:
+    """A stub serving ``path`` with a server running ``upstream`` as its
+    --upstream, and a client of it that has fetched the channel map (the
+    recorded answer, ``config``); the stub stopped after, then the client closed."""
+    server = await asyncio.start_server(upstream, LOCAL, 0)
+    async with server:
+        exchanges = load_exchanges(str(path))
+        episodes = Episodes(path, (LOCAL, server.sockets[0].getsockname()[1]), exchanges.checksum_rule, WAIT)
+        episodes.open()
+        async with Stub(exchanges, episodes=episodes) as stub:
+            reader, writer = await asyncio.open_connection(LOCAL, stub.port)
+            writer.write(b"rr1-24--0--0-ss1")
+            await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
+            yield episodes, reader, writer
+        writer.close()  # once the stub has stopped, as a client left behind would be
