@@ -26,6 +26,7 @@ from whiztap.analyzer.recording.format import SCHEMA_ENCODING, TOPIC_FRAMES, TOP
 from whiztap.analyzer.recording.scan import RecordingScan
 from whiztap.analyzer.traffic import Closed, Data, Gap, HalfClosed, Opened, TrafficEvent
 from whiztap.sniffer.record.record_run import Recording, RecordSettings
+from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.sim.tcp_server import TcpServer
 
 from tests.cli_support import start_process
@@ -123,6 +124,24 @@ def op_event(op: str, conn: int, d: str, t: int, payload: bytes | int) -> Traffi
     if op == "closed":
         return Closed(conn, t, "client")
     return None
+
+
+DRAWN_T0 = 1_700_000_000_000_000_000  # when drawn traffic starts, and its step
+DRAWN_STEP = 1_000_000
+
+
+def record_drawn(recorder: Recorder, ops: list) -> list[str]:
+    """Drawn traffic (``op_event``'s steps) through a real Recorder, a step
+    apart from DRAWN_T0, ticked after each, as the proxy drives it; its files."""
+    recorder.start(DRAWN_T0)
+    t = DRAWN_T0
+    for op, conn, d, payload in ops:
+        t += DRAWN_STEP
+        event = op_event(op, conn, d, t, payload)
+        if event is not None:
+            recorder.receive(event)
+        recorder.tick(t)
+    return recorder.stop(t + DRAWN_STEP).files
 
 
 # -- the command, as a user runs it --------------------------------------------------------------

@@ -14,7 +14,7 @@ from whiztap.sniffer.record.recorder import Recorder
 from whiztap.sniffer.record.writer import RecordingFile
 
 from tests.cli_support import run_cli
-from tests.record_support import op_event, read_all
+from tests.record_support import read_all, record_drawn
 from tests.test_readers_property import MS, T0, traffic
 
 SAMPLE = Path(__file__).parent.parent / "samples" / "violations.mcap"
@@ -24,15 +24,7 @@ def _record(ops: list, path: Path, split_size: int | None = None) -> None:
     """Drawn traffic through the real Recorder, as the proxy drives it."""
     metadata = {"robot": "r1", "session_id": path.stem, "split_size": str(split_size or "")}
     recorder = Recorder(RecordingFile(str(path), metadata, split_size=split_size))
-    recorder.start(T0)
-    t = T0
-    for op, conn, d, payload in ops:
-        t += MS
-        event = op_event(op, conn, d, t, payload)
-        if event is not None:
-            recorder.receive(event)
-        recorder.tick(t)
-    recorder.stop(t + MS)
+    record_drawn(recorder, ops)
 
 
 def _analysis(*paths: Path) -> tuple[dict[int, dict], list[dict]]:
@@ -235,5 +227,5 @@ def test_a_damaged_recording_is_cut_or_refused_in_one_line(tmp_path, flips, cut_
     if ran.returncode == 0:
         read_all(str(out))
     else:
-        assert len(ran.stderr.strip().splitlines()) == 1 and "unexpected" not in ran.stderr, ran.stderr
+        assert len(ran.stderr.strip().splitlines()) == 1 and "unexpected error" not in ran.stderr, ran.stderr
         assert not out.exists() and not (tmp_path / "out.mcap.part").exists()

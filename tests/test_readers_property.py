@@ -40,7 +40,7 @@ from whiztap.tui.data.model import TrafficModel
 from whiztap.tui.data.sources import FileSource
 
 from tests.cli_support import Ran, run_cli
-from tests.record_support import op_event
+from tests.record_support import record_drawn
 
 # Pieces that reach the interesting states of the session model: frames of
 # every kind (valid and not), handshake words, line breaks, image markers.
@@ -106,15 +106,7 @@ def _record(ops, path: Path, keep_secrets: bool, split_size: int | None) -> None
     metadata = {"session_id": path.stem, "split_size": str(split_size)} if split_size else {}
     file = RecordingFile(str(path), metadata, split_size=split_size)
     recorder = Recorder(file, keep_secrets=keep_secrets)
-    recorder.start(T0)
-    t = T0
-    for op, conn, d, payload in ops:
-        t += MS
-        event = op_event(op, conn, d, t, payload)
-        if event is not None:
-            recorder.receive(event)
-        recorder.tick(t)
-    recorder.stop(t + MS)
+    record_drawn(recorder, ops)
 
 
 def _write_any_order(ops, path: Path) -> None:
