@@ -235,20 +235,11 @@ def test_whatever_the_upstream_answers_the_old_file_stays_or_a_readable_one_repl
         writer.close()
 
     async def run() -> tuple[bool, Episodes, bytes]:
-        server = await asyncio.start_server(upstream, LOCAL, 0)
-        async with server:
-            exchanges = load_exchanges(str(path))
-            episodes = Episodes(path, (LOCAL, server.sockets[0].getsockname()[1]), exchanges.checksum_rule, WAIT)
-            episodes.open()
-            async with Stub(exchanges, episodes=episodes) as stub:
-                reader, writer = await asyncio.open_connection(LOCAL, stub.port)
-                writer.write(b"rr1-24--0--0-ss1")
-                got = await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
-                writer.write(request)  # a Sensor Request, now that the channel map is known
-                writer.write_eof()
-                got += await asyncio.wait_for(reader.read(-1), WAIT)
-                writer.close()
-            return episodes.finish(), episodes, got
+        async with _past_the_map(upstream, path, config) as (episodes, reader, writer):
+            writer.write(request)  # a Sensor Request, now that the channel map is known
+            writer.write_eof()
+            got = config + await asyncio.wait_for(reader.read(-1), WAIT)
+        return episodes.finish(), episodes, got
 
     changed, episodes, got = asyncio.run(run())
     event("appended" if changed else "failed")
@@ -351,6 +342,6 @@ async def _past_the_map(upstream: Callable[[asyncio.StreamReader, asyncio.Stream
         async with Stub(exchanges, episodes=episodes) as stub:
             reader, writer = await asyncio.open_connection(LOCAL, stub.port)
             writer.write(b"rr1-24--0--0-ss1")
-            await asyncio.wait_for(reader.readexactly(len(config)), WAIT)
+            assert await asyncio.wait_for(reader.readexactly(len(config)), WAIT) == config
             yield episodes, reader, writer
         writer.close()  # once the stub has stopped, as a client left behind would be
