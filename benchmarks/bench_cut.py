@@ -9,24 +9,15 @@ every message copied.  CPU time of one process, best of three.
 from __future__ import annotations
 
 import tempfile
-import time
 from pathlib import Path
 
-from benchmarks.bench_analyze import FRAMES, READ, recording
+from benchmarks.bench_analyze import FRAMES, READ, least_cpu, recording
 
 
 def _cut_seconds(path: Path, out: Path) -> float:
     from whiztap.sniffer.cli.cut import cut_command
 
-    best = float("inf")
-    for _ in range(3):
-        out.unlink(missing_ok=True)
-        began = time.process_time()
-        try:
-            cut_command.main([str(path), "-o", str(out), "--conn", "1"], standalone_mode=False)
-        finally:
-            best = min(best, time.process_time() - began)
-    return best
+    return least_cpu(cut_command, [str(path), "-o", str(out), "--conn", "1"], out, 3)
 
 
 def main() -> None:

@@ -15,10 +15,9 @@ import os
 import resource
 import shutil
 import tempfile
-import time
 from pathlib import Path
 
-from benchmarks.bench_analyze import FRAMES, READ, recording
+from benchmarks.bench_analyze import FRAMES, READ, least_cpu, recording
 
 ROUNDS = int(os.environ.get("WHIZTAP_BENCH_DIFF_ROUNDS", 2))
 
@@ -26,15 +25,7 @@ ROUNDS = int(os.environ.get("WHIZTAP_BENCH_DIFF_ROUNDS", 2))
 def _diff_seconds(a: Path, b: Path, out: Path) -> float:
     from whiztap.analyzer.cli.diff import diff_command
 
-    best = float("inf")
-    for _ in range(ROUNDS):
-        out.unlink(missing_ok=True)
-        began = time.process_time()
-        try:
-            diff_command.main([str(a), str(b), "-o", str(out)], standalone_mode=False)
-        finally:
-            best = min(best, time.process_time() - began)
-    return best
+    return least_cpu(diff_command, [str(a), str(b), "-o", str(out)], out, ROUNDS)
 
 
 def main() -> None:

@@ -150,6 +150,13 @@ def _stop(proc: subprocess.Popen) -> str:
     return out.decode()
 
 
+def pipelined_requests() -> bytes:
+    """The pipelined load: PIPELINE_FRAMES Sensor Requests, one in BAD_EVERY
+    for channel 99 (which breaks rules), the rest over channels 12-23."""
+    return b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
+                    for i in range(PIPELINE_FRAMES))
+
+
 def _recv_frame(sock: socket.socket) -> None:
     buf = b""
     while not buf.endswith(b"-ss1"):
@@ -268,8 +275,7 @@ def pipelined(tmp: Path) -> dict[str, float]:
     rec = _spawn([WHIZTAP, "record", "--listen", str(port), "--upstream", f"127.0.0.1:{upstream_port}",
                   "-o", str(out)])
     _wait_port(port, rec)
-    payload = b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
-                       for i in range(PIPELINE_FRAMES))
+    payload = pipelined_requests()
     got = bytearray()
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -371,8 +377,7 @@ def one_way(tmp: Path) -> dict[str, float]:
 def middle_blast(tmp: Path) -> dict[str, float]:
     """The pipelined requests through the proxy in the middle (``--control 0``,
     no fault) to a server that discards them: frames/s to the last byte received."""
-    payload = b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
-                       for i in range(PIPELINE_FRAMES))
+    payload = pipelined_requests()
     sink, start, _, _, recorded_stream = _one_way_run(tmp, "middle.mcap", payload, "-q", "--control", "0",
                                                       "--keep-secrets")  # no login: nothing to mask
     return {"frames": PIPELINE_FRAMES, "fps": PIPELINE_FRAMES / (sink.last - start) if sink.last else 0.0,

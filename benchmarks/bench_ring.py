@@ -39,7 +39,6 @@ import time
 from pathlib import Path
 
 from benchmarks.bench_proxy import (
-    BAD_EVERY,
     FETCH_CONFIG,
     PIPELINE_FRAMES,
     RESPONDER,
@@ -47,6 +46,7 @@ from benchmarks.bench_proxy import (
     _free_port,
     _recv_frame,
     _spawn,
+    pipelined_requests,
     _stop,
     _tree_rss,
     _wait_port,
@@ -78,8 +78,7 @@ def _run(tmp: Path, upstream_port: int, name: str, options: tuple[str, ...]) -> 
 
     sampler = threading.Thread(target=sample)
     sampler.start()
-    payload = b"".join(b"rr1-%d--0--0-ss1" % (99 if i % BAD_EVERY == BAD_EVERY - 1 else 12 + i % 12)
-                       for i in range(PIPELINE_FRAMES))
+    payload = pipelined_requests()
     got = bytearray()
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
