@@ -301,12 +301,17 @@ def pipelined(tmp: Path) -> dict[str, float]:
     streams = _streams(out)
     conn = max(c for c, _ in streams)  # the benchmark's connection (the port probe is #1)
     lost = streams.get((conn, "c2s")) != payload or streams.get((conn, "s2c")) != bytes(got)
-    m = re.search(r"c2s (\d+) frames .*; s2c (\d+) frames", stdout)
-    recorded = int(m.group(1)) + int(m.group(2)) if m else 0
+    m = re.search(r"c2s ([\d,]+) frames .*; s2c ([\d,]+) frames", stdout)  # counts as said: 200,001
+    recorded = _count(m.group(1)) + _count(m.group(2)) if m else 0
     frames = 2 * (PIPELINE_FRAMES + 1)
     return {"frames": frames, "recorded_frames": recorded, "lost": float(lost or recorded != frames),
             "forwarding_fps": frames / (forwarded - start), "recorded_fps": frames / (finished - start),
             "size": out.stat().st_size}
+
+
+def _count(said: str) -> int:
+    """A count as the closing summary says it ('200,001')."""
+    return int(said.replace(",", ""))
 
 
 class _Sink:
@@ -367,8 +372,8 @@ def one_way(tmp: Path) -> dict[str, float]:
     whether the file holds every frame, unmasked."""
     payload = b"".join(b"rr1-%d--%d--0-ss1" % (i % 24, 2 + i % 1999) for i in range(ONE_WAY_FRAMES))
     sink, start, finished, stdout, recorded_stream = _one_way_run(tmp, "one-way.mcap", payload)
-    m = re.search(r"c2s (\d+) frames", stdout)
-    recorded = int(m.group(1)) if m else 0
+    m = re.search(r"c2s ([\d,]+) frames", stdout)
+    recorded = _count(m.group(1)) if m else 0
     lost = sink.received != len(payload) or recorded_stream != payload or recorded != ONE_WAY_FRAMES
     return {"frames": ONE_WAY_FRAMES, "recorded_frames": recorded, "lost": float(lost),
             "recorded_fps": ONE_WAY_FRAMES / (finished - start)}
