@@ -20,6 +20,7 @@ from whiztap.sniffer.record.mirror import mirror_lines
 from whiztap.sniffer.sim.client import Client
 from whiztap.sniffer.sim.simulator import Simulator
 
+from tests.cli_support import run_cli
 from tests.outputs import FILE_OUTPUTS, MIRROR_ONLY, QUICK_FILE_OUTPUTS, SECRET, assert_no_leak
 from tests.record_support import LOCAL, WAIT, EchoServer, closed_port, read_all, recording
 from tests.replay_support import FROZEN_NS, PASSWORD, client_session, simulator, until_closed
@@ -79,6 +80,10 @@ async def test_a_lying_mirror_differs_in_its_readings_and_each_difference_says_w
     assert first["what"].startswith("the answer (sensor_value ")
     lines = mirror_lines(final)
     assert "differences (" in lines[0] and lines[1].strip().startswith("#1 Sensor Request")
+    info = run_cli("info", tmp_path / "m.mcap").stdout.split("messages per topic\n", 1)[1]
+    counts = [line for line in info.splitlines() if line.startswith("  /")]
+    assert any(line.startswith("  /mirror/differences ") for line in counts), info
+    assert len({line.rindex(" ") for line in counts}) == 1, info  # the longest topic name pushes no count out of line
 
 
 # -- a slow, dead or refusing mirror never touches the primary ---------------------------------------

@@ -60,7 +60,8 @@ def info_command(inputs: tuple[str, ...], fmt: str) -> None:
         click.echo(f"in the middle   yes: the proxy changed the traffic {plural(interventions, 'time')} "
                    "(whiztap cat --interventions only lists them)")
     click.echo("messages per topic")
+    width = max((len(topic) for topic in info["topics"]), default=0)  # /mirror/differences is 19
     for topic, n in info["topics"].items():
-        click.echo(f"  {topic:16} {n:,}")
+        click.echo(f"  {topic:{max(width, 16)}} {n:,}")
     if not info["complete"] and not info["state"].startswith("being written"):
         click.echo(printable(f"To make a complete, indexed copy: whiztap recover {shlex.quote(str(path_))}"))
