@@ -21,7 +21,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+
+import click
 
 from whiztap.analyzer.protocol.observations import Direction
 from whiztap.analyzer.traffic import Closed, Data, Opened
@@ -76,7 +77,7 @@ def _writer_digest() -> str:
     return digest.hexdigest()[:10]
 
 
-def least_cpu(command: Any, args: list[str], out: Path, rounds: int) -> float:
+def least_cpu(command: click.Command, args: list[str], out: Path, rounds: int) -> float:
     """The least CPU time of ``rounds`` runs of a whiztap click ``command`` in
     this process, ``out`` (what it writes) removed before each run."""
     best = float("inf")

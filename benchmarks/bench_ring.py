@@ -46,10 +46,10 @@ from benchmarks.bench_proxy import (
     _free_port,
     _recv_frame,
     _spawn,
-    pipelined_requests,
     _stop,
     _tree_rss,
     _wait_port,
+    pipelined_requests,
 )
 
 RING = os.environ.get("WHIZTAP_BENCH_RING", "64MB")

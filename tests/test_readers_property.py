@@ -40,7 +40,7 @@ from whiztap.tui.data.model import TrafficModel
 from whiztap.tui.data.sources import FileSource
 
 from tests.cli_support import Ran, run_cli
-from tests.record_support import record_drawn
+from tests.record_support import DRAWN_STEP, DRAWN_T0, record_drawn
 
 # Pieces that reach the interesting states of the session model: frames of
 # every kind (valid and not), handshake words, line breaks, image markers.
@@ -58,8 +58,7 @@ TOKENS = [
 token = st.one_of(st.sampled_from(TOKENS), st.binary(min_size=1, max_size=12))
 stream = st.lists(token, max_size=12).map(b"".join)
 
-T0 = 1_700_000_000_000_000_000
-MS = 1_000_000
+T0, MS = DRAWN_T0, DRAWN_STEP  # record_drawn's clock, for the tests that write events by hand
 
 
 @st.composite

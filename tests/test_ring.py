@@ -35,19 +35,20 @@ from whiztap.sniffer.record.writer import RecordingFile
 from tests.cli_support import run_cli
 from tests.outputs import SECRET, assert_no_leak, replay_dry_run, topics_text, tui_store_text
 from tests.record_support import (
+    DRAWN_STEP,
+    DRAWN_T0,
     WAIT,
     StepServer,
-    record_drawn,
     play_client,
     read_all,
     record_dialogue,
+    record_drawn,
     recording,
     running_record,
 )
 from tests.test_readers_property import traffic
 
-T0 = 1_700_000_000_000_000_000
-MS = 1_000_000
+T0, MS = DRAWN_T0, DRAWN_STEP  # the drawn traffic's clock (record_drawn), which the hand-made steps share
 ASK, ANSWER = b"rr1-3--0--0-ss1", b"cr1-3--10--0-ss1"  # a Sensor Request on channel 3 (a sensor in CONFIG), its answer
 BAD = b"rr1-31--5--0-ss1"  # channel 31: PW-RANGE-CHANNEL, an error
 Step = TrafficEvent | int  # an event, or a time the recorder is ticked at
