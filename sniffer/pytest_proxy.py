@@ -92,6 +92,7 @@ class WhiztapProxy:
         self.recording = path
         self.host, self.port = "127.0.0.1", 0
         self.stopped = False
+        self.connection_wait = CONNECTION_WAIT_S  # seconds inject() waits for the only connection
 
     def start(self) -> WhiztapProxy:
         try:
@@ -149,7 +150,7 @@ class WhiztapProxy:
     def _only_connection(self) -> int:
         """The one open connection, waiting a little for it: a client that does
         no handshake may be connected before the proxy has accepted it."""
-        deadline = time.monotonic() + CONNECTION_WAIT_S
+        deadline = time.monotonic() + self.connection_wait
         while True:
             conns = self.call(lambda: sorted(self.controller.cores))
             if len(conns) > 1:

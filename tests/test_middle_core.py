@@ -276,10 +276,10 @@ def test_a_replace_that_grows_each_frame_stops_reading_its_sender_not_the_memory
 @pytest.mark.slow
 def test_an_injection_past_the_room_is_refused_and_the_proxy_says_so():
     mid = FakeClockMiddle(ready=False)
-    frame = "cr1-12--1--0-ss1"
+    frame = "cr1-12--" + "9" * (INJECT_ROOM // 16 - 15) + "--0-ss1"  # 16 fill the room; too wide: forced
     with pytest.raises(ControlError) as refused:
         for _ in range(INJECT_ROOM // len(frame) + 2):
-            mid.controller.inject(1, "s2c", frame)
+            mid.controller.inject(1, "s2c", frame, True)
     assert refused.value.status == 429
     with pytest.raises(Full):
         mid.core.inject(S2C, b"x", Cause(Source.INJECTION), mid.now)

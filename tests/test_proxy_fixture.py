@@ -102,6 +102,7 @@ def test_an_injected_answer_is_not_taken_for_the_next(whiztap_proxy):
 
 
 def test_inject_checks_the_frame_and_the_connection(whiztap_proxy):
+    whiztap_proxy.connection_wait = 0.1  # no client will come: no need to wait the default 2 s
     with pytest.raises(ControlError, match="no connection is open through the proxy"):
         whiztap_proxy.inject("c2s", "sensor 12")
 

@@ -79,6 +79,7 @@ async def test_an_intercepted_sensor_request_is_edited_and_the_simulator_answers
             assert not rows_with(app.model.store, sensor(12), C2S)  # in the store once delivered, not before
 
             await pilot.press("e")
+            await until(pilot, lambda: isinstance(app.screen, EditorScreen), "the editor")
             editor = app.screen
             assert isinstance(editor, EditorScreen) and editor.typed_input.value == "rr1-12--0--0-ss1"
             await pilot.press("home", *["right"] * 6, "backspace", "3")  # rr1-12 -> rr1-13
@@ -92,7 +93,8 @@ async def test_an_intercepted_sensor_request_is_edited_and_the_simulator_answers
             await until(pilot, lambda: rows_with(store, sensor(13), C2S), "the delivered request")
             [row] = rows_with(store, sensor(13), C2S)
             await until(pilot, lambda: any(m.action == "edit" for m in store.marks.get(row, ())), "its marks")
-            assert frames.held_frame is None and "held" not in frames.border_title
+            await until(pilot, lambda: frames.held_frame is None and "held" not in frames.border_title,
+                        "the title without the held frame")
             shown = plain(describe_frame(store, row))
             assert "What the proxy did" in shown and "rr1-12--0--0-ss1" in shown and "hand edit (held #1)" in shown
             await raw.close()
@@ -114,6 +116,7 @@ async def test_an_injected_sensor_request_pairs_with_its_answer(tmp_path):
             await until(pilot, lambda: app.frames.frame is not None and store.count == 2, "the first exchange")
 
             await pilot.press("I")
+            await until(pilot, lambda: isinstance(app.screen, InjectScreen), "the dialog")
             dialog = app.screen
             assert isinstance(dialog, InjectScreen) and dialog.conn == 1 and dialog.direction is C2S
             await paste(pilot, "sensor 12")
@@ -129,7 +132,9 @@ async def test_an_injected_sensor_request_pairs_with_its_answer(tmp_path):
             assert store.pair[reply] == request and store.kind(reply) is ItemKind.RESPONSE
             assert store.raw(reply) == answer
 
-            await pilot.press("I", "up")  # the history recalls what was injected
+            await pilot.press("I")
+            await until(pilot, lambda: isinstance(app.screen, InjectScreen), "the dialog again")
+            await pilot.press("up")  # the history recalls what was injected
             assert app.screen.typed_input.value == "sensor 12"
             await pilot.press("escape")
             await raw.close()
@@ -148,13 +153,15 @@ async def test_a_fault_added_in_the_faults_pane_drops_every_second_answer(tmp_pa
             assert pane.table.has_focus and app.tabs.active == "faults"
             await pilot.press("a")
             await paste(pilot, "drop dir:sideways")
-            assert "dir: wants c2s or s2c" in str(pane.query_one("#fault-error").content)
+            await until(pilot, lambda: "dir: wants c2s or s2c" in str(pane.query_one("#fault-error").content),
+                        "the error under the field")
             assert not controller.faults  # nothing applied while typing
             await pilot.press("ctrl+u", *"dro")
             await until(pilot, lambda: pane.spec._suggestion == "drop", "the completion")
             await pilot.press("tab")
             await paste(pilot, " dir:s2c kind:response every:2")
             await pilot.press("enter")
+            await until(pilot, lambda: bool(controller.faults), "the fault")
             [fault] = controller.faults
             assert fault.spec.text == "drop dir:s2c kind:response every:2" and pane.table.has_focus
             await pilot.press("escape")
@@ -275,7 +282,9 @@ async def test_frames_held_at_the_proxy_are_not_counted_as_new_frames(tmp_path):
             await until(pilot, lambda: frames.store_rows == 2, "the first exchange")
             await pilot.press("i")
             await paste(pilot, "kind:command ch:12")
-            await pilot.press("enter", "g")  # away from the end: not following
+            await pilot.press("enter")
+            await until(pilot, lambda: "intercepting" in frames.border_title, "the intercept")
+            await pilot.press("g")  # away from the end: not following
             assert not frames.tail
             await raw.send(sensor(12))
             await until(pilot, lambda: frames.held_frame is not None or frames.rows == 3, "the held row")
