@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test check test-deps bench bench-peers samples clean
+.PHONY: demo test check test-deps bench bench-peers samples clean vendor-js
 
 $(STAMP): pyproject.toml
 	@test -n "$(PYTHON)" || { echo "make: no python3.11 or python3 on PATH; install Python 3.11"; exit 2; }
@@ -66,3 +66,13 @@ samples: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .venv-peers .pytest_cache
+
+# The uPlot the HTML report inlines, fetched again from the npm registry and
+# checked against the SHA-256 of the file in the package (docs/analyze.md).
+UPLOT := 1.6.32
+UPLOT_SHA256 := 19c8d4c6ad88929a79f4ae49d6f7161566dfd0ba3d15cc495e974f787eb78f1f
+vendor-js:
+	@tmp=$$(mktemp -d) && cd $$tmp && npm pack --silent uplot@$(UPLOT) >/dev/null && tar xzf uplot-$(UPLOT).tgz && \
+	  echo "$(UPLOT_SHA256)  package/dist/uPlot.iife.min.js" | sha256sum -c --quiet && \
+	  cp package/dist/uPlot.iife.min.js package/dist/uPlot.min.css $(CURDIR)/analyzer/analysis/report/page-assets/ && \
+	  cp package/LICENSE $(CURDIR)/analyzer/analysis/report/page-assets/uPlot.LICENSE && rm -rf $$tmp && echo "uPlot $(UPLOT) checked"

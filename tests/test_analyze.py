@@ -1,7 +1,6 @@
 """whiztap analyze, cat and info on the sample recordings, as a user runs them."""
 
 import base64
-import html
 import json
 import shutil
 import sys
@@ -13,9 +12,9 @@ import pytest
 from junitparser import Error, Failure, JUnitXml, Skipped
 
 from whiztap.analyzer.analysis.analyzer import Analyzer
-from whiztap.analyzer.analysis.report.html import NO_PLOTS
 from whiztap.analyzer.cli.analyze import scan_recording
 from tests.cli_support import run_cli
+from tests.report_page import page_data, sections
 from tests.record_support import rebuild_streams, stream_bytes
 from whiztap.analyzer.analysis.report.content import build
 from whiztap.analyzer.analysis.report.schema import REPORT_SCHEMA
@@ -170,29 +169,33 @@ def test_junit_has_a_case_per_rule_per_connection_that_broke_it(tmp_path):
     assert [c.name.split(":")[0] for c in skipped] == ["PW-DIRECTION"]
 
 
-@pytest.mark.slow
-def test_html_is_self_contained_with_plots(tmp_path):
+def test_html_is_one_self_contained_page_with_its_plots_and_frames(tmp_path):
     out = tmp_path / "report.html"
-    assert run_cli("analyze", CLEAN, "--format", "html", "-o", out).returncode == 0
+    assert run_cli("analyze", CLEAN, VIOLATIONS, "--format", "html", "-o", out).returncode == 1
     page = out.read_text()
-    assert page.count("<svg") >= 4  # items over time, latency, sensor values, servo positions
-    for caption in ("Items over time", "Response latency", "Sensor values", "Servo positions"):
-        assert caption in page
-    assert "<script src" not in page and "<link" not in page
-    assert "has no plots" not in page
+    assert "<script src" not in page and "<link" not in page and "http://" not in page.split("<script>")[0]
+    data = page_data(page)
+    assert [s["id"] for s in data["sections"]][:2] == ["violations", "plots"]  # what a CI reader came for, first
+    plots = {p["id"] for p in sections(data)["plots"]["plots"]}
+    assert {"items", "violations", "latency", "sensor", "servo"} <= plots
+    table = sections(data)["violations"]["table"]
+    labels = [c["label"] for c in table["columns"]]
+    assert table["rows"] and all("f" in r for r in table["rows"])  # every violation links to its frames
+    for r in table["rows"]:
+        cells = dict(zip(labels, r["c"]))
+        [hit] = [f for f in data["frames"][r["f"]]["rows"] if f["i"] == r["h"]]
+        assert hit["text"][:100] == cells["frame"][:100]  # the very item, among the frames around it
 
 
-def test_html_without_matplotlib_is_written_without_plots_and_says_so(tmp_path, monkeypatch):
-    """It was exit 2 and no report: a CI image without the html extra lost the
-    whole report for want of its plots."""
+def test_html_is_complete_without_matplotlib(tmp_path, monkeypatch):
+    """The plots are the page's own: nothing optional is needed (it was a
+    report without plots, and a warning, without the html extra)."""
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # 'import matplotlib' fails, as when it is not installed
     out = tmp_path / "report.html"
     result = run_cli("analyze", VIOLATIONS, "--format", "html", "-o", out, "-q", "--group-by", "robot")
-    assert result.returncode == 1, result.stderr  # the verdict's status, the report written
-    page = out.read_text()
-    assert f"<p class='warning'>{html.escape(NO_PLOTS)}.</p>" in page
-    assert "<svg" not in page and "<h2>Violations</h2>" in page and "Fleet by robot" in page
-    assert result.stderr.splitlines()[-1] == f"whiztap: {NO_PLOTS}"
+    assert result.returncode == 1 and "matplotlib" not in result.stderr and "plots" not in result.stderr
+    found = sections(page_data(out.read_text()))
+    assert {"violations", "plots", "fleet0", "connections"} <= set(found)
 
 
 def test_markdown(tmp_path):
@@ -257,7 +260,7 @@ def test_an_unreadable_file_among_others_costs_only_itself(tmp_path, jobs):
     [broken] = [c for c in cases if any(isinstance(r, Error) for r in c.result)]
     assert broken.result[0].text == str(cut)
     for fmt, heading, shown in (("markdown", "## Not in this report", md_text),
-                                ("html", "<h2>Not in this report", str)):
+                                ("html", "Not in this report (could not be read)", str)):
         page = run_cli("analyze", "--format", fmt, tmp_path).stdout
         assert heading in page and shown(f"{cut}: the file is truncated") in page, fmt
 

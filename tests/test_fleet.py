@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from rich.console import Console
 
+from tests.report_page import page_data, sections, table_rows
 from tests.cli_support import run_cli
 from tests.fleet_support import FLEET, write_fleet
 from whiztap.analyzer.analysis.report.text import render_text
@@ -159,11 +160,14 @@ def test_the_fleet_table_is_in_every_format(fleet: list[Path], tmp_path: Path) -
     assert int(suites.get("tests")) == sum(int(s.get("tests")) for s in suites)
     html = tmp_path / "r.html"
     run_cli("analyze", *args, html, "--format", "html")
-    page = html.read_text()
-    assert "<h2>Fleet by robot</h2>" in page and "Violations per day (UTC), by robot" in page
-    assert page.count("<svg") >= 4  # the fleet's two plots, and the report's own
-    assert "<td>PW-FRAME-GARBAGE 2 since 2026-03-02<br>PW-FRAME-TRUNCATED 1 since 2026-03-02<br>" in page
-    assert "overflow-wrap:anywhere" in page  # a long word (a robot's name) wraps, the table stays in the page
+    found = sections(page_data(html.read_text()))
+    assert found["fleet0"]["title"] == "Fleet by robot"
+    assert found["fleet0-days"]["title"] == "Violations by robot and day (UTC; the day each recording began)"
+    groups = table_rows(found["fleet0"])
+    assert [g["robot"] for g in groups] == ["r1", "r2", "r3", "(none)"]
+    assert groups[0]["rules broken (count, since)"].startswith(
+        "PW-FRAME-GARBAGE 2 since 2026-03-02; PW-FRAME-TRUNCATED 1 since 2026-03-02")
+    assert [found[f"fleet0-{i}"]["title"] for i in range(4)] == ["robot r1", "robot r2", "robot r3", "robot (none)"]
 
 
 def _fleet_lines(data: dict, width: int) -> list[str]:

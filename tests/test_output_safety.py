@@ -46,6 +46,7 @@ from whiztap.tui.screens.replay_screen import ReplayScreen
 from whiztap.tui.data.sources import FileSource
 
 from tests.cli_support import Ran, run_cli, run_process_async
+from tests.report_page import page_data
 from tests.record_support import (
     LOCAL,
     EchoServer,
@@ -324,12 +325,18 @@ def test_markdown_holds_no_live_html_and_shows_values_as_they_are(hostile):
     assert len(widths) <= 3  # Connections (7), Violations (6), Latency (6): no cell split by a '|'
 
 
-def test_html_escapes_every_value(hostile):
+def test_html_holds_every_value_as_data_shown_escaped(hostile):
+    """The page carries its values as JSON inside one script element and its
+    code puts them in as text (tests/test_report_browser.py sees them on the
+    page): here, no value may end that element or reach the file raw."""
     page = run_cli("analyze", "--format", "html", hostile).stdout
     shows_no_raw_control(page)
-    assert "<script" not in page.lower() and "-<b>.mcap" not in page
-    cells = _html_cells(page)
-    assert shown(HOSTILE) in cells["td"]  # the client address, literally
+    opened, closed = re.findall(r"<script[\s>]", page, re.I), re.findall(r"</script[\s>]", page, re.I)
+    assert len(opened) == len(closed) == 3  # the data, uPlot, the page's own
+    assert "-<b>.mcap" not in page and "alert(1)" in page
+    data = page_data(page)
+    assert shown(HOSTILE) in [c for r in data["sections"] if r["id"] == "connections"
+                              for row in r["table"]["rows"] for c in row["c"]]  # the client address, as shown
 
 
 def test_junit_parses_and_holds_the_values_escaped(hostile, tmp_path):

@@ -313,7 +313,8 @@ class Analyzer:
         direction = str(about.direction)
         rule_id = violation.rule_id
         return ViolationRecord(rule_id, self.file, conn, direction, t, raw[:RAW_KEPT], violation.detail, late,
-                               len(raw) > RAW_KEPT, side_of(rule_id, direction), section=violation.section)
+                               len(raw) > RAW_KEPT, side_of(rule_id, direction), section=violation.section,
+                               index=about.index)
 
     # -- the proxy in the middle ---------------------------------------------------------
 

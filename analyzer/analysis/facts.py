@@ -33,6 +33,7 @@ class ViolationRecord:
     side: str = ""  # whose conduct it is about: "client" or "server"; for an intervention's effect, who saw it
     cause: str = ""  # for an intervention's effect: the intervention it follows from ('' when not known)
     section: str = ""  # the spec section it cites (Violation.section: the message's, or the rule's)
+    index: int = -1  # the item's position in its session (the HTML report's frame view finds it by it)
 
     @property
     def severity(self) -> Severity:

@@ -30,7 +30,7 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
     verdict = analysis_verdict(analysis, threshold=threshold, ignore=ignore, nothing_judged=nothing,
                                fail_on_interventions=fail_on_interventions, allow_empty=allow_empty)
     start = analysis.first_ns or 0
-    listed = [v for v in analysis.violations if v.rule_id not in ignore]
+    listed = listed_violations(analysis, ignore)
     rule = get_rule(analysis.checksum_rule)
     report: dict[str, Any] = {
         "schema": REPORT_SCHEMA_ID,
@@ -71,6 +71,12 @@ def build(analysis: Analysis, threshold: Severity = Severity.ERROR, ignore: froz
 
         report["fleet"] = fleet_tables(analysis, group_by, threshold, ignore)
     return report
+
+
+def listed_violations(analysis: Analysis, ignore: frozenset[str]) -> list[ViolationRecord]:
+    """The violations the report lists, in its order (the HTML report's frame
+    view numbers them so)."""
+    return [v for v in analysis.violations if v.rule_id not in ignore]
 
 
 def _summary(analysis: Analysis, counts: dict[str, int]) -> dict[str, Any]:
@@ -117,7 +123,8 @@ def _violation(v: ViolationRecord, start: int) -> dict[str, Any]:
     return {
         "rule_id": v.rule_id, "severity": str(v.severity), "section": v.section or RULES[v.rule_id].section,
         "file": v.file, "conn": v.conn, "dir": v.direction, "t_ns": v.t_ns,
-        "t_rel_s": round((v.t_ns - start) / NS, 6), "frame": escape(v.raw) + ("…" if v.cut else ""),
+        "t_rel_s": round((v.t_ns - start) / NS, 6), "index": v.index,
+        "frame": escape(v.raw) + ("…" if v.cut else ""),
         "detail": v.detail,
         "late": v.late,
         "side": v.side,

@@ -129,6 +129,7 @@ REPORT_SCHEMA = {
                 "section": _STR, "file": _STR, "conn": _INT,
                 "dir": {"type": ["string", "null"], "enum": ["c2s", "s2c", None]},
                 "t_ns": _INT, "t_rel_s": {"type": "number"},
+                "index": {"type": "integer", "description": "the item's position in its connection's session"},
                 "frame": {"type": "string", "description": "the frame's bytes, escaped"},
                 "detail": _STR, "late": {"type": "boolean"}, "side": _SIDE,
             },
