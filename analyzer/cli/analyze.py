@@ -25,6 +25,9 @@ from whiztap.analyzer.cli.reading import recordings, scan_recording
 
 if TYPE_CHECKING:
     from whiztap.analyzer.analysis.facts import Analysis
+    from whiztap.analyzer.analysis.frame_context import Hits, Views
+
+    FramesOf = Callable[[Analysis], tuple[Views, Hits]]  # the frames around the listed violations
     from whiztap.analyzer.protocol.rules import Severity
     from whiztap.analyzer.protocol.session import Limits
     from whiztap.analyzer.recording.sets import RecordingSet
@@ -155,7 +158,22 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
     with ByteProgress(parts, enabled=not quiet) as progress:
         analysis, unreadable = _analyse_all(found, checksum_rule, limits, jobs, progress, dask, quiet)
     _finish(analysis, unreadable, Severity.parse(severity_threshold), frozenset(ignore), keys, fmt, output, force,
-            allow_empty, fail_on_interventions)
+            allow_empty, fail_on_interventions, _frames_reader(found, checksum_rule, limits, frozenset(ignore)))
+
+
+def _frames_reader(found: list[RecordingSet], checksum_rule: str, limits: Limits,
+                   ignore: frozenset[str]) -> FramesOf:
+    """For the HTML report: the frames around the listed violations, read
+    again from the recordings (``frame_context``), once the report asks."""
+    def read(analysis: Analysis) -> tuple[Views, Hits]:
+        from whiztap.analyzer.analysis.frame_context import collect
+        from whiztap.analyzer.analysis.report.content import listed_violations
+
+        by_name = {str(r.name): r for r in found}
+        return collect(listed_violations(analysis, ignore), lambda file: scan_recording(by_name[file]),
+                       checksum_rule, limits)
+
+    return read
 
 
 def _group_keys(group_by: tuple[str, ...]) -> list[tuple[str, ...]]:
@@ -170,7 +188,7 @@ def _group_keys(group_by: tuple[str, ...]) -> list[tuple[str, ...]]:
 
 def _finish(analysis: Analysis | None, unreadable: list[dict[str, str]], threshold: Severity, ignore: frozenset[str],
             keys: list[tuple[str, ...]], fmt: str, output: str | None, force: bool, allow_empty: bool,
-            fail_on_interventions: bool = False) -> None:
+            fail_on_interventions: bool = False, frames: FramesOf | None = None) -> None:
     """The report written, and the exit status it calls for."""
     for u in unreadable:
         warn(u["error"])
@@ -185,7 +203,8 @@ def _finish(analysis: Analysis | None, unreadable: list[dict[str, str]], thresho
                  "its fleet table has one group, (none) ('whiztap info' shows a recording's keys)")
     report = build(analysis, threshold, ignore, unreadable, allow_empty, keys, fail_on_interventions)
     to_stdout = output is None or output == "-"
-    report_text = render(report, analysis, fmt, to_terminal=to_stdout and sys.stdout.isatty())
+    report_text = render(report, analysis, fmt, to_stdout and sys.stdout.isatty(),
+                         (lambda: frames(analysis)) if frames is not None else None)
     with output_stream(output, force) as out:
         out.write(report_text)
     if report.get("nothing_judged") and not allow_empty:
@@ -271,8 +290,10 @@ def _absolute(recording: RecordingSet) -> RecordingSet:
                                           for p in recording.parts))
 
 
-def render(report: dict[str, Any], analysis: Analysis, fmt: str, to_terminal: bool) -> str:
-    """The report in a format, as text ('' when printed straight to the terminal)."""
+def render(report: dict[str, Any], analysis: Analysis, fmt: str, to_terminal: bool,
+           frames: Callable[[], tuple[Views, Hits]] | None = None) -> str:
+    """The report in a format, as text ('' when printed straight to the terminal).
+    ``frames``: for the HTML report, the frames around its listed violations."""
     if fmt == "json":
         import json
 
@@ -286,12 +307,10 @@ def render(report: dict[str, Any], analysis: Analysis, fmt: str, to_terminal: bo
 
         return render_markdown(report)
     if fmt == "html":
-        from whiztap.analyzer.analysis.report.html import plots_missing, render_html
+        from whiztap.analyzer.analysis.report.html import render_html
 
-        missing = plots_missing()
-        if missing is not None:
-            warn(missing)
-        return render_html(report, analysis)
+        views, hits = frames() if frames is not None else ({}, {})
+        return render_html(report, analysis, views, hits)
     from rich.console import Console
 
     from whiztap.analyzer.analysis.report.text import render_text
