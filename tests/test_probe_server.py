@@ -30,6 +30,7 @@ from whiztap.sniffer.sim.bugs import BUGS
 from whiztap.sniffer.sim.channels import DEFAULT_CHANNELS, parse_channels
 from whiztap.sniffer.sim.simulator import Simulator
 
+from tests.report_page import page_data, sections
 from tests.cli_support import run_cli
 from tests.outputs import SECRET, assert_no_leak, topics_text
 
@@ -166,7 +167,7 @@ async def test_record_writes_one_recording_a_connection_per_case_that_analyze_re
     conns = [c.conn for c in report.cases]
     assert conns == sorted(conns) and len(set(conns)) == len(conns) and 1 not in conns  # 1: the discovery
     assert len(frames) == 1 + len(report.cases) - 1 + 16  # the discovery, a connection each, many's 16
-    meanings = {c.id: [what for direction, _, what, _ in frames[c.conn] if direction == "c2s"] for c in report.cases}
+    meanings = {c.id: [f.meaning for f in frames[c.conn] if f.direction == "c2s"] for c in report.cases}
     assert "Sensor Request ch 12" in meanings["split.bytes"]  # each case's own frames on its connection
     assert any(what.startswith("Set Configuration") for what in meanings["split.set-configuration"])
     assert not any(what.startswith("Set Configuration") for what in meanings["split.bytes"])
@@ -229,10 +230,13 @@ def test_text_markdown_and_html_group_cases_by_spec_section(failing_report, fmt)
 
 def test_html_links_each_case_to_its_decoded_frames(failing_report):
     out = render(failing_report, "html")
+    data = page_data(out)
     sensor = next(c for c in failing_report.cases if c.id == "answer.sensor-request")
-    assert f'href="#conn-{sensor.conn}"' in out and f'id="conn-{sensor.conn}"' in out
-    assert "Sensor Request ch 12" in out  # decoded
-    assert "<script" not in out and "<link" not in out and "src=" not in out  # self-contained
+    [linked] = [r for r in sections(data)["index"]["table"]["rows"] if r["id"] == "case-answer.sensor-request"]
+    assert linked["f"] == f"conn-{sensor.conn}"
+    assert any(f["meaning"] == "Sensor Request ch 12" for f in data["frames"][linked["f"]]["rows"])  # decoded
+    assert [r["id"] for r in sections(data)["failures"]["table"]["rows"]] == ["case-answer.sensor-request"]
+    assert "<script src" not in out and "<link" not in out  # self-contained
 
 
 async def test_no_output_shows_the_password(tmp_path):

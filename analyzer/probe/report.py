@@ -9,7 +9,9 @@ reason:
 - ``json``: ``ProbeReport.to_json``, the documented shape CI jobs read;
 - ``junit``: a ``testcase`` per case, its ``classname`` the spec section, a
   ``failure`` with the findings, a ``skipped`` with the reason;
-- ``html``: one self-contained file; with a recording of the run (the
+- ``html``: the interactive page ``analyze`` writes (``report.page``): the
+  failures first, then the case index by spec section, sortable and
+  filtered by section and verdict; with a recording of the run (the
   ``recording`` argument, else the report's own), each case links to its
   connection's frames, decoded, as the analyzer reads them.
 
@@ -21,18 +23,18 @@ keeps only a password's length (docs/recording-format.md).
 
 from __future__ import annotations
 
-import html
 import json
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
+from typing import Any
 
 from whiztap.analyzer.probe.model import CaseResult, Outcome, ProbeReport
-from whiztap.analyzer.protocol.describe import meaning
+from whiztap.analyzer.analysis.frame_context import FrameRow, row_of
+from whiztap.analyzer.analysis.report.page import column, page, row, table, text
 from whiztap.analyzer.protocol.observations import Observation
-from whiztap.analyzer.protocol.text import escape, plural
+from whiztap.analyzer.protocol.text import plural, printable
 
 FORMATS = ("text", "json", "junit", "markdown", "html")
-FRAME_SHOWN = 120  # characters of a frame's bytes shown in the HTML report
 _COLOURS = {Outcome.PASS: "32", Outcome.FAIL: "31", Outcome.SKIP: "33"}  # ANSI: green, red, yellow
 
 
@@ -127,8 +129,6 @@ def _junit(report: ProbeReport) -> str:
 
 # -- HTML ---------------------------------------------------------------------------------------------
 
-FrameRow = tuple[str, str, str, list[str]]  # direction, bytes as escaped text, meaning, violations
-
 
 def read_frames(path: str) -> dict[int, list[FrameRow]]:
     """Every connection's items in a recording, decoded and judged by the
@@ -143,11 +143,7 @@ def read_frames(path: str) -> dict[int, list[FrameRow]]:
     def add(conn: int, events: list) -> None:
         for event in events:
             if isinstance(event, Observation):
-                text = escape(event.item.raw)
-                if len(text) > FRAME_SHOWN:
-                    text = f"{text[:FRAME_SHOWN]}... ({plural(len(event.item.raw), 'byte')})"
-                broken = [f"{v.rule_id}: {v.detail}" for v in event.violations]
-                frames.setdefault(conn, []).append((str(event.direction), text, meaning(event), broken))
+                frames.setdefault(conn, []).append(row_of(event))
 
     for event in scan_set(find_one([path])):
         add(event.conn, traffic.receive(event))
@@ -156,45 +152,48 @@ def read_frames(path: str) -> dict[int, list[FrameRow]]:
     return frames
 
 
-_STYLE = """body{font-family:sans-serif;margin:2em;color:#222}table{border-collapse:collapse;width:100%}
-td,th{border:1px solid #ccc;padding:4px 8px;text-align:left;vertical-align:top}
-.pass{color:#1a7f37}.fail{color:#c62828;font-weight:bold}.skip{color:#9a6700}code{font-size:90%}
-.frames td{font-family:monospace;font-size:85%}.c2s{background:#f3f8ff}.s2c{background:#f6fff3}"""
+def _frame_views(report: ProbeReport, frames: dict[int, list[FrameRow]]) -> dict[str, Any]:
+    """Each recorded case's connection, for the page's frame view."""
+    start = min((rows[0].t_ns for rows in frames.values() if rows), default=0)
+    views = {}
+    for case in report.cases:
+        rows = frames.get(case.conn) if case.conn is not None else None
+        if rows:
+            views[f"conn-{case.conn}"] = {"title": f"{case.id}: connection {case.conn}", "rows": [
+                {"i": r.index, "t": round((r.t_ns - start) / 1e9, 6), "dir": r.direction, "kind": r.kind,
+                 "text": r.text, "hex": r.hex, "size": r.size, "meaning": printable(r.meaning), "section": r.section,
+                 "rules": list(r.rules)} for r in rows]}
+    return views
 
 
-def _case_row(case: CaseResult, linked: bool) -> str:
-    e = html.escape
-    notes = [f"<code>{e(f.rule)}</code> {e(f.detail)}" for f in case.findings]
-    notes += [e(case.reason)] if case.reason else []
-    frames = f' <a href="#conn-{case.conn}">frames (connection {case.conn})</a>' if linked else ""
-    return (f'<tr id="case-{e(case.id)}"><td class="{case.verdict}">{case.verdict}</td><td><code>{e(case.id)}</code>'
-            f"{frames}</td><td>{e(case.title)}</td><td>{'<br>'.join(notes)}</td></tr>")
-
-
-def _frames_table(conn: int, rows: list[FrameRow], cases: list[CaseResult]) -> str:
-    e = html.escape
-    which = ", ".join(f'<a href="#case-{e(c.id)}"><code>{e(c.id)}</code></a>' for c in cases)
-    body = "".join(f'<tr class="{d}"><td>{d}</td><td>{e(raw)}</td><td>{e(what)}</td><td>{e("; ".join(vs))}</td></tr>'
-                   for d, raw, what, vs in rows)
-    return (f'<h3 id="conn-{conn}">Connection {conn} ({which})</h3><table class="frames">'
-            f"<tr><th>dir</th><th>bytes</th><th>meaning</th><th>rules broken</th></tr>{body}</table>")
+def html_cases(cases: list[CaseResult], views: dict[str, Any], table_id: str = "cases") -> dict[str, Any]:
+    """The case index: a row per case (section, verdict, id, title, findings),
+    each linked to its connection's frames; shared by probe and fuzz pages."""
+    rows = []
+    for case in cases:
+        notes = [f"{f.rule}: {f.detail}" for f in case.findings] + ([case.reason] if case.reason else [])
+        key = f"conn-{case.conn}"
+        linked = key in views
+        rows.append(row([case.spec, str(case.verdict), case.id, case.title, "; ".join(notes),
+                         f"connection {case.conn}" if linked else ""],
+                        key if linked else None, anchor=f"case-{case.id}"))
+    return table(table_id, [column("section", "spec section"), column("verdict", "verdict", "sev"),
+                            column("case", "case", "code"), column("title", "title"),
+                            column("findings", "findings"), column("frames", "frames", "frames")],
+                 rows, ("section", "verdict"))
 
 
 def _html(report: ProbeReport, frames: dict[int, list[FrameRow]]) -> str:
-    e = html.escape
-    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{e(heading(report))}</title>"
-             f"<style>{_STYLE}</style></head><body><h1>{e(heading(report))}</h1>",
-             f"<p class='{'fail' if report.failed else 'pass'}'>{e(totals(report))}</p>"]
-    for section, cases in report.by_section().items():
-        parts.append(f"<h2>{e(section)}</h2><table><tr><th>verdict</th><th>case</th><th>title</th><th>findings</th></tr>")
-        parts += [_case_row(case, case.conn is not None and case.conn in frames) for case in cases]
-        parts.append("</table>")
-    if frames:
-        by_conn: dict[int, list[CaseResult]] = {}
-        for case in report.cases:
-            if case.conn is not None:
-                by_conn.setdefault(case.conn, []).append(case)
-        parts.append(f"<h2>Frames</h2><p>From {e(report.recording or 'the recording')}, decoded.</p>")
-        parts += [_frames_table(conn, frames[conn], by_conn[conn]) for conn in sorted(by_conn) if conn in frames]
-    parts.append("</body></html>")
-    return "\n".join(parts) + "\n"
+    views = _frame_views(report, frames)
+    failed = [c for c in report.cases if c.verdict is Outcome.FAIL]
+    sections: list[dict[str, Any]] = []
+    if failed:
+        sections.append({"id": "failures", "title": "Failures", "table": html_cases(failed, views, "failures")})
+    sections.append({"id": "index", "title": "Cases by spec section", "table": html_cases(
+        [c for cases in report.by_section().values() for c in cases], views)})
+    lines = [text(f"Recording: {report.recording}" if report.recording else "Not recorded (--record keeps the "
+                  "frames, and links each case to them).", "note")]
+    return page(heading(report), {"heading": heading(report),
+                                  "verdict": {"passed": not report.failed,
+                                              "text": f"{'FAIL' if report.failed else 'PASS'}: {totals(report)}"},
+                                  "lines": lines, "sections": sections, "frames": views})
