@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.report_page import page_data, sections, table_rows
 from tests.cli_support import run_cli
 from whiztap.sniffer.fuzz.findings import write
 from whiztap.sniffer.fuzz.run import FuzzOptions, FuzzReport, Fuzzer
@@ -215,3 +216,19 @@ def test_a_bad_output_folder_is_one_line_and_status_2(simulator, tmp_path):
     (tmp_path / "old" / "finding-1.mcap").write_bytes(b"")
     ran = run_cli("fuzz", "server", target, "--budget", 5, "-o", tmp_path / "old")
     assert ran.returncode == 2 and "--force" in ran.stderr
+
+
+def test_the_html_page_lists_each_finding_with_its_minimal_session(simulator, tmp_path):
+    seed, executions, kind, rule = EVERY_BUG["bad-config"]
+    ran = run_cli("fuzz", "server", simulator("bad-config"), "--budget", 300, "--executions", executions,
+                  "--seed", seed, "--deadline", 0.2, "-o", tmp_path / "out", "--format", "html",
+                  env={"WHIZTAP_PASSWORD": PASSWORD})
+    assert ran.returncode == 1, ran.stderr
+    data = page_data(ran.stdout)
+    assert data["verdict"] == {"passed": False, "text": "FAIL: 1 finding"}
+    [finding] = table_rows(sections(data)["findings"])
+    assert (finding["kind"], finding["rule"]) == (kind, rule)
+    [linked] = sections(data)["findings"]["table"]["rows"]
+    session = data["frames"][linked["f"]]["rows"]
+    assert any(rule in frame["rules"] for frame in session)  # the frame that breaks it, decoded, one click away
+    assert PASSWORD not in ran.stdout

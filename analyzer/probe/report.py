@@ -152,18 +152,19 @@ def read_frames(path: str) -> dict[int, list[FrameRow]]:
     return frames
 
 
+def frame_view(title: str, rows: list[FrameRow]) -> dict[str, Any]:
+    """One connection's frames for the page's frame view, times from its first."""
+    start = rows[0].t_ns if rows else 0
+    return {"title": printable(title), "rows": [
+        {"i": r.index, "t": round((r.t_ns - start) / 1e9, 6), "dir": r.direction, "kind": r.kind, "text": r.text,
+         "hex": r.hex, "size": r.size, "meaning": printable(r.meaning), "section": r.section, "rules": list(r.rules)}
+        for r in rows]}
+
+
 def _frame_views(report: ProbeReport, frames: dict[int, list[FrameRow]]) -> dict[str, Any]:
     """Each recorded case's connection, for the page's frame view."""
-    start = min((rows[0].t_ns for rows in frames.values() if rows), default=0)
-    views = {}
-    for case in report.cases:
-        rows = frames.get(case.conn) if case.conn is not None else None
-        if rows:
-            views[f"conn-{case.conn}"] = {"title": f"{case.id}: connection {case.conn}", "rows": [
-                {"i": r.index, "t": round((r.t_ns - start) / 1e9, 6), "dir": r.direction, "kind": r.kind,
-                 "text": r.text, "hex": r.hex, "size": r.size, "meaning": printable(r.meaning), "section": r.section,
-                 "rules": list(r.rules)} for r in rows]}
-    return views
+    return {f"conn-{case.conn}": frame_view(f"{case.id}: connection {case.conn}", frames[case.conn])
+            for case in report.cases if case.conn is not None and frames.get(case.conn)}
 
 
 def html_cases(cases: list[CaseResult], views: dict[str, Any], table_id: str = "cases") -> dict[str, Any]:

@@ -85,9 +85,28 @@ async def _fuzz(options: FuzzOptions, command: str | None, directory: Path, prog
     return await Fuzzer(options, server, save, progress).run()
 
 
+def _html(report: FuzzReport) -> str:
+    """The HTML page, each finding's minimal session read back from its recording."""
+    from whiztap.analyzer.fuzz.report import render_html
+    from whiztap.analyzer.probe.report import read_frames
+    from whiztap.analyzer.recording.scan import RecordingError
+
+    sessions = {}
+    for found in report.findings:
+        try:
+            by_conn = read_frames(found.recording)
+        except (RecordingError, OSError):
+            continue  # the page says the finding has no session to show
+        sessions[found.id] = [r for conn in sorted(by_conn) for r in by_conn[conn]]
+    return render_html(report.to_json(), sessions)
+
+
 def _print(report: FuzzReport, fmt: str, quiet: bool, verbose: bool) -> None:
     if fmt == "json":
         click.echo(json.dumps(report.to_json(), indent=2))  # JSON escapes every control character itself
+        return
+    if fmt == "html":
+        click.echo(_html(report), nl=False)
         return
     for found in report.findings:
         v = found.verdict
@@ -124,7 +143,8 @@ def _print(report: FuzzReport, fmt: str, quiet: bool, verbose: bool) -> None:
 @click.option("--run", "command", default=None, metavar="CMD",
               help="Start the server with this command line, wait until HOST:PORT accepts, and restart "
                    "it after each crash (without it, a server that stops accepting ends the run).")
-@click.option("--format", "fmt", type=click.Choice(["text", "json"]), default="text", show_default=True)
+@click.option("--format", "fmt", type=click.Choice(["text", "json", "html"]), default="text", show_default=True,
+              help="html: the findings on one interactive page, each with its minimal session's frames.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress and no summary: only the findings.")
 @click.option("-v", "--verbose", is_flag=True, help="Also each finding's frames.")
 def server_command(address: tuple[str, int], password: str | None, budget: float, seed: int,
