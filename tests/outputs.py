@@ -19,9 +19,9 @@ fails a test rather than going unchecked:
   Foxglove live, the recorder's terminal, scripts' log lines), read by the
   end-to-end tests.
 
-A leak is any ``WINDOW`` bytes of the password in a row, as text or as the
-base64 characters they fix at any alignment (reads and frames carry their
-bytes in base64).
+A leak is any ``WINDOW`` bytes of the password in a row, as text, in hex, or
+as the base64 characters they fix at any alignment (reads and frames carry
+their bytes in base64).
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ def leak_forms(secret: bytes = SECRET, window: int = WINDOW) -> set[str]:
     for i in range(len(secret) - window + 1):
         piece = secret[i:i + window]
         forms.add(piece.decode("latin-1"))
+        forms.update((piece.hex(), piece.hex(" ")))  # the HTML frame view shows bytes in hex too
         for pad in range(3):
             encoded = base64.b64encode(b"\0" * pad + piece).decode()
             first, last = -(-8 * pad // 6), 8 * (pad + window) // 6  # characters made of the piece's bits only
