@@ -442,7 +442,8 @@ def test_reports_on_recordings_without_interventions_are_as_before():
     they are when samples are regenerated).  The changes since: each
     violation in the JSON says its side; and (issue 26, a deliberate edit of
     the file) rule details in the spec's words, a fixed field cited in its
-    message's section, counts that agree with their nouns."""
+    message's section, counts that agree with their nouns; (issue 30) each
+    violation's item index."""
     before = json.loads((DATA / "reports-before-middle.json").read_text())
     for command, expected in before.items():
         result = run_cli(*command.split())
@@ -451,6 +452,7 @@ def test_reports_on_recordings_without_interventions_are_as_before():
             report = json.loads(output)
             for v in report["violations"]:
                 assert v.pop("side") == side_of(v["rule_id"], v["dir"])
+                assert v.pop("index") >= 0
             output = json.dumps(report, indent=2) + "\n"
         assert _normalized(output) == _normalized(expected), command
 

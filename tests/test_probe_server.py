@@ -20,7 +20,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from whiztap.analyzer.probe.judging import PROBE_RULES, Trace, judge
 from whiztap.analyzer.probe.model import CaseResult, Outcome, ProbeReport
-from whiztap.analyzer.probe.report import FORMATS, read_frames, render
+from whiztap.analyzer.analysis.frame_context import read_frames
+from whiztap.analyzer.probe.report import FORMATS, render
 from whiztap.analyzer.probe.server_cases import catalogue, select
 from whiztap.analyzer.probe.server_plan import Mode, Target
 from whiztap.analyzer.protocol.observations import Direction

@@ -20,13 +20,16 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from whiztap.analyzer.analysis.facts import NS, RAW_KEPT, ViolationRecord
 from whiztap.analyzer.protocol.describe import meaning
 from whiztap.analyzer.protocol.observations import Observation
-from whiztap.analyzer.protocol.session import Limits
 from whiztap.analyzer.protocol.text import escape
-from whiztap.analyzer.traffic import TrafficEvent
+
+if TYPE_CHECKING:
+    from whiztap.analyzer.protocol.session import Limits
+    from whiztap.analyzer.traffic import TrafficEvent
 
 AROUND = 3  # items shown before and after the violating one
 TEXT_SHOWN = 240  # characters of an item's escaped bytes in the frame view
@@ -161,3 +164,25 @@ def collect(listed: list[ViolationRecord], scan: Callable[[str], Iterable[Traffi
             views[(file, conn)] = frames
             hits.update({number: ((file, conn), index) for number, index in frames.hits.items()})
     return views, hits
+
+
+def read_frames(path: str) -> dict[int, list[FrameRow]]:
+    """Every connection's items in a recording, decoded and judged by the
+    analyzer's session, by connection number."""
+    from whiztap.analyzer.protocol.session import Session
+    from whiztap.analyzer.recording.sets import find_one, scan_set
+    from whiztap.analyzer.traffic import Traffic
+
+    traffic = Traffic(Session)
+    frames: dict[int, list[FrameRow]] = {}
+
+    def add(conn: int, events: list) -> None:
+        for event in events:
+            if isinstance(event, Observation):
+                frames.setdefault(conn, []).append(row_of(event))
+
+    for event in scan_set(find_one([path])):
+        add(event.conn, traffic.receive(event))
+    for conn, events in traffic.finish():
+        add(conn, events)
+    return frames

@@ -11,8 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from whiztap.analyzer.analysis.frame_context import FrameRow
-from whiztap.analyzer.analysis.report.page import column, page, row, table, text
-from whiztap.analyzer.probe.report import frame_view
+from whiztap.analyzer.analysis.report.page import column, frame_view, page, row, table, text
 from whiztap.analyzer.protocol.text import plural
 
 

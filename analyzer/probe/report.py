@@ -29,10 +29,9 @@ from collections.abc import Iterator
 from typing import Any
 
 from whiztap.analyzer.probe.model import CaseResult, Outcome, ProbeReport
-from whiztap.analyzer.analysis.frame_context import FrameRow, row_of
-from whiztap.analyzer.analysis.report.page import column, page, row, table, text
-from whiztap.analyzer.protocol.observations import Observation
-from whiztap.analyzer.protocol.text import plural, printable
+from whiztap.analyzer.analysis.frame_context import FrameRow, read_frames
+from whiztap.analyzer.analysis.report.page import column, frame_view, page, row, table, text
+from whiztap.analyzer.protocol.text import plural
 
 FORMATS = ("text", "json", "junit", "markdown", "html")
 _COLOURS = {Outcome.PASS: "32", Outcome.FAIL: "31", Outcome.SKIP: "33"}  # ANSI: green, red, yellow
@@ -128,37 +127,6 @@ def _junit(report: ProbeReport) -> str:
 
 
 # -- HTML ---------------------------------------------------------------------------------------------
-
-
-def read_frames(path: str) -> dict[int, list[FrameRow]]:
-    """Every connection's items in a recording, decoded and judged by the
-    analyzer's session, by connection number."""
-    from whiztap.analyzer.protocol.session import Session
-    from whiztap.analyzer.recording.sets import find_one, scan_set
-    from whiztap.analyzer.traffic import Traffic
-
-    traffic = Traffic(Session)
-    frames: dict[int, list[FrameRow]] = {}
-
-    def add(conn: int, events: list) -> None:
-        for event in events:
-            if isinstance(event, Observation):
-                frames.setdefault(conn, []).append(row_of(event))
-
-    for event in scan_set(find_one([path])):
-        add(event.conn, traffic.receive(event))
-    for conn, events in traffic.finish():
-        add(conn, events)
-    return frames
-
-
-def frame_view(title: str, rows: list[FrameRow]) -> dict[str, Any]:
-    """One connection's frames for the page's frame view, times from its first."""
-    start = rows[0].t_ns if rows else 0
-    return {"title": printable(title), "rows": [
-        {"i": r.index, "t": round((r.t_ns - start) / 1e9, 6), "dir": r.direction, "kind": r.kind, "text": r.text,
-         "hex": r.hex, "size": r.size, "meaning": printable(r.meaning), "section": r.section, "rules": list(r.rules)}
-        for r in rows]}
 
 
 def _frame_views(report: ProbeReport, frames: dict[int, list[FrameRow]]) -> dict[str, Any]:

@@ -88,7 +88,7 @@ async def _fuzz(options: FuzzOptions, command: str | None, directory: Path, prog
 def _html(report: FuzzReport) -> str:
     """The HTML page, each finding's minimal session read back from its recording."""
     from whiztap.analyzer.fuzz.report import render_html
-    from whiztap.analyzer.probe.report import read_frames
+    from whiztap.analyzer.analysis.frame_context import read_frames
     from whiztap.analyzer.recording.scan import RecordingError
 
     sessions = {}

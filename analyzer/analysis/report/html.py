@@ -16,8 +16,8 @@ from collections import Counter
 from typing import Any
 
 from whiztap.analyzer.analysis.facts import NS, Analysis
-from whiztap.analyzer.analysis.frame_context import AROUND, FrameRow, Hits, Views
-from whiztap.analyzer.analysis.report.page import column, page, row, table, text
+from whiztap.analyzer.analysis.frame_context import AROUND, Hits, Views
+from whiztap.analyzer.analysis.report.page import column, frame_view, page, row, table, text
 from whiztap.analyzer.analysis.report.text import FLEET_COLUMNS, FLEET_DAY_COLUMNS, duration, fleet_rows, headline
 from whiztap.analyzer.analysis.report.text import verdict as verdict_words
 from whiztap.analyzer.analysis.report.words import (
@@ -106,13 +106,8 @@ def _plots(analysis: Analysis, report: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def _frames(views: Views, start: int) -> dict[str, Any]:
-    def shown(r: FrameRow) -> dict[str, Any]:
-        return {"i": r.index, "t": round((r.t_ns - start) / NS, 6), "dir": r.direction, "kind": r.kind,
-                "text": r.text, "hex": r.hex, "size": r.size, "meaning": printable(r.meaning), "section": r.section,
-                "rules": list(r.rules)}
-
-    return {_view_key(file, conn): {"title": printable(f"{file} · connection {conn}"),
-                                    "rows": [shown(r) for _, r in sorted(frames.rows.items())]}
+    return {_view_key(file, conn): frame_view(f"{file} · connection {conn}",
+                                              [frames.rows[i] for i in sorted(frames.rows)], start)
             for (file, conn), frames in views.items()}
 
 

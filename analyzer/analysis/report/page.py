@@ -22,6 +22,7 @@ from functools import cache
 from importlib import resources
 from typing import Any
 
+from whiztap.analyzer.analysis.frame_context import FrameRow
 from whiztap.analyzer.protocol.text import printable
 
 UPLOT_VERSION = "1.6.32"
@@ -81,3 +82,14 @@ def table(table_id: str, columns: list[dict[str, str]], rows: list[dict[str, Any
 def text(words: str, css: str | None = None) -> dict[str, Any]:
     """A paragraph, its characters shown as every output shows them (``printable``)."""
     return {"text": printable(words), "class": css} if css else {"text": printable(words)}
+
+
+def frame_view(title: str, rows: list[FrameRow], start: int | None = None) -> dict[str, Any]:
+    """One connection's frames for the page's frame view, times from ``start``
+    (by default its first item's)."""
+    if start is None:
+        start = rows[0].t_ns if rows else 0
+    return {"title": printable(title), "rows": [
+        {"i": r.index, "t": round((r.t_ns - start) / 1e9, 6), "dir": r.direction, "kind": r.kind, "text": r.text,
+         "hex": r.hex, "size": r.size, "meaning": printable(r.meaning), "section": r.section, "rules": list(r.rules)}
+        for r in rows]}
