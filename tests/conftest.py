@@ -18,6 +18,8 @@ import tempfile
 
 import pytest
 
+from tests.browser_support import browser  # noqa: F401 - the fixture the HTML reports' tests take
+
 _RUNTIME = "XDG_RUNTIME_DIR"
 _runtime_key = pytest.StashKey[tuple[str, "str | None"]]()
 

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.report_page import page_data
+
 FLEET_DOC = (Path(__file__).parent.parent / "docs" / "fleet.md").read_text()
 _PORT = re.compile(r"(?:--port |--listen 127\.0\.0\.1:|--dashboard-address 127\.0\.0\.1:|tcp://127\.0\.0\.1:)(\d+)")
 
@@ -67,7 +69,8 @@ def test_the_fleet_session_runs_as_written(tmp_path: Path) -> None:
     assert statuses == ["exit 0"] * 6, (out, err)
     assert "Fleet by robot" in out and "Fleet by firmware" in out and "Traceback" not in err, err
     assert "Dask: 2 workers at tcp://127.0.0.1:" in err
-    assert "<h2>Fleet by robot / firmware</h2>" in (tmp_path / "fleet.html").read_text()
+    titles = [s["title"] for s in page_data((tmp_path / "fleet.html").read_text())["sections"]]
+    assert "Fleet by robot / firmware" in titles
     report = json.loads((tmp_path / "fleet.json").read_text())
     assert [g["group"]["robot"] for g in report["fleet"][0]["groups"]] == ["r1", "r2"]
     assert all(f.startswith("file:///") for f in report["files"])
