@@ -302,6 +302,16 @@ def render(report: dict[str, Any], analysis: Analysis, fmt: str, to_terminal: bo
         from whiztap.analyzer.analysis.report.junit import render_junit
 
         return render_junit(report)
+    if fmt == "sarif":
+        import json
+
+        from whiztap.analyzer.analysis.report.sarif import render_sarif
+
+        return json.dumps(render_sarif(report), indent=2) + "\n"
+    if fmt == "github":
+        from whiztap.analyzer.analysis.report.github import render_github
+
+        return render_github(report)
     if fmt == "markdown":
         from whiztap.analyzer.analysis.report.text import render_markdown
 
