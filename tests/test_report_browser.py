@@ -129,9 +129,12 @@ def test_ten_thousand_violations_open_and_answer(browser, tmp_path):
     opened = open_report(browser, out)
     page = opened.page
     assert opened.console_errors == [] and opened.page_errors == []
-    assert page.locator("#t-violations .count").inner_text() == "10,000 rows"
+    assert page.locator("#t-violations .count").inner_text() == "10,000 rows (the first 1,000 shown)"
+    assert page.locator("#t-violations tbody tr").count() == 1_000  # the rest drawn on demand
+    page.click("#t-violations button.more")
+    assert page.locator("#t-violations tbody tr").count() == 2_000
     page.select_option("#t-violations select[data-filter=rule]", "PW-RANGE-SENSOR")
-    assert page.locator("#t-violations .count").inner_text() == "2,500 of 10,000 rows"
+    assert page.locator("#t-violations .count").inner_text() == "2,500 of 10,000 rows (the first 2,000 shown)"
     page.click("#t-violations th[data-key=t]")
     page.click("#t-violations th[data-key=t]")
     t = column_of(page, "violations", "t")

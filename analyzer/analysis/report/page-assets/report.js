@@ -5,6 +5,7 @@
   "use strict";
   const data = JSON.parse(document.getElementById("whiztap-data").textContent);
   const SEVERITY = { error: 3, warning: 2, info: 1, fail: 3, skip: 2, pass: 1 };
+  const PAGE_ROWS = 1000;  // rows of a table drawn at first, and added by "show more"
 
   function el(tag, attrs, ...children) {
     const node = document.createElement(tag);
@@ -46,7 +47,7 @@
   function table(spec) {
     const wrap = el("div", { class: "table", id: "t-" + spec.id });
     const controls = el("div", { class: "controls" });
-    const state = { sort: null, desc: false, filters: {}, text: "" };
+    const state = { sort: null, desc: false, filters: {}, text: "", limit: PAGE_ROWS };
     const columns = spec.columns;
     for (const key of spec.filters || []) {
       const index = columns.findIndex((c) => c.key === key);
@@ -97,17 +98,24 @@
         th.classList.toggle("desc", i === state.sort && state.desc);
       });
       const fragment = document.createDocumentFragment();
-      for (const i of order) {
+      for (const i of order.slice(0, state.limit)) {
         const row = spec.rows[i];
         const tr = el("tr", { id: row.id || null, "data-row": i });
         columns.forEach((column, c) => tr.append(cell(column, row.c[c], row)));
         fragment.append(tr);
       }
       body.replaceChildren(fragment);
-      count.textContent = order.length === spec.rows.length
-        ? `${spec.rows.length.toLocaleString("en-US")} rows`
-        : `${order.length.toLocaleString("en-US")} of ${spec.rows.length.toLocaleString("en-US")} rows`;
+      const n = (x) => x.toLocaleString("en-US");
+      count.textContent = (order.length === spec.rows.length ? `${n(spec.rows.length)} rows`
+                                                             : `${n(order.length)} of ${n(spec.rows.length)} rows`)
+        + (order.length > state.limit ? ` (the first ${n(state.limit)} shown)` : "");
+      more.hidden = order.length <= state.limit;
     }
+    // Only the first rows of a long table are drawn (sorting and filtering
+    // still go through all of them): 10,000 rows of cells cost seconds to lay out.
+    const more = el("button", { class: "more", onclick: () => { state.limit += PAGE_ROWS; draw(); } },
+                    `show ${PAGE_ROWS.toLocaleString("en-US")} more`);
+    wrap.append(more);
     draw();
     return wrap;
   }
