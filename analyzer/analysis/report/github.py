@@ -17,7 +17,7 @@ from collections import Counter
 from typing import Any
 
 from whiztap.analyzer.analysis.report.text import headline, verdict
-from whiztap.analyzer.protocol.text import printable
+from whiztap.analyzer.protocol.text import plural, printable
 
 MAX_ANNOTATIONS = 50
 COMMANDS = {"error": "error", "warning": "warning", "info": "notice"}
@@ -52,10 +52,10 @@ def render_github(report: dict[str, Any]) -> str:
     left = Counter(command for _, command, _ in entries[MAX_ANNOTATIONS:])
     unlisted = report["violations_not_listed"]
     if left or unlisted:
-        counts = ", ".join(f"{n:,} {command}" for command, n in sorted(left.items()))
-        more = f"{counts} annotation(s) left out" if counts else ""
+        counts = ", ".join(plural(n, f"{command} annotation") for command, n in sorted(left.items()))
+        more = f"left out: {counts}" if counts else ""
         if unlisted:
-            more = "; ".join(filter(None, (more, f"{unlisted:,} more violations counted but not listed")))
+            more = "; ".join(filter(None, (more, f"{plural(unlisted, 'more violation')} counted but not listed")))
         lines.append(f"::notice title=whiztap::{escape_data(more + ' (the full report: --format html or json)')}")
     outcome = "notice" if report["passed"] else "error"
     said = printable(f"{verdict(report)} ({headline(report)})")

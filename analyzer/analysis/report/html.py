@@ -141,7 +141,7 @@ def _fleet(table_data: dict[str, Any], n: int) -> dict[str, Any]:
         name = printable(f"{key} {group_name(table_data, g)}")
         subsections.append({"id": f"fleet{n}-{len(subsections)}", "title": name,
                             "paragraphs": [text(f"{plural(g['recordings'], 'recording')}, "
-                                                f"{g['violations']} violations: {rules}; "
+                                                f"{plural(g['violations'], 'violation')}: {rules}; "
                                                 f"{'passes' if g['passed'] else 'FAILS'}.",
                                                 None if g["passed"] else "warning")]})
     return {"id": f"fleet{n}", "title": title, "table": table(f"fleet{n}", head, [row(r) for r in groups],

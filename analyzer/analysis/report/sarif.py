@@ -24,7 +24,7 @@ from urllib.parse import quote
 from whiztap.analyzer import __version__
 from whiztap.analyzer.analysis.report.text import verdict
 from whiztap.analyzer.protocol.rules import RULES
-from whiztap.analyzer.protocol.text import printable
+from whiztap.analyzer.protocol.text import plural, printable
 
 SCHEMA = "https://json.schemastore.org/sarif-2.1.0.json"
 LEVELS = {"error": "error", "warning": "warning", "info": "note"}
@@ -75,7 +75,7 @@ def render_sarif(report: dict[str, Any]) -> dict[str, Any]:
         failing = section.get("fail_on_interventions", False)
         results += [_result(v, True, failing) for v in section["effects"]]
     if report["violations_not_listed"]:
-        notes.append(f"{report['violations_not_listed']:,} more violations were counted but not listed")
+        notes.append(f"{plural(report['violations_not_listed'], 'more violation')} counted but not listed")
     notes += [f"not in this report: {u['error']}" for u in report.get("unreadable", ())]
     invocation: dict[str, Any] = {"executionSuccessful": not report.get("unreadable")}
     if notes:
