@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.outputs import assert_no_leak, leak_forms
 from tests.report_page import page_data, sections, table_rows
 from tests.cli_support import run_cli
 from whiztap.sniffer.fuzz.findings import write
@@ -231,4 +232,4 @@ def test_the_html_page_lists_each_finding_with_its_minimal_session(simulator, tm
     [linked] = sections(data)["findings"]["table"]["rows"]
     session = data["frames"][linked["f"]]["rows"]
     assert any(rule in frame["rules"] for frame in session)  # the frame that breaks it, decoded, one click away
-    assert PASSWORD not in ran.stdout
+    assert_no_leak("fuzz server --format html", ran.stdout + ran.stderr, leak_forms(PASSWORD.encode()))
