@@ -350,3 +350,18 @@ def _damaged(tmp_path, how):
 @pytest.mark.parametrize("command", ["analyze", "cat", "info"])
 def test_damaged_files_are_one_line_errors(tmp_path, how, command):
     assert "damaged" in one_line_error(run_cli(command, _damaged(tmp_path, how)))
+
+
+def test_counts_over_time_draw_every_bin_and_group_a_long_span():
+    """A quiet stretch is drawn at 0, never bridged by a line (it was: seconds
+    with nothing in them were left out), and a long span is grouped into bins."""
+    from collections import Counter
+
+    from whiztap.analyzer.analysis.report.html import PLOT_BINS, _counts_plot
+
+    plot = _counts_plot("v", "title", "violations", {"error": Counter({0: 2, 3: 1})})
+    assert plot["series"][0]["points"] == [[0, 2], [1, 0], [2, 0], [3, 1]]
+    assert plot["y_label"] == "violations per second"
+    day = _counts_plot("v", "title", "items", {"command": Counter({0: 1, 86_399: 5})})
+    points = day["series"][0]["points"]
+    assert len(points) <= PLOT_BINS and sum(n for _, n in points) == 6 and day["y_label"] == "items per 44 s"

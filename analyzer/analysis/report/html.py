@@ -66,25 +66,44 @@ def _violations_table(table_id: str, report: dict[str, Any], violations: list[di
     return table(table_id, columns, rows, filters)
 
 
+PLOT_BINS = 2_000  # at most this many bins on a plot of counts over time
+
+
+def _counts_plot(plot_id: str, title: str, what: str, counts: dict[str, Counter],
+                 colours: dict[str, str] | None = None) -> dict[str, Any]:
+    """Counts per second (from 0) as a plot with every bin drawn, empty ones
+    at 0, so that a line never bridges a quiet stretch; seconds are grouped
+    into bins of several when the span has more than ``PLOT_BINS``."""
+    span = max((s for c in counts.values() for s in c), default=0) + 1
+    width = -(-span // PLOT_BINS)
+    unit = "second" if width == 1 else f"{width} s"
+    series = []
+    for label, by_second in counts.items():
+        bins: Counter = Counter()
+        for second, n in by_second.items():
+            bins[second // width] += n
+        series.append({"label": label, "color": (colours or {}).get(label),
+                       "points": [[b * width, bins.get(b, 0)] for b in range(-(-span // width))]})
+    return {"id": plot_id, "title": title, "x_label": "seconds from start", "y_label": f"{what} per {unit}",
+            "series": series}
+
+
 def _plots(analysis: Analysis, report: dict[str, Any]) -> list[dict[str, Any]]:
     """Each plot's series as points: what the page draws with uPlot."""
     start = analysis.first_ns or 0
     plots = []
     kinds = sorted({k for c in analysis.frames_per_second.values() for k in c})
     if kinds:
-        seconds = sorted(analysis.frames_per_second)
-        plots.append({"id": "items", "title": "Items over time, by kind", "x_label": "seconds from start",
-                      "y_label": "items per second", "fill": 0, "series": [
-                          {"label": kind, "points": [[s - start // NS, analysis.frames_per_second[s].get(kind, 0)]
-                                                     for s in seconds]} for kind in kinds]})
+        first = start // NS
+        plots.append(_counts_plot("items", "Items over time, by kind", "items", {
+            kind: Counter({s - first: n for s, c in analysis.frames_per_second.items() if (n := c.get(kind, 0))})
+            for kind in kinds}))
     if report["violations"]:
         per_second: dict[str, Counter] = {}
         for v in report["violations"]:
             per_second.setdefault(v["severity"], Counter())[int(v["t_rel_s"])] += 1
-        plots.append({"id": "violations", "title": "Violations over time (those listed), by severity",
-                      "x_label": "seconds from start", "y_label": "violations per second", "fill": 0,
-                      "series": [{"label": sev, "color": _SEVERITY_COLOURS.get(sev), "points": sorted(counts.items())}
-                                 for sev, counts in sorted(per_second.items())]})
+        plots.append(_counts_plot("violations", "Violations over time (those listed), by severity", "violations",
+                                  dict(sorted(per_second.items())), _SEVERITY_COLOURS))
     both = bool(analysis.client_latencies)
     for latencies, title, plot_id in (
             (analysis.latencies, f"Response latency, {SERVER_LATENCY}" if both else "Response latency", "latency"),

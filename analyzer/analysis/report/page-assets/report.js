@@ -106,8 +106,9 @@
       }
       body.replaceChildren(fragment);
       const n = (x) => x.toLocaleString("en-US");
-      count.textContent = (order.length === spec.rows.length ? `${n(spec.rows.length)} rows`
-                                                             : `${n(order.length)} of ${n(spec.rows.length)} rows`)
+      const rows = (x) => `${n(x)} ${x === 1 ? "row" : "rows"}`;
+      count.textContent = (order.length === spec.rows.length ? rows(spec.rows.length)
+                                                             : `${n(order.length)} of ${rows(spec.rows.length)}`)
         + (order.length > state.limit ? ` (the first ${n(state.limit)} shown)` : "");
       more.hidden = order.length <= state.limit;
     }
@@ -135,7 +136,8 @@
     const opts = {
       title: spec.title, width: width, height: 260,
       scales: {
-        x: { time: false, distr: spec.x_log ? 3 : 1 },
+        x: spec.x_log ? { time: false, distr: 3 }
+                      : { time: false, range: (u, min, max) => (min === max ? [min - 1, max + 1] : [min, max]) },
         y: { range: (u, min, max) => [0, max > 0 ? max * 1.05 : 1] },
       },
       axes: [{ label: spec.x_label }, { label: spec.y_label, size: 60 }],
