@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from tests.replay_support import until_closed
 from tests.cli_support import run_cli
 from tests.record_support import LOCAL, op_event
+from tests.report_page import page_data, sections
 from tests.streams import stream_pieces
 from whiztap.analyzer.analysis.analyzer import MIDDLE_NOTE, Analyzer
 from whiztap.analyzer.analysis.exchanges import load_exchanges
@@ -178,6 +179,22 @@ def test_a_checksum_the_proxy_broke_is_an_effect_not_a_violation_of_either_side(
     [effect] = section["effects"]
     assert (effect["seen_by"], effect["dir"]) == ("server", "c2s")
     assert report["set_configurations"][0]["ok"]  # what the client sent was right
+
+
+@pytest.mark.slow
+def test_the_html_report_links_an_effect_to_its_frames(tmp_path):
+    async def session(client: Client, rec) -> None:
+        await client.fetch_configuration()
+        await client.set_configuration((SetConfigEntry(1, 12, 2),))
+        await client.sensor(12)
+
+    path = _record(tmp_path / "corrupt.mcap", ("corrupt dir:c2s kind:set_config",), session)
+    out = tmp_path / "report.html"
+    assert run_cli("analyze", path, "--format", "html", "-o", out).returncode == 0
+    data = page_data(out.read_text())
+    [row] = sections(data)["effects"]["table"]["rows"]
+    [hit] = [f for f in data["frames"][row["f"]]["rows"] if f["i"] == row["h"]]
+    assert hit["kind"] == "set_config" and hit["rules"] == []  # as the client sent it: right before the proxy broke it
 
 
 # -- what follows from a frame the proxy made or changed: effects, not violations ------------------------

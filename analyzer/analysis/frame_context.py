@@ -8,7 +8,9 @@ at most ``2 * AROUND + 1`` items per listed violation, shared where windows
 overlap.
 
 A violation is found by its connection and the item's position in the
-session (``ViolationRecord.index``) with the same bytes.  With the proxy in
+session (``ViolationRecord.index``) with the same bytes; an intervention's
+effect at its position whatever its bytes (the proxy may have changed them:
+the view shows what the sender sent).  With the proxy in
 the middle a violation may have been judged by one side's session, whose
 positions differ: it is then found by its bytes and direction, the first such
 item at or after the time it was judged minus ``SLACK_NS``.  A violation not
@@ -92,7 +94,8 @@ class _Finder:
     def take(self, obs: Observation) -> None:
         hit = False
         for number, v in self.by_index.pop(obs.index, ()):
-            if obs.item.raw[:RAW_KEPT] == v.raw and str(obs.direction) == v.direction:
+            same_place = str(obs.direction) == v.direction
+            if same_place and (obs.item.raw[:RAW_KEPT] == v.raw or v.cause):
                 self.out.hits[number] = obs.index
                 hit = True
             else:

@@ -163,15 +163,17 @@ def analyze_command(inputs: tuple[str, ...], fmt: str, output: str | None, force
 
 def _frames_reader(found: list[RecordingSet], checksum_rule: str, limits: Limits,
                    ignore: frozenset[str]) -> FramesOf:
-    """For the HTML report: the frames around the listed violations, read
-    again from the recordings (``frame_context``), once the report asks."""
+    """For the HTML report: the frames around the listed violations and
+    effects, read again from the recordings (``frame_context``), once the
+    report asks."""
     def read(analysis: Analysis) -> tuple[Views, Hits]:
         from whiztap.analyzer.analysis.frame_context import collect
         from whiztap.analyzer.analysis.report.content import listed_violations
 
         by_name = {str(r.name): r for r in found}
-        return collect(listed_violations(analysis, ignore), lambda file: scan_recording(by_name[file]),
-                       checksum_rule, limits)
+        # the effects of the proxy's interventions are numbered after the violations (render_html)
+        return collect(listed_violations(analysis, ignore) + analysis.effects,
+                       lambda file: scan_recording(by_name[file]), checksum_rule, limits)
 
     return read
 

@@ -130,8 +130,10 @@ def _frames(views: Views, start: int) -> dict[str, Any]:
             for (file, conn), frames in views.items()}
 
 
-def _interventions(report: dict[str, Any]) -> dict[str, Any]:
+def _interventions(report: dict[str, Any], hits: Hits) -> dict[str, Any]:
+    """The causes, and the effects (numbered after the violations in ``hits``)."""
     heading, rows = intervention_lines(report)
+    listed = len(report["violations"])
     section: dict[str, Any] = {"id": "interventions", "title": "Interventions", "paragraphs": [text(heading + ".")]}
     if rows:
         section["table"] = table("causes", [column("cause", "cause", "code"), column("count", "count", "num"),
@@ -142,7 +144,8 @@ def _interventions(report: dict[str, Any]) -> dict[str, Any]:
         after = [text(f"… and {plural(effects['effects_not_listed'], 'more effect')} not listed.")] \
             if effects["effects_not_listed"] else []
         section["sections"] = [{"id": "effects", "title": EFFECTS_HEADING,
-                                "table": _violations_table("effects", report, effects["effects"], {}),
+                                "table": _violations_table("effects", report, effects["effects"], {
+                                    n - listed: hit for n, hit in hits.items() if n >= listed}),
                                 "after": after}]
     return section
 
@@ -221,8 +224,8 @@ def _tables(report: dict[str, Any]) -> list[dict[str, Any]]:
 def render_html(report: dict[str, Any], analysis: Analysis, views: Views | None = None,
                 hits: Hits | None = None) -> str:
     """The page.  ``views``/``hits`` (``frame_context``): the frames kept and,
-    by violation number in ``report["violations"]``, its view and item; without
-    them the violations link to nothing."""
+    by number (``report["violations"]``, then the interventions' effects),
+    its view and item; without them nothing links to frames."""
     hits = hits or {}
     rule = report["checksum_rule"]
     lines = [text(f"{headline(report)}. Spec Rev {report['spec_revision']}; checksum rule {rule['name']} "
@@ -239,7 +242,7 @@ def render_html(report: dict[str, Any], analysis: Analysis, views: Views | None 
                      "table": _violations_table("violations", report, listed, hits) if listed else None,
                      "after": more})
     if "interventions" in report:
-        sections.append(_interventions(report))
+        sections.append(_interventions(report, hits))
     plots = _plots(analysis, report)
     if plots:
         sections.append({"id": "plots", "title": "Plots", "plots": plots, "paragraphs": [
